@@ -1,0 +1,533 @@
+"""One typed configuration for every process, with the paper's values as defaults.
+
+A config is a tree of dataclasses. It is built from a preset, then a TOML file,
+then command-line flags named after the dotted path of a field
+(``--learner.lr 3e-4``, ``--exploration.bmc.alpha0 25``). Every value is
+checked against its field's type and range; a bad one raises ``ConfigError``
+whose one-line message names the key.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A configuration value, file or flag is wrong; the message names the key."""
+
+
+STRATEGIES = (
+    "constant",
+    "decreasing",
+    "vdbe",
+    "bmc",
+    "softmax",
+    "max_boltzmann",
+    "vdbe_softmax",
+)
+
+
+@dataclass
+class NetworkConfig:
+    frame_height: int = 66
+    frame_width: int = 200
+    frame_channels: int = 3
+    lstm_units: int = 512
+    n_actions: int = 5
+    device: str = "auto"  # "auto" picks CUDA when available, else CPU
+
+    def validate(self) -> None:
+        _positive(self, "frame_height", "frame_width", "frame_channels", "n_actions")
+        _check(self.lstm_units > 0 and self.lstm_units % 2 == 0, "lstm_units", "must be a positive even number (it is split in two dueling halves)")
+        _check(self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda"), "device", "must be 'auto', 'cpu' or 'cuda[:N]'")
+
+
+@dataclass
+class ReplayConfig:
+    capacity: int = 1000  # episodes; the paper studies 1,000 and 2,000
+    memory_budget_mb: float = 8192.0  # compressed frames plus metadata
+    max_message_mb: float = 64.0  # larger episode messages are rejected
+    stats_period_s: float = 5.0
+    seed: int = 0
+
+    def validate(self) -> None:
+        _positive(self, "capacity", "memory_budget_mb", "max_message_mb", "stats_period_s")
+
+
+@dataclass
+class LearnerConfig:
+    lr: float = 1e-4
+    gamma: float = 0.99
+    tau: float = 0.001  # soft target update before every gradient step
+    batch_size: int = 10  # traces per batch
+    trace_length: int = 10  # steps per trace (trace_length + 1 observations)
+    n_mask: int = 7  # leading errors of each trace that are masked out
+    env_steps_per_update: float = 4.0
+    ratio_tolerance: float = 0.1  # learner may run this share ahead of the ratio
+    start_episodes: int = 999  # updates start once the replay holds this many
+    start_steps: int = 50_000  # used instead by the decreasing schedule
+    total_env_steps: int = 1_000_000
+    weights_every: int = 50  # broadcast weights every K updates
+    checkpoint_every: int = 5_000  # updates
+    prefetch: int = 2  # batch requests kept in flight
+    log_period_s: float = 10.0
+    seed: int = 0
+
+    def validate(self) -> None:
+        _positive(self, "lr", "batch_size", "trace_length", "env_steps_per_update",
+                  "total_env_steps", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
+        _check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
+        _check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
+        _check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
+        _check(self.ratio_tolerance >= 0, "ratio_tolerance", "must be >= 0")
+        _check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
+        _check(self.start_steps >= 0, "start_steps", "must be >= 0")
+
+
+@dataclass
+class ConstantEpsilonConfig:
+    epsilon: float = 0.05
+
+    def validate(self) -> None:
+        _probability(self, "epsilon")
+
+
+@dataclass
+class DecreasingEpsilonConfig:
+    eps_start: float = 1.0
+    eps_last: float = 0.1
+    eps_end: float = 0.01
+    n_start: int = 50_000
+    n_ann: int = 400_000
+    n_max: int = 1_000_000
+
+    def validate(self) -> None:
+        _probability(self, "eps_start", "eps_last", "eps_end")
+        _check(self.n_start >= 0, "n_start", "must be >= 0")
+        _check(self.n_ann > 0, "n_ann", "must be > 0")
+        _check(self.n_max > self.n_start + self.n_ann, "n_max", "must exceed n_start + n_ann")
+
+
+@dataclass
+class VdbeConfig:
+    lam: float = 0.2  # 1 / number of actions
+    nu: float = 1.0  # inverse sensitivity
+    eps0: float = 1.0
+
+    def validate(self) -> None:
+        _probability(self, "lam", "eps0")
+        _positive(self, "nu")
+
+
+@dataclass
+class BmcConfig:
+    alpha0: float = 25.0
+    beta0: float = 25.01  # the authors' code; the paper says 25
+    a0: float = 250.0
+    b0: float = 250.0
+    mu0: float = 0.0
+    tau0: float = 1.0
+
+    def validate(self) -> None:
+        _positive(self, "alpha0", "beta0", "a0", "b0", "tau0")
+
+
+@dataclass
+class SoftmaxConfig:
+    kappa: float = 0.1  # temperature
+
+    def validate(self) -> None:
+        _positive(self, "kappa")
+
+
+@dataclass
+class MaxBoltzmannConfig:
+    epsilon: float = 0.05
+    kappa: float = 0.1
+
+    def validate(self) -> None:
+        _probability(self, "epsilon")
+        _positive(self, "kappa")
+
+
+@dataclass
+class ExplorationConfig:
+    strategy: str = "bmc"
+    constant: ConstantEpsilonConfig = field(default_factory=ConstantEpsilonConfig)
+    decreasing: DecreasingEpsilonConfig = field(default_factory=DecreasingEpsilonConfig)
+    vdbe: VdbeConfig = field(default_factory=VdbeConfig)
+    bmc: BmcConfig = field(default_factory=BmcConfig)
+    softmax: SoftmaxConfig = field(default_factory=SoftmaxConfig)
+    max_boltzmann: MaxBoltzmannConfig = field(default_factory=MaxBoltzmannConfig)
+
+    def validate(self) -> None:
+        _check(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
+
+
+@dataclass
+class EnvConfig:
+    speed: float = 10.0  # m/s, held constant
+    max_steer_deg: float = 30.0
+    policy_frequency: int = 5  # decisions per second
+    reward_beta: float = 0.8  # r = exp(-beta * d)
+    offroad_distance: float = 3.7  # m from the centre-line that ends an episode
+    max_steps: int = 2000  # a cut, not a terminal state
+    camera_ahead_m: float = 30.0  # metres of road visible ahead of the car
+    camera_behind_m: float = 2.0
+    camera_width_m: float = 24.0
+    render_scale: float = 8.0  # pixels per metre of the pre-drawn world
+
+    def validate(self) -> None:
+        _positive(self, "speed", "max_steer_deg", "policy_frequency", "reward_beta",
+                  "offroad_distance", "max_steps", "camera_ahead_m", "camera_width_m", "render_scale")
+        _check(self.camera_behind_m >= 0, "camera_behind_m", "must be >= 0")
+
+
+@dataclass
+class ActorConfig:
+    num_actors: int = 0  # local stack: 0 means one per spare core
+    actor_id: int = 0
+    log_period_s: float = 10.0
+
+    def validate(self) -> None:
+        _check(self.num_actors >= 0, "num_actors", "must be >= 0")
+        _check(self.actor_id >= 0, "actor_id", "must be >= 0")
+        _positive(self, "log_period_s")
+
+
+@dataclass
+class EvaluationConfig:
+    episodes_per_start: int = 30
+    max_steps: int = 2000
+    workers: int = 2
+    envs_per_worker: int = 4
+    reward_bins: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 0.75, 1.0])
+
+    def validate(self) -> None:
+        _positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker")
+        bins = self.reward_bins
+        _check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
+
+
+@dataclass
+class TransportConfig:
+    mode: str = "peer"  # "peer", "client" or "router"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    multicast_scouting: bool = False
+    namespace: str = "d3rqn"
+
+    def validate(self) -> None:
+        _check(self.mode in ("peer", "client", "router"), "mode", "must be 'peer', 'client' or 'router'")
+        for key in ("listen", "connect"):
+            for endpoint in getattr(self, key):
+                _check("/" in endpoint, key, f"endpoint {endpoint!r} must look like 'tcp/127.0.0.1:7447'")
+        _check(_is_key_chunk(self.namespace), "namespace", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+
+
+@dataclass
+class RunConfig:
+    name: str = "default"
+    seed: int = 0
+    runs_dir: str = "runs"
+
+    def validate(self) -> None:
+        _check(_is_key_chunk(self.name), "name", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+
+
+@dataclass
+class Config:
+    run: RunConfig = field(default_factory=RunConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    transport: TransportConfig = field(default_factory=TransportConfig)
+
+    def validate(self) -> "Config":
+        for path, section in _sections(self):
+            if section is self:
+                continue
+            try:
+                section.validate()
+            except ConfigError as error:
+                raise ConfigError(f"{path}.{error}" if path else str(error)) from None
+        return self
+
+
+# --- presets -----------------------------------------------------------------
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # The paper's values are the dataclass defaults.
+    "paper": {},
+    # Seconds-long runs for tests: tiny buffer, short episodes, early updates.
+    "smoke": {
+        "replay.capacity": 50,
+        "replay.stats_period_s": 0.5,
+        "learner.batch_size": 4,
+        "learner.start_episodes": 2,
+        "learner.start_steps": 100,
+        "learner.total_env_steps": 2_000,
+        "learner.weights_every": 5,
+        "learner.checkpoint_every": 50,
+        "learner.log_period_s": 1.0,
+        "exploration.decreasing.n_start": 100,
+        "exploration.decreasing.n_ann": 800,
+        "exploration.decreasing.n_max": 2_000,
+        "env.max_steps": 60,
+        "actor.log_period_s": 1.0,
+        "evaluation.episodes_per_start": 1,
+        "evaluation.max_steps": 60,
+        "evaluation.workers": 1,
+        "evaluation.envs_per_worker": 2,
+    },
+}
+
+
+# --- building a config ---------------------------------------------------------
+
+def load_config(preset: str = "paper", toml_path: str | Path | None = None,
+                overrides: dict[str, Any] | None = None) -> Config:
+    """Preset, then TOML file, then overrides (dotted keys); validated."""
+    if preset not in PRESETS:
+        raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    config = Config()
+    for key, value in PRESETS[preset].items():
+        set_value(config, key, value)
+    if toml_path is not None:
+        for key, value in _flatten(_read_toml(Path(toml_path))).items():
+            set_value(config, key, value)
+    for key, value in (overrides or {}).items():
+        set_value(config, key, value)
+    return config.validate()
+
+
+def set_value(config: Config, dotted_key: str, value: Any) -> None:
+    """Set one field by its dotted path, converting and type-checking the value."""
+    *parents, name = dotted_key.split(".")
+    target: Any = config
+    for part in parents:
+        if not dataclasses.is_dataclass(target) or part not in _field_types(target):
+            raise ConfigError(f"{dotted_key}: unknown key")
+        target = getattr(target, part)
+    types = _field_types(target) if dataclasses.is_dataclass(target) else {}
+    if name not in types or dataclasses.is_dataclass(types[name]):
+        raise ConfigError(f"{dotted_key}: unknown key")
+    setattr(target, name, _coerce(dotted_key, types[name], value))
+
+
+def flat_items(config: Any, prefix: str = "") -> dict[str, Any]:
+    """Every leaf field as {dotted key: value}."""
+    items: dict[str, Any] = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            items.update(flat_items(value, key + "."))
+        else:
+            items[key] = value
+    return items
+
+
+def to_toml(config: Config) -> str:
+    """The config as a TOML document that load_config reads back unchanged."""
+    lines: list[str] = []
+    for path, section in _sections(config):
+        leaves = {f.name: getattr(section, f.name) for f in dataclasses.fields(section)
+                  if not dataclasses.is_dataclass(getattr(section, f.name))}
+        if not path or not leaves:
+            continue
+        lines.append(f"[{path}]")
+        lines.extend(f"{name} = {_toml_value(value)}" for name, value in leaves.items())
+        lines.append("")
+    return "\n".join(lines)
+
+
+def from_dict(nested: dict[str, Any]) -> Config:
+    """A config from the nested dict of a TOML document or a checkpoint."""
+    config = Config()
+    for key, value in _flatten(nested).items():
+        set_value(config, key, value)
+    return config.validate()
+
+
+def to_dict(config: Config) -> dict[str, Any]:
+    return dataclasses.asdict(config)
+
+
+# --- command line ------------------------------------------------------------------
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """Adds --preset, --config, --dump-config and one flag per config field."""
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS), help="base values (default: paper)")
+    parser.add_argument("--config", metavar="FILE.toml", help="TOML file applied over the preset")
+    parser.add_argument("--dump-config", action="store_true", help="print the resolved config as TOML and exit")
+    defaults = flat_items(Config())
+    group = parser.add_argument_group("configuration (dotted keys; applied over preset and file)")
+    for key, default in defaults.items():
+        shown = _toml_value(default)
+        group.add_argument(f"--{key}", dest=_dest(key), default=None, metavar=_metavar(default),
+                           help=f"default {shown}")
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    overrides = {key: getattr(args, _dest(key)) for key in flat_items(Config())
+                 if getattr(args, _dest(key), None) is not None}
+    return load_config(args.preset, args.config, overrides)
+
+
+def parse_config_or_exit(parser: argparse.ArgumentParser, argv: list[str] | None = None
+                         ) -> tuple[argparse.Namespace, Config]:
+    """Parses argv; a config error is one line on stderr and exit code 2, not a traceback.
+
+    With --dump-config, prints the TOML and exits 0.
+    """
+    args = parser.parse_args(argv)
+    try:
+        config = config_from_args(args)
+    except ConfigError as error:
+        print(f"{parser.prog}: config error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if args.dump_config:
+        print(to_toml(config), end="")
+        raise SystemExit(0)
+    return args, config
+
+
+# --- helpers -------------------------------------------------------------------------
+
+def _sections(config: Any, path: str = ""):
+    yield path, config
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _sections(value, f"{path}.{f.name}" if path else f.name)
+
+
+def _field_types(instance: Any) -> dict[str, Any]:
+    return typing.get_type_hints(type(instance))
+
+
+def _coerce(key: str, kind: Any, value: Any) -> Any:
+    origin = typing.get_origin(kind)
+    if origin is list:
+        (item_kind,) = typing.get_args(kind)
+        if isinstance(value, str):
+            value = [part for part in (p.strip() for p in value.split(",")) if part]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        return [_coerce(key, item_kind, item) for item in value]
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
+            return value.lower() in ("true", "1", "yes", "on")
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    if kind is int:
+        if isinstance(value, bool):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        if isinstance(value, int):
+            return value
+        if isinstance(value, str):
+            try:
+                return int(value.replace("_", ""))
+            except ValueError:
+                pass
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    if kind is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{key}: expected a number, got {value!r}") from None
+        if not math.isfinite(number):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        return number
+    if kind is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    raise ConfigError(f"{key}: unsupported field type {kind!r}")
+
+
+def _flatten(nested: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in nested.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path}: not found") from None
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"config file {path}: invalid TOML ({error})") from None
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def _dest(key: str) -> str:
+    return "cfg__" + key.replace(".", "__")
+
+
+def _metavar(default: Any) -> str:
+    if isinstance(default, bool):
+        return "BOOL"
+    if isinstance(default, int):
+        return "INT"
+    if isinstance(default, float):
+        return "FLOAT"
+    if isinstance(default, list):
+        return "A,B,..."
+    return "STR"
+
+
+def _check(condition: bool, key: str, message: str) -> None:
+    if not condition:
+        raise ConfigError(f"{key}: {message}")
+
+
+def _positive(section: Any, *names: str) -> None:
+    for name in names:
+        value = getattr(section, name)
+        _check(value > 0, name, f"must be > 0, got {value!r}")
+
+
+def _probability(section: Any, *names: str) -> None:
+    for name in names:
+        value = getattr(section, name)
+        _check(0.0 <= value <= 1.0, name, f"must lie in [0, 1], got {value!r}")
+
+
+def _is_key_chunk(text: str) -> bool:
+    return bool(text) and not any(char in text for char in "/*$?# ")
