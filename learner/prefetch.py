@@ -1,0 +1,73 @@
+"""Keeps trace-batch requests in flight so an update never waits on the network."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import queue
+import threading
+import time
+from typing import Callable
+
+from common.wire import TraceBatch, TraceBatchRequest
+
+log = logging.getLogger("learner.prefetch")
+
+RETRY_PAUSE_S = 0.5
+
+
+class Prefetcher:
+    """`depth` worker threads, each asking for the next batch as soon as its last one is queued.
+
+    `fetch(request)` is the transport call (a Zenoh get in production, a function
+    in tests); it returns a TraceBatch or None (no reply, timeout, empty replay).
+    """
+
+    def __init__(self, fetch: Callable[[TraceBatchRequest], TraceBatch | None],
+                 batch_size: int, trace_length: int, depth: int) -> None:
+        self._fetch = fetch
+        self._batch_size = batch_size
+        self._trace_length = trace_length
+        self._ready: queue.Queue[TraceBatch] = queue.Queue(maxsize=depth)
+        self._ids = itertools.count()
+        self._ids_lock = threading.Lock()
+        self._stop = threading.Event()
+        self.wait_s = 0.0  # time the consumer spent waiting for a batch
+        self._threads = [threading.Thread(target=self._work, daemon=True, name=f"prefetch-{n}")
+                         for n in range(depth)]
+        for thread in self._threads:
+            thread.start()
+
+    def next(self, stop: threading.Event) -> TraceBatch | None:
+        """The next batch, or None once `stop` is set."""
+        started = time.monotonic()
+        try:
+            while not stop.is_set():
+                try:
+                    return self._ready.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+            return None
+        finally:
+            self.wait_s += time.monotonic() - started
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            with self._ids_lock:
+                request_id = next(self._ids)
+            batch = self._fetch(TraceBatchRequest(request_id=request_id, batch_size=self._batch_size,
+                                                  trace_length=self._trace_length))
+            if batch is None:
+                self._stop.wait(RETRY_PAUSE_S)
+                continue
+            while not self._stop.is_set():
+                try:
+                    self._ready.put(batch, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue

@@ -1,0 +1,105 @@
+"""The episode store: whole episodes in, random traces out (Bootstrapped Random Updates).
+
+Episodes keep their frames compressed exactly as they arrived; a sampled trace
+refers to the stored frame blobs, so overlapping traces never copy frames.
+Eviction is oldest-first, bounded by an episode count and a byte budget.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.wire import Episode, FrameStack, TraceBatch
+
+
+@dataclass(frozen=True)
+class StoredEpisode:
+    frames: FrameStack  # L + 1 observations, compressed
+    actions: np.ndarray  # int64 [L]
+    rewards: np.ndarray  # float32 [L]
+    weights_version: np.ndarray  # int64 [L]
+    terminated: bool  # the last step ended in a terminal state
+    nbytes: int
+
+    @property
+    def length(self) -> int:
+        return len(self.actions)
+
+    @classmethod
+    def from_episode(cls, episode: Episode) -> "StoredEpisode":
+        arrays = (episode.actions, episode.rewards, episode.weights_version)
+        nbytes = episode.observations.nbytes + sum(array.nbytes for array in arrays)
+        return cls(episode.observations, *arrays, bool(episode.terminated), nbytes)
+
+
+class EpisodeStore:
+    """Holds up to `capacity` episodes within `budget_bytes`; samples traces uniformly."""
+
+    def __init__(self, capacity: int, budget_bytes: int, trace_length: int, seed: int = 0) -> None:
+        self.capacity = capacity
+        self.budget_bytes = budget_bytes
+        self.trace_length = trace_length
+        self._episodes: deque[StoredEpisode] = deque()
+        self._rng = np.random.default_rng(seed)
+        self.bytes = 0
+        self.frames = 0
+        self.inserted = 0
+        self.evicted = 0
+        self.short_dropped = 0
+        self.env_steps_total = 0  # every step received, stored or not: the system's step count
+
+    def __len__(self) -> int:
+        return len(self._episodes)
+
+    def add(self, episode: Episode) -> bool:
+        """Stores the episode unless it is too short to hold one trace; evicts the oldest to fit."""
+        self.env_steps_total += len(episode.actions)
+        if len(episode.actions) < self.trace_length:
+            self.short_dropped += 1
+            return False
+        stored = StoredEpisode.from_episode(episode)
+        self._episodes.append(stored)
+        self.bytes += stored.nbytes
+        self.frames += len(stored.frames)
+        self.inserted += 1
+        while len(self._episodes) > self.capacity or (self.bytes > self.budget_bytes and len(self._episodes) > 1):
+            self._evict_oldest()
+        return True
+
+    def sample(self, batch_size: int, request_id: int = 0) -> TraceBatch:
+        """B traces of T steps: an episode uniformly, then a start uniformly inside it."""
+        if not self._episodes:
+            raise LookupError("the replay holds no episode long enough to sample")
+        steps = self.trace_length
+        picks = self._rng.integers(len(self._episodes), size=batch_size)
+        stacks, actions, rewards, terminated, versions = [], [], [], [], []
+        for pick in picks:
+            episode = self._episodes[int(pick)]
+            start = int(self._rng.integers(episode.length - steps + 1))
+            stop = start + steps
+            stacks.append(episode.frames.select(range(start, stop + 1)))
+            actions.append(episode.actions[start:stop])
+            rewards.append(episode.rewards[start:stop])
+            versions.append(episode.weights_version[start:stop])
+            ends_episode = np.zeros(steps, dtype=bool)
+            ends_episode[-1] = episode.terminated and stop == episode.length
+            terminated.append(ends_episode)
+        return TraceBatch(
+            request_id=request_id,
+            observations=FrameStack.concat(stacks),
+            actions=np.stack(actions).astype(np.int64),
+            rewards=np.stack(rewards).astype(np.float32),
+            terminated=np.stack(terminated),
+            weights_version=np.stack(versions).astype(np.int64),
+            env_steps_total=self.env_steps_total,
+            episodes_stored=len(self._episodes),
+        )
+
+    def _evict_oldest(self) -> None:
+        oldest = self._episodes.popleft()
+        self.bytes -= oldest.nbytes
+        self.frames -= len(oldest.frames)
+        self.evicted += 1
