@@ -1,0 +1,327 @@
+import dataclasses
+
+import msgpack
+import numpy as np
+import pytest
+import zstandard
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from common.wire import (
+    MESSAGE_TYPES, SCHEMA_VERSION, Episode, FrameStack, Heartbeat, Stats, TraceBatch, Weights, WireError,
+    decode, encode,
+)
+from wire_examples import (
+    SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_trace_batch, random_frames,
+)
+
+EXAMPLES = example_messages()
+
+
+# --- round trips ---------------------------------------------------------------------
+
+def test_examples_cover_every_message_type():
+    assert {type(message).__name__ for message in EXAMPLES} == set(MESSAGE_TYPES)
+
+
+@pytest.mark.parametrize("message", EXAMPLES, ids=lambda m: type(m).__name__)
+def test_every_message_type_round_trips(message):
+    decoded = decode(encode(message))
+    assert_messages_equal(message, decoded)
+
+
+@pytest.mark.parametrize("message", EXAMPLES, ids=lambda m: type(m).__name__)
+def test_decode_with_the_expected_type_accepts_it(message):
+    assert type(decode(encode(message), type(message))) is type(message)
+
+
+def test_the_envelope_carries_schema_version_and_type_tag():
+    envelope = msgpack.unpackb(encode(EXAMPLES[-1]))
+    assert envelope["schema"] == SCHEMA_VERSION and envelope["type"] == "Heartbeat"
+
+
+def test_episode_of_real_frame_size_round_trips_and_rebuilds_the_frames():
+    frames = random_frames(4, shape=(66, 200, 3))
+    episode = dataclasses.replace(example_episode(steps=3), observations=FrameStack.from_array(frames))
+    decoded = decode(encode(episode), Episode)
+    np.testing.assert_array_equal(decoded.observations.decode(), frames)
+    assert decoded.observations.frame_shape == (66, 200, 3)
+
+
+def test_encode_converts_lists_and_same_kind_arrays_to_the_declared_dtypes():
+    episode = dataclasses.replace(example_episode(steps=2), actions=[1, 4], rewards=[0.5, 1.0],
+                                  weights_version=np.array([3, 4], dtype=np.int32))
+    decoded = decode(encode(episode), Episode)
+    assert decoded.actions.dtype == np.int64 and decoded.rewards.dtype == np.float32
+    assert decoded.weights_version.dtype == np.int64
+    np.testing.assert_array_equal(decoded.actions, [1, 4])
+
+
+def test_numpy_scalars_in_dicts_are_encoded_as_plain_values():
+    stats = Stats(source="learner", time=1.0, values={"loss": np.float32(0.5), "updates": np.int64(3)})
+    assert decode(encode(stats)).values == {"loss": 0.5, "updates": 3}
+
+
+def test_trace_batch_observations_array_is_batch_major():
+    batch = example_trace_batch(batch=2, length=3)
+    frames = batch.observations.decode()
+    array = decode(encode(batch), TraceBatch).observations_array()
+    assert array.shape == (2, 4, *SMALL_FRAME)
+    np.testing.assert_array_equal(array[1, 0], frames[4])
+
+
+# --- frame stacks ----------------------------------------------------------------------
+
+FRAMES = random_frames(7)
+STACK = FrameStack.from_array(FRAMES)
+
+
+@pytest.mark.parametrize("start, stop", [(0, None), (2, 5), (6, 7), (3, 3), (-2, None), (4, 100)])
+def test_partial_decode_equals_slicing(start, stop):
+    np.testing.assert_array_equal(STACK.decode(start, stop), FRAMES[start:stop])
+
+
+def test_frame_stack_reports_length_shape_and_compressed_bytes():
+    assert len(STACK) == 7 and STACK.frame_shape == SMALL_FRAME
+    assert STACK.nbytes == sum(len(blob) for blob in STACK.blobs) > 0
+
+
+def test_select_shares_blob_objects_in_the_given_order():
+    chosen = STACK.select([5, 1, 1])
+    assert [id(blob) for blob in chosen.blobs] == [id(STACK.blobs[i]) for i in (5, 1, 1)]
+    np.testing.assert_array_equal(chosen.decode(), FRAMES[[5, 1, 1]])
+
+
+def test_concat_shares_blob_objects_and_keeps_order():
+    other = FrameStack.from_array(random_frames(2, seed=9))
+    joined = FrameStack.concat([STACK.select([0, 1]), other])
+    assert joined.blobs[0] is STACK.blobs[0] and joined.blobs[2] is other.blobs[0]
+    np.testing.assert_array_equal(joined.decode(), np.concatenate([FRAMES[:2], other.decode()]))
+
+
+def test_concat_refuses_different_frame_shapes():
+    other = FrameStack.from_array(random_frames(1, shape=(2, 2, 3)))
+    with pytest.raises(WireError, match="frame shapes differ"):
+        FrameStack.concat([STACK, other])
+
+
+def test_from_array_refuses_non_uint8_frames():
+    with pytest.raises(WireError, match="uint8"):
+        FrameStack.from_array(FRAMES.astype(np.float32))
+
+
+def test_a_blob_of_another_shape_fails_to_decode():
+    wrong = FrameStack.from_array(random_frames(1, shape=(2, 2, 3))).blobs[0]
+    stack = FrameStack([STACK.blobs[0], wrong], SMALL_FRAME)
+    np.testing.assert_array_equal(stack.decode(0, 1), FRAMES[:1])  # the good frame alone still decodes
+    with pytest.raises(WireError, match="frame 1: blob declares 12 bytes"):
+        stack.decode()
+
+
+def test_a_corrupted_blob_fails_its_checksum():
+    blob = bytearray(STACK.blobs[0])
+    blob[-6] ^= 0xFF  # inside the payload, past the header
+    with pytest.raises(WireError, match="frame 0: bad zstd blob"):
+        FrameStack([bytes(blob)], SMALL_FRAME).decode()
+    with pytest.raises(WireError):
+        FrameStack([bytes(blob)], SMALL_FRAME).verify()
+
+
+def test_trailing_bytes_after_a_blob_are_refused():
+    with pytest.raises(WireError, match="bad zstd blob"):
+        FrameStack([STACK.blobs[0] + b"junk"], SMALL_FRAME).decode()
+
+
+# --- malformed input ---------------------------------------------------------------------
+
+def tampered(message, edit) -> bytes:
+    """The message encoded, its msgpack envelope changed by edit (in place), re-packed."""
+    envelope = msgpack.unpackb(encode(message))
+    edit(envelope)
+    return msgpack.packb(envelope, use_bin_type=True)
+
+
+def set_field(name, value):
+    return lambda envelope: envelope["fields"].__setitem__(name, value)
+
+
+def set_array_part(name, part, value):
+    return lambda envelope: envelope["fields"][name].__setitem__(part, value)
+
+
+def zstd_blob(size: int) -> bytes:
+    return zstandard.ZstdCompressor().compress(bytes(size))
+
+
+def nested_list(depth: int) -> list:
+    value = [1]
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
+HEARTBEAT = Heartbeat(role="learner", process_id="p1", time=1.0, seq=2)
+EPISODE = example_episode(steps=4)
+BATCH = example_trace_batch(batch=2, length=3)
+WEIGHTS = Weights(version=1, tensors={"w": np.ones((2, 2), dtype=np.float32)})
+NAN32 = np.array([np.nan], dtype=np.float32).tobytes()
+
+MALFORMED = {
+    "schema version": (HEARTBEAT, lambda e: e.__setitem__("schema", SCHEMA_VERSION + 1), "schema version 2 is not supported"),
+    "schema version as bool": (HEARTBEAT, lambda e: e.__setitem__("schema", True), "schema version True"),
+    "unknown type": (HEARTBEAT, lambda e: e.__setitem__("type", "Teleport"), "unknown message type 'Teleport'"),
+    "envelope key missing": (HEARTBEAT, lambda e: e.pop("fields"), "expected a map with keys schema, type, fields"),
+    "fields not a map": (HEARTBEAT, lambda e: e.__setitem__("fields", [1, 2]), "Heartbeat: fields must be a map"),
+    "missing field": (HEARTBEAT, lambda e: e["fields"].pop("seq"), r"Heartbeat: missing field\(s\) seq"),
+    "extra field": (HEARTBEAT, set_field("colour", "red"), r"Heartbeat: unexpected field\(s\) colour"),
+    "string for int": (HEARTBEAT, set_field("seq", "8"), "Heartbeat.seq: expected an integer, got str"),
+    "bool for int": (HEARTBEAT, set_field("seq", True), "Heartbeat.seq: expected an integer, got bool"),
+    "int for float": (HEARTBEAT, set_field("time", 3), "Heartbeat.time: expected a float, got int"),
+    "bytes for str": (HEARTBEAT, set_field("role", b"actor"), "Heartbeat.role: expected a string, got bytes"),
+    "negative count": (HEARTBEAT, set_field("seq", -1), "Heartbeat.seq: -1 is outside"),
+    "int beyond int64": (HEARTBEAT, set_field("seq", 2**64 - 1), "is outside"),
+    "infinite time": (HEARTBEAT, set_field("time", float("inf")), "Heartbeat.time: must be finite"),
+    "epsilon above one": (EPISODE, set_field("epsilon", 1.5), r"Episode.epsilon: 1.5 is outside \[0.0, 1.0\]"),
+    "array dtype": (EPISODE, set_array_part("actions", "dtype", "int32"), "Episode.actions: expected dtype int64, got int32"),
+    "dtype not allowed": (EPISODE, set_array_part("actions", "dtype", "float16"), "'float16' is not one of"),
+    "array data short": (EPISODE, set_array_part("actions", "shape", [5]), "32 data bytes do not fill shape"),
+    "array ndim": (EPISODE, set_array_part("actions", "shape", [4, 1]), r"expected 1 dimensions, got shape \(4, 1\)"),
+    "negative dimension": (EPISODE, set_array_part("actions", "shape", [-4]), "non-negative integers"),
+    "array map keys": (EPISODE, lambda e: e["fields"]["actions"].pop("shape"), "expected an array map"),
+    "array data not bytes": (EPISODE, set_array_part("actions", "data", "abc"), "data must be bytes"),
+    "bool array byte": (BATCH, set_array_part("terminated", "data", b"\x00\x00\x02\x00\x00\x00"), "bytes other than 0 and 1"),
+    "nan reward": (EPISODE, set_array_part("rewards", "data", NAN32 * 4), "Episode.rewards: holds NaN"),
+    "nan weight": (WEIGHTS, lambda e: e["fields"]["tensors"]["w"].__setitem__("data", NAN32 * 4), "Weights.tensors.w: holds NaN"),
+    "empty tensor name": (WEIGHTS, lambda e: e["fields"]["tensors"].__setitem__("", e["fields"]["tensors"]["w"]), "non-empty strings"),
+    "created not a float": (WEIGHTS, set_field("created", "now"), "Weights.created: expected a float"),
+    "observation count": (EPISODE, lambda e: e["fields"]["observations"]["blobs"].pop(), "4 observations for 4 steps"),
+    "reward count": (EPISODE, set_array_part("rewards", "shape", [2, 2]), "Episode.rewards: expected 1 dimensions"),
+    "no steps": (EPISODE, lambda e: e["fields"].update(
+        actions={"dtype": "int64", "shape": [0], "data": b""}, rewards={"dtype": "float32", "shape": [0], "data": b""},
+        weights_version={"dtype": "int64", "shape": [0], "data": b""}), "at least one step"),
+    "negative action": (EPISODE, set_array_part("actions", "data", np.array([0, 1, -1, 2]).tobytes()), "negative action"),
+    "frame blob garbage": (EPISODE, lambda e: e["fields"]["observations"]["blobs"].__setitem__(1, b"garbage"),
+                           r"Episode.observations: frame 1: not a zstd frame"),
+    "frame blob size": (EPISODE, lambda e: e["fields"]["observations"]["blobs"].__setitem__(0, zstd_blob(10)),
+                        "frame 0: blob declares 10 bytes, shape"),
+    "frame shape rank": (EPISODE, lambda e: e["fields"]["observations"].__setitem__("shape", [6, 24]), "three positive integers"),
+    "frame shape huge": (EPISODE, lambda e: e["fields"]["observations"].__setitem__("shape", [4096, 4096, 3]), "exceeds"),
+    "frame blobs not bytes": (EPISODE, lambda e: e["fields"]["observations"].__setitem__("blobs", ["a"]), "list of bytes"),
+    "trace shape mismatch": (BATCH, set_array_part("rewards", "shape", [3, 2]), r"TraceBatch.rewards: shape \(3, 2\), expected \(2, 3\)"),
+    "terminal inside trace": (BATCH, set_array_part("terminated", "data", b"\x01\x00\x00\x00\x00\x00"),
+                              "terminal state before a trace's last step"),
+    "plain dict bytes key": (EXAMPLES[4], set_field("state", {b"k": 1}), "keys must be strings"),
+    "plain dict bytes value": (EXAMPLES[4], set_field("params", {"k": b"raw"}), "ExplorationState.params.k: bytes is not a plain value"),
+    "plain dict too deep": (EXAMPLES[4], set_field("state", {"k": nested_list(40)}), "nested deeper than 32"),
+    "counter text": (EXAMPLES[4], set_field("counters", {"steps": "ten"}), "ExplorationState.counters.steps: expected int or float"),
+    "stats bool value": (EXAMPLES[5], set_field("values", {"ok": True}), "Stats.values.ok: expected int, float or str, got bool"),
+    "stats list value": (EXAMPLES[5], set_field("values", {"xs": [1]}), "expected int, float or str, got list"),
+}
+
+
+@pytest.mark.parametrize("message, edit, error", MALFORMED.values(), ids=MALFORMED.keys())
+def test_malformed_message_gives_a_wire_error_naming_the_fault(message, edit, error):
+    with pytest.raises(WireError, match=error):
+        decode(tampered(message, edit))
+
+
+@pytest.mark.parametrize("data, error", [
+    (encode(HEARTBEAT)[:-3], "not a msgpack message"),
+    (encode(HEARTBEAT) + b"\x00", "not a msgpack message"),
+    (b"", "not a msgpack message"),
+    (msgpack.packb({1: 2}), "not a msgpack message"),  # integer map keys
+    (msgpack.packb([1, "Heartbeat", {}]), "not a wire message"),
+])
+def test_bytes_that_are_no_message_give_a_wire_error(data, error):
+    with pytest.raises(WireError, match=error):
+        decode(data)
+
+
+def test_decode_refuses_a_text_argument():
+    with pytest.raises(WireError, match="expected bytes, got str"):
+        decode("Heartbeat")
+
+
+def test_decode_refuses_an_unexpected_message_type():
+    with pytest.raises(WireError, match="expected message type Episode, got Heartbeat"):
+        decode(encode(HEARTBEAT), Episode)
+
+
+@pytest.mark.parametrize("message, error", [
+    (object(), "object is not a wire message type"),
+    (dataclasses.replace(EPISODE, actions=np.arange(4.0)), "Episode.actions: expected dtype int64, got float64"),
+    (dataclasses.replace(EPISODE, actions=np.arange(3)), "5 observations for 3 steps"),
+    (dataclasses.replace(EPISODE, rewards=np.full(4, np.inf)), "Episode.rewards: holds NaN or infinite"),
+    (Weights(version=1, tensors={"w": np.ones(2, dtype=np.float16)}), "dtype float16 is not one of"),
+    (Weights(version=1, tensors={"w": [[1.0], [1.0, 2.0]]}), "Weights.tensors.w: not an array"),
+    (Stats(source="s", time=1.0, values={"pair": (1, 2)}), "Stats.values.pair: expected int, float or str, got tuple"),
+    (dataclasses.replace(HEARTBEAT, seq=1.0), "Heartbeat.seq: expected an integer, got float"),
+])
+def test_encode_refuses_invalid_messages(message, error):
+    with pytest.raises(WireError, match=error):
+        encode(message)
+
+
+# --- property-based: no input escapes as anything but WireError -------------------------------
+
+ENCODINGS = [encode(message) for message in EXAMPLES]
+FUZZ = settings(max_examples=150, derandomize=True, database=None, deadline=None,
+                suppress_health_check=[HealthCheck.too_slow])
+
+
+def decode_everything(data: bytes) -> None:
+    """Decodes data and every frame in it; only WireError may come out."""
+    try:
+        message = decode(data)
+    except WireError:
+        return
+    for f in dataclasses.fields(message):
+        value = getattr(message, f.name)
+        if isinstance(value, FrameStack):
+            try:
+                value.decode()
+            except WireError:
+                pass
+
+
+@FUZZ
+@given(st.binary(max_size=300))
+def test_random_bytes_raise_only_wire_error(data):
+    decode_everything(data)
+
+
+@FUZZ
+@given(st.sampled_from(ENCODINGS), st.data())
+def test_bit_flips_raise_only_wire_error(data, draw):
+    flipped = bytearray(data)
+    for _ in range(draw.draw(st.integers(1, 4))):
+        position = draw.draw(st.integers(0, len(data) - 1))
+        flipped[position] ^= 1 << draw.draw(st.integers(0, 7))
+    decode_everything(bytes(flipped))
+
+
+@FUZZ
+@given(st.sampled_from(ENCODINGS), st.data())
+def test_truncations_and_insertions_raise_only_wire_error(data, draw):
+    position = draw.draw(st.integers(0, len(data)))
+    if draw.draw(st.booleans()):
+        mutated = data[:position]
+    else:
+        mutated = data[:position] + draw.draw(st.binary(min_size=1, max_size=16)) + data[position:]
+    decode_everything(mutated)
+
+
+MSGPACK_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats() | st.text(max_size=8) | st.binary(max_size=8),
+    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=4), children, max_size=4),
+    max_leaves=12,
+)
+
+
+@FUZZ
+@given(st.sampled_from(EXAMPLES), st.data())
+def test_any_value_in_any_field_raises_only_wire_error(message, draw):
+    field_names = [f.name for f in dataclasses.fields(message)]
+    name = draw.draw(st.sampled_from(field_names))
+    value = draw.draw(MSGPACK_VALUES)
+    decode_everything(tampered(message, set_field(name, value)))

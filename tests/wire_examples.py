@@ -1,0 +1,87 @@
+"""One valid instance of every wire message, and a field-by-field equality check (tests only)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from common.wire import (
+    Episode, EpisodeRecord, ExplorationState, FrameStack, Heartbeat, Message, Stats, TraceBatch,
+    TraceBatchRequest, Weights,
+)
+
+SMALL_FRAME = (6, 8, 3)
+
+
+def random_frames(count: int, shape=SMALL_FRAME, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (count, *shape), dtype=np.uint8)
+
+
+def example_episode(steps: int = 5, shape=SMALL_FRAME, seed: int = 0) -> Episode:
+    rng = np.random.default_rng(seed)
+    return Episode(
+        observations=FrameStack.from_array(random_frames(steps + 1, shape, seed)),
+        actions=rng.integers(0, 5, steps), rewards=rng.random(steps, dtype=np.float32),
+        terminated=True, truncated=False, actor_id=3, start_set="train", start_index=7,
+        weights_version=np.arange(steps, dtype=np.int64) + 40, epsilon=0.25, seed=-12, episode_index=9,
+    )
+
+
+def example_trace_batch(batch: int = 2, length: int = 3, shape=SMALL_FRAME, seed: int = 1) -> TraceBatch:
+    rng = np.random.default_rng(seed)
+    terminated = np.zeros((batch, length), dtype=bool)
+    terminated[0, -1] = True
+    return TraceBatch(
+        request_id=5, observations=FrameStack.from_array(random_frames(batch * (length + 1), shape, seed)),
+        actions=rng.integers(0, 5, (batch, length)), rewards=rng.random((batch, length), dtype=np.float32),
+        terminated=terminated, weights_version=np.full((batch, length), 8, dtype=np.int64),
+        env_steps_total=12_345, episodes_stored=17,
+    )
+
+
+def example_messages() -> list[Message]:
+    rng = np.random.default_rng(2)
+    return [
+        example_episode(),
+        TraceBatchRequest(request_id=5, batch_size=10, trace_length=10),
+        example_trace_batch(),
+        Weights(version=4, created=1_700_000_000.5, tensors={
+            "conv.weight": rng.standard_normal((4, 3, 2, 2), dtype=np.float32),
+            "scale": np.array(2.5),
+            "steps": np.arange(3, dtype=np.int32),
+            "mask": np.array([True, False]),
+            "empty": np.zeros((0, 2), dtype=np.float32),
+        }),
+        ExplorationState(strategy="bmc", params={"alpha0": 25.0, "nested": {"list": [1, None, "x", True]}},
+                         epsilon=0.5, kappa=0.0, started=True, counters={"steps": 10, "updates": 2.5},
+                         state={"alpha": 25.0, "beta": 25.01, "history": [[1.0, 2.0], []]}),
+        Stats(source="replay", time=12.5, values={"episodes": 3, "fill": 0.25, "state": "ok", "loss": float("nan")}),
+        EpisodeRecord(actor_id=1, episode_index=2, length=300, episode_return=120.5, collided=False,
+                      start_set="test", start_index=4, epsilon=0.05, weights_version=77, wall_time=12.0, time=99.0),
+        Heartbeat(role="actor", process_id="actor-1", time=3.25, seq=8),
+    ]
+
+
+def assert_messages_equal(left: Message, right: Message) -> None:
+    assert type(left) is type(right)
+    for f in dataclasses.fields(left):
+        _assert_values_equal(getattr(left, f.name), getattr(right, f.name), f.name)
+
+
+def _assert_values_equal(left, right, where: str) -> None:
+    if isinstance(left, FrameStack):
+        assert isinstance(right, FrameStack) and left.frame_shape == right.frame_shape, where
+        assert left.blobs == right.blobs, where
+        np.testing.assert_array_equal(left.decode(), right.decode(), err_msg=where)
+    elif isinstance(left, np.ndarray):
+        assert isinstance(right, np.ndarray) and left.dtype == right.dtype and left.shape == right.shape, where
+        np.testing.assert_array_equal(left, right, err_msg=where)
+    elif isinstance(left, dict):
+        assert isinstance(right, dict) and left.keys() == right.keys(), where
+        for key in left:
+            _assert_values_equal(left[key], right[key], f"{where}.{key}")
+    elif isinstance(left, float) and np.isnan(left):
+        assert isinstance(right, float) and np.isnan(right), where
+    else:
+        assert type(left) is type(right) and left == right, where
