@@ -224,9 +224,11 @@ class TransportConfig:
     connect: list[str] = field(default_factory=list)
     multicast_scouting: bool = False
     namespace: str = "d3rqn"
+    connect_timeout_s: float = 10.0  # client mode: how long opening a session retries its connect endpoints
 
     def validate(self) -> None:
         _check(self.mode in ("peer", "client", "router"), "mode", "must be 'peer', 'client' or 'router'")
+        _positive(self, "connect_timeout_s")
         for key in ("listen", "connect"):
             for endpoint in getattr(self, key):
                 _check("/" in endpoint, key, f"endpoint {endpoint!r} must look like 'tcp/127.0.0.1:7447'")

@@ -1,0 +1,353 @@
+"""Zenoh in one place: the session, the key names, and typed put/subscribe/query helpers.
+
+Roles never touch payload bytes: what goes out is encoded with ``common.wire``
+and what comes in is decoded and checked. Malformed input is logged (rate-limited)
+and counted, and never raises into Zenoh's threads, so a bad sender cannot stop
+a service.
+
+Callbacks run on Zenoh's threads: keep them short, and guard shared state with a lock.
+Large messages (a ~50 MB Weights) are sent with blocking congestion control, so they are
+never dropped under load; Zenoh fragments them over the link.
+
+    with open_session(config.transport) as session:
+        keys = Keys(config.transport.namespace, config.run.name)
+        episodes = subscribe(session, keys.episodes, on_episode)
+        ...
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import zenoh
+
+from common.config import TransportConfig
+from common.wire import Message, WireError, decode, encode
+
+log = logging.getLogger(__name__)
+
+LOG_PERIOD_S = 10.0  # at most one warning of a kind per period per entity
+
+
+# --- session ---------------------------------------------------------------------------
+
+def zenoh_config(config: TransportConfig) -> zenoh.Config:
+    """The zenoh.Config for a TransportConfig: mode, endpoints and scouting, nothing implicit.
+
+    An empty ``listen`` means no listener at all (an actor that only connects): in
+    peer mode it still reaches every listening peer it learns of through gossip.
+    """
+    zconfig = zenoh.Config()
+    zconfig.insert_json5("mode", json.dumps(config.mode))
+    zconfig.insert_json5("listen/endpoints", json.dumps(list(config.listen)))
+    zconfig.insert_json5("connect/endpoints", json.dumps(list(config.connect)))
+    zconfig.insert_json5("scouting/multicast/enabled", json.dumps(config.multicast_scouting))
+    if config.mode == "client":
+        # A client fails at once by default when its router is not up yet; retry for a while instead.
+        zconfig.insert_json5("connect/timeout_ms", json.dumps(round(config.connect_timeout_s * 1000)))
+    return zconfig
+
+
+def open_session(config: TransportConfig) -> zenoh.Session:
+    """Opens a session; use it as a context manager (``with open_session(cfg) as session``) or close it."""
+    return zenoh.open(zenoh_config(config))
+
+
+# --- key names ----------------------------------------------------------------------------
+
+def _check_chunk(text: str, what: str) -> str:
+    if not text or any(char in text for char in "/*$?# "):
+        raise ValueError(f"{what} {text!r} must be a non-empty key chunk without '/', '*', '$', '?', '#' or spaces")
+    return text
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Every key expression of one run, all under ``<namespace>/<run>/``."""
+
+    namespace: str
+    run: str
+
+    def __post_init__(self) -> None:
+        _check_chunk(self.namespace, "namespace")
+        _check_chunk(self.run, "run name")
+
+    @property
+    def root(self) -> str:
+        return f"{self.namespace}/{self.run}"
+
+    @property
+    def all(self) -> str:
+        """Everything of the run, for a recorder."""
+        return f"{self.root}/**"
+
+    @property
+    def episodes(self) -> str:
+        return f"{self.root}/episodes"
+
+    @property
+    def replay_sample(self) -> str:
+        """Queryable: TraceBatchRequest -> TraceBatch."""
+        return f"{self.root}/replay/sample"
+
+    @property
+    def replay_stats(self) -> str:
+        return f"{self.root}/replay/stats"
+
+    @property
+    def weights(self) -> str:
+        return f"{self.root}/weights/broadcast"
+
+    @property
+    def weights_latest(self) -> str:
+        """Queryable: (no request) -> the latest Weights."""
+        return f"{self.root}/weights/latest"
+
+    @property
+    def exploration(self) -> str:
+        return f"{self.root}/exploration"
+
+    def metrics_source(self, role: str, process_id: str | int | None = None) -> str:
+        """Metrics of one process: ``metrics/learner``, ``metrics/actor/3``."""
+        key = f"{self.root}/metrics/{_check_chunk(role, 'role')}"
+        return key if process_id is None else f"{key}/{_check_chunk(str(process_id), 'process id')}"
+
+    @property
+    def metrics_all(self) -> str:
+        return f"{self.root}/metrics/**"
+
+    def heartbeat(self, role: str, process_id: str | int) -> str:
+        return f"{self.root}/heartbeat/{_check_chunk(role, 'role')}/{_check_chunk(str(process_id), 'process id')}"
+
+    @property
+    def heartbeat_all(self) -> str:
+        return f"{self.root}/heartbeat/**"
+
+    def liveliness(self, role: str, process_id: str | int) -> str:
+        return f"{self.root}/alive/{_check_chunk(role, 'role')}/{_check_chunk(str(process_id), 'process id')}"
+
+    @property
+    def liveliness_all(self) -> str:
+        return f"{self.root}/alive/**"
+
+
+# --- logging and closing ---------------------------------------------------------------------
+
+class RateLimitedLog:
+    """A warning at most once per period; the next one says how many were suppressed."""
+
+    def __init__(self, period_s: float = LOG_PERIOD_S, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s = period_s
+        self._clock = clock
+        self._last = -float("inf")
+        self._suppressed = 0
+        self._lock = threading.Lock()
+
+    def warning(self, message: str, *args: Any, exc_info: bool = False) -> None:
+        with self._lock:
+            now = self._clock()
+            if now - self._last < self.period_s:
+                self._suppressed += 1
+                return
+            suppressed, self._suppressed, self._last = self._suppressed, 0, now
+        if suppressed:
+            message += f" ({suppressed} similar suppressed)"
+        log.warning(message, *args, exc_info=exc_info)
+
+
+class Declared:
+    """A declared zenoh entity on one key; undeclare() works once, also after the session closed."""
+
+    def __init__(self, key: str) -> None:
+        self.key = key
+        self._entity: Any = None
+
+    def attach(self, entity: Any):
+        """Holds the zenoh entity; separate from __init__ so callbacks can see this object before declaring."""
+        self._entity = entity
+        return self
+
+    def undeclare(self) -> None:
+        entity, self._entity = self._entity, None
+        if entity is not None:
+            entity.undeclare()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.undeclare()
+
+
+# --- publish / subscribe ----------------------------------------------------------------------
+
+class Publisher(Declared):
+    """Puts wire messages on one key."""
+
+    def put(self, message: Message) -> int:
+        """Encodes and sends the message; returns the encoded size in bytes."""
+        data = encode(message)
+        self._entity.put(data)
+        return len(data)
+
+    @property
+    def matched(self) -> bool:
+        """Whether a subscriber is known for the key; a put with none is lost, so a sender can wait for one."""
+        return self._entity.matching_status.matching  # a MatchingStatus object, whatever the stubs say
+
+
+def publisher(session: zenoh.Session, key: str, *, reliable: bool = True, express: bool = False) -> Publisher:
+    """A publisher on key. reliable: block when the link is congested instead of dropping
+    (use False for frequent, replaceable data); express: send at once without batching."""
+    congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+    return Publisher(key).attach(session.declare_publisher(key, congestion_control=congestion, express=express))
+
+
+class Receiver(Declared):
+    """A subscriber or queryable with counters: received (handed to the callback), rejected
+    (malformed input), failed (the callback raised)."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.received = 0
+        self.rejected = 0
+        self.failed = 0
+
+
+def subscribe(session: zenoh.Session, key: str, callback: Callable[[Message, str], Any], *,
+              expected: type[Message] | None = None, max_bytes: int | None = None) -> Receiver:
+    """Calls callback(message, sample_key) for each decoded sample on key.
+
+    Samples that are not a valid message (of type expected, if given; at most
+    max_bytes long, if given) are logged and counted in ``rejected``.
+    """
+    warn = RateLimitedLog()
+    subscription = Receiver(key)
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        sample_key = str(sample.key_expr)
+        message = _decode_sample(sample, expected, max_bytes)
+        if isinstance(message, str):
+            subscription.rejected += 1
+            warn.warning("rejected a sample on %s: %s", sample_key, message)
+            return
+        subscription.received += 1
+        try:
+            callback(message, sample_key)
+        except Exception:  # a failing callback must not raise into zenoh's thread
+            subscription.failed += 1
+            warn.warning("callback for %s failed on a %s", sample_key, type(message).__name__, exc_info=True)
+
+    return subscription.attach(session.declare_subscriber(key, on_sample))
+
+
+def _decode_sample(sample: zenoh.Sample, expected: type[Message] | None, max_bytes: int | None) -> Message | str:
+    """The message of a sample, or the reason it is refused."""
+    if sample.kind != zenoh.SampleKind.PUT:
+        return f"a {sample.kind} sample carries no message"
+    size = len(sample.payload)
+    if max_bytes is not None and size > max_bytes:
+        return f"{size} bytes exceed the limit of {max_bytes}"
+    try:
+        return decode(sample.payload.to_bytes(), expected)
+    except WireError as error:
+        return str(error)
+
+
+# --- query / reply ---------------------------------------------------------------------------
+
+def serve(session: zenoh.Session, key: str, handler: Callable[[Message | None], Message | None], *,
+          expected: type[Message] | None = None) -> Receiver:
+    """Answers queries on key with handler(request) -> reply message, or None for no reply.
+
+    A query without payload gives handler(None). A malformed request or a handler
+    error is logged, counted, and answered with an error reply; the service goes on.
+    """
+    warn = RateLimitedLog()
+    service = Receiver(key)
+
+    def on_query(query: zenoh.Query) -> None:
+        with query:  # finalises the query on exit, so the requester is not left waiting
+            answer = answer_of(query)
+            try:
+                if isinstance(answer, bytes):
+                    query.reply(key, answer)
+                elif isinstance(answer, str):
+                    query.reply_err(answer)
+            except zenoh.ZError as error:
+                warn.warning("could not reply on %s: %s", key, error)
+
+    def answer_of(query: zenoh.Query) -> bytes | str | None:
+        """The encoded reply, an error text, or None for no reply."""
+        payload = query.payload
+        try:
+            request_message = None if payload is None or len(payload) == 0 else decode(payload.to_bytes(), expected)
+        except WireError as error:
+            service.rejected += 1
+            warn.warning("rejected a request on %s: %s", key, error)
+            return f"bad request: {error}"
+        try:
+            reply = handler(request_message)
+            service.received += 1
+            return None if reply is None else encode(reply)
+        except Exception as error:  # a failing handler answers with an error instead of crashing the service
+            service.failed += 1
+            warn.warning("handler for %s failed", key, exc_info=True)
+            return f"handler failed: {type(error).__name__}: {error}"
+
+    return service.attach(session.declare_queryable(key, on_query))
+
+
+def request(session: zenoh.Session, key: str, message: Message | None, timeout_s: float, *,
+            expected: type[Message] | None = None) -> Message | None:
+    """Sends message (or no payload for None) as a query; returns the first valid reply,
+    or None when there is no queryable, only error replies, a malformed reply, or the timeout passes."""
+    payload = None if message is None else encode(message)
+    replies = session.get(key, payload=payload, timeout=timeout_s,
+                          congestion_control=zenoh.CongestionControl.BLOCK,  # the reply travels with the query's QoS
+                          consolidation=zenoh.ConsolidationMode.NONE)  # deliver the first reply without waiting for others
+    for reply in replies:
+        if reply.ok is None:
+            log.warning("error reply on %s: %s", key, reply.err.payload.to_bytes().decode("utf-8", "replace"))
+            continue
+        try:
+            return decode(reply.ok.payload.to_bytes(), expected)
+        except WireError as error:
+            log.warning("malformed reply on %s: %s", key, error)
+            return None
+    return None
+
+
+# --- liveliness ----------------------------------------------------------------------------
+
+def declare_liveliness(session: zenoh.Session, key: str) -> Declared:
+    """A liveliness token alive until undeclared or until the session ends (even by a crash)."""
+    return Declared(key).attach(session.liveliness().declare_token(key))
+
+
+def alive_keys(session: zenoh.Session, key: str, timeout_s: float) -> list[str]:
+    """The keys of the liveliness tokens matching key now."""
+    return sorted(str(reply.ok.key_expr) for reply in session.liveliness().get(key, timeout=timeout_s)
+                  if reply.ok is not None)
+
+
+def watch_liveliness(session: zenoh.Session, key: str, callback: Callable[[str, bool], Any]) -> Receiver:
+    """Calls callback(token_key, alive) for tokens matching key: for those present now, then on every change."""
+    warn = RateLimitedLog()
+    subscription = Receiver(key)
+
+    def on_change(sample: zenoh.Sample) -> None:
+        token_key = str(sample.key_expr)
+        subscription.received += 1
+        try:
+            callback(token_key, sample.kind == zenoh.SampleKind.PUT)
+        except Exception:  # a failing callback must not raise into zenoh's thread
+            subscription.failed += 1
+            warn.warning("liveliness callback for %s failed", token_key, exc_info=True)
+
+    return subscription.attach(session.liveliness().declare_subscriber(key, on_change, history=True))
