@@ -46,6 +46,9 @@ class NetworkConfig:
 
     def validate(self) -> None:
         _positive(self, "frame_height", "frame_width", "frame_channels", "n_actions")
+        # The three VALID convolutions (8/4, 4/2, 3/1) need at least 36 pixels per side.
+        _check(self.frame_height >= 36, "frame_height", f"must be >= 36 for the convolutions, got {self.frame_height}")
+        _check(self.frame_width >= 36, "frame_width", f"must be >= 36 for the convolutions, got {self.frame_width}")
         _check(self.lstm_units > 0 and self.lstm_units % 2 == 0, "lstm_units", "must be a positive even number (it is split in two dueling halves)")
         _check(self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda"), "device", "must be 'auto', 'cpu' or 'cuda[:N]'")
 

@@ -1,0 +1,187 @@
+import numpy as np
+import pytest
+import torch
+
+from common.config import ConfigError, NetworkConfig, load_config
+from common.network import (
+    D3RQN, conv_output_shape, load_numpy_weights, resolve_device, weights_to_numpy,
+)
+
+TINY = NetworkConfig(frame_height=36, frame_width=40, lstm_units=8, n_actions=5)
+
+
+def make_net(config: NetworkConfig = TINY, seed: int = 0) -> D3RQN:
+    torch.manual_seed(seed)
+    return D3RQN(config).eval()
+
+
+def random_frames(config: NetworkConfig, batch: int, time: int, seed: int = 0) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    shape = (batch, time, config.frame_height, config.frame_width, config.frame_channels)
+    return torch.randint(0, 256, shape, dtype=torch.uint8, generator=generator)
+
+
+def test_paper_sizes_give_5376_features_and_the_expected_shapes():
+    config = NetworkConfig()
+    # 66x200 -> (66-8)//4+1 = 15, (200-8)//4+1 = 49 -> (15-4)//2+1 = 6, (49-4)//2+1 = 23 -> 4, 21
+    assert conv_output_shape(66, 200) == (4, 21)
+    net = make_net(config)
+    assert net.n_features == 64 * 4 * 21 == 5376
+    assert net.lstm.input_size == 5376 and net.lstm.hidden_size == 512
+    assert net.advantage.in_features == net.value.in_features == 256
+    assert net.advantage.out_features == 5 and net.value.out_features == 1
+    with torch.no_grad():
+        q_values, (h, c) = net(random_frames(config, batch=2, time=3))
+    assert q_values.shape == (2, 3, 5)
+    assert h.shape == c.shape == (1, 2, 512)
+
+
+def test_no_biases_in_convolutions_and_dueling_streams():
+    net = make_net()
+    convolutions = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [(m.out_channels, m.kernel_size, m.stride) for m in convolutions] == [
+        (32, (8, 8), (4, 4)), (64, (4, 4), (2, 2)), (64, (3, 3), (1, 1))]
+    assert all(m.bias is None for m in convolutions)
+    assert net.advantage.bias is None and net.value.bias is None
+
+
+def test_one_frame_at_a_time_matches_the_whole_trace():
+    net = make_net(seed=3)
+    frames = random_frames(TINY, batch=3, time=6, seed=1)
+    with torch.no_grad():
+        whole, whole_state = net(frames)
+        state = net.initial_state(3)
+        steps = []
+        for t in range(frames.shape[1]):
+            q_values, state = net(frames[:, t:t + 1], state)
+            steps.append(q_values)
+    torch.testing.assert_close(torch.cat(steps, dim=1), whole, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(state, whole_state, rtol=1e-5, atol=1e-6)
+
+
+def test_the_state_carries_history():
+    net = make_net(seed=3)
+    frames = random_frames(TINY, batch=1, time=4, seed=2)
+    with torch.no_grad():
+        q_with_history = net(frames)[0][:, -1]
+        q_from_zero = net(frames[:, -1:])[0][:, -1]
+    assert not torch.allclose(q_with_history, q_from_zero)
+
+
+def test_dueling_head_removes_the_mean_advantage():
+    net = make_net(seed=4)
+    captured = {}
+    net.advantage.register_forward_hook(lambda module, args, out: captured.__setitem__("a", out))
+    net.value.register_forward_hook(lambda module, args, out: captured.__setitem__("v", out))
+    with torch.no_grad():
+        q_values, _ = net(random_frames(TINY, batch=2, time=3, seed=5))
+    advantage, value = captured["a"], captured["v"]
+    assert advantage.shape == (2, 3, 5) and value.shape == (2, 3, 1)
+    # Q = V + A - mean_a A, so mean_a Q = V and Q - V = A - mean_a A.
+    torch.testing.assert_close(q_values.mean(dim=-1, keepdim=True), value, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(q_values - value, advantage - advantage.mean(dim=-1, keepdim=True))
+    assert advantage.mean(dim=-1).abs().max() > 1e-4  # the identity is not trivially met by A's mean being 0
+
+
+def test_dueling_streams_use_the_two_halves_of_the_lstm_output():
+    net = make_net(seed=6)
+    inputs = {}
+    net.advantage.register_forward_hook(lambda module, args, out: inputs.__setitem__("a", args[0]))
+    net.value.register_forward_hook(lambda module, args, out: inputs.__setitem__("v", args[0]))
+    net.lstm.register_forward_hook(lambda module, args, out: inputs.__setitem__("lstm", out[0]))
+    with torch.no_grad():
+        net(random_frames(TINY, batch=2, time=3, seed=7))
+    lstm_out = inputs["lstm"].transpose(0, 1)  # the LSTM runs time-major
+    torch.testing.assert_close(inputs["a"], lstm_out[..., :4])
+    torch.testing.assert_close(inputs["v"], lstm_out[..., 4:])
+
+
+def test_uint8_frames_are_scaled_to_unit_range_inside_the_model():
+    net = make_net()
+    seen = {}
+    net.conv.register_forward_pre_hook(lambda module, args: seen.__setitem__("pixels", args[0]))
+    frames = random_frames(TINY, batch=2, time=2, seed=8)
+    frames[0, 0, 0, 0, 0] = 255
+    frames[0, 0, 0, 0, 1] = 0
+    with torch.no_grad():
+        net(frames)
+    pixels = seen["pixels"]
+    assert pixels.dtype == torch.float32 and pixels.shape == (4, 3, 36, 40)
+    expected = frames.reshape(4, 36, 40, 3).permute(0, 3, 1, 2).double() / 255.0
+    torch.testing.assert_close(pixels.double(), expected, rtol=0, atol=1e-7)
+    assert pixels.max() == 1.0 and pixels.min() == 0.0
+
+
+@pytest.mark.parametrize("frames", [
+    torch.zeros(1, 2, 36, 40, 3),  # float, not uint8
+    torch.zeros(1, 2, 40, 36, 3, dtype=torch.uint8),  # height and width swapped
+    torch.zeros(2, 36, 40, 3, dtype=torch.uint8),  # no time axis
+])
+def test_wrong_frames_are_a_value_error(frames):
+    with pytest.raises(ValueError, match="frames must be"):
+        make_net()(frames)
+
+
+def test_initial_state_is_zero():
+    h, c = make_net().initial_state(4)
+    assert h.shape == c.shape == (1, 4, 8)
+    assert not h.any() and not c.any()
+
+
+def test_resolve_device():
+    assert resolve_device(NetworkConfig(device="cpu")) == torch.device("cpu")
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert resolve_device(NetworkConfig(device="auto")).type == expected
+
+
+def test_frames_smaller_than_the_convolutions_are_a_config_error():
+    with pytest.raises(ConfigError, match="network.frame_height"):
+        load_config("paper", overrides={"network.frame_height": 35})
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_runs_on_cuda_like_on_cpu():
+    net = make_net()
+    frames = random_frames(TINY, batch=2, time=3)
+    with torch.no_grad():
+        on_cpu = net(frames)[0]
+        on_cuda = net.to("cuda")(frames.to("cuda"))[0]
+    torch.testing.assert_close(on_cuda.cpu(), on_cpu, rtol=1e-4, atol=1e-5)
+
+
+# --- numpy weights for the wire --------------------------------------------------
+
+def test_numpy_weights_round_trip():
+    source, destination = make_net(seed=1), make_net(seed=2)
+    tensors = weights_to_numpy(source)
+    assert set(tensors) == set(source.state_dict())
+    assert all(isinstance(array, np.ndarray) for array in tensors.values())
+    load_numpy_weights(destination, tensors)
+    frames = random_frames(TINY, batch=2, time=3)
+    with torch.no_grad():
+        torch.testing.assert_close(destination(frames)[0], source(frames)[0], rtol=0, atol=0)
+
+
+def test_numpy_weights_are_copies():
+    net = make_net()
+    tensors = weights_to_numpy(net)
+    tensors["advantage.weight"][:] = 0.0
+    assert net.advantage.weight.abs().sum() > 0
+
+
+def test_loading_mismatched_weights_is_a_value_error_and_changes_nothing():
+    net = make_net(seed=1)
+    before = weights_to_numpy(net)
+    good = weights_to_numpy(make_net(seed=2))
+    missing = {k: v for k, v in good.items() if k != "value.weight"}
+    extra = {**good, "head.weight": np.zeros(3, np.float32)}
+    wrong_shape = {**good, "value.weight": np.zeros((1, 5), np.float32)}
+    not_finite = {**good, "value.weight": np.full((1, 4), np.nan, np.float32)}
+    integers = {**good, "value.weight": np.zeros((1, 4), np.int64)}
+    for tensors, message in ((missing, r"missing \['value.weight'\]"), (extra, r"unexpected \['head.weight'\]"),
+                             (wrong_shape, r"'value.weight': shape \(1, 5\)"), (not_finite, "NaN"),
+                             (integers, "not floating point")):
+        with pytest.raises(ValueError, match=message):
+            load_numpy_weights(net, tensors)
+    after = weights_to_numpy(net)
+    assert all(np.array_equal(before[k], after[k]) for k in before)
