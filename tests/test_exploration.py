@@ -1,0 +1,313 @@
+import dataclasses
+import math
+import warnings
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from common.config import STRATEGIES, BmcConfig, DecreasingEpsilonConfig, ExplorationConfig, MaxBoltzmannConfig
+from common.exploration import (
+    BmcPosterior, DecreasingEpsilonGreedy, EpsilonBmc, MaxBoltzmann, decreasing_epsilon,
+    exploration_message, greedy_and_uniform_returns, make_strategy, softmax_probabilities, student_t_pdf, vdbe_f,
+)
+from common.wire import ExplorationState, decode, encode
+
+N_ACTIONS = 5
+
+
+def strategy(name: str, n_actions: int = N_ACTIONS):
+    return make_strategy(ExplorationConfig(strategy=name), n_actions)
+
+
+def action_counts(policy, q_values, draws: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    actions = [policy.act(np.asarray(q_values), rng) for _ in range(draws)]
+    return np.bincount(actions, minlength=len(q_values))
+
+
+def assert_frequencies(counts: np.ndarray, probabilities, significance: float = 1e-3) -> None:
+    """Chi-square goodness of fit; the seed is fixed, so the outcome is too."""
+    expected = counts.sum() * np.asarray(probabilities)
+    observed, expected = counts[expected > 0], expected[expected > 0]
+    assert counts[np.asarray(probabilities) == 0].sum() == 0
+    assert scipy.stats.chisquare(observed, expected).pvalue > significance, (counts, expected)
+
+
+# --- every strategy ------------------------------------------------------------------
+
+def test_the_factory_knows_every_configured_strategy():
+    assert [strategy(name).name for name in STRATEGIES] == list(STRATEGIES)
+    assert {name for name in STRATEGIES if strategy(name).needs_q_after} == {"vdbe", "vdbe_softmax"}
+    assert {name for name in STRATEGIES if strategy(name).needs_returns} == {"bmc"}
+
+
+@pytest.mark.parametrize("name", STRATEGIES)
+def test_uniform_random_before_updates_start(name):
+    policy = strategy(name)
+    policy.on_env_steps(900_000)  # decreasing epsilon would be 0.0245 here, were it started
+    assert policy.epsilon == 1.0 and policy.kappa == 0.0
+    counts = action_counts(policy, [50.0, 0.0, -1.0, 3.0, 0.0], draws=5_000, seed=1)
+    assert_frequencies(counts, [0.2] * 5)
+
+
+@pytest.mark.parametrize("name", STRATEGIES)
+def test_state_dict_round_trips_through_the_wire(name):
+    policy = strategy(name)
+    policy.start()
+    policy.on_env_steps(300_000)
+    if policy.needs_q_after:
+        policy.on_update(np.array([1.0, 2.0, 3.0]), np.array([1.5, 1.0, 3.0]))
+    if policy.needs_returns:
+        policy.on_returns(np.array([1.2, 0.3, 2.0]), np.array([0.8, 0.1, 1.0]))
+    state = policy.state_dict()
+    message = decode(encode(exploration_message(policy)), ExplorationState)
+    wire = {f.name: getattr(message, f.name) for f in dataclasses.fields(message)}
+    assert wire == state
+
+    copy = strategy(name)
+    copy.load_state_dict(wire)
+    assert copy.state_dict() == state
+    assert (copy.epsilon, copy.kappa, copy.started) == (policy.epsilon, policy.kappa, True)
+    q_values = np.array([0.3, 0.1, 0.25, 0.0, 0.2])
+    assert (action_counts(copy, q_values, 300, seed=5) == action_counts(policy, q_values, 300, seed=5)).all()
+
+
+def test_state_dict_holds_the_wire_fields():
+    state = strategy("bmc").state_dict()
+    assert set(state) == {"strategy", "params", "epsilon", "kappa", "started", "counters", "state"}
+    assert state["params"] == {"alpha0": 25.0, "beta0": 25.01, "a0": 250.0, "b0": 250.0, "mu0": 0.0, "tau0": 1.0}
+    assert state["state"] == {"alpha": 25.0, "beta": 25.01, "count": 0, "mean": 0.0, "m2": 0.0}
+    assert state["counters"] == {"env_steps": 0, "updates": 0, "returns": 0}
+
+
+def test_loading_a_wrong_state_is_a_value_error_and_changes_nothing():
+    policy = strategy("vdbe")
+    good = strategy("vdbe").state_dict()
+    bad_states = [
+        ({**good, "strategy": "bmc"}, "is for 'bmc'"),
+        ({**good, "params": {**good["params"], "nu": 2.0}}, "differ"),
+        ({**good, "state": {"epsilon": 1.5}}, "must lie in"),
+        ({**good, "started": "yes"}, "true or false"),
+        ({key: value for key, value in good.items() if key != "counters"}, "malformed"),
+        ({**good, "state": {}}, "malformed"),
+        ("not a dict", "malformed"),
+    ]
+    for state, message in bad_states:
+        with pytest.raises(ValueError, match=message):
+            policy.load_state_dict(state)
+    assert policy.state_dict() == good
+
+
+@pytest.mark.parametrize("q_values", [[1.0, 2.0], [0.0, math.nan, 0.0, 0.0, 0.0], [[0.0] * 5]])
+def test_act_rejects_bad_q_values(q_values):
+    with pytest.raises(ValueError, match="q_values"):
+        strategy("softmax").act(np.array(q_values), np.random.default_rng(0))
+
+
+# --- softmax and Max-Boltzmann ----------------------------------------------------------
+
+def test_softmax_probabilities_by_hand():
+    # (Q - max Q) / kappa = [0, -1, -2]; e^0 = 1, e^-1 = 0.3678794412, e^-2 = 0.1353352832, sum 1.5032147244
+    expected = [1 / 1.5032147244, 0.3678794412 / 1.5032147244, 0.1353352832 / 1.5032147244]
+    np.testing.assert_allclose(softmax_probabilities(np.array([0.2, 0.1, 0.0]), 0.1), expected, rtol=1e-9)
+    np.testing.assert_allclose(softmax_probabilities(np.array([1.0, 0.0, -1.0]), 1.0), expected, rtol=1e-9)
+
+
+def test_softmax_does_not_overflow_at_large_q_values():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # (Q - 1000) / 0.1 = [0, -20000, -1]: e^-20000 underflows to 0, e^-1 = 0.3678794412
+        probabilities = softmax_probabilities(np.array([1000.0, -1000.0, 999.9]), 0.1)
+    np.testing.assert_allclose(probabilities, [1 / 1.3678794412, 0.0, 0.3678794412 / 1.3678794412], rtol=1e-8)
+
+
+def test_infinite_temperature_is_uniform():
+    np.testing.assert_allclose(softmax_probabilities(np.array([1000.0, -1000.0, 3.0, 0.0]), math.inf), [0.25] * 4)
+
+
+# Q = [0.2, 0.1, 0.0, 0.15, 0.05] with kappa = 0.1: (Q - 0.2) / 0.1 = [0, -1, -2, -0.5, -1.5];
+# e^. = [1, 0.3678794412, 0.1353352832, 0.6065306597, 0.2231301601], sum 2.3328755442.
+Q_FIVE = [0.2, 0.1, 0.0, 0.15, 0.05]
+SOFTMAX_FIVE = np.array([1, 0.3678794412, 0.1353352832, 0.6065306597, 0.2231301601]) / 2.3328755442
+
+
+def test_softmax_action_frequencies():
+    policy = strategy("softmax")
+    policy.start()
+    assert (policy.epsilon, policy.kappa) == (1.0, 0.1)
+    assert_frequencies(action_counts(policy, Q_FIVE, draws=20_000, seed=2), SOFTMAX_FIVE)
+
+
+def test_max_boltzmann_action_frequencies():
+    policy = MaxBoltzmann(N_ACTIONS, MaxBoltzmannConfig(epsilon=0.3, kappa=0.1))
+    policy.start()
+    # greedy (action 0) with probability 0.7, else a softmax sample: P = 0.7 * [1, 0, 0, 0, 0] + 0.3 * softmax
+    expected = 0.3 * SOFTMAX_FIVE + np.array([0.7, 0, 0, 0, 0])
+    np.testing.assert_allclose(expected[0], 0.7 + 0.3 * 0.4286560, atol=1e-6)
+    counts = action_counts(policy, Q_FIVE, draws=20_000, seed=3)
+    assert_frequencies(counts, expected)
+    # and it is not plain epsilon-greedy: uniform exploration would give action 2 0.3 / 5 = 0.06
+    assert counts[2] / counts.sum() < 0.03
+
+
+def test_paper_max_boltzmann_is_mostly_greedy():
+    policy = strategy("max_boltzmann")
+    policy.start()
+    assert (policy.epsilon, policy.kappa) == (0.05, 0.1)
+    counts = action_counts(policy, Q_FIVE, draws=20_000, seed=4)
+    assert_frequencies(counts, 0.05 * SOFTMAX_FIVE + np.array([0.95, 0, 0, 0, 0]))
+
+
+def test_constant_epsilon_greedy_frequencies():
+    policy = strategy("constant")
+    policy.start()
+    # greedy 0.95 + 0.05 / 5 = 0.96 on the best action, 0.05 / 5 = 0.01 on each other
+    assert_frequencies(action_counts(policy, Q_FIVE, draws=20_000, seed=6), [0.96, 0.01, 0.01, 0.01, 0.01])
+
+
+# --- decreasing epsilon ---------------------------------------------------------------
+
+# pi_1 = -(1 - 0.1) / 400,000 = -2.25e-6;  pi_0 = 1 + 2.25e-6 * 50,000 = 1.1125
+# delta_1 = -(0.1 - 0.01) / (1,000,000 - 400,000 - 50,000) = -0.09 / 550,000
+# delta_0 = 0.01 + 0.09 / 550,000 * 1,000,000 = 0.1736363636...
+@pytest.mark.parametrize("steps, expected", [
+    (0, 1.0),
+    (50_000, 1.0),
+    (250_000, 1.1125 - 2.25e-6 * 250_000),  # = 1.1125 - 0.5625 = 0.55
+    (450_000, 0.1),  # 1.1125 - 1.0125 on the first slope, 0.17364 - 0.07364 on the second
+    (725_000, 0.1736363636 - 0.09 * 725_000 / 550_000),  # = 0.17364 - 0.11864 = 0.055
+    (1_000_000, 0.01),
+])
+def test_decreasing_epsilon_at_the_paper_steps(steps, expected):
+    assert decreasing_epsilon(steps, DecreasingEpsilonConfig()) == pytest.approx(expected, abs=1e-9)
+    policy = DecreasingEpsilonGreedy(N_ACTIONS, DecreasingEpsilonConfig())
+    policy.start()
+    policy.on_env_steps(steps)
+    assert policy.epsilon == pytest.approx(expected, abs=1e-9)
+
+
+def test_decreasing_epsilon_spot_values_and_hold_after_the_end():
+    assert [round(decreasing_epsilon(s, DecreasingEpsilonConfig()), 9) for s in (250_000, 725_000)] == [0.55, 0.055]
+    assert decreasing_epsilon(5_000_000, DecreasingEpsilonConfig()) == 0.01
+
+
+# --- VDBE ----------------------------------------------------------------------------------
+
+def test_vdbe_f_by_hand():
+    # Delta = 0.5, nu = 1: e^-0.5 = 0.6065306597; f = 0.3934693403 / 1.6065306597 = 0.2449186624
+    assert vdbe_f(0.5, 1.0) == pytest.approx(0.2449186624, abs=1e-9)
+    assert vdbe_f(-0.5, 1.0) == pytest.approx(0.2449186624, abs=1e-9)  # |Delta|
+    # Delta = 1, nu = 2: e^-0.5 again
+    assert vdbe_f(1.0, 2.0) == pytest.approx(0.2449186624, abs=1e-9)
+    assert vdbe_f(0.0, 1.0) == 0.0
+
+
+def test_vdbe_epsilon_update_by_hand():
+    policy = strategy("vdbe")
+    policy.start()
+    assert policy.epsilon == 1.0  # eps_0
+    # Deltas: 1.5 - 1.0 = 0.5 and 1.0 - 2.0 = -1.0
+    # f(0.5) = 0.2449186624; f(1) = (1 - e^-1) / (1 + e^-1) = 0.6321205588 / 1.3678794412 = 0.4621171573
+    # mean f = 0.3535179099; eps = 0.2 * 0.3535179099 + 0.8 * 1 = 0.8707035820
+    policy.on_update(np.array([1.0, 2.0]), np.array([1.5, 1.0]))
+    assert policy.epsilon == pytest.approx(0.8707035820, abs=1e-9)
+    # no change in Q: f = 0, eps = 0.8 * 0.8707035820 = 0.6965628656
+    policy.on_update(np.array([3.0]), np.array([3.0]))
+    assert policy.epsilon == pytest.approx(0.6965628656, abs=1e-9)
+    assert policy.state_dict()["counters"]["updates"] == 2
+
+
+def test_vdbe_softmax_explores_by_softmax_with_the_vdbe_epsilon():
+    policy = strategy("vdbe_softmax")
+    policy.start()
+    policy.on_update(np.array([1.0, 2.0]), np.array([1.5, 1.0]))
+    assert (policy.epsilon, policy.kappa) == (pytest.approx(0.8707035820, abs=1e-9), 0.1)
+    expected = 0.8707035820 * SOFTMAX_FIVE + np.array([1 - 0.8707035820, 0, 0, 0, 0])
+    assert_frequencies(action_counts(policy, Q_FIVE, draws=20_000, seed=7), expected)
+
+
+def test_vdbe_rejects_mismatched_arrays():
+    with pytest.raises(ValueError, match="q_before"):
+        strategy("vdbe").on_update(np.zeros(3), np.zeros(4))
+
+
+# --- epsilon-BMC ----------------------------------------------------------------------------
+
+def test_greedy_and_uniform_returns_by_hand():
+    rewards = np.array([1.0, 0.5])
+    next_q = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    terminated = np.array([False, True])
+    g_greedy, g_uniform = greedy_and_uniform_returns(rewards, next_q, terminated, gamma=0.9)
+    # first: 1 + 0.9 * max(1, 2, 3) = 3.7 and 1 + 0.9 * mean = 1 + 0.9 * 2 = 2.8; second is terminal: 0.5, 0.5
+    np.testing.assert_allclose(g_greedy, [3.7, 0.5])
+    np.testing.assert_allclose(g_uniform, [2.8, 0.5])
+
+
+@pytest.mark.parametrize("x, df, loc, scale", [(1.1, 505.0, 0.9, 1.0), (-3.0, 3.0, 0.5, 2.5), (0.0, 1.0, 0.0, 0.1)])
+def test_student_t_pdf_matches_scipy(x, df, loc, scale):
+    assert student_t_pdf(x, df, loc, scale) == pytest.approx(scipy.stats.t.pdf(x, df, loc=loc, scale=scale), rel=1e-12)
+
+
+def test_one_bmc_update_step_by_step():
+    config = BmcConfig()  # a0 = b0 = 250, mu0 = 0, tau0 = 1
+    policy = EpsilonBmc(N_ACTIONS, config)
+    policy.start()
+    policy.posterior = BmcPosterior(alpha=25.0, beta=25.01, count=4, mean=1.0, m2=0.3)
+    policy.on_returns(np.array([1.3]), np.array([0.9]))
+
+    # 2. eps = 25 / 50.01; G = (1 - eps) * 1.3 + eps * 0.9 = 1.3 - 0.4 * eps
+    eps = 25.0 / 50.01
+    g = 1.3 - 0.4 * eps
+    assert eps == pytest.approx(0.4999000200) and g == pytest.approx(1.1000399920)
+    # 3. Welford with the fifth return: mean 1.0 + (G - 1) / 5; m2 0.3 + (G - 1) * (G - new mean); var m2 / 4
+    mean = 1.0 + (g - 1.0) / 5
+    m2 = 0.3 + (g - 1.0) * (g - mean)
+    variance = m2 / 4
+    # 4. a = 250 + 5/2; b = 250 + 5/2 * var + 5/2 * 1/(1+5) * (mean - 0)^2
+    a = 250.0 + 2.5
+    b = 250.0 + 2.5 * variance + 2.5 * (1.0 / 6.0) * mean ** 2
+    scale = math.sqrt(b / a)
+    # 5. evidence of each model under Student-t(df = 2a, loc = G_m, scale)
+    e_uniform = scipy.stats.t.pdf(g, 2 * a, loc=0.9, scale=scale)
+    e_greedy = scipy.stats.t.pdf(g, 2 * a, loc=1.3, scale=scale)
+    # 6. moment matching
+    normaliser = e_uniform * 25.0 + e_greedy * 25.01
+    m = 25.0 / 51.01 * (e_uniform * 26.0 + e_greedy * 25.01) / normaliser
+    s = 25.0 / 51.01 * 26.0 / 52.01 * (e_uniform * 27.0 + e_greedy * 25.01) / normaliser
+    r = (m - s) / (s - m * m)
+
+    posterior = policy.posterior
+    assert (posterior.count, posterior.mean, posterior.m2) == (5, pytest.approx(mean, rel=1e-12), pytest.approx(m2, rel=1e-12))
+    assert posterior.alpha == pytest.approx(m * r, rel=1e-9)
+    assert posterior.beta == pytest.approx((1 - m) * r, rel=1e-9)
+    assert policy.epsilon == pytest.approx(m, rel=1e-9)
+    # With eps < 0.5, G lies nearer G_Q (1.3 - G = 0.19996) than G_U (G - 0.9 = 0.20004): the greedy
+    # model gains weight, so epsilon falls, if only a little
+    assert policy.epsilon < eps
+
+
+def test_the_first_bmc_update_has_zero_variance():
+    policy = EpsilonBmc(N_ACTIONS, BmcConfig(alpha0=25.0, beta0=25.0))
+    policy.on_returns(np.array([2.0]), np.array([1.0]))
+    # eps = 0.5, G = 1.5; count 1, mean 1.5, variance 0 (t <= 1)
+    # a = 250.5; b = 250 + 0 + 0.5 * 1/2 * 1.5^2 = 250.5625
+    scale = math.sqrt(250.5625 / 250.5)
+    # G is as far from G_U as from G_Q, so both evidences are equal: e_U = e_Q = e
+    e = scipy.stats.t.pdf(1.5, 501.0, loc=1.0, scale=scale)
+    assert e == pytest.approx(scipy.stats.t.pdf(1.5, 501.0, loc=2.0, scale=scale))
+    # with equal evidence: m = 25/51 * (26 + 25) / 50 = 0.5; s = 25/51 * 26/52 * (27 + 25) / 50 = 0.2549019608
+    # r = (0.5 - 0.2549019608) / (0.2549019608 - 0.25) = 50; alpha = beta = 25: the posterior does not move
+    posterior = policy.posterior
+    assert (posterior.count, posterior.mean, posterior.variance) == (1, 1.5, 0.0)
+    assert posterior.alpha == pytest.approx(25.0, rel=1e-9) and posterior.beta == pytest.approx(25.0, rel=1e-9)
+    assert policy.state_dict()["counters"]["returns"] == 1
+
+
+def test_bmc_epsilon_falls_when_returns_follow_the_greedy_model():
+    policy = strategy("bmc")
+    policy.start()
+    rng = np.random.default_rng(0)
+    g_greedy = 1.0 + 0.05 * rng.standard_normal(2_000)
+    policy.on_returns(g_greedy, g_greedy - 3.0)
+    assert policy.epsilon < 0.05
