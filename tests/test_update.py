@@ -1,0 +1,278 @@
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from common.config import LearnerConfig, NetworkConfig
+from common.exploration import greedy_and_uniform_returns
+from learner.reference_update import paper_reference_loss, same_history_reference_loss
+from learner.update import (
+    DoubleQLearner, TraceBatch, TraceTensors, double_q_targets, masked_squared_error, one_pass_loss, to_tensors,
+)
+
+TINY = NetworkConfig(frame_height=36, frame_width=36, lstm_units=16, device="cpu")
+LEARNER = LearnerConfig()  # B = 10, T = 10, n_mask = 7, gamma = 0.99, tau = 0.001, lr = 1e-4
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Tiny networks run fastest on one thread, and do not stall when other processes hold the cores."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def random_batch(rng: np.random.Generator, config: NetworkConfig = TINY, batch: int = 10, steps: int = 10,
+                 terminal_last: bool = False) -> TraceBatch:
+    frames = (batch, steps + 1, config.frame_height, config.frame_width, config.frame_channels)
+    terminated = np.zeros((batch, steps), bool)
+    terminated[:, -1] = terminal_last
+    return TraceBatch(
+        observations=rng.integers(0, 256, frames, dtype=np.uint8),
+        actions=rng.integers(0, config.n_actions, (batch, steps)),
+        rewards=rng.random((batch, steps)).astype(np.float32),
+        terminated=terminated,
+    )
+
+
+def flat_parameters(module: nn.Module) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in module.parameters()])
+
+
+# --- the loss against hand-computed values ----------------------------------------------
+
+class TableQ(nn.Module):
+    """Q-values looked up by frame id (the first pixel): no history, so every pass agrees."""
+
+    def __init__(self, table):
+        super().__init__()
+        self.table = nn.Parameter(torch.tensor(table, dtype=torch.float32))
+
+    def forward(self, frames, state=None):
+        return self.table[frames[:, :, 0, 0, 0].long()], (torch.zeros(1), torch.zeros(1))
+
+
+ONLINE = [[1.0, 2.0], [3.0, 0.0], [0.5, 1.5], [2.0, 4.0]]  # rows: s_0 .. s_3
+TARGET = [[0.0, 0.0], [10.0, 20.0], [30.0, 40.0], [50.0, 60.0]]
+
+
+def table_batch(terminated_last: bool) -> TraceTensors:
+    frames = torch.arange(4, dtype=torch.uint8).reshape(1, 4, 1, 1, 1)
+    return TraceTensors(observations=frames, actions=torch.tensor([[0, 1, 1]]),
+                        rewards=torch.tensor([[1.0, 2.0, 3.0]]),
+                        terminated=torch.tensor([[0.0, 0.0, 1.0 if terminated_last else 0.0]]))
+
+
+@pytest.mark.parametrize("loss_function", [one_pass_loss, paper_reference_loss, same_history_reference_loss])
+def test_masked_double_q_loss_by_hand(loss_function):
+    online, target = TableQ(ONLINE), TableQ(TARGET)
+    # gamma = 0.5, n_mask = 1 of T = 3.
+    # t=0 (masked): argmax Q(s1) = 0 -> y = 1 + 0.5 * 10 = 6, Q(s0, a=0) = 1
+    # t=1: argmax Q(s2) = [0.5, 1.5] -> 1, y = 2 + 0.5 * 40 = 22, Q(s1, a=1) = 0, error^2 = 484
+    # t=2: terminal, y = 3, Q(s2, a=1) = 1.5, error^2 = 2.25
+    # loss = (0 + 484 + 2.25) / 3 = 162.083333
+    terms = loss_function(online, target, table_batch(terminated_last=True), 0.5, 1)
+    assert terms.loss.item() == pytest.approx(486.25 / 3, rel=1e-6)
+    # Only the taken actions of unmasked steps get gradient: d/dQ = -2 (y - Q) / 3.
+    terms.loss.backward()
+    expected = torch.zeros(4, 2)
+    expected[1, 1] = -2 * 22 / 3
+    expected[2, 1] = -2 * 1.5 / 3
+    torch.testing.assert_close(online.table.grad, expected)
+    assert target.table.grad is None
+
+
+def test_a_truncated_last_step_bootstraps():
+    online, target = TableQ(ONLINE), TableQ(TARGET)
+    # t=2 not terminal: argmax Q(s3) = [2, 4] -> 1, y = 3 + 0.5 * 60 = 33, error^2 = (33 - 1.5)^2 = 992.25
+    terms = one_pass_loss(online, target, table_batch(terminated_last=False), 0.5, 1)
+    assert terms.loss.item() == pytest.approx((484 + 992.25) / 3, rel=1e-6)
+
+
+def test_double_q_targets_and_mask_by_hand():
+    next_online = torch.tensor([[[1.0, 5.0], [7.0, 2.0]]])
+    next_target = torch.tensor([[[100.0, 10.0], [20.0, 200.0]]])
+    # argmax online: 1, 0 -> target 10, 20; y = r + 0.9 * (1 - done) * that
+    targets = double_q_targets(torch.tensor([[1.0, 2.0]]), torch.tensor([[0.0, 1.0]]), next_online, next_target, 0.9)
+    torch.testing.assert_close(targets, torch.tensor([[10.0, 2.0]]))
+    # mean over all 2 * 3 errors, the first n_mask = 2 of each trace weighted 0: (3^2 + 1^2) / 6
+    q_taken = torch.tensor([[5.0, 5.0, 0.0], [9.0, 9.0, 2.0]])
+    targets = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.0, 1.0]])
+    assert masked_squared_error(q_taken, targets, 2).item() == pytest.approx(10 / 6)
+
+
+# --- one pass against the separate passes -------------------------------------------------
+
+def losses_and_gradients(loss_function, seed: int, terminal_last: bool = False):
+    learner = DoubleQLearner(TINY, LEARNER)
+    with torch.no_grad():  # a target unlike the online net, so that mixing them up would show
+        for parameter in learner.target.parameters():
+            parameter.mul_(1.5)
+    tensors = to_tensors(random_batch(np.random.default_rng(seed), terminal_last=terminal_last), TINY, 10, learner.device)
+    terms = loss_function(learner.online, learner.target, tensors, LEARNER.gamma, LEARNER.n_mask)
+    terms.loss.backward()
+    return terms, torch.cat([p.grad.flatten() for p in learner.online.parameters()])
+
+
+@pytest.mark.parametrize("seed, terminal_last", [(0, False), (1, True)])
+def test_one_pass_equals_the_separate_passes_with_the_same_history(seed, terminal_last):
+    one, one_grad = losses_and_gradients(one_pass_loss, seed, terminal_last)
+    reference, reference_grad = losses_and_gradients(same_history_reference_loss, seed, terminal_last)
+    assert one.loss.item() == pytest.approx(reference.loss.item(), rel=1e-6)
+    torch.testing.assert_close(one.q_values, reference.q_values, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(one.next_q_values, reference.next_q_values, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(one_grad, reference_grad, rtol=1e-4, atol=1e-7)
+
+
+def test_the_paper_passes_see_one_frame_less_history():
+    one, _ = losses_and_gradients(one_pass_loss, seed=0)
+    paper, _ = losses_and_gradients(paper_reference_loss, seed=0)
+    # Q(h_t, .) comes from the same pass over s_0..s_T-1 in both...
+    torch.testing.assert_close(one.q_values, paper.q_values)
+    # ...but the paper's next-state pass restarts at s_1 from a zero state, so h_t+1 lacks s_0.
+    gap = (one.next_q_values - paper.next_q_values).abs().max().item()
+    relative = abs(one.loss.item() - paper.loss.item()) / one.loss.item()
+    print(f"paper-style reference: max |dQ(h_t+1)| {gap:.2e}, relative loss difference {relative:.2e}")
+    assert gap > 1e-5 and relative > 1e-6
+
+
+# --- the learner step ----------------------------------------------------------------------
+
+def test_the_target_starts_as_a_copy_of_the_online_network():
+    learner = DoubleQLearner(TINY, LEARNER)
+    for (name, online), target in zip(learner.online.named_parameters(), learner.target.parameters()):
+        assert torch.equal(online, target), name
+        assert online.data_ptr() != target.data_ptr()
+        assert not target.requires_grad
+
+
+def test_soft_update_arithmetic():
+    learner = DoubleQLearner(TINY, LEARNER)
+    with torch.no_grad():
+        for online, target in zip(learner.online.parameters(), learner.target.parameters()):
+            online.fill_(1.0)
+            target.fill_(0.0)
+    learner.soft_update_target()
+    # 0.001 * 1 + 0.999 * 0 = 0.001
+    torch.testing.assert_close(flat_parameters(learner.target), torch.full_like(flat_parameters(learner.target), 0.001))
+    learner.soft_update_target()
+    # 0.001 * 1 + 0.999 * 0.001 = 0.001999
+    torch.testing.assert_close(flat_parameters(learner.target), torch.full_like(flat_parameters(learner.target), 0.001999))
+
+
+def test_the_soft_update_comes_before_the_gradient_step():
+    learner = DoubleQLearner(TINY, LEARNER)
+    with torch.no_grad():
+        for target in learner.target.parameters():
+            target.mul_(-1.0)
+    online_before, target_before = flat_parameters(learner.online), flat_parameters(learner.target)
+    learner.update(random_batch(np.random.default_rng(0)))
+    torch.testing.assert_close(flat_parameters(learner.target), 0.001 * online_before + 0.999 * target_before)
+    assert not torch.equal(flat_parameters(learner.online), online_before)
+    assert learner.updates == 1
+
+
+def test_update_returns_what_the_strategies_need():
+    learner = DoubleQLearner(TINY, LEARNER)
+    batch = random_batch(np.random.default_rng(2), terminal_last=True)
+    frames = torch.from_numpy(batch.observations)
+    with torch.no_grad():
+        q_before = learner.online(frames)[0]  # over s_0..s_T with the weights before the step
+    result = learner.update(batch, with_q_after=True)
+    with torch.no_grad():
+        q_after = learner.online(frames)[0]
+
+    greedy = q_before[:, 7:10].argmax(dim=-1, keepdim=True)  # a*_t of the 3 unmasked steps t = 7, 8, 9
+    assert result.q_before.shape == result.q_after.shape == result.g_greedy.shape == result.g_uniform.shape == (10, 3)
+    np.testing.assert_allclose(result.q_before, q_before[:, 7:10].max(dim=-1).values.numpy(), rtol=1e-5)
+    np.testing.assert_allclose(result.q_after, q_after[:, 7:10].gather(-1, greedy).squeeze(-1).numpy(), rtol=1e-5)
+    assert not np.allclose(result.q_after, result.q_before)
+    g_greedy, g_uniform = greedy_and_uniform_returns(
+        batch.rewards[:, 7:], q_before[:, 8:11].numpy(), batch.terminated[:, 7:], LEARNER.gamma)
+    np.testing.assert_allclose(result.g_greedy, g_greedy, rtol=1e-5)
+    np.testing.assert_allclose(result.g_uniform, g_uniform, rtol=1e-5)
+    # the last step is terminal: G_Q = G_U = r
+    np.testing.assert_allclose(result.g_greedy[:, -1], batch.rewards[:, -1], rtol=1e-6)
+    np.testing.assert_allclose(result.g_uniform[:, -1], batch.rewards[:, -1], rtol=1e-6)
+    assert result.update == 1 and result.loss > 0
+
+
+def test_q_after_is_computed_only_when_asked():
+    learner = DoubleQLearner(TINY, LEARNER)
+    assert learner.update(random_batch(np.random.default_rng(3))).q_after is None
+
+
+def test_checkpoint_round_trip_continues_identically():
+    rng = np.random.default_rng(4)
+    batches = [random_batch(rng) for _ in range(3)]
+    first = DoubleQLearner(TINY, LEARNER)
+    for batch in batches[:2]:
+        first.update(batch)
+    second = DoubleQLearner(TINY, dataclasses.replace(LEARNER, seed=9))
+    second.load_state_dict(copy.deepcopy(first.state_dict()))
+    assert second.updates == 2
+    assert first.update(batches[2]).loss == second.update(batches[2]).loss
+    assert torch.equal(flat_parameters(first.online), flat_parameters(second.online))
+    assert torch.equal(flat_parameters(first.target), flat_parameters(second.target))
+
+
+def test_a_checkpoint_of_another_network_is_a_value_error():
+    other = DoubleQLearner(dataclasses.replace(TINY, lstm_units=8), LEARNER)
+    learner = DoubleQLearner(TINY, LEARNER)
+    with pytest.raises(ValueError, match="does not fit"):
+        learner.load_state_dict(other.state_dict())
+    with pytest.raises(ValueError, match="lacks"):
+        learner.load_state_dict({"online": {}})
+
+
+def test_the_learner_seed_fixes_the_initial_weights_without_touching_the_global_rng():
+    state = torch.random.get_rng_state()
+    a, b = DoubleQLearner(TINY, LEARNER), DoubleQLearner(TINY, LEARNER)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    assert torch.equal(flat_parameters(a.online), flat_parameters(b.online))
+    c = DoubleQLearner(TINY, dataclasses.replace(LEARNER, seed=1))
+    assert not torch.equal(flat_parameters(a.online), flat_parameters(c.online))
+
+
+def bad_batches():
+    good = random_batch(np.random.default_rng(5))
+    yield dataclasses.replace(good, observations=good.observations.astype(np.float32)), "observations must be uint8"
+    yield dataclasses.replace(good, observations=good.observations[:, :10]), "observations must be uint8"
+    yield dataclasses.replace(good, actions=good.actions[:, :9]), "actions must have shape"
+    yield dataclasses.replace(good, actions=good.actions + 5), r"actions must be integers in \[0, 5\)"
+    yield dataclasses.replace(good, actions=good.actions.astype(float)), "actions must be integers"
+    yield dataclasses.replace(good, rewards=np.full((10, 10), np.nan)), "rewards must be finite"
+    yield dataclasses.replace(good, terminated=np.full((10, 10), 2)), "terminated must hold only"
+
+
+@pytest.mark.parametrize("batch, message", list(bad_batches()))
+def test_a_malformed_batch_is_a_value_error(batch, message):
+    learner = DoubleQLearner(TINY, LEARNER)
+    with pytest.raises(ValueError, match=message):
+        learner.update(batch)
+    assert learner.updates == 0
+
+
+# --- done when: it learns -----------------------------------------------------------------
+
+def test_learns_which_action_pays_on_a_synthetic_task():
+    """Random images; reward 1 for action 3, 0 otherwise. After 200 paper-setting updates
+    (lr 1e-4, gamma 0.99, tau 0.001, n_mask 7 of 10) action 3 has the highest Q everywhere."""
+    best, rng = 3, np.random.default_rng(6)
+    learner = DoubleQLearner(TINY, LEARNER)
+
+    def batch():
+        random = random_batch(rng)
+        return dataclasses.replace(random, rewards=(random.actions == best).astype(np.float32))
+
+    for _ in range(200):
+        learner.update(batch())
+    with torch.no_grad():
+        q_values = learner.online(torch.from_numpy(batch().observations))[0][:, LEARNER.n_mask:]
+    others = torch.cat([q_values[..., :best], q_values[..., best + 1:]], dim=-1)
+    margin = q_values[..., best] - others.max(dim=-1).values
+    assert margin.min() > 0.5, margin  # reward 1 for the best action, 0 for the others
