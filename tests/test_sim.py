@@ -21,7 +21,8 @@ from actor.sim.world_image import ASPHALT, CENTRE_DASH, GRASS, PARKED_CAR, TREE,
 from common.config import ConfigError, EnvConfig
 
 STRAIGHT = 2  # action index of zero steering
-CONFIG = EnvConfig()
+# The hand-computed steps below assume 2 m per step: 10 m/s at 5 decisions per second.
+CONFIG = EnvConfig(policy_frequency=5)
 
 
 @pytest.fixture(scope="module")
@@ -289,15 +290,17 @@ def test_driving_straight_ends_in_a_crash_or_off_the_road_from_every_training_st
         assert terminated and (info["collision"] or info["offroad"]), index
 
 
-def test_privileged_driver_drives_full_episodes_from_the_training_starts(env):
+@pytest.mark.parametrize("config", [EnvConfig(), CONFIG], ids=["default", "5Hz"])
+def test_privileged_driver_drives_full_episodes_from_the_training_starts(config):
     # 10 x 2,000 steps: a few seconds at the env's speed (see deploy/bench/env_speed.py).
+    env = NeighbourhoodEnv(config)
     completed = 0
     for index in range(10):
         env.reset(options={"start_set": "train", "start_index": index})
-        driver = PrivilegedDriver(CONFIG, seed=index)
+        driver = PrivilegedDriver(config, seed=index)
         driver.reset(env.pose)
         terminated = truncated = False
         while not (terminated or truncated):
             _, _, terminated, truncated, info = env.step(driver.act(env.pose))
-        completed += truncated and info["step"] == CONFIG.max_steps and not info["collision"]
+        completed += truncated and info["step"] == config.max_steps and not info["collision"]
     assert completed >= 8
