@@ -9,6 +9,8 @@ at a time carrying the state; a learner runs whole traces from a zero state.
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 from torch import nn
@@ -95,15 +97,21 @@ class D3RQN(nn.Module):
                              f"got {tuple(frames.shape)}")
 
 
+@contextlib.contextmanager
 def _native_cpu_lstm():
     """Runs nn.LSTM on PyTorch's own CPU kernels instead of oneDNN's.
 
     Measured on the 2-core Xeon this project runs on (torch 2.13): the oneDNN
     LSTM takes 3x longer for a training pass over a 10x11 trace and 14x longer
     for one actor step. The switch is global to the process, hence only around
-    the LSTM call; it does not affect CUDA (cuDNN).
+    the LSTM call (convolutions keep oneDNN); it does not affect CUDA (cuDNN).
     """
-    return torch.backends.mkldnn.flags(enabled=False, deterministic=None, allow_tf32=None, fp32_precision=None)
+    enabled = torch.backends.mkldnn.enabled
+    torch.backends.mkldnn.enabled = False
+    try:
+        yield
+    finally:
+        torch.backends.mkldnn.enabled = enabled
 
 
 def weights_to_numpy(module: nn.Module) -> dict[str, np.ndarray]:

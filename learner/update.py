@@ -12,9 +12,14 @@ Per step (REFERENCE.md), in this order:
 2. y_t = r_t + gamma * (1 - terminated_t) * Q_target(h_t+1, argmax_a Q_online(h_t+1, a));
    a truncated episode (the 2,000-step cut) is not terminated, so it bootstraps;
 3. loss = sum over b, t >= n_mask of (y_t - Q_online(h_t, a_t))^2 / (B * T): the
-   paper's per-trace sum of the T - n_mask unmasked errors over T, averaged over
-   the batch (the authors' ``reduce_mean`` of the masked squared errors);
+   paper's Algorithm 1, L_j = sum_i w_i (Y_ji - Q_ji)^2 / T with w_i = 0 for the
+   first n_mask steps, averaged over the B traces;
 4. one Adam step.
+
+Afterwards, for the exploration strategies (unmasked steps only): Q(h_t, a*_t)
+before the step (a* greedy before the step, from the same pass), optionally
+the same after the step (one more no-grad pass, only for VDBE), and BMC's G_Q,
+G_U from the online next-state Q-values with (1 - terminated) applied.
 
 "Do the work once": the online network runs once over all T + 1 frames and
 gives both Q(h_t, .) for t < T (with gradient) and Q(h_t+1, .) for the argmax
@@ -105,16 +110,15 @@ def taken_action_values(q_values: torch.Tensor, actions: torch.Tensor) -> torch.
 def one_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int) -> LossTerms:
     """One online pass (with gradient) and one target pass (without) over s_0..s_T.
 
-    The online pass is made in two calls that carry the LSTM state: s_0..s_T-1
-    with gradient, then s_T without, since no loss term differentiates Q(h_T);
-    this spares the backward pass one frame of work.
+    s_T goes through the gradient pass too although no loss term differentiates
+    Q(h_T): running it in a separate no-grad call instead costs more (~10 ms,
+    mostly reading the 44 MB LSTM input weights once more) than the backward
+    pass spends on it (~6 ms), measured at the paper's sizes on the 2-core CPU.
     """
-    trace_length = batch.actions.shape[1]
-    q_values, (h, c) = online(batch.observations[:, :trace_length])
+    q_all, _ = online(batch.observations)
     with torch.no_grad():
-        q_last, _ = online(batch.observations[:, trace_length:], (h.detach(), c.detach()))
         next_q_target = target(batch.observations)[0][:, 1:]
-    next_q_online = torch.cat([q_values[:, 1:].detach(), q_last], dim=1)
+    q_values, next_q_online = q_all[:, :-1], q_all[:, 1:].detach()
     targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma)
     loss = masked_squared_error(taken_action_values(q_values, batch.actions), targets, n_mask)
     return LossTerms(loss, q_values.detach(), next_q_online)
