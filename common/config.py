@@ -291,7 +291,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "learner.batch_size": 4,
         "learner.start_episodes": 2,
         "learner.start_steps": 100,
-        "learner.total_env_steps": 2_000,
+        "learner.total_env_steps": 20_000,
         "learner.weights_every": 5,
         "learner.checkpoint_every": 50,
         "learner.log_period_s": 1.0,

@@ -135,5 +135,5 @@ def load_numpy_weights(module: nn.Module, tensors: dict[str, np.ndarray]) -> Non
             raise ValueError(f"weights {name!r}: dtype {array.dtype} is not floating point")
         if not np.isfinite(array).all():
             raise ValueError(f"weights {name!r}: contains NaN or infinity")
-        converted[name] = torch.from_numpy(np.ascontiguousarray(array)).to(target.dtype)
+        converted[name] = torch.tensor(array, dtype=target.dtype)  # a copy: wire arrays are read-only views
     module.load_state_dict(converted)
