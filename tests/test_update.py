@@ -1,5 +1,6 @@
 import copy
 import dataclasses
+import platform
 
 import numpy as np
 import pytest
@@ -8,6 +9,7 @@ from torch import nn
 
 from common.config import LearnerConfig, NetworkConfig
 from common.exploration import greedy_and_uniform_returns
+from learner.allocator import keep_freed_memory
 from learner.reference_update import paper_reference_loss, same_history_reference_loss
 from learner.update import (
     DoubleQLearner, TraceBatch, TraceTensors, double_q_targets, masked_squared_error, one_pass_loss, to_tensors,
@@ -227,6 +229,11 @@ def test_a_checkpoint_of_another_network_is_a_value_error():
         learner.load_state_dict(other.state_dict())
     with pytest.raises(ValueError, match="lacks"):
         learner.load_state_dict({"online": {}})
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
+def test_the_allocator_setting_takes_effect_on_glibc():
+    assert keep_freed_memory()
 
 
 def test_the_learner_seed_fixes_the_initial_weights_without_touching_the_global_rng():
