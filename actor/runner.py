@@ -29,6 +29,7 @@ from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, We
 log = logging.getLogger("actor")
 
 LATEST_WEIGHTS_TIMEOUT_S = 30.0
+REPLAY_WAIT_LOG_S = 10.0
 
 
 def actor_seed(run_seed: int, actor_id: int) -> int:
@@ -192,6 +193,8 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, episod
         episode, record = actor.run_episode(stop)
         if stop.is_set() and not (episode.terminated or episode.truncated):
             break  # an interrupted episode is not a real one
+        if not _replay_listening(episodes_out, stop):
+            break
         episodes_out.put(episode)
         records_out.put(record)
         steps += record.length
@@ -200,3 +203,14 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, episod
             log.info("episodes %d, steps %d, mean return %.2f, weights v%d, epsilon %.3f",
                      actor.episode_index, steps, float(np.mean(returns)), actor.weights_version, record.epsilon)
             returns.clear()
+
+
+def _replay_listening(episodes_out, stop: threading.Event) -> bool:
+    """Zenoh drops a put that no subscriber matches, so an episode waits for the replay."""
+    waiting = Every(REPLAY_WAIT_LOG_S)
+    while not episodes_out.matched:
+        if stop.wait(0.1):
+            return False
+        if waiting.due():
+            log.warning("no replay is subscribed to episodes; holding the finished episode")
+    return True

@@ -3,7 +3,9 @@
 The system's step count comes from the replay (frames received in total). A
 replay that restarts counts from zero again, so the clock adds up increments
 instead of trusting the absolute number; it survives learner restarts through
-its state in the checkpoint.
+its state in the checkpoint. (A replay that restarted and has already passed its
+old count while the learner was down cannot be told apart from one that kept
+running; its extra steps are then counted twice.)
 """
 
 from __future__ import annotations
@@ -46,11 +48,13 @@ class StepClock:
         return updates_done < due + max(1.0, tolerance * due)
 
     def state_dict(self) -> dict:
-        # The replay's counter is not carried over: after a restart the first sighting is a new base.
-        return {"env_steps": self.env_steps, "steps_at_first_update": self.steps_at_first_update}
+        # The replay's counter is kept so that steps taken while the learner was down still count
+        # when the same replay is still running; a restarted replay shows as a drop (see observe).
+        return {"env_steps": self.env_steps, "last_reported": self.last_reported,
+                "steps_at_first_update": self.steps_at_first_update}
 
     def load_state_dict(self, state: dict) -> None:
         self.env_steps = int(state["env_steps"])
-        first = state.get("steps_at_first_update")
+        last, first = state.get("last_reported"), state.get("steps_at_first_update")
+        self.last_reported = None if last is None else int(last)
         self.steps_at_first_update = None if first is None else int(first)
-        self.last_reported = None

@@ -234,11 +234,16 @@ class Report:
         self.started = time.monotonic()
         self.pace_wait_s = 0.0
         self.losses: list[float] = []
+        self.loss_diffs: list[float] = []
+        self._previous_loss: float | None = None
         self._window_start = (time.monotonic(), process.updates, 0.0)
 
     def loss(self, value: float) -> None:
         if not math.isfinite(value):
             log.warning("non-finite loss %s at update %d", value, self.process.updates)
+        if self._previous_loss is not None:
+            self.loss_diffs.append(abs(value - self._previous_loss))
+        self._previous_loss = value
         self.losses.append(value)
 
     def pace_wait(self, stop: threading.Event) -> None:
@@ -256,6 +261,8 @@ class Report:
             "updates": updates,
             "env_steps": self.process.clock.env_steps,
             "loss": float(np.mean(self.losses)) if self.losses else float("nan"),
+            # the paper's training figure: |loss_k - loss_k-1| of consecutive updates, averaged here
+            "loss_abs_diff": float(np.mean(self.loss_diffs)) if self.loss_diffs else float("nan"),
             "epsilon": float(strategy.epsilon),
             "updates_per_s": (updates - window_updates) / elapsed,
             "data_wait_share": (self.prefetcher.wait_s - window_data_wait) / elapsed,
@@ -266,5 +273,6 @@ class Report:
                  "%(updates_per_s).2f updates/s, waiting for data %(data_wait_share).0f%% of the time, "
                  "paced %(pace_wait_s).1fs in total", {**values, "data_wait_share": 100 * values["data_wait_share"]})
         self.losses.clear()
+        self.loss_diffs.clear()
         self._window_start = (now, updates, self.prefetcher.wait_s)
         return values

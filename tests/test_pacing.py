@@ -37,7 +37,10 @@ def test_state_survives_a_learner_restart():
     clock.observe(2_400)
     resumed = StepClock()
     resumed.load_state_dict(clock.state_dict())
-    resumed.observe(2_400)  # first sighting after resume is a new base, not new steps
-    resumed.observe(2_480)
+    resumed.observe(2_480)  # the same replay went on while the learner was down
     assert resumed.env_steps == 2_480
     assert resumed.updates_due(4) == 120
+    restarted = StepClock()
+    restarted.load_state_dict(clock.state_dict())
+    restarted.observe(100)  # a new replay counts from zero
+    assert restarted.env_steps == 2_500

@@ -1,0 +1,82 @@
+"""Checkpoint and --resume: an interrupted learner continues exactly where it stopped."""
+
+import numpy as np
+import pytest
+import torch
+
+from common.config import load_config
+from common.wire import FrameStack, TraceBatch
+from learner.checkpoint import CheckpointError, load_checkpoint
+from learner.service import CHECKPOINT_SECTIONS, LearnerProcess
+
+SIZE, STEPS, TRACES = 36, 4, 3
+
+
+@pytest.fixture
+def config(tmp_path):
+    return load_config("smoke", overrides={
+        "network.frame_height": SIZE, "network.frame_width": SIZE, "network.lstm_units": 16,
+        "learner.trace_length": STEPS, "learner.n_mask": 2, "learner.batch_size": TRACES,
+        "learner.lr": 1e-3, "exploration.strategy": "bmc", "run.runs_dir": str(tmp_path)})
+
+
+def batches(count: int) -> list[TraceBatch]:
+    rng = np.random.default_rng(0)
+    made = []
+    for index in range(count):
+        frames = rng.integers(0, 256, size=(TRACES * (STEPS + 1), SIZE, SIZE, 3), dtype=np.uint8)
+        made.append(TraceBatch(
+            request_id=index, observations=FrameStack.from_array(frames),
+            actions=rng.integers(0, 5, size=(TRACES, STEPS)), rewards=rng.random((TRACES, STEPS), dtype=np.float32),
+            terminated=np.zeros((TRACES, STEPS), bool), weights_version=np.zeros((TRACES, STEPS), np.int64),
+            env_steps_total=100 + 40 * index, episodes_stored=10))
+    return made
+
+
+def started(config) -> LearnerProcess:
+    process = LearnerProcess(config)
+    process.start_updates()
+    return process
+
+
+def test_resume_continues_as_if_never_stopped(config):
+    data = batches(6)
+    uninterrupted = started(config)
+    for batch in data:
+        uninterrupted.train_on(batch)
+
+    first = started(config)
+    for batch in data[:3]:
+        first.train_on(batch)
+    first.checkpoint()
+    resumed = LearnerProcess(config)
+    resumed.resume()
+    assert resumed.updates == 3 and resumed.strategy.started
+    for batch in data[3:]:
+        resumed.train_on(batch)
+
+    for name, tensor in uninterrupted.learner.state_dict()["online"].items():
+        assert torch.equal(tensor, resumed.learner.state_dict()["online"][name]), name
+    for name, tensor in uninterrupted.learner.state_dict()["target"].items():
+        assert torch.equal(tensor, resumed.learner.state_dict()["target"][name]), name
+    assert resumed.strategy.state_dict() == uninterrupted.strategy.state_dict()
+    assert resumed.clock.env_steps == uninterrupted.clock.env_steps
+
+
+def test_checkpoint_is_written_atomically_with_every_section(config):
+    process = started(config)
+    process.train_on(batches(1)[0])
+    path = process.checkpoint()
+    assert path.name == "latest.pt" and not list(path.parent.glob("*.tmp"))
+    payload = load_checkpoint(path.parent, CHECKPOINT_SECTIONS)
+    assert payload["config"]["learner"]["trace_length"] == STEPS
+
+
+def test_damaged_or_missing_checkpoint_is_a_clear_error(config, tmp_path):
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        LearnerProcess(config).resume()
+    process = started(config)
+    path = process.checkpoint()
+    path.write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(CheckpointError, match="cannot read checkpoint"):
+        LearnerProcess(config).resume()
