@@ -1,0 +1,93 @@
+"""The across-machines set-up of deploy/configs, played on loopback.
+
+A hub replay (router) for run "cluster", a second run's replay sharing the same
+router, and an actor started from the remote-actor config: the actor's episodes
+reach its own run's replay and nothing leaks into the other run.
+"""
+
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from common.config import TransportConfig, load_config
+from common.transport import Keys, open_session, subscribe
+from common.wire import Stats
+
+CONFIGS = Path(__file__).resolve().parents[1] / "deploy" / "configs"
+EPISODES = 3
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.mark.parametrize("name", ["hub-replay.toml", "hub-learner.toml", "remote-actor.toml"])
+def test_deploy_configs_are_valid(name):
+    config = load_config("paper", CONFIGS / name)
+    assert config.run.name == "cluster"
+    assert config.transport.mode in ("router", "client")
+
+
+def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    processes = []
+
+    def start(name: str, *flags: str) -> subprocess.Popen:
+        log = open(tmp_path / f"{name}.log", "wb")
+        process = subprocess.Popen([sys.executable, "-m", *flags], stdout=log, stderr=subprocess.STDOUT)
+        processes.append(process)
+        return process
+
+    fast_stats = ("--replay.stats_period_s", "0.2")
+    start("hub", "replay.main", "--config", str(CONFIGS / "hub-replay.toml"), "--transport.listen", endpoint,
+          *fast_stats)
+    start("other", "replay.main", "--run.name", "other", "--transport.mode", "client",
+          "--transport.connect", endpoint, *fast_stats)
+    session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+    latest: dict[str, dict] = {}
+    lock = threading.Lock()
+
+    def keep(run: str):
+        def on_stats(message, key):
+            with lock:
+                latest[run] = dict(message.values)
+        return on_stats
+
+    subscriptions = [subscribe(session, Keys("d3rqn", run).replay_stats, keep(run), expected=Stats)
+                     for run in ("cluster", "other")]
+    try:
+        actor = start("actor", "actor.main", "--config", str(CONFIGS / "remote-actor.toml"),
+                      "--transport.connect", endpoint, "--actor.actor_id", "7", "--env.max_steps", "50",
+                      "--max-episodes", str(EPISODES))
+        assert actor.wait(120) == 0, (tmp_path / "actor.log").read_text()
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            with lock:
+                hub = latest.get("cluster", {})
+                if hub.get("inserted", 0) + hub.get("short_dropped", 0) == EPISODES and "other" in latest:
+                    break
+            time.sleep(0.1)
+        with lock:
+            assert latest["cluster"]["inserted"] + latest["cluster"]["short_dropped"] == EPISODES
+            assert latest["other"]["inserted"] + latest["other"]["short_dropped"] == 0
+    finally:
+        for subscription in subscriptions:
+            subscription.undeclare()
+        session.close()
+        for process in processes:
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        for process in processes:
+            try:
+                process.wait(20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
