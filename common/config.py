@@ -221,9 +221,14 @@ class EvaluationConfig:
     workers: int = 2
     envs_per_worker: int = 4
     reward_bins: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 0.75, 1.0])
+    seed: int = 0  # root of every trial's seed (env reset, random baseline, privileged driver's turns)
+    progress_period_s: float = 1.0  # how often the progress line on stderr is refreshed
+    live_timeout_s: float = 30.0  # --live: how long to wait for the learner's latest weights
 
     def validate(self) -> None:
-        _positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker")
+        _positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
+                  "progress_period_s", "live_timeout_s")
+        _check(self.seed >= 0, "seed", "must be >= 0")
         bins = self.reward_bins
         _check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
 

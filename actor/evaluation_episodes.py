@@ -1,0 +1,254 @@
+"""Evaluation episodes: which to run, the policies that drive them, and lockstep stepping.
+
+One worker process holds ``envs_per_worker`` simulators and steps them in
+lockstep: at every step the greedy network sees all its running episodes in
+one batched forward pass, each with its own LSTM state, which is zeroed when
+that slot starts a new episode. A slot whose episode ends takes the next job
+at once, so slow and fast episodes mix freely. Episodes of the random and
+privileged baselines run in the same loop without the network.
+
+The simulator is deterministic: a start pose and an action sequence fix the
+whole episode. Each trial still resets its env with its own seed, and the
+random baseline and the privileged driver (random turns at junctions) draw
+from it, so their trials differ; the greedy policy has nothing random left,
+so its trials from one start repeat each other. The statistics report how many
+distinct trajectories each start produced rather than assume either way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import traceback
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Iterator, Protocol
+
+import numpy as np
+import torch
+
+from actor.evaluation_stats import EvaluationEpisode, digest_of_actions, reward_bin_counts
+from actor.sim import START_SETS, make_env, start_poses
+from actor.sim.privileged import PrivilegedDriver
+from common.config import Config, EnvConfig
+from common.network import D3RQN, load_numpy_weights
+
+POLICIES = ("greedy", "random", "privileged")
+
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    policy: str
+    start_set: str
+    start_index: int
+    trial: int
+    seed: int
+
+
+def trial_seed(root_seed: int, start_set: str, start_index: int, trial: int) -> int:
+    """Reproducible, independent seeds; the same for every policy, so baselines face the same draws."""
+    entropy = [root_seed, START_SETS.index(start_set), start_index, trial]
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
+
+
+def episode_jobs(policies: Iterable[str], start_sets: Iterable[str], trials: int, root_seed: int) -> list[EpisodeJob]:
+    """Every (policy, set, start, trial), greedy first so the batched network runs on full batches."""
+    return [EpisodeJob(policy, start_set, index, trial, trial_seed(root_seed, start_set, index, trial))
+            for policy in policies
+            for start_set in start_sets
+            for index in range(len(start_poses(start_set)))
+            for trial in range(trials)]
+
+
+def evaluation_env_config(config: Config) -> EnvConfig:
+    """The training env with the evaluation's step cap."""
+    return dataclasses.replace(config.env, max_steps=config.evaluation.max_steps)
+
+
+# --- policies: each acts for a batch of slots -------------------------------------------------
+
+class Policy(Protocol):
+    def begin(self, slot: int, job: EpisodeJob, pose: Pose) -> None:
+        """Forgets the slot's previous episode and prepares for this one."""
+
+    def act(self, slots: list[int], observations: list[np.ndarray], poses: list[Pose]) -> list[int]:
+        """One action per slot."""
+
+
+class GreedyPolicy:
+    """argmax Q, one batched forward pass per step, one LSTM state per slot."""
+
+    def __init__(self, network: D3RQN, n_slots: int) -> None:
+        self.network = network.eval()
+        self.hidden, self.cell = network.initial_state(n_slots)
+
+    @torch.no_grad()
+    def begin(self, slot: int, job: EpisodeJob, pose: Pose) -> None:
+        self.hidden[:, slot] = 0.0
+        self.cell[:, slot] = 0.0
+
+    @torch.no_grad()
+    def act(self, slots: list[int], observations: list[np.ndarray], poses: list[Pose]) -> list[int]:
+        index = torch.tensor(slots)
+        frames = torch.from_numpy(np.stack(observations)).unsqueeze(1)  # (batch, time = 1, H, W, C)
+        q_values, (hidden, cell) = self.network(frames, (self.hidden[:, index], self.cell[:, index]))
+        self.hidden[:, index] = hidden
+        self.cell[:, index] = cell
+        return q_values[:, 0].argmax(dim=-1).tolist()
+
+
+class RandomPolicy:
+    """Uniform actions from the trial's seed."""
+
+    def __init__(self, n_actions: int, n_slots: int) -> None:
+        self.n_actions = n_actions
+        self.rngs: list[np.random.Generator | None] = [None] * n_slots
+
+    def begin(self, slot: int, job: EpisodeJob, pose: Pose) -> None:
+        self.rngs[slot] = np.random.default_rng(job.seed)
+
+    def act(self, slots: list[int], observations: list[np.ndarray], poses: list[Pose]) -> list[int]:
+        return [int(self.rngs[slot].integers(self.n_actions)) for slot in slots]
+
+
+class PrivilegedPolicy:
+    """The map-reading driver of actor.sim.privileged: an upper bound, not a learner."""
+
+    def __init__(self, env_config: EnvConfig, n_slots: int) -> None:
+        self.env_config = env_config
+        self.drivers: list[PrivilegedDriver | None] = [None] * n_slots
+
+    def begin(self, slot: int, job: EpisodeJob, pose: Pose) -> None:
+        driver = PrivilegedDriver(self.env_config, seed=job.seed)
+        driver.reset(pose)
+        self.drivers[slot] = driver
+
+    def act(self, slots: list[int], observations: list[np.ndarray], poses: list[Pose]) -> list[int]:
+        return [self.drivers[slot].act(pose) for slot, pose in zip(slots, poses)]
+
+
+def make_policies(config: Config, weights: dict[str, np.ndarray] | None, n_slots: int) -> dict[str, Policy]:
+    """Every policy a worker may be asked to run; greedy only when there are weights."""
+    policies: dict[str, Policy] = {
+        "random": RandomPolicy(config.network.n_actions, n_slots),
+        "privileged": PrivilegedPolicy(evaluation_env_config(config), n_slots),
+    }
+    if weights is not None:
+        network = D3RQN(config.network)
+        load_numpy_weights(network, weights)
+        policies["greedy"] = GreedyPolicy(network, n_slots)
+    return policies
+
+
+# --- lockstep stepping -------------------------------------------------------------------------
+
+@dataclass
+class RunningEpisode:
+    job: EpisodeJob
+    observation: np.ndarray
+    pose: Pose
+    actions: list[int] = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+
+    def finish(self, end: str, reward_edges: list[float]) -> EvaluationEpisode:
+        job = self.job
+        return EvaluationEpisode(
+            policy=job.policy, start_set=job.start_set, start_index=job.start_index, trial=job.trial,
+            seed=job.seed, length=len(self.actions), end=end, episode_return=float(sum(self.rewards)),
+            reward_bin_counts=reward_bin_counts(self.rewards, reward_edges),
+            actions_digest=digest_of_actions(self.actions))
+
+
+def end_reason(info: dict, terminated: bool, length: int, max_steps: int) -> str | None:
+    """Why the episode ended after this step, or None if it goes on."""
+    if info["collision"]:
+        return "collision"
+    if info["offroad"]:
+        return "offroad"
+    if terminated:
+        raise ValueError(f"the env ended an episode for a reason the evaluation does not know: {info}")
+    return "cap" if length >= max_steps else None
+
+
+def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Policy], max_steps: int,
+                 reward_edges: list[float], on_episode: Callable[[EvaluationEpisode], None]) -> None:
+    """Runs every job on the envs, len(envs) at a time; calls on_episode as each one ends."""
+    pending: Iterator[EpisodeJob] = iter(jobs)
+    running: dict[int, RunningEpisode] = {}
+
+    def start_next(slot: int) -> None:
+        job = next(pending, None)
+        if job is None:
+            return
+        if job.policy not in policies:
+            raise ValueError(f"no {job.policy!r} policy in this worker (have {sorted(policies)})")
+        observation, _ = envs[slot].reset(seed=job.seed, options={"start_set": job.start_set,
+                                                                  "start_index": job.start_index})
+        pose = envs[slot].unwrapped.pose
+        policies[job.policy].begin(slot, job, pose)
+        running[slot] = RunningEpisode(job, observation, pose)
+
+    for slot in range(len(envs)):
+        start_next(slot)
+    while running:
+        for slot, action in choose_actions(running, policies).items():
+            episode = running[slot]
+            observation, reward, terminated, _, info = envs[slot].step(action)
+            episode.actions.append(action)
+            episode.rewards.append(float(reward))
+            episode.observation, episode.pose = observation, envs[slot].unwrapped.pose
+            end = end_reason(info, terminated, len(episode.actions), max_steps)
+            if end is not None:
+                on_episode(episode.finish(end, reward_edges))
+                del running[slot]
+                start_next(slot)
+
+
+def choose_actions(running: dict[int, RunningEpisode], policies: dict[str, Policy]) -> dict[int, int]:
+    """One call per policy over all the slots it drives."""
+    actions: dict[int, int] = {}
+    for name, policy in policies.items():
+        slots = [slot for slot, episode in running.items() if episode.job.policy == name]
+        if slots:
+            chosen = policy.act(slots, [running[slot].observation for slot in slots],
+                                [running[slot].pose for slot in slots])
+            actions.update(zip(slots, chosen))
+    return actions
+
+
+# --- the worker process --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class WorkerDone:
+    worker_id: int
+
+
+@dataclass(frozen=True)
+class WorkerFailed:
+    worker_id: int
+    error: str
+
+
+def queued_jobs(job_queue) -> Iterator[EpisodeJob]:
+    """Jobs from a shared queue until this worker's end marker (None)."""
+    while (job := job_queue.get()) is not None:
+        yield job
+
+
+def evaluation_worker(worker_id: int, config: Config, weights: dict[str, np.ndarray] | None,
+                      torch_threads: int, job_queue, result_queue) -> None:
+    """Process entry point: runs queued jobs in lockstep, puts each EvaluationEpisode on result_queue,
+    then WorkerDone, or WorkerFailed with the traceback."""
+    envs = []
+    try:
+        torch.set_num_threads(torch_threads)
+        n_slots = config.evaluation.envs_per_worker
+        envs = [make_env(evaluation_env_config(config)) for _ in range(n_slots)]
+        run_lockstep(queued_jobs(job_queue), envs, make_policies(config, weights, n_slots),
+                     config.evaluation.max_steps, config.evaluation.reward_bins, result_queue.put)
+        result_queue.put(WorkerDone(worker_id))
+    except BaseException:  # the parent must hear of any failure, or it would wait forever
+        result_queue.put(WorkerFailed(worker_id, traceback.format_exc()))
+    finally:
+        for env in envs:
+            env.close()

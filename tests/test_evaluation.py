@@ -1,0 +1,256 @@
+"""The evaluate command: statistics by hand, lockstep batching against one env at a time, end to end."""
+
+import csv
+import math
+import socket
+
+import numpy as np
+import pytest
+import torch
+
+from actor.evaluate import (EvaluationError, Progress, build_parser, check_weights, checkpoint_config, live_source,
+                            main, progress_line, run_jobs)
+from actor.evaluation_episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
+                                       evaluation_env_config, run_lockstep)
+from actor.evaluation_report import bin_labels, markdown_table
+from actor.evaluation_stats import (EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
+                                    summarise_all)
+from actor.sim import make_env
+from common.config import TransportConfig, load_config, to_dict
+from common.transport import Keys, open_session, serve
+from common.wire import Weights
+from learner.checkpoint import save_checkpoint
+from learner.update import DoubleQLearner
+
+EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]
+
+
+def episode(length, end, episode_return, bins, start_index=0, digest="a", policy="greedy", start_set="test"):
+    return EvaluationEpisode(policy=policy, start_set=start_set, start_index=start_index, trial=0, seed=0,
+                             length=length, end=end, episode_return=episode_return, reward_bin_counts=bins,
+                             actions_digest=digest)
+
+
+# --- statistics ----------------------------------------------------------------------------------
+
+def test_reward_bins_are_half_open_except_the_last():
+    rewards = [0.0, 0.1, 0.25, 0.5, 0.74, 0.75, 0.99, 1.0]
+    assert reward_bin_counts(rewards, EDGES) == (2, 1, 2, 3)
+    assert reward_bin_counts([], EDGES) == (0, 0, 0, 0)
+    assert bin_labels(EDGES) == ["[0, 0.25)", "[0.25, 0.5)", "[0.5, 0.75)", "[0.75, 1]"]
+
+
+@pytest.mark.parametrize("reward", [-0.01, 1.01])
+def test_a_reward_outside_the_bins_is_an_error(reward):
+    with pytest.raises(ValueError, match="outside the bins"):
+        reward_bin_counts([0.5, reward], EDGES)
+
+
+def test_summary_of_hand_made_episodes():
+    episodes = [
+        episode(2, "collision", 1.0, (1, 0, 0, 1), start_index=0, digest="a"),
+        episode(4, "offroad", 2.0, (0, 2, 2, 0), start_index=0, digest="a"),
+        episode(6, "cap", 3.0, (0, 0, 3, 3), start_index=1, digest="b"),
+        episode(8, "cap", 4.0, (2, 2, 2, 2), start_index=1, digest="c"),
+    ]
+    row = summarise(episodes)
+    assert (row.policy, row.start_set, row.episodes) == ("greedy", "test", 4)
+    assert row.mean_length == 5.0
+    assert row.std_length == pytest.approx(math.sqrt((9 + 1 + 1 + 9) / 4))  # population std
+    assert (row.min_length, row.max_length) == (2, 8)
+    assert row.cfr == 0.5  # the two that reached the cap
+    assert (row.collision_share, row.offroad_share) == (0.25, 0.25)
+    assert row.mean_reward_per_step == pytest.approx(10.0 / 20)  # pooled over the 20 steps
+    assert row.reward_shares == pytest.approx((3 / 20, 4 / 20, 7 / 20, 6 / 20))
+    assert row.distinct_per_start == 1.5  # start 0: one trajectory, start 1: two
+
+
+def test_summaries_group_by_policy_and_set_and_refuse_mixed_or_empty_groups():
+    episodes = [episode(3, "cap", 3.0, (0, 0, 0, 3), policy="greedy", start_set="train"),
+                episode(1, "collision", 0.0, (1, 0, 0, 0), policy="random", start_set="train"),
+                episode(5, "cap", 5.0, (0, 0, 0, 5), policy="greedy", start_set="train")]
+    rows = summarise_all(episodes)
+    assert [(row.policy, row.episodes, row.mean_length) for row in rows] == [("greedy", 2, 4.0), ("random", 1, 1.0)]
+    with pytest.raises(ValueError, match="one policy"):
+        summarise(episodes)
+    with pytest.raises(ValueError, match="empty"):
+        summarise([])
+    table = markdown_table(rows, EDGES).splitlines()
+    assert len(table) == 4 and table[2].startswith("| greedy | train | 2 | 4.00 | 1.00 | 3 | 100.00% |")
+
+
+def test_end_reasons():
+    assert end_reason({"collision": True, "offroad": True}, True, 3, 30) == "collision"
+    assert end_reason({"collision": False, "offroad": True}, True, 3, 30) == "offroad"
+    assert end_reason({"collision": False, "offroad": False}, False, 29, 30) is None
+    assert end_reason({"collision": False, "offroad": False}, False, 30, 30) == "cap"
+    with pytest.raises(ValueError, match="does not know"):
+        end_reason({"collision": False, "offroad": False}, True, 3, 30)
+
+
+def test_progress_line():
+    assert progress_line(30, 120, 600, 10.0) == ("evaluate: 30/120 episodes (25.0%), 3.00 episodes/s, "
+                                                 "60 steps/s, elapsed 0:10, ETA 0:30")
+    assert progress_line(0, 120, 0, 0.0).endswith("ETA ?")
+
+
+def test_jobs_cover_every_start_and_trial_with_distinct_seeds():
+    jobs = episode_jobs(["greedy", "random"], ["train", "test"], 3, root_seed=0)
+    assert len(jobs) == 2 * 2 * 10 * 3
+    greedy = [job for job in jobs if job.policy == "greedy"]
+    assert len({job.seed for job in greedy}) == len(greedy)
+    assert [job.seed for job in greedy] == [job.seed for job in jobs if job.policy == "random"]
+
+
+# --- lockstep batching ---------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def small_config():
+    return load_config("smoke", overrides={"evaluation.max_steps": 30})
+
+
+@pytest.fixture(scope="module")
+def network(small_config):
+    torch.set_num_threads(1)
+    return DoubleQLearner(small_config.network, small_config.learner).online.eval()
+
+
+def one_env_at_a_time(config, network, job):
+    """The reference: a fresh zero state, one frame per forward pass, as the actor steps."""
+    env = make_env(evaluation_env_config(config))
+    observation, _ = env.reset(seed=job.seed, options={"start_set": job.start_set, "start_index": job.start_index})
+    state = network.initial_state(1)
+    actions, rewards = [], []
+    with torch.no_grad():
+        while True:
+            q_values, state = network(torch.from_numpy(observation)[None, None], state)
+            actions.append(int(q_values[0, 0].argmax()))
+            observation, reward, terminated, _, info = env.step(actions[-1])
+            rewards.append(reward)
+            end = end_reason(info, terminated, len(actions), config.evaluation.max_steps)
+            if end is not None:
+                env.close()
+                return len(actions), end, digest_of_actions(actions), sum(rewards)
+
+
+def lockstep(config, network, jobs, n_envs):
+    envs = [make_env(evaluation_env_config(config)) for _ in range(n_envs)]
+    policies = {"greedy": GreedyPolicy(network, n_envs), "random": RandomPolicy(config.network.n_actions, n_envs)}
+    episodes = []
+    run_lockstep(jobs, envs, policies, config.evaluation.max_steps, EDGES, episodes.append)
+    return {(e.policy, e.start_set, e.start_index): e for e in episodes}
+
+
+def test_batched_lockstep_gives_the_episodes_of_one_env_at_a_time(small_config, network):
+    jobs = episode_jobs(["greedy"], ["test"], 1, root_seed=0) + episode_jobs(["random"], ["train"], 1, root_seed=0)[:4]
+    batched = lockstep(small_config, network, jobs, n_envs=3)
+    single = lockstep(small_config, network, jobs, n_envs=1)
+    assert batched == single
+    lengths = set()
+    for job in jobs[:10]:
+        got = batched[("greedy", job.start_set, job.start_index)]
+        assert (got.length, got.end, got.actions_digest) == one_env_at_a_time(small_config, network, job)[:3]
+        assert got.episode_return == pytest.approx(one_env_at_a_time(small_config, network, job)[3])
+        lengths.add(got.length)
+    assert len(lengths) > 1  # episodes of different lengths: slots were refilled mid-batch
+
+
+def test_starting_an_episode_zeroes_only_its_slot_state(network):
+    policy = GreedyPolicy(network, 3)
+    policy.hidden.fill_(1.0)
+    policy.cell.fill_(1.0)
+    policy.begin(1, EpisodeJob("greedy", "test", 0, 0, 0), (0.0, 0.0, 0.0))
+    assert policy.hidden[:, 1].abs().sum() == 0 and policy.cell[:, 1].abs().sum() == 0
+    assert bool((policy.hidden[:, [0, 2]] == 1).all()) and bool((policy.cell[:, [0, 2]] == 1).all())
+
+
+def test_a_failing_worker_is_an_evaluation_error(small_config):
+    jobs = [EpisodeJob("greedy", "test", 0, 0, 0)]  # no weights, so the worker has no greedy policy
+    with pytest.raises(EvaluationError, match="no 'greedy' policy"):
+        run_jobs(small_config, None, jobs, Progress(len(jobs), 0.2, stream=None))
+
+
+# --- end to end ------------------------------------------------------------------------------------
+
+def make_checkpoint(runs_dir):
+    """A checkpoint in the layout learner/service.py writes, from a smoke-preset config."""
+    config = load_config("smoke", overrides={"run.name": "tiny", "run.runs_dir": str(runs_dir)})
+    learner = DoubleQLearner(config.network, config.learner)
+    save_checkpoint(runs_dir / "tiny" / "checkpoints", {
+        "learner": learner.state_dict(), "exploration": {}, "clock": {"env_steps": 0}, "config": to_dict(config)})
+    return runs_dir / "tiny"
+
+
+def read_csv(path):
+    with path.open() as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_evaluate_a_checkpoint_end_to_end(tmp_path, capsys):
+    run_dir = make_checkpoint(tmp_path / "runs")
+    # The checkpoint's smoke config gives 1 episode per start, 1 worker, 2 envs; the flag changes the cap.
+    main(["--checkpoint", str(run_dir), "--evaluation.max_steps", "30"])
+    out = run_dir / "evaluation"
+    episodes = read_csv(out / "episodes.csv")
+    assert len(episodes) == 2 * 2 * 10  # greedy and random, train and test, 10 starts, 1 trial
+    assert {(row["policy"], row["start_set"]) for row in episodes} == {
+        ("greedy", "train"), ("greedy", "test"), ("random", "train"), ("random", "test")}
+    assert all(1 <= int(row["length"]) <= 30 for row in episodes)
+    assert all(sum(int(row[key]) for key in row if key.startswith("steps_")) == int(row["length"]) for row in episodes)
+    summary = read_csv(out / "summary.csv")
+    assert [(row["policy"], row["start_set"], row["episodes"]) for row in summary] == [
+        ("greedy", "train", "10"), ("greedy", "test", "10"), ("random", "train", "10"), ("random", "test", "10")]
+    markdown = (out / "summary.md").read_text()
+    assert sum(line.startswith(("| greedy |", "| random |")) for line in markdown.splitlines()) == 4
+    assert "max_steps = 30" in (out / "config.toml").read_text()
+    assert "| Policy | Set |" in capsys.readouterr().out
+
+
+def test_checkpoint_config_then_file_then_flags(tmp_path):
+    saved = to_dict(load_config("smoke", overrides={"evaluation.workers": 3}))
+    toml = tmp_path / "eval.toml"
+    toml.write_text("[evaluation]\nworkers = 2\nmax_steps = 100\n")
+    args = build_parser().parse_args(["--checkpoint", "x", "--config", str(toml), "--evaluation.max_steps", "30"])
+    config = checkpoint_config(saved, args)
+    assert config.evaluation.episodes_per_start == 1  # the checkpoint's (smoke), not the paper preset's 30
+    assert config.evaluation.workers == 2  # the file over the checkpoint
+    assert config.evaluation.max_steps == 30  # the flag over the file
+
+
+def test_a_missing_checkpoint_is_a_clear_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--checkpoint", str(tmp_path / "nothing")])
+    assert exit_info.value.code == 1
+    assert "evaluate: error: no checkpoint at" in capsys.readouterr().err
+
+
+# --- live weights ------------------------------------------------------------------------------------
+
+def free_port():
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def live_config(endpoint, timeout_s):
+    return load_config("smoke", overrides={"run.name": "live", "transport.connect": [endpoint],
+                                           "evaluation.live_timeout_s": timeout_s})
+
+
+def test_live_weights_are_the_learners_latest(small_config):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = live_config(endpoint, 10.0)
+    served = Weights(version=7, tensors={"only": np.arange(3, dtype=np.float32)})
+    with open_session(TransportConfig(listen=[endpoint])) as learner:
+        queryable = serve(learner, Keys(config.transport.namespace, "live").weights_latest, lambda request: served)
+        source = live_source(config)
+        queryable.undeclare()
+    assert source.facts["weights version"] == "7"
+    assert source.weights["only"].tolist() == [0.0, 1.0, 2.0]
+    with pytest.raises(EvaluationError, match="do not fit the configured network"):
+        check_weights(config, source.weights)
+
+
+def test_no_live_learner_is_a_clear_error():
+    with pytest.raises(EvaluationError, match="no learner answered"):
+        live_source(live_config(f"tcp/127.0.0.1:{free_port()}", 0.5))
