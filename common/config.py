@@ -262,6 +262,29 @@ class RunConfig:
 
 
 @dataclass
+class RecorderConfig:
+    """The flight recorder (replay/log): what it keeps of a run's traffic and how it writes the MCAP file."""
+
+    enabled: bool = True  # the local stack starts a recorder writing <runs_dir>/<run>/traffic.mcap
+    # A Weights message is 48 MB: keep one when its version is this far past the last kept one
+    # (the first and the last of a run are always kept); a paper run has ~250,000 versions.
+    weights_every_versions: int = 50_000
+    flush_period_s: float = 5.0  # closes the open chunk this often: a killed recorder loses at most this span
+    chunk_mb: float = 4.0  # a chunk also closes at this size
+    queue_messages: int = 10_000  # hand-off from Zenoh's threads to the writer; beyond it messages are
+    queue_mb: float = 512.0  # dropped and counted, never waited for
+    views: bool = True  # JSON copies of metrics, stats and exploration state that Foxglove reads without plugins
+    images: bool = False  # camera frames as foxglove.CompressedImage while recording (CPU, size); see `export --images`
+    image_format: str = "png"  # "png" (lossless) or "jpeg"
+    stats_period_s: float = 5.0  # the recorder's own counters on metrics/recorder/0
+
+    def validate(self) -> None:
+        _positive(self, "weights_every_versions", "flush_period_s", "chunk_mb", "queue_messages", "queue_mb",
+                  "stats_period_s")
+        _check(self.image_format in ("png", "jpeg"), "image_format", "must be 'png' or 'jpeg'")
+
+
+@dataclass
 class Config:
     run: RunConfig = field(default_factory=RunConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
@@ -272,6 +295,7 @@ class Config:
     actor: ActorConfig = field(default_factory=ActorConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
+    record: RecorderConfig = field(default_factory=RecorderConfig)
 
     def validate(self) -> "Config":
         for path, section in _sections(self):

@@ -94,6 +94,8 @@ class Stack:
 
     def start_all(self) -> None:
         self._start("replay", "replay.main", ["--transport.mode", "router", "--transport.listen", self.endpoint])
+        if self.config.record.enabled:  # the flight recorder writes <run dir>/traffic.mcap
+            self._start("recorder", "replay.log.cli record", self._client_flags())
         learner_flags = ["--resume"] if self.resume else []
         self._start("learner", "learner.main", self._client_flags() + learner_flags)
         for actor_id in range(self.actor_count):
@@ -117,8 +119,9 @@ class Stack:
         return 0
 
     def stop_all(self) -> None:
-        """Learner first (it checkpoints), then actors, replay last."""
-        order = ["learner"] + sorted(name for name in self.processes if name.startswith("actor")) + ["replay"]
+        """Learner first (it checkpoints), then actors, the recorder (it has seen their last messages), replay last."""
+        order = (["learner"] + sorted(name for name in self.processes if name.startswith("actor"))
+                 + ["recorder", "replay"])
         for name in order:
             process = self.processes.get(name)
             if process is not None and process.poll() is None:
@@ -138,7 +141,7 @@ class Stack:
 
     def _start(self, name: str, module: str, flags: list[str]) -> None:
         log = open(self.logs / f"{name}.log", "ab")
-        command = [sys.executable, "-m", module, *self.base, *flags]
+        command = [sys.executable, "-m", *module.split(), *self.base, *flags]  # module, then any subcommand
         self.processes[name] = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
                                                 stdin=subprocess.DEVNULL, start_new_session=True)
         log.close()

@@ -1,0 +1,88 @@
+"""A log as tables (CSV) and as a Foxglove viewing file with the camera frames.
+
+Tables: ``episodes.csv`` (one EpisodeRecord per row), one ``<source>.csv`` per Stats
+source (``learner.csv``, ``replay.csv``, ``recorder.csv``) and ``exploration.csv``.
+Every row starts with the log and publish times in seconds since the Unix epoch.
+
+The viewing file (``--images``) holds the JSON views of ``views.py`` for every
+message of the log, camera frames included: the recorder leaves frames out by
+default (``record.images``) because encoding them costs CPU and doubles the size
+of the episodes, so this offline step makes them when someone wants to watch.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from common.wire import EpisodeRecord, ExplorationState, Stats
+from replay.log.reader import LogFile
+from replay.log.views import ViewMaker, json_safe, message_view
+from replay.log.writer import LogWriter
+
+TIME_COLUMNS = ("log_time", "publish_time")
+
+
+@dataclass
+class Tables:
+    episodes: list[dict] = field(default_factory=list)
+    stats: dict[str, list[dict]] = field(default_factory=dict)  # Stats source -> rows
+    exploration: list[dict] = field(default_factory=list)
+
+
+def collect(log: LogFile) -> Tables:
+    """The metrics of a log as rows of plain values, in log-time order."""
+    tables = Tables()
+    for record, message in log.messages(EpisodeRecord, Stats, ExplorationState):
+        row = {"log_time": record.log_ns / 1e9, "publish_time": record.publish_ns / 1e9}
+        if isinstance(message, ExplorationState):
+            row.update({name: value for name, value in message_view(message).items() if name != "counters"
+                        and not isinstance(value, dict)})
+            row.update({f"counters.{name}": value for name, value in json_safe(message.counters).items()})
+            tables.exploration.append(row)
+            continue
+        row.update(message_view(message))
+        if isinstance(message, Stats):
+            tables.stats.setdefault(message.source, []).append(row)
+        else:
+            tables.episodes.append(row)
+    return tables
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    """Columns in first-seen order; a value missing from a row is left empty."""
+    columns = list(dict.fromkeys(name for row in rows for name in row))
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def export_csv(log: LogFile, directory: Path) -> list[Path]:
+    directory.mkdir(parents=True, exist_ok=True)
+    tables = collect(log)
+    files = {"episodes.csv": tables.episodes, "exploration.csv": tables.exploration}
+    files.update({f"{source}.csv": rows for source, rows in sorted(tables.stats.items())})
+    written = []
+    for name, rows in files.items():
+        if rows:
+            write_csv(rows, directory / name)
+            written.append(directory / name)
+    return written
+
+
+def export_images(log: LogFile, target: Path, image_format: str = "png") -> int:
+    """Writes the viewing file; returns the number of view messages in it."""
+    config = log.config()
+    keys = log.keys()
+    views = ViewMaker(keys.root, 1.0 / config.env.policy_frequency, images=True, image_format=image_format)
+    writer = LogWriter(target, config, views=None)
+    try:
+        for record in log.records(log.wire_topics()):
+            if views.wants(record.message_type):
+                for view in views.views(record.topic, record.data, record.log_ns):
+                    writer.write_view(view)
+    finally:
+        writer.close()
+    return writer.view_messages

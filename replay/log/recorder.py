@@ -1,0 +1,261 @@
+"""The flight recorder: every message of a run, as sent, into one MCAP file.
+
+It subscribes to ``<namespace>/<run>/**``. Zenoh calls back on its own threads; the
+callback only copies the payload, stamps the reception time and offers it to a
+bounded hand-off, so the recorder never slows a publisher: what does not fit is
+dropped and counted (per key, in the recorder's Stats and in the file's
+``d3rqn.recorder`` metadata; the per-key sequence numbers show the gaps). A
+writer thread does everything else: time stamps, weights sampling, views,
+compression, and a flush every ``record.flush_period_s`` that closes the open
+chunk, so a recorder killed with SIGKILL leaves a file readable up to that flush
+(``d3rqn-log recover``).
+
+Weights (48 MB each) are kept sparsely: the first, one per
+``record.weights_every_versions`` versions, and the newest one when recording stops.
+Queries (trace batches, latest weights) are not publications and are not recorded.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections import Counter, deque
+from pathlib import Path
+
+import zenoh
+
+from common.config import Config, RecorderConfig
+from common.logs import setup_logging
+from common.transport import Declared, Keys, RateLimitedLog, declare_liveliness, open_session, publisher
+from common.wire import Stats, Weights
+from replay.log.traffic import Arrival, Peek, peek
+from replay.log.views import ViewMaker
+from replay.log.writer import MEGABYTE, LogWriter
+
+log = logging.getLogger("recorder")
+
+LOG_FILE_NAME = "traffic.mcap"
+
+
+class HandOff:
+    """A FIFO bounded in items and bytes; offering never waits, taking waits up to a timeout."""
+
+    def __init__(self, max_items: int, max_bytes: int) -> None:
+        self.max_items = max_items
+        self.max_bytes = max_bytes
+        self._items: deque[tuple[object, int]] = deque()
+        self._bytes = 0
+        self._closed = False
+        self._ready = threading.Condition()
+
+    def offer(self, item: object, size: int) -> bool:
+        """Queues the item unless it does not fit (or the hand-off is closed); returns whether it was queued."""
+        with self._ready:
+            if self._closed or len(self._items) >= self.max_items or self._bytes + size > self.max_bytes:
+                return False
+            self._items.append((item, size))
+            self._bytes += size
+            self._ready.notify()
+            return True
+
+    def take(self, timeout_s: float) -> object | None:
+        """The oldest item, or None if none came within the timeout (or the hand-off is closed and empty)."""
+        with self._ready:
+            if not self._items and not self._closed:
+                self._ready.wait(timeout_s)
+            if not self._items:
+                return None
+            item, size = self._items.popleft()
+            self._bytes -= size
+            return item
+
+    def close(self) -> None:
+        """Refuses new items; take() still returns those queued."""
+        with self._ready:
+            self._closed = True
+            self._ready.notify_all()
+
+    @property
+    def drained(self) -> bool:
+        with self._ready:
+            return self._closed and not self._items
+
+    def depth(self) -> tuple[int, int]:
+        with self._ready:
+            return len(self._items), self._bytes
+
+
+class WeightsSampler:
+    """Keeps the first Weights, then one per `every` versions; holds the newest skipped one for the end."""
+
+    def __init__(self, every: int) -> None:
+        self.every = every
+        self.last_kept: int | None = None
+        self.held: tuple[Arrival, Peek] | None = None
+        self.kept = 0
+        self.skipped = 0
+
+    def keep(self, arrival: Arrival, seen: Peek) -> bool:
+        version = seen.version
+        if version is None:
+            self.kept += 1
+            return True  # a Weights message without a readable version is kept as evidence
+        if self.last_kept is None or version >= self.last_kept + self.every:
+            self.last_kept = version
+            self.kept += 1
+            return True
+        if version > self.last_kept:
+            self.held = (arrival, seen)
+        self.skipped += 1
+        return False
+
+    def take_held(self) -> tuple[Arrival, Peek] | None:
+        """The newest skipped Weights if it is newer than the last kept one: the run's final weights."""
+        held, self.held = self.held, None
+        if held is None or held[1].version <= self.last_kept:
+            return None
+        self.last_kept = held[1].version
+        self.kept += 1
+        self.skipped -= 1
+        return held
+
+
+class Recorder:
+    """Samples in through `offer`, file out through a writer thread."""
+
+    def __init__(self, writer: LogWriter, config: RecorderConfig) -> None:
+        self.writer = writer
+        self.flush_period_s = config.flush_period_s
+        self.handoff = HandOff(config.queue_messages, int(config.queue_mb * MEGABYTE))
+        self.sampler = WeightsSampler(config.weights_every_versions)
+        self._lock = threading.Lock()
+        self._sequences: dict[str, int] = {}
+        self.received = 0
+        self.dropped: Counter[str] = Counter()
+        self.error: BaseException | None = None
+        self._warn = RateLimitedLog()
+        self._thread = threading.Thread(target=self._write_all, name="mcap-writer", daemon=True)
+
+    # --- Zenoh's side: copy, stamp, hand off ---------------------------------------------------
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        received_ns = time.time_ns()
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        stamp = sample.timestamp
+        zenoh_ns = None if stamp is None else stamp.get_time_as_ntp64().as_nanos()
+        self.offer(str(sample.key_expr), sample.payload.to_bytes(), received_ns, zenoh_ns)
+
+    def offer(self, key: str, data: bytes, received_ns: int, zenoh_ns: int | None = None) -> bool:
+        with self._lock:
+            sequence = self._sequences[key] = self._sequences.get(key, 0) + 1
+            self.received += 1
+        if self.handoff.offer(Arrival(key, data, received_ns, zenoh_ns, sequence), len(data)):
+            return True
+        with self._lock:
+            self.dropped[key] += 1
+        self._warn.warning("recorder queue full: dropped a %d-byte message on %s", len(data), key)
+        return False
+
+    # --- the writer thread -----------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread.start()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self) -> None:
+        """Writes what is queued and the newest weights, then closes the file."""
+        self.handoff.close()
+        self._thread.join()
+        if self.error is None:
+            held = self.sampler.take_held()
+            if held is not None:
+                self.writer.write(*held)
+            self.writer.close({key: str(value) for key, value in self.snapshot().items()})
+
+    def _write_all(self) -> None:
+        next_flush = time.monotonic() + self.flush_period_s
+        try:
+            while not self.handoff.drained:
+                arrival = self.handoff.take(max(0.0, next_flush - time.monotonic()))
+                if arrival is not None:
+                    self._write(arrival)
+                if time.monotonic() >= next_flush:
+                    self.writer.flush()
+                    next_flush = time.monotonic() + self.flush_period_s
+        except Exception as error:  # disk full, closed file...: stop writing; the file stays recoverable
+            self.error = error
+            log.exception("the writer failed; recording stops")
+
+    def _write(self, arrival: Arrival) -> None:
+        seen = peek(arrival.data)
+        if seen.message_type == Weights.__name__ and not self.sampler.keep(arrival, seen):
+            return
+        self.writer.write(arrival, seen)
+
+    def snapshot(self) -> dict[str, int | float]:
+        depth, queued_bytes = self.handoff.depth()
+        with self._lock:
+            dropped = dict(self.dropped)
+            received = self.received
+        values: dict[str, int | float] = {
+            "received": received, "written": self.writer.messages, "views_written": self.writer.view_messages,
+            "dropped": sum(dropped.values()),
+            "queue_messages": depth, "queue_mb": queued_bytes / MEGABYTE,
+            "weights_kept": self.sampler.kept, "weights_skipped": self.sampler.skipped,
+        }
+        values.update({f"dropped:{key}": count for key, count in dropped.items()})
+        return values
+
+
+def next_free_path(path: Path) -> Path:
+    """path, or path with -2, -3, ... before its suffix: a recorder never overwrites a log."""
+    candidate, number = path, 1
+    while candidate.exists():
+        number += 1
+        candidate = path.with_name(f"{path.stem}-{number}{path.suffix}")
+    return candidate
+
+
+def default_log_path(config: Config) -> Path:
+    return Path(config.run.runs_dir) / config.run.name / LOG_FILE_NAME
+
+
+def run_recorder(config: Config, output: Path | None = None) -> int:
+    """Records until SIGINT/SIGTERM; returns the exit code (1 if the writer failed)."""
+    setup_logging("recorder")
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    keys = Keys(config.transport.namespace, config.run.name)
+    path = next_free_path(output or default_log_path(config))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    views = None
+    if config.record.views:
+        views = ViewMaker(keys.root, 1.0 / config.env.policy_frequency, config.record.images,
+                          config.record.image_format)
+    recorder = Recorder(LogWriter(path, config, views), config.record)
+    recorder.start()
+    session = open_session(config.transport)
+    try:
+        subscription = Declared(keys.all).attach(session.declare_subscriber(keys.all, recorder.on_sample))
+        liveliness = declare_liveliness(session, keys.liveliness("recorder", "0"))
+        stats_out = publisher(session, keys.metrics_source("recorder", "0"), reliable=False)
+        log.info("recording %s into %s", keys.all, path)
+        while recorder.alive and not stop.wait(config.record.stats_period_s):
+            values = recorder.snapshot()
+            stats_out.put(Stats(source="recorder", time=time.time(), values=values))
+            log.info("received %(received)d, written %(written)d, dropped %(dropped)d, "
+                     "queue %(queue_messages)d (%(queue_mb).1f MB)", values)
+        for declared in (subscription, liveliness, stats_out):
+            declared.undeclare()
+    finally:
+        recorder.stop()
+        session.close()
+    log.info("stopped; %s: %s", path, recorder.snapshot())
+    return 1 if recorder.error is not None else 0

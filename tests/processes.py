@@ -1,0 +1,53 @@
+"""Starting and stopping real processes in tests: free ports, logs to files, nothing left running."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+STOP_TIMEOUT_S = 30.0
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def loopback_endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def start(args: list[str], log_path: Path, cwd: Path | None = None) -> subprocess.Popen:
+    """`python <args>` with stdout and stderr in log_path."""
+    with open(log_path, "wb") as log:
+        return subprocess.Popen([sys.executable, *args], stdout=log, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, cwd=cwd)
+
+
+def stop(*processes: subprocess.Popen) -> None:
+    """SIGINT to all, then wait; kill whatever does not stop in time."""
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    for process in processes:
+        try:
+            process.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def wait_for(condition, what: str, timeout_s: float, logs: list[Path] = ()) -> None:
+    """Polls condition() until true; on timeout fails with the tail of the given logs."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return
+        time.sleep(0.1)
+    tails = "\n".join(f"--- {path.name}\n{path.read_text(errors='replace')[-2000:]}" for path in logs if path.exists())
+    raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}\n{tails}")
