@@ -24,7 +24,7 @@ from common.exploration import make_strategy
 from common.logs import Every, setup_logging
 from common.network import D3RQN, load_numpy_weights
 from common.transport import Keys, declare_liveliness, open_session, publisher, request, subscribe
-from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Weights
+from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Stats, Weights
 
 log = logging.getLogger("actor")
 
@@ -44,6 +44,7 @@ class Mailbox:
         self._lock = threading.Lock()
         self._weights: Weights | None = None
         self._exploration: ExplorationState | None = None
+        self.learner_progress: dict | None = None  # kept, not taken: the pacing reads it repeatedly
 
     def offer_weights(self, message: Weights, key: str = "") -> None:
         with self._lock:
@@ -53,6 +54,19 @@ class Mailbox:
     def offer_exploration(self, message: ExplorationState, key: str = "") -> None:
         with self._lock:
             self._exploration = message
+
+    def offer_progress(self, message: Stats, key: str = "") -> None:
+        with self._lock:
+            self.learner_progress = dict(message.values)
+
+    def learner_lags(self, tolerance: float) -> bool:
+        """True while the learner is more than `tolerance` (a share, at least one update) behind."""
+        with self._lock:
+            progress = self.learner_progress
+        if not progress:
+            return False
+        due = float(progress["updates_due"])
+        return float(progress["updates"]) < due - max(1.0, tolerance * due)
 
     def take(self) -> tuple[Weights | None, ExplorationState | None]:
         with self._lock:
@@ -169,7 +183,8 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
     try:
         liveliness = declare_liveliness(session, keys.liveliness("actor", str(actor_id)))
         subscriptions = [subscribe(session, keys.weights, actor.mailbox.offer_weights),
-                         subscribe(session, keys.exploration, actor.mailbox.offer_exploration)]
+                         subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
+                         subscribe(session, keys.learner_progress, actor.mailbox.offer_progress, expected=Stats)]
         episodes_out = publisher(session, keys.episodes)
         records_out = publisher(session, keys.metrics_source("actor", str(actor_id)))
         threading.Thread(target=_fetch_latest_weights, args=(session, keys, actor.mailbox), daemon=True).start()
@@ -190,6 +205,8 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, episod
     steps = 0
     returns: list[float] = []
     while not stop.is_set() and (max_episodes is None or actor.episode_index < max_episodes):
+        if actor.config.actor.pace_with_learner and not _learner_caught_up(actor, stop):
+            break
         episode, record = actor.run_episode(stop)
         if stop.is_set() and not (episode.terminated or episode.truncated):
             break  # an interrupted episode is not a real one
@@ -213,4 +230,16 @@ def _replay_listening(episodes_out, stop: threading.Event) -> bool:
             return False
         if waiting.due():
             log.warning("no replay is subscribed to episodes; holding the finished episode")
+    return True
+
+
+def _learner_caught_up(actor: Actor, stop: threading.Event) -> bool:
+    """Waits at an episode boundary while the learner lags the update ratio; False if stopped."""
+    waiting = Every(actor.config.actor.log_period_s)
+    started = time.monotonic()
+    while actor.mailbox.learner_lags(actor.config.learner.ratio_tolerance):
+        if stop.wait(0.02):
+            return False
+        if waiting.due():
+            log.info("holding the next episode for the learner to catch up (%.0fs so far)", time.monotonic() - started)
     return True

@@ -59,7 +59,7 @@ class ReplayConfig:
     memory_budget_mb: float = 8192.0  # compressed frames plus metadata
     max_message_mb: float = 64.0  # larger episode messages are rejected
     max_batch_size: int = 256  # largest trace batch one query may ask for
-    stats_period_s: float = 2.0
+    stats_period_s: float = 1.0  # the learner paces its updates by these stats
     log_period_s: float = 10.0
     seed: int = 0
 
@@ -206,6 +206,9 @@ class EnvConfig:
 class ActorConfig:
     num_actors: int = 0  # local stack: 0 means one per spare core
     actor_id: int = 0
+    # Hold a new episode while the learner lags the update ratio by more than
+    # learner.ratio_tolerance, so fast actors cannot dilute the paper's 1 update per 4 steps.
+    pace_with_learner: bool = True
     log_period_s: float = 10.0
 
     def validate(self) -> None:
@@ -313,11 +316,22 @@ class Config:
 PRESETS: dict[str, dict[str, Any]] = {
     # The paper's values are the dataclass defaults.
     "paper": {},
+    # The main job on a 2-core CPU machine (about 30 minutes): the paper's agent, buffer and
+    # ratio, with the run cut to 60,000 steps and the decreasing schedule scaled to that length.
+    "local": {
+        "learner.total_env_steps": 60_000,
+        "learner.start_steps": 10_000,
+        "learner.checkpoint_every": 1_000,
+        "exploration.decreasing.n_start": 10_000,
+        "exploration.decreasing.n_ann": 20_000,
+        "exploration.decreasing.n_max": 60_000,
+    },
     # Seconds-long runs for tests: tiny buffer, short episodes, early updates.
     "smoke": {
         "replay.capacity": 50,
         "replay.stats_period_s": 0.5,
         "learner.batch_size": 4,
+        "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
         "learner.start_episodes": 2,
         "learner.start_steps": 100,
         "learner.total_env_steps": 20_000,

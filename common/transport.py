@@ -112,6 +112,11 @@ class Keys:
     def exploration(self) -> str:
         return f"{self.root}/exploration"
 
+    @property
+    def learner_progress(self) -> str:
+        """The learner's update count against the updates the system's steps pay for."""
+        return f"{self.root}/learner/progress"
+
     def metrics_source(self, role: str, process_id: str | int | None = None) -> str:
         """Metrics of one process: ``metrics/learner``, ``metrics/actor/3``."""
         key = f"{self.root}/metrics/{_check_chunk(role, 'role')}"

@@ -92,8 +92,10 @@ class LearnerProcess:
 
     def train_on(self, batch: TraceBatch) -> float:
         """One update on one batch; feeds the strategy what it needs; returns the loss."""
-        self._observe(batch.env_steps_total, batch.episodes_stored)
-        traces = Traces(batch.observations_array(), batch.actions, batch.rewards, batch.terminated)
+        # The clock reads only the replay's stats: batches from parallel requests arrive out of
+        # order, and an older count would look like a replay restart.
+        traces = Traces(batch.observations_array(), np.array(batch.actions), np.array(batch.rewards),
+                        np.array(batch.terminated))
         result = self.learner.update(traces, with_q_after=self.strategy.needs_q_after)
         self.strategy.on_env_steps(self.clock.env_steps)
         if self.strategy.needs_q_after:
@@ -162,6 +164,7 @@ class Outputs:
         self._weights = publisher(session, keys.weights)
         self._exploration = publisher(session, keys.exploration)
         self._metrics = publisher(session, keys.metrics_source("learner", "0"))
+        self._progress = publisher(session, keys.learner_progress)
         self._last_exploration: dict | None = None
 
     def weights(self, weights: Weights) -> None:
@@ -173,6 +176,13 @@ class Outputs:
         if force or state != self._last_exploration:
             self._exploration.put(message)
             self._last_exploration = state
+
+    def progress(self, process: LearnerProcess) -> None:
+        with process._lock:
+            due = process.clock.updates_due(process.config.learner.env_steps_per_update)
+            env_steps = process.clock.env_steps
+        self._progress.put(Stats(source="learner", time=time.time(),
+                                 values={"updates": process.updates, "updates_due": due, "env_steps": env_steps}))
 
     def metrics(self, values: dict) -> None:
         self._metrics.put(Stats(source="learner", time=time.time(), values=values))
@@ -209,6 +219,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
             if batch is None:
                 break
             report.loss(process.train_on(batch))
+            outputs.progress(process)
             outputs.exploration(process.strategy)
             if process.updates % config.weights_every == 0:
                 outputs.weights(process.make_weights())

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from common.config import load_config
-from common.wire import FrameStack, TraceBatch
+from common.wire import FrameStack, Stats, TraceBatch
 from learner.checkpoint import CheckpointError, load_checkpoint
 from learner.service import CHECKPOINT_SECTIONS, LearnerProcess
 
@@ -33,6 +33,13 @@ def batches(count: int) -> list[TraceBatch]:
     return made
 
 
+def train(process: LearnerProcess, batch: TraceBatch) -> None:
+    """As in service: the replay's stats move the clock, then the batch is trained on."""
+    process.on_replay_stats(Stats(source="replay", time=0.0, values={
+        "env_steps_total": batch.env_steps_total, "episodes": batch.episodes_stored}))
+    process.train_on(batch)
+
+
 def started(config) -> LearnerProcess:
     process = LearnerProcess(config)
     process.start_updates()
@@ -43,17 +50,17 @@ def test_resume_continues_as_if_never_stopped(config):
     data = batches(6)
     uninterrupted = started(config)
     for batch in data:
-        uninterrupted.train_on(batch)
+        train(uninterrupted, batch)
 
     first = started(config)
     for batch in data[:3]:
-        first.train_on(batch)
+        train(first, batch)
     first.checkpoint()
     resumed = LearnerProcess(config)
     resumed.resume()
     assert resumed.updates == 3 and resumed.strategy.started
     for batch in data[3:]:
-        resumed.train_on(batch)
+        train(resumed, batch)
 
     for name, tensor in uninterrupted.learner.state_dict()["online"].items():
         assert torch.equal(tensor, resumed.learner.state_dict()["online"][name]), name
@@ -65,7 +72,7 @@ def test_resume_continues_as_if_never_stopped(config):
 
 def test_checkpoint_is_written_atomically_with_every_section(config):
     process = started(config)
-    process.train_on(batches(1)[0])
+    train(process, batches(1)[0])
     path = process.checkpoint()
     assert path.name == "latest.pt" and not list(path.parent.glob("*.tmp"))
     payload = load_checkpoint(path.parent, CHECKPOINT_SECTIONS)
