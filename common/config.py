@@ -194,12 +194,19 @@ class EnvConfig:
     render_scale: float = 8.0  # pixels per metre of the pre-drawn world
     wheelbase_m: float = 2.7  # kinematic bicycle: at 25 degrees the car turns on a 6 m radius
 
+    # Each start pose is shifted sideways and turned by a uniform draw within these bounds
+    # (the env's RNG), so repeated trials from one start differ as AirSim's physics made them.
+    start_jitter_m: float = 0.3
+    start_jitter_deg: float = 3.0
+
     def validate(self) -> None:
         _positive(self, "speed", "max_steer_deg", "policy_frequency", "reward_beta",
                   "offroad_distance", "max_steps", "camera_ahead_m", "camera_width_m", "render_scale",
                   "wheelbase_m")
         _check(self.camera_behind_m >= 0, "camera_behind_m", "must be >= 0")
         _check(self.max_steer_deg < 90, "max_steer_deg", "must be < 90")
+        _check(0 <= self.start_jitter_m < self.offroad_distance, "start_jitter_m", "must lie in [0, offroad_distance)")
+        _check(0 <= self.start_jitter_deg < 45, "start_jitter_deg", "must lie in [0, 45)")
 
 
 @dataclass

@@ -22,7 +22,7 @@ from common.config import ConfigError, EnvConfig
 
 STRAIGHT = 2  # action index of zero steering
 # The hand-computed steps below assume 2 m per step: 10 m/s at 5 decisions per second.
-CONFIG = EnvConfig(policy_frequency=5)
+CONFIG = EnvConfig(policy_frequency=5, start_jitter_m=0.0, start_jitter_deg=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -304,3 +304,24 @@ def test_privileged_driver_drives_full_episodes_from_the_training_starts(config)
             _, _, terminated, truncated, info = env.step(driver.act(env.pose))
         completed += truncated and info["step"] == config.max_steps and not info["collision"]
     assert completed >= 8
+
+
+def test_start_jitter_varies_the_start_within_its_bounds():
+    config = EnvConfig(start_jitter_m=0.3, start_jitter_deg=3.0)
+    env = NeighbourhoodEnv(config)
+    pose = start_poses("train")[4]
+    seen = set()
+    for seed in range(20):
+        _, info = env.reset(seed=seed, options={"start_index": 4})
+        x, y, heading = env.pose
+        sideways = (x - pose.x) * -math.sin(pose.heading) + (y - pose.y) * math.cos(pose.heading)
+        along = (x - pose.x) * math.cos(pose.heading) + (y - pose.y) * math.sin(pose.heading)
+        turn = math.degrees(math.remainder(heading - pose.heading, math.tau))
+        assert abs(sideways) <= 0.3 + 1e-9 and abs(along) < 1e-9 and abs(turn) <= 3.0 + 1e-9
+        assert info["distance"] == pytest.approx(abs(sideways), abs=1e-6)
+        seen.add(round(sideways, 6))
+    assert len(seen) == 20
+    env.reset(seed=3, options={"start_index": 4})
+    again = env.pose
+    env.reset(seed=3, options={"start_index": 4})
+    assert env.pose == again

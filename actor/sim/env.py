@@ -162,7 +162,16 @@ class NeighbourhoodEnv(AbstractEnv):
             self.road.vehicles.append(self.vehicle)
         start: Pose = self.hood.start_poses[self.start_set][self.start_index]
         self.vehicle.crashed = False
-        self._move_to(start.x, start.y, start.heading)
+        self._move_to(*self._jittered(start))
+
+    def _jittered(self, start: Pose) -> tuple[float, float, float]:
+        """The start pose moved sideways and turned by uniform draws within the configured bounds."""
+        if self.env_config.start_jitter_m == 0 and self.env_config.start_jitter_deg == 0:
+            return start.x, start.y, start.heading
+        shift = self.np_random.uniform(-1.0, 1.0) * self.env_config.start_jitter_m
+        turn = math.radians(self.np_random.uniform(-1.0, 1.0) * self.env_config.start_jitter_deg)
+        sideways_x, sideways_y = -math.sin(start.heading), math.cos(start.heading)
+        return start.x + shift * sideways_x, start.y + shift * sideways_y, _wrap_angle(start.heading + turn)
 
     def _ego_vehicle(self) -> Vehicle:
         vehicle = self.action_type.vehicle_class(self.road, [0.0, 0.0], 0.0, self.env_config.speed)
