@@ -81,16 +81,17 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
         session = open_session(TransportConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
         seen: dict[str, dict] = {}
         keys = Keys(config.transport.namespace, "bench")
-        remember = lambda message, key: seen.__setitem__(message.source, dict(message.values))
+        remember = lambda message, key: seen.__setitem__(key, dict(message.values))
         subscriptions = [subscribe(session, keys.replay_stats, remember, expected=Stats),
-                         subscribe(session, keys.metrics_source("learner", "0"), remember, expected=Stats),
                          subscribe(session, keys.learner_progress, remember, expected=Stats)]
         try:
-            while seen.get("learner", {}).get("updates", 0) < 1:
+            # Steps the actors took at random-play speed before they heard that updates began are
+            # owed updates; measure once the learner has caught up with them.
+            while not caught_up(seen.get(keys.learner_progress), config.learner.ratio_tolerance):
                 time.sleep(0.2)
-            first = (time.monotonic(), seen["replay"]["env_steps_total"], seen["learner"]["updates"])
+            first = (time.monotonic(), seen[keys.replay_stats]["env_steps_total"], seen[keys.learner_progress]["updates"])
             time.sleep(seconds)
-            last = (time.monotonic(), seen["replay"]["env_steps_total"], seen["learner"]["updates"])
+            last = (time.monotonic(), seen[keys.replay_stats]["env_steps_total"], seen[keys.learner_progress]["updates"])
         finally:
             for subscription in subscriptions:
                 subscription.undeclare()
@@ -99,6 +100,10 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
             stack.wait(120)
     elapsed = last[0] - first[0]
     return (last[1] - first[1]) / elapsed, (last[2] - first[2]) / elapsed
+
+
+def caught_up(progress: dict | None, tolerance: float) -> bool:
+    return bool(progress) and progress["updates"] >= 1 and progress["updates"] >= progress["updates_due"] * (1 - tolerance)
 
 
 def replay_flat_out(config: Config, seconds: float, clients: int) -> tuple[float, float]:
