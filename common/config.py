@@ -84,6 +84,9 @@ class LearnerConfig:
     weights_every: int = 50  # broadcast weights every K updates
     checkpoint_every: int = 5_000  # updates
     prefetch: int = 2  # batch requests kept in flight
+    # 0 keeps torch's default (all cores). On a shared host give the learner the cores the
+    # actors leave free: oversubscribed torch threads slow an update several times over.
+    torch_threads: int = 0
     log_period_s: float = 10.0
     seed: int = 0
 
@@ -96,6 +99,7 @@ class LearnerConfig:
         _check(self.ratio_tolerance >= 0, "ratio_tolerance", "must be >= 0")
         _check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
         _check(self.start_steps >= 0, "start_steps", "must be >= 0")
+        _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
 
 
 @dataclass

@@ -130,6 +130,8 @@ class LearnerProcess:
 def run_learner(config: Config, resume: bool = False) -> None:
     """Trains until the step budget is spent or SIGINT/SIGTERM; checkpoints at exit."""
     setup_logging("learner")
+    if config.learner.torch_threads:
+        torch.set_num_threads(config.learner.torch_threads)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
