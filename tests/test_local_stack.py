@@ -1,0 +1,67 @@
+"""The main job, deploy/stack.py: starts the roles, restarts a dead actor, stops cleanly on Ctrl-C."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from tests.processes import wait_for
+
+STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
+
+
+def children(pid: int) -> dict[int, str]:
+    """Direct children of pid with their command lines (from /proc)."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            parent = int(stat.rsplit(")", 1)[1].split()[1])
+            if parent == pid:
+                found[int(entry.name)] = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError, IndexError):
+            continue
+    return found
+
+
+def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
+    output = open(tmp_path / "stack.out", "wb")
+    stack = subprocess.Popen([sys.executable, str(STACK), "--preset", "smoke", "--actors", "1",
+                              "--run.runs_dir", str(tmp_path), "--run.name", "main", "--record.enabled", "false"],
+                             stdout=output, stderr=subprocess.STDOUT, cwd=tmp_path)
+    run_dir = tmp_path / "main"
+    try:
+        actor_log = run_dir / "logs" / "actor-0.log"
+        wait_for(lambda: actor_log.exists() and "episodes" in actor_log.read_text(), "the actor's first report",
+                 120, [tmp_path / "stack.out", actor_log])
+        roles = children(stack.pid)
+        assert sorted(" ".join(command.split()[2:3]) for command in roles.values()) == \
+            ["actor.main", "learner.main", "replay.main"]
+        actor_pid = next(pid for pid, command in roles.items() if "actor.main" in command)
+        os.kill(actor_pid, signal.SIGKILL)
+        wait_for(lambda: any("actor.main" in command and pid != actor_pid
+                             for pid, command in children(stack.pid).items()),
+                 "a new actor", 60, [tmp_path / "stack.out"])
+        assert "actor-0 exited with code -9; restarting it" in (tmp_path / "stack.out").read_text()
+        started = list(children(stack.pid))
+        stack.send_signal(signal.SIGINT)
+        assert stack.wait(90) == 0
+        for pid in started:
+            assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
+        text = (tmp_path / "stack.out").read_text()
+        assert "stopping processes" in text and "actor restarts: 1" in text
+        assert (run_dir / "config.toml").exists() and (run_dir / "checkpoints" / "latest.pt").exists()
+    finally:
+        if stack.poll() is None:
+            leftovers = children(stack.pid)
+            stack.kill()
+            stack.wait()
+            for pid in leftovers:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
