@@ -17,12 +17,14 @@ Queries (trace batches, latest weights) are not publications and are not recorde
 
 from __future__ import annotations
 
+import itertools
 import logging
 import signal
 import threading
 import time
 from collections import Counter, deque
 from pathlib import Path
+from typing import Iterator
 
 import zenoh
 
@@ -213,13 +215,21 @@ class Recorder:
         return values
 
 
+def numbered_paths(path: Path) -> Iterator[Path]:
+    """path, then path with -2, -3, ... before its suffix."""
+    yield path
+    for number in itertools.count(2):
+        yield path.with_name(f"{path.stem}-{number}{path.suffix}")
+
+
 def next_free_path(path: Path) -> Path:
-    """path, or path with -2, -3, ... before its suffix: a recorder never overwrites a log."""
-    candidate, number = path, 1
-    while candidate.exists():
-        number += 1
-        candidate = path.with_name(f"{path.stem}-{number}{path.suffix}")
-    return candidate
+    """The first of numbered_paths(path) that does not exist: a recorder never overwrites a log."""
+    return next(candidate for candidate in numbered_paths(path) if not candidate.exists())
+
+
+def log_segments(path: Path) -> list[Path]:
+    """The logs next_free_path gave the recorders of one run (a resumed run has several), in recording order."""
+    return list(itertools.takewhile(Path.exists, numbered_paths(path)))
 
 
 def default_log_path(config: Config) -> Path:

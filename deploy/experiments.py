@@ -1,0 +1,518 @@
+"""The paper's comparison: train and evaluate a grid of strategies x replay capacities x seeds, then tabulate.
+
+Each run of the grid goes through the real distributed stack (deploy/stack.py, a
+subprocess) under <runs-dir>/<strategy>-b<capacity>-s<seed>/, then through
+`evaluate` (its greedy policy and the random baseline, train and test starts,
+into <run>/evaluation/). Runs go one after the other, or --parallel K at once.
+At the end, <runs-dir>/results/ receives the tables of the paper's tables 3-6
+(results.md, results.csv) and the figures of replay/log/figures.py.
+
+Stopping and running the same command again resumes: a run with an evaluation
+and a checkpoint at the step budget is done; a run whose checkpoint is short of
+the budget is resumed (--resume) and evaluated again; a trained run without an
+evaluation is only evaluated; a run without a checkpoint starts over.
+
+    .venv/bin/python deploy/experiments.py --strategies bmc,softmax --buffers 1000 --steps 40000 \\
+        --trials 10 --preset local
+
+Every other flag is a config flag passed to every run's stack and evaluation
+(--preset, --config FILE, --env.max_steps 500, ...; see deploy/stack.py --help).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from actor.evaluate import CHECKPOINTS_DIR, OUTPUT_DIR as EVALUATION_DIR
+from actor.evaluation_comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, EvaluatedRun, comparison_markdown, comparison_rows,
+                                         write_comparison_csv)
+from actor.evaluation_report import SUMMARY_CSV, bin_labels
+from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args
+from learner.checkpoint import LATEST, CheckpointError, load_checkpoint
+from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences,
+                                plot_reward_bins, plot_reward_curves, read_run_curves)
+from replay.log.reader import LogError
+from replay.log.recorder import LOG_FILE_NAME, log_segments
+
+STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
+RESULTS_DIR = "results"
+ABANDONED_DIR = "abandoned"  # what an earlier attempt without a checkpoint left behind
+STACK_PROGRESS = re.compile(r"^\[\s*\d+s\] env steps")  # deploy/stack.py's live line
+EVALUATE_PROGRESS = re.compile(r"^evaluate: \d+/\d+ episodes")
+# Keys the grid sets for each run; giving them as config flags would contradict it.
+GRID_KEYS = {"run.name": "the run names", "run.seed": "--seeds", "run.runs_dir": "--runs-dir",
+             "exploration.strategy": "--strategies", "replay.capacity": "--buffers",
+             "learner.total_env_steps": "--steps", "evaluation.episodes_per_start": "--trials"}
+FIGURES = {"reward_curves.png": "mean return of the last 100 training episodes",
+           "epsilon.png": "epsilon against env steps (epsilon-based strategies)",
+           "loss_differences.png": "|Δloss| of consecutive updates, smoothed, against updates",
+           "reward_bins.png": "share of step rewards per bin, greedy policy, test starts"}
+
+POLL_S = 0.5
+TRAIN, RESUME, EVALUATE, DONE = "train", "resume", "evaluate", "done"
+
+
+class ExperimentError(RuntimeError):
+    """A run or the grid cannot go on; the message says which and why."""
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    strategy: str
+    capacity: int  # replay.capacity, episodes
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.strategy}-b{self.capacity}-s{self.seed}"
+
+
+@dataclass(frozen=True)
+class Options:
+    runs_dir: Path
+    steps: int  # learner.total_env_steps of every run
+    trials: int | None  # evaluation.episodes_per_start; None keeps the config's
+    actors: int | None
+    extra: tuple[str, ...]  # config flags for every stack and evaluation
+    progress_s: float
+
+    def run_dir(self, spec: RunSpec) -> Path:
+        return self.runs_dir / spec.name
+
+
+def grid(strategies: list[str], capacities: list[int], seeds: list[int]) -> list[RunSpec]:
+    """Capacity, then seed, then strategy: the runs of one table come before those of the next."""
+    return [RunSpec(strategy, capacity, seed) for capacity in capacities for seed in seeds for strategy in strategies]
+
+
+# --- what a run still needs -----------------------------------------------------------------------------------
+
+def checkpoint_env_steps(path: Path) -> int:
+    """The learner's clock in a checkpoint: the env steps of the whole system when it was saved."""
+    try:
+        return int(load_checkpoint(path, ("clock",))["clock"]["env_steps"])
+    except (CheckpointError, KeyError, TypeError, ValueError) as error:
+        raise ExperimentError(f"cannot read the step count of {path}: {error}") from None
+
+
+def next_step(run_dir: Path, budget: int) -> str:
+    """TRAIN, RESUME, EVALUATE or DONE for the run in run_dir, from what it holds on disk."""
+    checkpoint = run_dir / CHECKPOINTS_DIR / LATEST
+    evaluated = (run_dir / EVALUATION_DIR / SUMMARY_CSV).is_file()
+    if not checkpoint.is_file():
+        return DONE if evaluated else TRAIN
+    if checkpoint_env_steps(checkpoint) < budget:
+        return RESUME  # also a run evaluated earlier with a smaller budget
+    return DONE if evaluated else EVALUATE
+
+
+def set_aside_stale_files(run_dir: Path) -> Path | None:
+    """Moves the logs of an attempt that never checkpointed out of the way of a fresh start.
+
+    Otherwise the new recorder would write traffic-2.mcap next to the old file and the
+    figures would read both as one run.
+    """
+    stale = log_segments(run_dir / LOG_FILE_NAME) + [path for path in [run_dir / "logs"] if path.is_dir()]
+    if not stale:
+        return None
+    target = run_dir / ABANDONED_DIR / datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    target.mkdir(parents=True)
+    for path in stale:
+        shutil.move(path, target / path.name)
+    return target
+
+
+# --- the commands of one run ------------------------------------------------------------------------------
+
+def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
+    command = [sys.executable, str(STACK_SCRIPT), *options.extra, *grid_flags(spec, options)]
+    command += ["--actors", str(options.actors)] if options.actors else []
+    return command + (["--resume"] if resume else [])
+
+
+def evaluate_command(spec: RunSpec, options: Options) -> list[str]:
+    run_dir = options.run_dir(spec)
+    command = [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run_dir),
+               "--out", str(run_dir / EVALUATION_DIR), *options.extra]
+    return command + (["--evaluation.episodes_per_start", str(options.trials)] if options.trials else [])
+
+
+def grid_flags(spec: RunSpec, options: Options) -> list[str]:
+    return ["--run.name", spec.name, "--run.runs_dir", str(options.runs_dir), "--run.seed", str(spec.seed),
+            "--exploration.strategy", spec.strategy, "--replay.capacity", str(spec.capacity),
+            "--learner.total_env_steps", str(options.steps)]
+
+
+def check_config_flags(specs: list[RunSpec], options: Options) -> None:
+    """Builds every run's config as the stack will, so a bad flag fails here and not after an hour."""
+    for token in options.extra:
+        key = token.removeprefix("--").split("=")[0]
+        if key in GRID_KEYS:
+            raise ExperimentError(f"--{key} is set by the grid for each run ({GRID_KEYS[key]}); do not pass it")
+    parser = argparse.ArgumentParser(prog="deploy/experiments.py", add_help=False,
+                                     usage="deploy/experiments.py [options] [config flags of deploy/stack.py --help]")
+    add_config_arguments(parser)
+    for spec in specs:
+        try:
+            config_from_args(parser.parse_args([*options.extra, *grid_flags(spec, options)]))
+        except ConfigError as error:
+            raise ExperimentError(f"config error: {error}") from None
+
+
+# --- child processes -------------------------------------------------------------------------------------------
+
+class Child:
+    """A subprocess whose output goes to a log file; keeps its latest progress line and echoes the others.
+
+    It runs in a session of its own, so a Ctrl-C in the terminal reaches it once, forwarded by the runner.
+    """
+
+    def __init__(self, command: list[str], log_path: Path, progress: re.Pattern, echo_prefix: str | None) -> None:
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        self.progress = progress
+        self.echo_prefix = echo_prefix  # None: other lines stay in the log
+        self.latest = ""
+        self.tail: deque[str] = deque(maxlen=8)  # for the error message when it fails
+        self._log = open(log_path, "ab")
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL, start_new_session=True)
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        pending = ""
+        while chunk := self.process.stdout.read1(65536):
+            self._log.write(chunk)
+            self._log.flush()
+            *lines, pending = re.split(r"[\r\n]", pending + chunk.decode(errors="replace"))
+            for line in filter(None, (line.strip() for line in lines)):
+                self._take(line)
+        if pending.strip():
+            self._take(pending.strip())
+
+    def _take(self, line: str) -> None:
+        if self.progress.match(line):
+            self.latest = line
+            return
+        self.tail.append(line)
+        if self.echo_prefix is not None:
+            print(f"{self.echo_prefix}: {line}", flush=True)
+
+    def interrupt(self) -> None:
+        """SIGINT, once: the stack stops its processes (the learner checkpoints), evaluate stops its workers."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+
+    def wait(self) -> int:
+        code = self.process.wait()
+        self._reader.join()
+        self._log.close()
+        return code
+
+
+# --- one run --------------------------------------------------------------------------------------------------------
+
+@dataclass
+class RunJob:
+    """One run of the grid, stepped through TRAIN/RESUME then EVALUATE on its own thread."""
+
+    number: int
+    total: int
+    spec: RunSpec
+    options: Options
+    stopping: threading.Event
+    phase: str = "waiting"
+    child: Child | None = None
+    error: str | None = None
+    headline: str = ""
+    started: float = field(default_factory=time.monotonic)
+    thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self.started = time.monotonic()
+        self.thread = threading.Thread(target=self._run, name=self.spec.name, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._steps()
+        except ExperimentError as error:
+            self.error = str(error)
+        except Exception as error:  # the thread's end: whatever went wrong must reach the grid's report
+            self.error = f"{type(error).__name__}: {error}"
+        self.child = None
+
+    def _steps(self) -> None:
+        run_dir = self.options.run_dir(self.spec)
+        step = next_step(run_dir, self.options.steps)
+        summary = run_dir / EVALUATION_DIR / SUMMARY_CSV
+        if step == DONE:
+            self.phase, self.headline = "already done", evaluation_headline(summary)
+            return
+        print(f"{self.tag}: {step}", flush=True)
+        if step == TRAIN:
+            moved = set_aside_stale_files(run_dir)
+            if moved is not None:
+                print(f"{self.tag}: an earlier attempt left no checkpoint; its logs moved to {moved}", flush=True)
+        if step in (TRAIN, RESUME):
+            self.phase = "resuming" if step == RESUME else "training"
+            self._child(stack_command(self.spec, self.options, resume=step == RESUME), run_dir / "logs" / "stack.log",
+                        STACK_PROGRESS, "the stack", echo=True)
+            reached = checkpoint_env_steps(run_dir / CHECKPOINTS_DIR / LATEST)
+            if reached < self.options.steps:
+                raise ExperimentError(f"the stack stopped at {reached:,d} of {self.options.steps:,d} env steps")
+        self.phase = "evaluating"
+        self._child(evaluate_command(self.spec, self.options), run_dir / "logs" / "evaluate.log",
+                    EVALUATE_PROGRESS, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
+        self.phase, self.headline = "done", evaluation_headline(summary)
+
+    def _child(self, command: list[str], log_path: Path, progress: re.Pattern, what: str, echo: bool) -> None:
+        if self.stopping.is_set():
+            raise ExperimentError("interrupted")
+        self.child = Child(command, log_path, progress, self.tag if echo else None)
+        if self.stopping.is_set():  # the interruption came while the child was starting
+            self.child.interrupt()
+        code = self.child.wait()
+        if self.stopping.is_set():
+            raise ExperimentError("interrupted")
+        if code != 0:
+            tail = "\n    ".join(self.child.tail)
+            raise ExperimentError(f"{what} exited with code {code} (log: {log_path}); its last lines:\n    {tail}")
+
+    @property
+    def tag(self) -> str:
+        return f"[{self.number}/{self.total}] {self.spec.name}"
+
+    @property
+    def finished(self) -> bool:
+        return self.thread is not None and not self.thread.is_alive()
+
+
+def evaluation_headline(summary_csv: Path) -> str:
+    """'test: mean length 812.4, CFR 35.0%' from the greedy rows of an evaluate summary.csv."""
+    with summary_csv.open(newline="") as handle:
+        rows = [row for row in csv.DictReader(handle) if row["policy"] == "greedy"]
+    return "; ".join(f"{row['start_set']}: mean length {float(row['mean_length']):,.1f}, "
+                     f"CFR {100 * float(row['cfr']):.1f}%" for row in rows)
+
+
+# --- the grid ----------------------------------------------------------------------------------------------------------
+
+def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
+    """Runs every spec; returns the number of runs that failed (an interruption raises KeyboardInterrupt)."""
+    stopping = threading.Event()
+    jobs = [RunJob(number, len(specs), spec, options, stopping) for number, spec in enumerate(specs, 1)]
+    pending, active = deque(jobs), []
+    failed = 0
+    grid_started = time.monotonic()
+    last_progress = time.monotonic()
+
+    def interrupt(*_) -> None:
+        stopping.set()
+        for job in active:
+            if job.child is not None:
+                job.child.interrupt()
+
+    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        while pending or active:
+            while pending and len(active) < parallel and not stopping.is_set():
+                job = pending.popleft()
+                job.start()
+                active.append(job)
+            if stopping.is_set():
+                pending.clear()
+            time.sleep(POLL_S)
+            if time.monotonic() - last_progress >= options.progress_s:
+                last_progress = time.monotonic()
+                for job in active:
+                    if job.child is not None and job.child.latest:
+                        print(f"{job.tag} {job.phase} {_clock(time.monotonic() - job.started)} "
+                              f"(grid {_clock(time.monotonic() - grid_started)}) | {job.child.latest}", flush=True)
+            for job in [job for job in active if job.finished]:
+                active.remove(job)
+                failed += job.error is not None
+                took = _clock(time.monotonic() - job.started)
+                outcome = f"FAILED after {took}: {job.error}" if job.error else f"{job.phase} in {took}"
+                print(f"{job.tag}: {outcome} (grid {_clock(time.monotonic() - grid_started)})"
+                      + (f" | {job.headline}" if job.headline else ""), flush=True)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if stopping.is_set():
+        raise KeyboardInterrupt
+    return failed
+
+
+def _clock(seconds: float) -> str:
+    minutes, second = divmod(int(seconds), 60)
+    hours, minute = divmod(minutes, 60)
+    return f"{hours}:{minute:02d}:{second:02d}"
+
+
+# --- the results ------------------------------------------------------------------------------------------------------
+
+def write_results(specs: list[RunSpec], options: Options, facts: dict[str, str]) -> list[Path]:
+    """The comparison table and figures of every run that has an evaluation or a log; returns the files written."""
+    results = options.runs_dir / RESULTS_DIR
+    results.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    evaluated = [EvaluatedRun(spec.strategy, spec.capacity, options.run_dir(spec) / EVALUATION_DIR)
+                 for spec in specs if (options.run_dir(spec) / EVALUATION_DIR / SUMMARY_CSV).is_file()]
+    rows: list[ComparisonRow] = []
+    edges: list[float] = []
+    if evaluated:
+        rows, edges = comparison_rows(evaluated)
+        write_comparison_csv(rows, edges, results / RESULTS_CSV)
+        written.append(results / RESULTS_CSV)
+    curves = read_curves(specs, options)
+    written += write_figures(curves, rows, edges, results)
+    figures = [path.name for path in written if path.suffix == ".png"]
+    (results / RESULTS_MD).write_text(results_markdown(rows, edges, facts, figures))
+    return [results / RESULTS_MD, *written]
+
+
+def read_curves(specs: list[RunSpec], options: Options) -> list[RunCurves]:
+    curves = []
+    for spec in specs:
+        segments = log_segments(options.run_dir(spec) / LOG_FILE_NAME)
+        if not segments:
+            continue
+        try:
+            curves.append(read_run_curves(segments, spec.name))
+        except LogError as error:
+            print(f"{spec.name}: left out of the figures: {error}", file=sys.stderr)
+    return curves
+
+
+def write_figures(curves: list[RunCurves], rows: list[ComparisonRow], edges: list[float], results: Path
+                  ) -> list[Path]:
+    paths = {name: results / name for name in FIGURES}
+    written = []
+    if curves:
+        plot_reward_curves(curves, paths["reward_curves.png"])
+        written.append(paths["reward_curves.png"])
+        if any(run.strategy in EPSILON_STRATEGIES for run in curves):
+            plot_epsilon(curves, paths["epsilon.png"])
+            written.append(paths["epsilon.png"])
+        plot_loss_differences(curves, paths["loss_differences.png"])
+        written.append(paths["loss_differences.png"])
+    panels = reward_bin_panels(rows)
+    if panels:
+        plot_reward_bins(panels, bin_labels(edges), paths["reward_bins.png"], FIGURES["reward_bins.png"])
+        written.append(paths["reward_bins.png"])
+    return written
+
+
+def reward_bin_panels(rows: list[ComparisonRow]) -> dict[str, list[tuple[str, str, tuple[float, ...]]]]:
+    """Test-set rows by capacity: (name, strategy, shares) per bar, the random policy last."""
+    panels: dict[str, list[tuple[str, str, tuple[float, ...]]]] = {}
+    for row in rows:
+        if row.start_set == "test":
+            panels.setdefault(f"replay capacity {row.capacity:,d}", []).append(
+                (STRATEGY_NAMES[row.strategy], row.strategy, row.summary.reward_shares))
+    return panels
+
+
+def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[str, str], figures: list[str]) -> str:
+    lines = ["# Exploration strategies compared", ""]
+    lines += [f"- {name}: {value}" for name, value in facts.items()]
+    lines += ["", "Greedy policy, episodes pooled over the seeds of each strategy; the random policy "
+                  f"(uniform actions) is the same in every table. ({RANDOM!r} in results.csv.)", ""]
+    lines += [comparison_markdown(rows, edges) if rows else "No run has been evaluated yet.", ""]
+    lines += [f"![{FIGURES[name]}]({name})" for name in figures]
+    return "\n".join(lines) + "\n"
+
+
+# --- command line ----------------------------------------------------------------------------------------------------
+
+def parse_list(text: str, kind, what: str) -> list:
+    try:
+        values = [kind(part.strip()) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise ExperimentError(f"--{what}: expected a comma-separated list, got {text!r}") from None
+    if not values or len(set(values)) != len(values):
+        raise ExperimentError(f"--{what}: expected distinct values, got {text!r}")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="deploy/experiments.py", description=__doc__, allow_abbrev=False,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--strategies", default=",".join(STRATEGIES), help="comma-separated (default: all seven)")
+    parser.add_argument("--buffers", default="1000,2000", help="replay capacities in episodes (default: 1000,2000)")
+    parser.add_argument("--seeds", default="0", help="run.seed of each run (default: 0)")
+    parser.add_argument("--steps", type=int, required=True, help="learner.total_env_steps of every run")
+    parser.add_argument("--trials", type=int, default=None,
+                        help="evaluation.episodes_per_start (default: the config's, 30 in the paper preset)")
+    parser.add_argument("--parallel", type=int, default=1, help="runs at once (default: 1)")
+    parser.add_argument("--runs-dir", type=Path, default=Path("runs/experiments"),
+                        help="where the runs and results/ go (default: runs/experiments)")
+    parser.add_argument("--actors", type=int, default=None, help="actors per stack (default: the stack's)")
+    parser.add_argument("--progress-s", type=float, default=30.0,
+                        help="seconds between progress lines of a run (default: 30)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="train and evaluate nothing; rebuild results/ from the runs on disk")
+    return parser
+
+
+def parse_arguments(argv: list[str] | None) -> tuple[list[RunSpec], Options, int, bool]:
+    args, extra = build_parser().parse_known_args(argv)
+    unknown_strategies = [name for name in parse_list(args.strategies, str, "strategies") if name not in STRATEGIES]
+    if unknown_strategies:
+        raise ExperimentError(f"--strategies: unknown {', '.join(unknown_strategies)}; choose from {', '.join(STRATEGIES)}")
+    for name in ("steps", "parallel", "trials", "actors", "progress_s"):
+        value = getattr(args, name)
+        if value is not None and value <= 0:
+            raise ExperimentError(f"--{name.replace('_', '-')}: must be > 0, got {value}")
+    specs = grid(parse_list(args.strategies, str, "strategies"), parse_list(args.buffers, int, "buffers"),
+                 parse_list(args.seeds, int, "seeds"))
+    options = Options(args.runs_dir, args.steps, args.trials, args.actors, tuple(extra), args.progress_s)
+    check_config_flags(specs, options)
+    return specs, options, args.parallel, args.report_only
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        specs, options, parallel, report_only = parse_arguments(argv)
+    except ExperimentError as error:
+        print(f"deploy/experiments.py: error: {error}", file=sys.stderr)
+        return 2
+    started = time.monotonic()
+    plan = {spec: next_step(options.run_dir(spec), options.steps) for spec in specs}
+    print(f"grid: {len(specs)} runs under {options.runs_dir}/, budget {options.steps:,d} env steps each, "
+          f"{parallel} at a time; to do: " + ", ".join(f"{spec.name} {step}" for spec, step in plan.items()), flush=True)
+    failed = 0
+    if not report_only:
+        try:
+            failed = run_grid(specs, options, parallel)
+        except KeyboardInterrupt:
+            print("interrupted: the running stacks checkpointed; the same command resumes", file=sys.stderr)
+            return 130
+    facts = {"runs": ", ".join(spec.name for spec in specs), "budget": f"{options.steps:,d} env steps per run",
+             "trials": f"{options.trials or 'the config’s'} per start", "config flags": " ".join(options.extra) or "none",
+             "date": datetime.datetime.now().isoformat(timespec="seconds")}
+    try:
+        paths = write_results(specs, options, facts)
+    except ValueError as error:  # ComparisonError, or data a figure cannot draw
+        print(f"deploy/experiments.py: cannot write the results: {error}", file=sys.stderr)
+        return 1
+    print(f"grid finished in {_clock(time.monotonic() - started)}; {failed} failed; results: "
+          + ", ".join(str(path) for path in paths), flush=True)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,186 @@
+"""The paper's comparison figures, several runs to a figure, as PNGs (matplotlib, Agg backend).
+
+``read_run_curves`` takes what the training figures need from a run's logs (a
+resumed run has several, ``recorder.log_segments``): the actors' EpisodeRecords
+in the order the recorder received them and the learner's metrics reports.
+The figures:
+
+* ``plot_reward_curves``: mean return of the last 100 episodes against episodes,
+  one panel per replay capacity, one line per run (the paper's "average reward
+  per 100 episodes");
+* ``plot_epsilon``: the epsilon each episode was acted with against the env
+  steps of all episodes so far, in the paper's three panels (deterministic
+  epsilon-greedy, adaptive epsilon-greedy, Max-Boltzmann); Softmax has no epsilon;
+* ``plot_loss_differences``: the learner's mean |loss_k - loss_k-1| of each
+  report period against updates, smoothed by a trailing mean over the last
+  ``LOSS_WINDOW`` reports (the paper draws a spline), log scale;
+* ``plot_reward_bins``: grouped bars of the share of step rewards per bin, one
+  group per bin, one bar per entry (the evaluation's strategies and the random
+  policy), one panel per replay capacity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from common.config import STRATEGIES
+from common.wire import EpisodeRecord, Stats
+from replay.log.plot import RETURN_WINDOW, finite_series, trailing_mean
+from replay.log.reader import LogError, LogFile
+
+LOSS_WINDOW = 10  # learner reports (each the mean over learner.log_period_s) per point of the smoothed curve
+EPSILON_PANELS = (
+    ("deterministic epsilon-greedy", ("constant", "decreasing")),
+    ("adaptive epsilon-greedy", ("vdbe", "bmc")),
+    ("Max-Boltzmann", ("max_boltzmann", "vdbe_softmax")),
+)
+EPSILON_STRATEGIES = tuple(strategy for _, members in EPSILON_PANELS for strategy in members)
+RANDOM_COLOUR = "0.6"
+
+
+@dataclass
+class RunCurves:
+    """One run's training curves, read from its logs."""
+
+    label: str
+    strategy: str
+    capacity: int  # replay.capacity, episodes
+    episode_returns: list[float] = field(default_factory=list)
+    episode_lengths: list[int] = field(default_factory=list)
+    episode_epsilons: list[float] = field(default_factory=list)
+    learner_updates: list[float] = field(default_factory=list)
+    loss_abs_diffs: list[float] = field(default_factory=list)  # one per learner report, NaN-free
+
+
+def read_run_curves(paths: Sequence[Path], label: str | None = None) -> RunCurves:
+    """The curves of the logs of one run, in the given (recording) order; the config is the first log's."""
+    if not paths:
+        raise LogError("no log files given")
+    with LogFile(paths[0]) as first:
+        config = first.config()
+    curves = RunCurves(label or config.run.name, config.exploration.strategy, config.replay.capacity)
+    for path in paths:
+        with LogFile(path) as log:
+            _add_log(curves, log)
+    return curves
+
+
+def _add_log(curves: RunCurves, log: LogFile) -> None:
+    learner_key = log.keys().metrics_source("learner", "0")  # learner/progress carries Stats of the same source
+    learner_rows = []
+    for record, message in log.messages(EpisodeRecord, Stats):
+        if isinstance(message, EpisodeRecord):
+            curves.episode_returns.append(message.episode_return)
+            curves.episode_lengths.append(message.length)
+            curves.episode_epsilons.append(message.epsilon)
+        elif record.topic == learner_key:
+            learner_rows.append(message.values)
+    updates, diffs = finite_series(learner_rows, "updates", "loss_abs_diff")
+    curves.learner_updates.extend(updates)
+    curves.loss_abs_diffs.extend(diffs)
+
+
+# --- the figures -------------------------------------------------------------------------------------
+
+def strategy_colour(strategy: str) -> str:
+    """One colour per strategy, the same in every figure."""
+    return f"C{STRATEGIES.index(strategy)}" if strategy in STRATEGIES else RANDOM_COLOUR
+
+
+def plot_reward_curves(runs: Sequence[RunCurves], path: Path, window: int = RETURN_WINDOW) -> None:
+    def draw(ax, run: RunCurves) -> None:
+        returns = run.episode_returns
+        ax.plot(np.arange(1, len(returns) + 1), trailing_mean(returns, window), label=run.label,
+                color=strategy_colour(run.strategy), linewidth=1)
+
+    _plot_by_capacity(runs, path, draw, f"mean return of the last {window} training episodes",
+                      xlabel="episodes", ylabel="return")
+
+
+def plot_loss_differences(runs: Sequence[RunCurves], path: Path, window: int = LOSS_WINDOW) -> None:
+    def draw(ax, run: RunCurves) -> None:
+        if run.loss_abs_diffs:
+            ax.plot(run.learner_updates, trailing_mean(run.loss_abs_diffs, window), label=run.label,
+                    color=strategy_colour(run.strategy), linewidth=1)
+            ax.set_yscale("log")
+
+    _plot_by_capacity(runs, path, draw, f"|loss_k - loss_k-1|, trailing mean of the last {window} learner reports",
+                      xlabel="updates", ylabel="|Δloss|")
+
+
+def plot_epsilon(runs: Sequence[RunCurves], path: Path) -> None:
+    """Runs of strategies without an epsilon (softmax) are left out; at least one must have one."""
+    panels = [(title, [run for run in runs if run.strategy in members]) for title, members in EPSILON_PANELS]
+    panels = [(title, members) for title, members in panels if members]
+    if not panels:
+        raise ValueError(f"no run of an epsilon-based strategy ({', '.join(EPSILON_STRATEGIES)})")
+    plt = _pyplot()
+    figure, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), dpi=90, squeeze=False)
+    for ax, (title, members) in zip(axes[0], panels):
+        for run in members:
+            ax.step(np.cumsum(run.episode_lengths), run.episode_epsilons, where="post", label=run.label,
+                    color=strategy_colour(run.strategy), linewidth=1)
+        ax.set(title=title, xlabel="env steps", ylabel="epsilon", ylim=(-0.02, 1.02))
+    _finish(plt, figure, axes[0], path, "epsilon the actors used against env steps")
+
+
+def plot_reward_bins(panels: dict[str, Sequence[tuple[str, str, Sequence[float]]]], bin_labels: Sequence[str],
+                     path: Path, title: str) -> None:
+    """panels: panel title -> bars as (label, strategy for the colour, share of steps per bin)."""
+    if not panels or not all(panels.values()):
+        raise ValueError("every panel of the reward-bin chart needs at least one bar")
+    for bars in panels.values():
+        for label, _, shares in bars:
+            if len(shares) != len(bin_labels):
+                raise ValueError(f"{label}: {len(shares)} shares for {len(bin_labels)} bins")
+    plt = _pyplot()
+    figure, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), dpi=90, squeeze=False)
+    positions = np.arange(len(bin_labels))
+    for ax, (panel_title, bars) in zip(axes[0], panels.items()):
+        width = 0.8 / len(bars)
+        for number, (label, strategy, shares) in enumerate(bars):
+            ax.bar(positions - 0.4 + width * (number + 0.5), 100 * np.asarray(shares), width, label=label,
+                   color=strategy_colour(strategy))
+        ax.set_xticks(positions, bin_labels)
+        ax.set(title=panel_title, xlabel="step reward", ylabel="% of steps", ylim=(0, 100))
+    _finish(plt, figure, axes[0], path, title)
+
+
+# --- layout --------------------------------------------------------------------------------------------
+
+def _plot_by_capacity(runs: Sequence[RunCurves], path: Path, draw, title: str, xlabel: str, ylabel: str) -> None:
+    """One panel per replay capacity, draw(ax, run) for each run in it."""
+    if not runs:
+        raise ValueError("no runs to plot")
+    capacities = sorted({run.capacity for run in runs})
+    plt = _pyplot()
+    figure, axes = plt.subplots(1, len(capacities), figsize=(6 * len(capacities), 4), dpi=90, squeeze=False)
+    for ax, capacity in zip(axes[0], capacities):
+        for run in runs:
+            if run.capacity == capacity:
+                draw(ax, run)
+        ax.set(title=f"replay capacity {capacity:,d} episodes", xlabel=xlabel, ylabel=ylabel)
+    _finish(plt, figure, axes[0], path, title)
+
+
+def _finish(plt, figure, axes, path: Path, title: str) -> None:
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    figure.suptitle(title)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path)
+    plt.close(figure)
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt

@@ -1,0 +1,300 @@
+"""The comparison: figures from logs, the pooled tables, and the runner's resume decisions, on hand-made runs.
+
+No training runs here: logs are written with the recorder's own writer, evaluations with
+evaluate's own report writer, checkpoints with the learner's checkpoint writer.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from actor.evaluation_comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
+                                         read_episodes_csv, write_comparison_csv)
+from actor.evaluation_report import EPISODES_CSV, write_report
+from actor.evaluation_stats import EvaluationEpisode, summarise_all
+from common.config import load_config
+from common.transport import Keys
+from common.wire import EpisodeRecord, Stats, encode
+from learner.checkpoint import save_checkpoint
+from replay.log.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
+                                plot_reward_curves, read_run_curves)
+from replay.log.reader import LogError
+from replay.log.recorder import log_segments
+from replay.log.traffic import Arrival, peek
+from replay.log.writer import LogWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def load_runner():
+    """deploy/experiments.py is a script run by path, as deploy/stack.py; load it as a module."""
+    spec = importlib.util.spec_from_file_location("experiments", ROOT / "deploy" / "experiments.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+experiments = load_runner()
+
+
+# --- logs written with the recorder's writer ---------------------------------------------------------------------
+
+def write_log(path: Path, run: str, strategy: str, capacity: int, messages: list[tuple[str, object]]) -> None:
+    """A log as the recorder writes it; messages are (key relative to the run, wire message)."""
+    config = load_config("smoke", overrides={"run.name": run, "exploration.strategy": strategy,
+                                             "replay.capacity": capacity})
+    root = Keys(config.transport.namespace, run).root
+    writer = LogWriter(path, config, views=None)
+    for number, (key, message) in enumerate(messages, 1):
+        data = encode(message)
+        writer.write(Arrival(f"{root}/{key}", data, number * 1_000_000, None, number), peek(data))
+    writer.close()
+
+
+def record(length: int, episode_return: float, epsilon: float) -> tuple[str, EpisodeRecord]:
+    return "metrics/actor/0", EpisodeRecord(actor_id=0, episode_index=0, length=length, episode_return=episode_return,
+                                            collided=True, start_set="train", start_index=0, epsilon=epsilon,
+                                            weights_version=0, wall_time=0.1, time=1.0)
+
+
+def learner_report(updates: int, loss_abs_diff: float) -> tuple[str, Stats]:
+    return "metrics/learner/0", Stats(source="learner", time=1.0,
+                                      values={"updates": updates, "loss": 0.5, "loss_abs_diff": loss_abs_diff})
+
+
+def progress(updates: int) -> tuple[str, Stats]:  # same source, other key: not a metrics report
+    return "learner/progress", Stats(source="learner", time=1.0, values={"updates": updates, "env_steps": 5})
+
+
+def test_the_curves_of_a_resumed_run_join_its_logs_in_recording_order(tmp_path):
+    first, second = tmp_path / "traffic.mcap", tmp_path / "traffic-2.mcap"
+    write_log(first, "bmc-b50-s0", "bmc", 50, [record(10, 5.0, 1.0), learner_report(0, math.nan), progress(3),
+                                                record(20, 7.0, 0.4), learner_report(50, 0.2)])
+    write_log(second, "bmc-b50-s0", "bmc", 50, [learner_report(100, 0.1), record(30, 9.0, 0.3)])
+    assert log_segments(first) == [first, second]
+    curves = read_run_curves(log_segments(first))
+    assert (curves.label, curves.strategy, curves.capacity) == ("bmc-b50-s0", "bmc", 50)
+    assert curves.episode_returns == [5.0, 7.0, 9.0]
+    assert curves.episode_lengths == [10, 20, 30]
+    assert curves.episode_epsilons == pytest.approx([1.0, 0.4, 0.3])
+    assert curves.learner_updates == [50, 100]  # the NaN report and the progress message are left out
+    assert curves.loss_abs_diffs == pytest.approx([0.2, 0.1])
+
+
+def test_an_unfinished_log_is_a_log_error(tmp_path):
+    path = tmp_path / "traffic.mcap"
+    write_log(path, "r", "bmc", 50, [record(10, 5.0, 1.0)])
+    path.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(LogError, match="unfinished"):
+        read_run_curves([path])
+    with pytest.raises(LogError):
+        read_run_curves([])
+
+
+# --- figures -------------------------------------------------------------------------------------------------
+
+def curves(label: str, strategy: str, capacity: int, episodes: int = 150) -> RunCurves:
+    rng = np.random.default_rng(len(label))
+    return RunCurves(label, strategy, capacity, episode_returns=list(rng.uniform(0, 20, episodes)),
+                     episode_lengths=list(rng.integers(5, 40, episodes)),
+                     episode_epsilons=list(np.linspace(1, 0.1, episodes)),
+                     learner_updates=list(range(50, 1050, 50)), loss_abs_diffs=list(rng.uniform(0.01, 0.1, 20)))
+
+
+def assert_png(path: Path) -> None:
+    assert path.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_training_figures_are_written(tmp_path):
+    runs = [curves("bmc-b1000-s0", "bmc", 1000), curves("softmax-b1000-s0", "softmax", 1000),
+            curves("constant-b2000-s0", "constant", 2000)]
+    for name, plot in (("reward.png", plot_reward_curves), ("epsilon.png", plot_epsilon),
+                       ("loss.png", plot_loss_differences)):
+        plot(runs, tmp_path / name)
+        assert_png(tmp_path / name)
+
+
+def test_figures_refuse_what_they_cannot_draw(tmp_path):
+    with pytest.raises(ValueError, match="epsilon-based"):
+        plot_epsilon([curves("softmax-b1000-s0", "softmax", 1000)], tmp_path / "e.png")
+    with pytest.raises(ValueError, match="no runs"):
+        plot_reward_curves([], tmp_path / "r.png")
+    with pytest.raises(ValueError, match="3 shares for 4 bins"):
+        plot_reward_bins({"p": [("BMC", "bmc", (0.2, 0.3, 0.5))]}, ["a", "b", "c", "d"], tmp_path / "b.png", "t")
+    assert not list(tmp_path.iterdir())
+
+
+# --- evaluations pooled into the paper's tables --------------------------------------------------------------
+
+def episode(policy: str, start_set: str, length: int, end: str, bins: tuple[int, ...], start_index: int = 0
+            ) -> EvaluationEpisode:
+    return EvaluationEpisode(policy=policy, start_set=start_set, start_index=start_index, trial=0, seed=7,
+                             length=length, end=end, episode_return=0.5 * length, reward_bin_counts=bins,
+                             actions_digest=f"d{length}")
+
+
+def write_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4) -> Path:
+    """Greedy episodes of the given lengths on both sets (a length of 100 reaches the cap), one random each."""
+    episodes = []
+    for start_set in ("train", "test"):
+        for number, length in enumerate(greedy_lengths):
+            end = "cap" if length == 100 else "collision"
+            episodes.append(episode("greedy", start_set, length, end, (0, 0, 0, length), number))
+        episodes.append(episode("random", start_set, random_length, "offroad", (random_length, 0, 0, 0)))
+    write_report(directory, episodes, summarise_all(episodes), EDGES, {}, 1, "")
+    return directory
+
+
+def test_episodes_csv_reads_back_as_written(tmp_path):
+    write_evaluation(tmp_path, [100, 10])
+    episodes, edges = read_episodes_csv(tmp_path / EPISODES_CSV)
+    assert edges == EDGES
+    assert episodes[0] == episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0)
+    assert [e.policy for e in episodes] == ["greedy", "greedy", "random"] * 2
+
+
+def test_a_file_that_is_not_an_episodes_csv_is_a_comparison_error(tmp_path):
+    (tmp_path / "bad.csv").write_text("policy,start_set\ngreedy,test\n")
+    with pytest.raises(ComparisonError, match="bad.csv"):
+        read_episodes_csv(tmp_path / "bad.csv")
+    with pytest.raises(ComparisonError, match="cannot read"):
+        read_episodes_csv(tmp_path / "missing.csv")
+
+
+def test_seeds_are_pooled_and_the_random_row_comes_once_per_table(tmp_path):
+    runs = [EvaluatedRun("softmax", 1000, write_evaluation(tmp_path / "softmax-s0", [100, 100])),
+            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s0", [100, 20])),
+            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s1", [100, 40], random_length=6)),
+            EvaluatedRun("bmc", 2000, write_evaluation(tmp_path / "bmc-b2000", [30, 30]))]
+    rows, edges = comparison_rows(runs)
+    assert edges == EDGES
+    assert [(r.start_set, r.capacity, r.strategy, r.runs) for r in rows] == [
+        ("train", 1000, "bmc", 2), ("train", 1000, "softmax", 1), ("train", 1000, "random", 1),
+        ("train", 2000, "bmc", 1), ("train", 2000, "random", 1),
+        ("test", 1000, "bmc", 2), ("test", 1000, "softmax", 1), ("test", 1000, "random", 1),
+        ("test", 2000, "bmc", 1), ("test", 2000, "random", 1)]
+    bmc = rows[0].summary  # lengths 100, 20, 100, 40 of two seeds
+    assert (bmc.episodes, bmc.mean_length, bmc.min_length, bmc.cfr) == (4, 65.0, 20, 0.5)
+    assert bmc.std_length == pytest.approx(math.sqrt((35 ** 2 + 45 ** 2 + 35 ** 2 + 25 ** 2) / 4))
+    assert bmc.reward_shares == (0.0, 0.0, 0.0, 1.0)
+    assert rows[2].summary.mean_length == 4  # the first run's random episodes, not the second's (6)
+
+    markdown = comparison_markdown(rows, edges)
+    assert markdown.count("### ") == 4
+    assert "| BMC | 2 | 4 | 65.00 | 35.71 | 20 | 50.00% | 0.500 | 100.00% |" in markdown
+    assert "| Random policy | 1 | 1 | 4.00 | 0.00 | 4 | 0.00% | 0.500 | 0.00% |" in markdown
+    write_comparison_csv(rows, edges, tmp_path / "results.csv")
+    lines = (tmp_path / "results.csv").read_text().splitlines()
+    assert len(lines) == 1 + len(rows) and lines[0].endswith("share_0.75_1")
+
+
+def test_evaluations_with_other_reward_bins_are_not_pooled(tmp_path):
+    first = write_evaluation(tmp_path / "a", [100])
+    other = tmp_path / "b"
+    episodes = [episode("greedy", "test", 10, "collision", (5, 5))]
+    write_report(other, episodes, summarise_all(episodes), [0.0, 0.5, 1.0], {}, 1, "")
+    with pytest.raises(ComparisonError, match="reward bins"):
+        comparison_rows([EvaluatedRun("bmc", 1000, first), EvaluatedRun("vdbe", 1000, other)])
+    with pytest.raises(ComparisonError, match="no evaluated runs"):
+        comparison_rows([])
+
+
+# --- the runner ----------------------------------------------------------------------------------------------------
+
+def options(tmp_path: Path, steps: int = 1000, extra: tuple[str, ...] = ()):
+    return experiments.Options(tmp_path, steps, trials=3, actors=None, extra=extra, progress_s=30.0)
+
+
+def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False) -> Path:
+    """A run folder as the stack and evaluate leave it: a checkpoint with this clock, an evaluation."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if env_steps is not None:
+        save_checkpoint(run_dir / "checkpoints", {"clock": {"env_steps": env_steps}})
+    if evaluated:
+        write_evaluation(run_dir / "evaluation", [100, 50])
+    return run_dir
+
+
+@pytest.mark.parametrize("env_steps, evaluated, expected", [
+    (None, False, "train"),  # nothing yet, or an attempt stopped before its first checkpoint
+    (400, False, "resume"),  # stopped before the budget
+    (1000, False, "evaluate"),  # trained, not evaluated
+    (1200, True, "done"),
+    (400, True, "resume"),  # evaluated under a smaller budget: train on, evaluate again
+    (None, True, "done"),  # an evaluation without its checkpoint is kept as it is
+])
+def test_what_a_run_folder_still_needs(tmp_path, env_steps, evaluated, expected):
+    assert experiments.next_step(make_run(tmp_path / "run", env_steps, evaluated), 1000) == expected
+
+
+def test_a_damaged_checkpoint_is_one_clear_error(tmp_path):
+    run = make_run(tmp_path / "run")
+    (run / "checkpoints").mkdir()
+    (run / "checkpoints" / "latest.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(experiments.ExperimentError, match="cannot read the step count"):
+        experiments.next_step(run, 1000)
+
+
+def test_a_fresh_start_sets_the_abandoned_attempts_logs_aside(tmp_path):
+    run = make_run(tmp_path / "run")
+    assert experiments.set_aside_stale_files(run) is None
+    for name in ("traffic.mcap", "traffic-2.mcap", "logs/learner.log", "config.toml"):
+        (run / name).parent.mkdir(exist_ok=True)
+        (run / name).write_text(name)
+    moved = experiments.set_aside_stale_files(run)
+    assert sorted(path.name for path in moved.iterdir()) == ["logs", "traffic-2.mcap", "traffic.mcap"]
+    assert sorted(path.name for path in run.iterdir()) == ["abandoned", "config.toml"]
+
+
+def test_the_grid_names_runs_and_passes_each_its_flags(tmp_path):
+    specs = experiments.grid(["bmc", "softmax"], [1000, 2000], [0, 1])
+    assert [spec.name for spec in specs[:3]] == ["bmc-b1000-s0", "softmax-b1000-s0", "bmc-b1000-s1"]
+    assert len(specs) == 8
+    opts = options(tmp_path, extra=("--preset", "local", "--env.max_steps", "500"))
+    stack = experiments.stack_command(specs[0], opts, resume=True)
+    assert stack[1].endswith("deploy/stack.py") and stack[-1] == "--resume"
+    assert stack[2:6] == ["--preset", "local", "--env.max_steps", "500"]
+    flags = dict(zip(stack[6:-1:2], stack[7:-1:2]))
+    assert flags == {"--run.name": "bmc-b1000-s0", "--run.runs_dir": str(tmp_path), "--run.seed": "0",
+                     "--exploration.strategy": "bmc", "--replay.capacity": "1000", "--learner.total_env_steps": "1000"}
+    evaluate = experiments.evaluate_command(specs[0], opts)
+    assert evaluate[1:7] == ["-m", "actor.evaluate", "--checkpoint", str(tmp_path / "bmc-b1000-s0"),
+                             "--out", str(tmp_path / "bmc-b1000-s0" / "evaluation")]
+    assert evaluate[-2:] == ["--evaluation.episodes_per_start", "3"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    (("--replay.capacity", "5"), "set by the grid"),
+    (("--run.seed=4",), "set by the grid"),
+    (("--learner.lr", "oops"), "learner.lr: expected a number"),
+])
+def test_config_flags_are_checked_before_anything_runs(tmp_path, extra, message):
+    with pytest.raises(experiments.ExperimentError, match=message):
+        experiments.check_config_flags(experiments.grid(["bmc"], [50], [0]), options(tmp_path, extra=extra))
+
+
+def test_the_results_of_finished_runs_are_written(tmp_path):
+    specs = experiments.grid(["bmc", "softmax"], [50], [0])
+    opts = options(tmp_path)
+    for spec, strategy in zip(specs, ("bmc", "softmax")):
+        run = make_run(tmp_path / spec.name, 1000, evaluated=True)
+        write_log(run / "traffic.mcap", spec.name, strategy, 50,
+                  [record(10, 5.0, 1.0), learner_report(50, 0.2), record(12, 6.0, 0.5), learner_report(100, 0.1)])
+    paths = experiments.write_results(specs, opts, {"budget": "1,000"})
+    assert sorted(path.name for path in paths) == ["epsilon.png", "loss_differences.png", "results.csv",
+                                                  "results.md", "reward_bins.png", "reward_curves.png"]
+    for path in paths:
+        if path.suffix == ".png":
+            assert_png(path)
+    markdown = (tmp_path / "results" / "results.md").read_text()
+    assert markdown.count("| BMC | 1 | 2 |") == 2 and "- budget: 1,000" in markdown
+    assert len((tmp_path / "results" / "results.csv").read_text().splitlines()) == 1 + 2 * 3
