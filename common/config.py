@@ -84,8 +84,9 @@ class LearnerConfig:
     weights_every: int = 50  # broadcast weights every K updates
     checkpoint_every: int = 5_000  # updates
     prefetch: int = 2  # batch requests kept in flight
-    # 0 keeps torch's default (all cores). On a shared host give the learner the cores the
-    # actors leave free: oversubscribed torch threads slow an update several times over.
+    # 0 keeps torch's default (all cores): paced actors leave the learner most of the CPU.
+    # On a host shared with busy processes, fewer threads avoid oversubscription, which
+    # slows an update several times over.
     torch_threads: int = 0
     log_period_s: float = 10.0
     seed: int = 0

@@ -97,8 +97,6 @@ class Stack:
         if self.config.record.enabled:  # the flight recorder writes <run dir>/traffic.mcap
             self._start("recorder", "replay.log.cli record", self._client_flags())
         learner_flags = ["--resume"] if self.resume else []
-        if not self.config.learner.torch_threads:
-            learner_flags += ["--learner.torch_threads", str(max(1, (os.cpu_count() or 1) - self.actor_count))]
         self._start("learner", "learner.main", self._client_flags() + learner_flags)
         for actor_id in range(self.actor_count):
             self._start_actor(actor_id)
