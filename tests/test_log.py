@@ -234,7 +234,9 @@ def recorded_run(tmp_path_factory):
     log = base / "stack.log"
     process = start(["deploy/stack.py", "--preset", "smoke", "--actors", "1", "--run.name", RUN,
                      "--run.runs_dir", str(base / "runs"), "--learner.total_env_steps", str(STACK_ENV_STEPS),
-                     "--record.flush_period_s", "0.5"], log, cwd=ROOT)
+                     "--record.flush_period_s", "0.5",
+                     "--learner.ratio_tolerance", "100"],  # neither the actor nor the learner waits for the other
+                    log, cwd=ROOT)
     try:
         code = process.wait(STACK_TIMEOUT_S)
     except subprocess.TimeoutExpired:
@@ -386,7 +388,8 @@ def test_export_plot_and_viewing_file(recorded_run, tmp_path, capsys):
         tables = collect(log)
     episodes_csv = (tmp_path / "csv" / "episodes.csv").read_text().splitlines()
     assert len(episodes_csv) == 1 + len(tables.episodes) and episodes_csv[0].startswith("log_time,publish_time,")
-    assert (tmp_path / "csv" / "replay.csv").exists()
+    replay_csv = (tmp_path / "csv" / "replay_stats.csv").read_text().splitlines()
+    assert len(replay_csv) == 1 + len(tables.stats["replay/stats"]) and "env_steps_total" in replay_csv[0]
     assert (tmp_path / "training.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with LogFile(tmp_path / "view.mcap") as view:
         images = next(view.records(["/view/camera/actor/0"]))

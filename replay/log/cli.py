@@ -7,7 +7,7 @@
     d3rqn-log plot runs/R/traffic.mcap --output runs/R/training.png
     d3rqn-log recover runs/R/traffic.mcap runs/R/traffic-recovered.mcap
 
-A bad file gives one line on stderr and exit code 1; a bad config value, exit code 2.
+A bad or unwritable file gives one line on stderr and exit code 1; a bad config value, exit code 2.
 """
 
 from __future__ import annotations
@@ -65,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot = commands.add_parser("plot", help="training curves to a PNG")
     plot.add_argument("log", type=Path)
     plot.add_argument("--output", type=Path, default=None, help="PNG file (default: <log folder>/training.png)")
+    plot.add_argument("--title", default=None, help="figure title (default: run name, strategy, replay capacity)")
     plot.set_defaults(handler=_plot)
 
     recover = commands.add_parser("recover", help="rewrite a cut-short log into a complete, indexed one")
@@ -84,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         args, config = parse_config_or_exit(parser, argv)
     try:
         return args.handler(args, config) or 0
-    except LogError as error:
+    except (LogError, OSError) as error:  # a bad log, or a file that cannot be written
         print(f"{PROG} {args.command}: {error}", file=sys.stderr)
         return 1
 
@@ -169,7 +170,8 @@ def _plot(args, config) -> None:
     output = args.output or args.log.parent / "training.png"
     with LogFile(args.log) as log:
         config = log.config()
-        title = f"run {config.run.name}: {config.exploration.strategy}, replay capacity {config.replay.capacity}"
+        title = args.title or (f"run {config.run.name}: {config.exploration.strategy}, "
+                               f"replay capacity {config.replay.capacity}")
         plot_training(collect(log), output, title)
     print(f"wrote {output}")
 

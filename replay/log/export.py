@@ -1,7 +1,8 @@
 """A log as tables (CSV) and as a Foxglove viewing file with the camera frames.
 
-Tables: ``episodes.csv`` (one EpisodeRecord per row), one ``<source>.csv`` per Stats
-source (``learner.csv``, ``replay.csv``, ``recorder.csv``) and ``exploration.csv``.
+Tables: ``episodes.csv`` (the EpisodeRecords of all actors), ``exploration.csv``, and
+one CSV per key that carries Stats, named after the key below the run
+(``metrics_learner_0.csv``, ``replay_stats.csv``, ``metrics_recorder_0.csv``, ...).
 Every row starts with the log and publish times in seconds since the Unix epoch.
 
 The viewing file (``--images``) holds the JSON views of ``views.py`` for every
@@ -18,6 +19,7 @@ from pathlib import Path
 
 from common.wire import EpisodeRecord, ExplorationState, Stats
 from replay.log.reader import LogFile
+from replay.log.traffic import relative_key
 from replay.log.views import ViewMaker, json_safe, message_view
 from replay.log.writer import LogWriter
 
@@ -27,13 +29,14 @@ TIME_COLUMNS = ("log_time", "publish_time")
 @dataclass
 class Tables:
     episodes: list[dict] = field(default_factory=list)
-    stats: dict[str, list[dict]] = field(default_factory=dict)  # Stats source -> rows
+    stats: dict[str, list[dict]] = field(default_factory=dict)  # key below the run -> rows of its Stats
     exploration: list[dict] = field(default_factory=list)
 
 
 def collect(log: LogFile) -> Tables:
     """The metrics of a log as rows of plain values, in log-time order."""
     tables = Tables()
+    root = log.keys().root
     for record, message in log.messages(EpisodeRecord, Stats, ExplorationState):
         row = {"log_time": record.log_ns / 1e9, "publish_time": record.publish_ns / 1e9}
         if isinstance(message, ExplorationState):
@@ -44,7 +47,7 @@ def collect(log: LogFile) -> Tables:
             continue
         row.update(message_view(message))
         if isinstance(message, Stats):
-            tables.stats.setdefault(message.source, []).append(row)
+            tables.stats.setdefault(relative_key(root, record.topic), []).append(row)
         else:
             tables.episodes.append(row)
     return tables
@@ -63,7 +66,7 @@ def export_csv(log: LogFile, directory: Path) -> list[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     tables = collect(log)
     files = {"episodes.csv": tables.episodes, "exploration.csv": tables.exploration}
-    files.update({f"{source}.csv": rows for source, rows in sorted(tables.stats.items())})
+    files.update({f"{key.replace('/', '_')}.csv": rows for key, rows in sorted(tables.stats.items())})
     written = []
     for name, rows in files.items():
         if rows:

@@ -18,6 +18,7 @@ import numpy as np
 from replay.log.export import Tables
 
 RETURN_WINDOW = 100  # episodes, the paper's "average reward per 100 episodes"
+LEARNER_METRICS = "metrics/learner/0"  # the learner's Stats key below the run
 
 
 def trailing_mean(values: list[float], window: int) -> np.ndarray:
@@ -44,7 +45,7 @@ def plot_training(tables: Tables, path: Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    learner = tables.stats.get("learner", [])
+    learner = tables.stats.get(LEARNER_METRICS, [])
     figure, axes = plt.subplots(2, 2, figsize=(10, 6.5), dpi=90)
     returns = [row["episode_return"] for row in tables.episodes]
     ax = axes[0, 0]

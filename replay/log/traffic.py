@@ -74,3 +74,9 @@ def publish_time_ns(arrival: Arrival, sender_ns: int | None) -> int:
         if candidate is not None:
             return candidate
     return arrival.received_ns
+
+
+def relative_key(run_root: str, key: str) -> str:
+    """The key below the run's root ('d3rqn/r/metrics/learner/0' -> 'metrics/learner/0'); other keys unchanged."""
+    prefix = run_root + "/"
+    return key[len(prefix):] if key.startswith(prefix) else key

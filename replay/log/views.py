@@ -27,6 +27,7 @@ import numpy as np
 
 from common.wire import (Episode, EpisodeRecord, ExplorationState, Flag, Integer, Message, NumberDict, PlainDict,
                          Real, Stats, Text, WireError, decode)
+from replay.log.traffic import relative_key
 
 VIEW_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
@@ -144,7 +145,7 @@ class ViewMaker:
             message = decode(data)
         except WireError:
             return []
-        topic = VIEW_PREFIX + self._relative(key)
+        topic = VIEW_PREFIX + relative_key(self.run_root, key)
         if type(message) in SCHEMAS:
             schema = SCHEMAS[type(message)]
             return [View(topic, schema["title"], schema, log_ns, message_view(message))]
@@ -169,7 +170,3 @@ class ViewMaker:
                     "action": episode.actions[step], "reward": episode.rewards[step], "return": returns[step],
                     "epsilon": episode.epsilon, "weights_version": episode.weights_version[step]})))
         return views
-
-    def _relative(self, key: str) -> str:
-        prefix = self.run_root + "/"
-        return key[len(prefix):] if key.startswith(prefix) else key
