@@ -5,10 +5,7 @@ router, and an actor started from the remote-actor config: the actor's episodes
 reach its own run's replay and nothing leaks into the other run.
 """
 
-import signal
-import socket
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -18,15 +15,10 @@ import pytest
 from common.config import TransportConfig, load_config
 from common.transport import Keys, open_session, subscribe
 from common.wire import Stats
+from tests.processes import loopback_endpoint, start, stop
 
 CONFIGS = Path(__file__).resolve().parents[1] / "deploy" / "configs"
 EPISODES = 3
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 @pytest.mark.parametrize("name", ["hub-replay.toml", "hub-learner.toml", "remote-actor.toml"])
@@ -37,19 +29,18 @@ def test_deploy_configs_are_valid(name):
 
 
 def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     processes = []
 
-    def start(name: str, *flags: str) -> subprocess.Popen:
-        log = open(tmp_path / f"{name}.log", "wb")
-        process = subprocess.Popen([sys.executable, "-m", *flags], stdout=log, stderr=subprocess.STDOUT)
+    def start_logged(name: str, *flags: str) -> subprocess.Popen:
+        process = start(["-m", *flags], tmp_path / f"{name}.log")
         processes.append(process)
         return process
 
     fast_stats = ("--replay.stats_period_s", "0.2")
-    start("hub", "replay.main", "--config", str(CONFIGS / "hub-replay.toml"), "--transport.listen", endpoint,
+    start_logged("hub", "replay.main", "--config", str(CONFIGS / "hub-replay.toml"), "--transport.listen", endpoint,
           *fast_stats)
-    start("other", "replay.main", "--run.name", "other", "--transport.mode", "client",
+    start_logged("other", "replay.main", "--run.name", "other", "--transport.mode", "client",
           "--transport.connect", endpoint, *fast_stats)
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     latest: dict[str, dict] = {}
@@ -64,7 +55,7 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
     subscriptions = [subscribe(session, Keys("d3rqn", run).replay_stats, keep(run), expected=Stats)
                      for run in ("cluster", "other")]
     try:
-        actor = start("actor", "actor.main", "--config", str(CONFIGS / "remote-actor.toml"),
+        actor = start_logged("actor", "actor.main", "--config", str(CONFIGS / "remote-actor.toml"),
                       "--transport.connect", endpoint, "--actor.actor_id", "7", "--env.max_steps", "50",
                       "--max-episodes", str(EPISODES))
         assert actor.wait(120) == 0, (tmp_path / "actor.log").read_text()
@@ -82,12 +73,4 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
         for subscription in subscriptions:
             subscription.undeclare()
         session.close()
-        for process in processes:
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-        for process in processes:
-            try:
-                process.wait(20)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        stop(*processes)

@@ -1,10 +1,5 @@
 """The replay process over real Zenoh: stores episodes, serves traces, shrugs off bad input."""
 
-import signal
-import socket
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -12,15 +7,11 @@ import pytest
 from common.config import TransportConfig
 from common.transport import Keys, open_session, publisher, request, subscribe
 from common.wire import Episode, FrameStack, Stats, TraceBatch, TraceBatchRequest, encode
+from tests import processes
+from tests.processes import loopback_endpoint, start, stop
 
 RUN = "replaysvc"
 TRACE = 10
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def episode(steps: int, index: int) -> Episode:
@@ -33,12 +24,11 @@ def episode(steps: int, index: int) -> Episode:
 
 @pytest.fixture
 def replay(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    log = open(tmp_path / "replay.log", "wb")
-    process = subprocess.Popen(
-        [sys.executable, "-m", "replay.main", "--preset", "smoke", "--run.name", RUN, "--transport.mode", "router",
+    endpoint = loopback_endpoint()
+    process = start(
+        ["-m", "replay.main", "--preset", "smoke", "--run.name", RUN, "--transport.mode", "router",
          "--transport.listen", endpoint, "--replay.capacity", "3", "--replay.max_message_mb", "1",
-         "--replay.stats_period_s", "0.2"], stdout=log, stderr=subprocess.STDOUT)
+         "--replay.stats_period_s", "0.2"], tmp_path / "replay.log")
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     stats: list[dict] = []
     subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats,
@@ -48,21 +38,11 @@ def replay(tmp_path):
     finally:
         subscription.undeclare()
         session.close()
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop(process)
 
 
-def wait_for(condition, what: str, timeout_s: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+def wait_for(condition, what: str) -> None:
+    processes.wait_for(condition, what, timeout_s=30.0)
 
 
 def test_stores_serves_and_survives_bad_input(replay):

@@ -2,10 +2,7 @@
 
 import math
 import os
-import signal
-import socket
 import subprocess
-import sys
 import threading
 import time
 from collections import defaultdict
@@ -15,15 +12,10 @@ import pytest
 from common.config import PRESETS, TransportConfig
 from common.transport import Keys, open_session, subscribe
 from common.wire import EpisodeRecord, ExplorationState, Stats
+from tests.processes import loopback_endpoint, start, stop
 
 DEADLINE_S = 240.0
 SMOKE_CAPACITY = PRESETS["smoke"]["replay.capacity"]
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 class Observer:
@@ -60,43 +52,33 @@ class Observer:
         raise AssertionError(f"timed out waiting for {what}")
 
 
-def start(role: str, flags: list[str], log_dir) -> subprocess.Popen:
-    log = open(log_dir / f"{role}-{len(list(log_dir.iterdir()))}.log", "wb")
-    return subprocess.Popen([sys.executable, "-m", f"{role}.main", *flags], stdout=log, stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL)
+def start_role(role: str, flags: list[str], log_dir) -> subprocess.Popen:
+    return start(["-m", f"{role}.main", *flags], log_dir / f"{role}-{len(list(log_dir.iterdir()))}.log")
 
 
 @pytest.fixture
 def stack(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     run = f"e2e{os.getpid()}"
     common = ["--preset", "smoke", "--run.name", run, "--run.runs_dir", str(tmp_path / "runs"),
               "--exploration.strategy", "bmc"]
     client = common + ["--transport.mode", "client", "--transport.connect", endpoint]
     logs = tmp_path / "logs"
     logs.mkdir()
-    processes = {"replay": start("replay", common + ["--transport.mode", "router", "--transport.listen", endpoint], logs)}
+    processes = {"replay": start_role("replay", common + ["--transport.mode", "router", "--transport.listen", endpoint], logs)}
     observer = Observer()
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     keys = Keys("d3rqn", run)
     subscriptions = [subscribe(session, keys.metrics_all, observer.on_metric),
                      subscribe(session, keys.replay_stats, observer.on_replay),
                      subscribe(session, keys.exploration, observer.on_exploration)]
-    processes["learner"] = start("learner", client + ["--learner.total_env_steps", "100000"], logs)
+    processes["learner"] = start_role("learner", client + ["--learner.total_env_steps", "100000"], logs)
     for actor_id in (0, 1):
-        processes[f"actor{actor_id}"] = start("actor", client + ["--actor.actor_id", str(actor_id)], logs)
+        processes[f"actor{actor_id}"] = start_role("actor", client + ["--actor.actor_id", str(actor_id)], logs)
     try:
         yield processes, observer, logs
     finally:
-        for process in processes.values():
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-        for process in processes.values():
-            try:
-                process.wait(30)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        stop(*processes.values())
         for subscription in subscriptions:
             subscription.undeclare()
         session.close()
