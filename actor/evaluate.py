@@ -34,10 +34,7 @@ from actor.evaluation_episodes import (EpisodeJob, WorkerDone, WorkerFailed, epi
 from actor.evaluation_report import SUMMARY_MD, write_report
 from actor.evaluation_stats import EvaluationEpisode, SetSummary, summarise_all
 from actor.sim import START_SETS
-# _dest and _read_toml: the flag names and TOML reading of common.config, reused to lay a file and
-# flags over a checkpoint's config instead of over a preset (config.py has no public hook for that).
-from common.config import (Config, ConfigError, _dest, _read_toml, add_config_arguments, config_from_args,
-                           flat_items, from_dict, set_value, to_toml)
+from common.config import Config, ConfigError, add_config_arguments, config_from_args, from_dict, to_toml
 from common.network import D3RQN, load_numpy_weights
 from common.transport import Keys, open_session, request
 from common.wire import Weights
@@ -95,20 +92,7 @@ def checkpoint_config(saved: Any, args: argparse.Namespace) -> Config:
     """The checkpoint's config, then --config FILE, then the flags given (--preset does not apply)."""
     if not isinstance(saved, dict):
         raise EvaluationError("the checkpoint's config section is not a table")
-    nested = _merged(saved, _read_toml(Path(args.config))) if args.config else saved
-    config = from_dict(nested)
-    for key in flat_items(config):
-        value = getattr(args, _dest(key), None)
-        if value is not None:
-            set_value(config, key, value)
-    return config.validate()
-
-
-def _merged(base: dict, update: dict) -> dict:
-    merged = dict(base)
-    for key, value in update.items():
-        merged[key] = _merged(base[key], value) if isinstance(value, dict) and isinstance(base.get(key), dict) else value
-    return merged
+    return config_from_args(args, base=from_dict(saved))
 
 
 def live_source(config: Config) -> PolicySource:

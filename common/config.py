@@ -10,6 +10,7 @@ whose one-line message names the key.
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import math
 import sys
@@ -366,13 +367,17 @@ PRESETS: dict[str, dict[str, Any]] = {
 # --- building a config ---------------------------------------------------------
 
 def load_config(preset: str = "paper", toml_path: str | Path | None = None,
-                overrides: dict[str, Any] | None = None) -> Config:
-    """Preset, then TOML file, then overrides (dotted keys); validated."""
-    if preset not in PRESETS:
+                overrides: dict[str, Any] | None = None, base: Config | None = None) -> Config:
+    """Preset (or a copy of `base`, such as a checkpoint's config), then TOML file, then
+    overrides (dotted keys); validated."""
+    if base is not None:
+        config = copy.deepcopy(base)
+    elif preset in PRESETS:
+        config = Config()
+        for key, value in PRESETS[preset].items():
+            set_value(config, key, value)
+    else:
         raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    config = Config()
-    for key, value in PRESETS[preset].items():
-        set_value(config, key, value)
     if toml_path is not None:
         for key, value in _flatten(_read_toml(Path(toml_path))).items():
             set_value(config, key, value)
@@ -449,10 +454,11 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
                            help=f"default {shown}")
 
 
-def config_from_args(args: argparse.Namespace) -> Config:
+def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
+    """The flags of add_config_arguments applied over the preset, or over `base` if given."""
     overrides = {key: getattr(args, _dest(key)) for key in flat_items(Config())
                  if getattr(args, _dest(key), None) is not None}
-    return load_config(args.preset, args.config, overrides)
+    return load_config(args.preset, args.config, overrides, base)
 
 
 def parse_config_or_exit(parser: argparse.ArgumentParser, argv: list[str] | None = None
