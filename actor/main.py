@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.config import add_config_arguments, parse_config_or_exit
+from common.config import add_config_arguments, parse_config_or_exit, print_config
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -21,6 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args, config = parse_config_or_exit(build_parser(), argv)
+    print_config("actor", config)
     from actor.runner import run_actor
     run_actor(config, max_episodes=args.max_episodes)
 

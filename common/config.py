@@ -479,6 +479,12 @@ def parse_config_or_exit(parser: argparse.ArgumentParser, argv: list[str] | None
     return args, config
 
 
+def print_config(prog: str, config: Config) -> None:
+    """The resolved config on stderr, so every process's log starts with what it ran with."""
+    body = "\n".join(f"  {line}" for line in to_toml(config).splitlines() if line)
+    print(f"{prog}: resolved config\n{body}", file=sys.stderr, flush=True)
+
+
 # --- helpers -------------------------------------------------------------------------
 
 def _sections(config: Any, path: str = ""):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.config import add_config_arguments, parse_config_or_exit
+from common.config import add_config_arguments, parse_config_or_exit, print_config
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,6 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args, config = parse_config_or_exit(build_parser(), argv)
+    print_config("learner", config)
     from learner.service import run_learner
     run_learner(config, resume=args.resume)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.config import add_config_arguments, parse_config_or_exit
+from common.config import add_config_arguments, parse_config_or_exit, print_config
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -19,6 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     _, config = parse_config_or_exit(build_parser(), argv)
+    print_config("replay", config)
     from replay.service import run_replay
     run_replay(config)
 

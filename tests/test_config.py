@@ -102,3 +102,12 @@ def test_command_line_error_is_one_line_and_exit_2():
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == ["learner: config error: learner.lr: expected a number, got 'oops'"]
+
+
+def test_each_role_prints_its_resolved_config_at_start():
+    # --max-episodes 0: the actor parses, prints its config, and has nothing to run
+    result = subprocess.run([sys.executable, "-m", "actor.main", "--preset", "smoke", "--learner.lr", "0.125",
+                             "--max-episodes", "0", "--transport.connect", "tcp/127.0.0.1:9"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.stderr.startswith("actor: resolved config\n")
+    assert "  lr = 0.125" in result.stderr and "  [exploration.bmc]" in result.stderr
