@@ -200,6 +200,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                      config.start_episodes, process.clock.env_steps)
         stop.wait(IDLE_POLL_S * 10)
     if stop.is_set():
+        log.info("stopped before updates started; checkpoint %s", process.checkpoint())
         return
     if process.updates == 0:
         process.start_updates()
