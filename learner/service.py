@@ -18,10 +18,10 @@ import numpy as np
 import torch
 
 from common.config import Config, to_dict
-from common.exploration import exploration_message, make_strategy
+from common.exploration import make_strategy
 from common.logs import Every, setup_logging
 from common.transport import Keys, declare_liveliness, open_session, publisher, request, serve, subscribe
-from common.wire import Stats, TraceBatch, Weights
+from common.wire import ExplorationState, Stats, TraceBatch, Weights
 from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from learner.pacing import StepClock
 from learner.prefetch import Prefetcher
@@ -173,10 +173,9 @@ class Outputs:
         self._weights.put(weights)
 
     def exploration(self, strategy, force: bool = False) -> None:
-        message = exploration_message(strategy)
         state = strategy.state_dict()
         if force or state != self._last_exploration:
-            self._exploration.put(message)
+            self._exploration.put(ExplorationState(**state))
             self._last_exploration = state
 
     def progress(self, process: LearnerProcess) -> None:
