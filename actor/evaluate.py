@@ -8,7 +8,10 @@ Episodes are spread over ``evaluation.workers`` processes (multiprocessing,
 with one batched forward pass per step (actor/evaluation_episodes.py). A
 uniformly random policy, and on request the privileged map-reading driver,
 run the same starts for comparison. Results go to ``--out`` (default
-``<run dir>/evaluation/``): episodes.csv, summary.csv, summary.md, config.toml.
+``<run dir>/evaluation/``): episodes.csv, summary.csv, summary.md, facts.json,
+config.toml. Mean and IQM length, CFR, progress and reward per step come with
+confidence intervals (actor/evaluation_intervals.py); from one checkpoint they
+show the spread of the trials only, not that of other training runs.
 
     evaluate --checkpoint runs/bmc                 # the run's checkpoints/latest.pt
     evaluate --checkpoint runs/bmc/checkpoints/latest.pt --evaluation.workers 2
@@ -31,6 +34,7 @@ from typing import Any, Sequence, TextIO
 import numpy as np
 
 from actor.evaluation_episodes import (EpisodeJob, WorkerDone, WorkerFailed, episode_jobs, evaluation_worker)
+from actor.evaluation_intervals import Bootstrap
 from actor.evaluation_report import SUMMARY_MD, write_report
 from actor.evaluation_stats import EvaluationEpisode, SetSummary, summarise_all
 from actor.sim import START_SETS
@@ -246,7 +250,13 @@ def evaluate(config: Config, weights: dict[str, np.ndarray] | None, policies: Se
     jobs = episode_jobs(policies, start_sets, config.evaluation.episodes_per_start, config.evaluation.seed)
     progress = Progress(len(jobs), config.evaluation.progress_period_s, sys.stderr if show_progress else None)
     episodes = run_jobs(config, weights, jobs, progress)
-    return episodes, summarise_all(episodes)
+    return episodes, summarise_all(episodes, bootstrap_of(config))
+
+
+def bootstrap_of(config: Config) -> Bootstrap:
+    """The intervals' settings; the bootstrap draws from evaluation.seed, so a table is reproducible."""
+    evaluation = config.evaluation
+    return Bootstrap(evaluation.bootstrap_replicates, evaluation.confidence, evaluation.seed)
 
 
 # --- command line ------------------------------------------------------------------------------------
@@ -258,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "the live learner: evaluation.episodes_per_start episodes from each start pose of the "
                     "train and test sets, capped at evaluation.max_steps steps, spread over evaluation.workers "
                     "processes of evaluation.envs_per_worker lockstep simulators. Writes episodes.csv, "
-                    "summary.csv, summary.md and config.toml. With --checkpoint the config is the checkpoint's, "
+                    "summary.csv, summary.md, facts.json and config.toml. With --checkpoint the config is the checkpoint's, "
                     "changed only by --config FILE and the flags given (--preset is ignored).")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", type=Path, metavar="PATH",
@@ -316,12 +326,14 @@ def _main(args: argparse.Namespace) -> None:
              "protocol": f"{evaluation.episodes_per_start} episodes from each start of {', '.join(sets)}, "
                          f"capped at {evaluation.max_steps} steps; greedy = argmax Q",
              "seed": str(evaluation.seed),
+             "intervals": f"{100 * evaluation.confidence:g}% percentile intervals of {evaluation.bootstrap_replicates} "
+                          "bootstrap replicates (trials resampled within each start)",
              "processes": f"{workers} worker(s) x {evaluation.envs_per_worker} lockstep env(s), "
                           f"{torch_threads_per_worker(workers)} torch thread(s) each",
              "wall time": f"{wall_s:.1f} s",
              "date": datetime.datetime.now().isoformat(timespec="seconds")}
     paths = write_report(out_dir, episodes, summaries, evaluation.reward_bins, facts, evaluation.episodes_per_start,
-                         to_toml(config))
+                         to_toml(config), evaluation.confidence)
     print((out_dir / SUMMARY_MD).read_text())
     print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
 

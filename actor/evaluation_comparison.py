@@ -3,9 +3,12 @@
 Each run's ``episodes.csv`` (written by ``evaluate``) is read back into
 EvaluationEpisode records, and the greedy episodes of all runs that share a
 strategy and a replay capacity (the seeds of one grid cell) are pooled into one
-row by ``evaluation_stats.summarise``, so a row weighs every episode once. One
-table per start set and capacity: Strategy | Runs | Episodes | Average |
-Standard Deviation | Min | CFR | Reward/step | the last reward bin's share.
+row by ``evaluation_stats.summarise``, so a row weighs every episode once; its
+intervals resample the runs whole, then each run's trials within each start
+(actor/evaluation_intervals.py). Each run also gets a row of its own. One
+table per start set and capacity: Strategy | Seeds | Updates (of every run) |
+Episodes | Average | IQM | Standard Deviation | Min | CFR | Stalled | Progress
+| Reward/step | the last reward bin's share; then the per-run rows.
 The random policy does not depend on the training, and every evaluation with
 the same seed runs the same random trials, so its row is taken once, from the
 first run that has it, and shown in every table of its start set.
@@ -14,12 +17,14 @@ first run that has it, and shown in every table of its start set.
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from actor.evaluation_report import EPISODES_CSV, bin_labels
-from actor.evaluation_stats import EvaluationEpisode, SetSummary, summarise
+from actor.evaluation_intervals import Bootstrap, Cell
+from actor.evaluation_report import EPISODES_CSV, bin_labels, summary_columns, with_interval
+from actor.evaluation_stats import EvaluationEpisode, SetSummary, episode_cell, summarise
 from common.config import STRATEGIES
 
 STRATEGY_NAMES = {
@@ -49,6 +54,8 @@ class EvaluatedRun:
     strategy: str
     capacity: int
     evaluation_dir: Path  # holds evaluate's episodes.csv
+    seed: int = 0  # run.seed of its training
+    updates: int | None = None  # the learner's updates when its checkpoint was evaluated, if known
 
 
 @dataclass(frozen=True)
@@ -57,10 +64,18 @@ class ComparisonRow:
     capacity: int
     runs: int  # evaluations pooled in the row
     summary: SetSummary
+    seed: int | None = None  # None: the runs of every seed pooled; else this seed's run alone
+    seeds: tuple[int, ...] = ()  # the seeds of the runs in the row
+    updates: tuple[int | None, ...] = ()  # every run's updates, in the order of seeds
+    cell: Cell | None = None  # the row's episodes as the bootstrap sees them (for the performance profile)
 
     @property
     def start_set(self) -> str:
         return self.summary.start_set
+
+    @property
+    def pooled(self) -> bool:
+        return self.seed is None
 
 
 # --- reading evaluations back ---------------------------------------------------------------------------
@@ -96,15 +111,17 @@ def _episode_of(row: dict[str, str], bin_columns: list[str]) -> EvaluationEpisod
                              trial=int(row["trial"]), seed=int(row["seed"]), length=int(row["length"]),
                              end=row["end"], episode_return=float(row["episode_return"]),
                              reward_bin_counts=tuple(int(row[name]) for name in bin_columns),
-                             actions_digest=row["actions_digest"])
+                             actions_digest=row["actions_digest"],
+                             progress_m=float(row.get("progress_m") or math.nan))  # older files have none
 
 
 # --- pooling ------------------------------------------------------------------------------------------------
 
-def comparison_rows(runs: Sequence[EvaluatedRun]) -> tuple[list[ComparisonRow], list[float]]:
-    """Rows by start set, capacity, then strategy in common.config order with the random row last; and the edges."""
-    greedy: dict[tuple[str, int, str], list[EvaluationEpisode]] = {}
-    pooled_runs: dict[tuple[str, int, str], int] = {}
+def comparison_rows(runs: Sequence[EvaluatedRun], bootstrap: Bootstrap | None = None
+                    ) -> tuple[list[ComparisonRow], list[float]]:
+    """Rows by start set, capacity, then strategy in common.config order, each pooled row followed by one
+    row per run (by seed, even when there is only one), the random row last; and the edges."""
+    greedy: dict[tuple[str, int, str], list[tuple[EvaluatedRun, list[EvaluationEpisode]]]] = {}
     random_rows: dict[str, list[EvaluationEpisode]] = {}
     edges: list[float] | None = None
     for run in runs:
@@ -112,12 +129,9 @@ def comparison_rows(runs: Sequence[EvaluatedRun]) -> tuple[list[ComparisonRow], 
         if edges is not None and run_edges != edges:
             raise ComparisonError(f"{run.evaluation_dir}: reward bins {run_edges} differ from the others' {edges}")
         edges = run_edges
-        by_set = _by_policy_and_set(episodes)
-        for (policy, start_set), group in by_set.items():
+        for (policy, start_set), group in _by_policy_and_set(episodes).items():
             if policy == "greedy":
-                key = (start_set, run.capacity, run.strategy)
-                greedy.setdefault(key, []).extend(group)
-                pooled_runs[key] = pooled_runs.get(key, 0) + 1
+                greedy.setdefault((start_set, run.capacity, run.strategy), []).append((run, group))
             elif policy == RANDOM:
                 random_rows.setdefault(start_set, group)
     if edges is None:
@@ -125,11 +139,23 @@ def comparison_rows(runs: Sequence[EvaluatedRun]) -> tuple[list[ComparisonRow], 
     rows = []
     for start_set, capacity in sorted({(key[0], key[1]) for key in greedy}, key=_set_then_capacity):
         for strategy in sorted({key[2] for key in greedy if key[:2] == (start_set, capacity)}, key=_strategy_rank):
-            key = (start_set, capacity, strategy)
-            rows.append(ComparisonRow(strategy, capacity, pooled_runs[key], summarise(greedy[key])))
+            members = sorted(greedy[(start_set, capacity, strategy)], key=lambda member: member[0].seed)
+            rows.append(_row(strategy, capacity, members, None, bootstrap))
+            rows += [_row(strategy, capacity, [member], member[0].seed, bootstrap) for member in members]
         if start_set in random_rows:
-            rows.append(ComparisonRow(RANDOM, capacity, 1, summarise(random_rows[start_set])))
+            rows.append(_row(RANDOM, capacity, [(None, random_rows[start_set])], None, bootstrap))
     return rows, edges
+
+
+def _row(strategy: str, capacity: int, members: list[tuple[EvaluatedRun | None, list[EvaluationEpisode]]],
+         seed: int | None, bootstrap: Bootstrap | None) -> ComparisonRow:
+    """One row over the episodes of `members` (run, its episodes); each run is one stratum of the bootstrap."""
+    episodes = [episode for _, group in members for episode in group]
+    labels = [number for number, (_, group) in enumerate(members) for _ in group]
+    trained = [run for run, _ in members if run is not None]
+    return ComparisonRow(strategy, capacity, len(members), summarise(episodes, labels, bootstrap), seed,
+                         tuple(run.seed for run in trained), tuple(run.updates for run in trained),
+                         episode_cell(episodes, labels))
 
 
 def _by_policy_and_set(episodes: Sequence[EvaluationEpisode]) -> dict[tuple[str, str], list[EvaluationEpisode]]:
@@ -150,37 +176,72 @@ def _strategy_rank(strategy: str) -> int:
 
 # --- output ----------------------------------------------------------------------------------------------------
 
-def comparison_markdown(rows: Sequence[ComparisonRow], edges: Sequence[float]) -> str:
-    """One table per start set and capacity, as the paper's tables 3-6 with three more columns."""
+def comparison_markdown(rows: Sequence[ComparisonRow], edges: Sequence[float], confidence: float = 0.95) -> str:
+    """One table per start set and capacity, as the paper's tables 3-6 with intervals and more columns,
+    then the table of every run on its own."""
     last_bin = bin_labels(edges)[-1]
-    header = ["Strategy", "Runs", "Episodes", "Average", "Standard Deviation", "Min", "CFR", "Reward/step",
-              f"r in {last_bin}"]
+    level = f"{100 * confidence:g}% CI"
+    header = ["Strategy", "Seeds", "Updates", "Episodes", f"Average [{level}]", f"IQM [{level}]", "Standard Deviation",
+              "Min", f"CFR [{level}]", "Stalled", "Progress m", f"Reward/step [{level}]", f"r in {last_bin}"]
+    per_run = ["Strategy", "Seed", "Updates", "Episodes", f"Average [{level}]", f"IQM [{level}]", f"CFR [{level}]",
+               f"Reward/step [{level}]"]
     sections: list[str] = []
     for start_set, capacity in dict.fromkeys((row.start_set, row.capacity) for row in rows):
-        lines = [f"### {start_set.capitalize()} set, replay capacity {capacity:,d} episodes", "",
-                 "| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|"]
-        for row in rows:
-            if (row.start_set, row.capacity) == (start_set, capacity):
+        table = [row for row in rows if (row.start_set, row.capacity) == (start_set, capacity)]
+        lines = [f"### {start_set.capitalize()} set, replay capacity {capacity:,d} episodes", "", *_table_head(header)]
+        for row in table:
+            if row.pooled:
                 s = row.summary
-                cells = [STRATEGY_NAMES.get(row.strategy, row.strategy), str(row.runs), str(s.episodes),
-                         f"{s.mean_length:,.2f}", f"{s.std_length:,.2f}", f"{s.min_length:,d}", _percent(s.cfr),
-                         f"{s.mean_reward_per_step:.3f}", _percent(s.reward_shares[-1])]
-                lines.append("| " + " | ".join(cells) + " |")
+                lines.append(_table_line([
+                    STRATEGY_NAMES.get(row.strategy, row.strategy), _seeds(row), _updates(row), str(s.episodes),
+                    with_interval(s, "mean_length"), with_interval(s, "iqm_length"), f"{s.std_length:,.2f}",
+                    f"{s.min_length:,d}", with_interval(s, "cfr", percent=True), _percent(s.stalled_share),
+                    _number(s.mean_progress_m), with_interval(s, "reward_per_step", digits=3),
+                    _percent(s.reward_shares[-1])]))
+        singles = [row for row in table if not row.pooled]
+        if any(row.runs > 1 for row in table if row.pooled):  # with one run per row they repeat the rows above
+            lines += ["", "Each run on its own:", "", *_table_head(per_run)]
+            for row in singles:
+                s = row.summary
+                lines.append(_table_line([
+                    STRATEGY_NAMES.get(row.strategy, row.strategy), str(row.seed), _updates(row), str(s.episodes),
+                    with_interval(s, "mean_length"), with_interval(s, "iqm_length"),
+                    with_interval(s, "cfr", percent=True), with_interval(s, "reward_per_step", digits=3)]))
         sections.append("\n".join(lines))
     return "\n\n".join(sections) + "\n"
 
 
 def write_comparison_csv(rows: Sequence[ComparisonRow], edges: Sequence[float], path: Path) -> None:
-    """Every row at full precision, all reward-bin shares included."""
-    shares = [f"share_{low:g}_{high:g}" for low, high in zip(edges, edges[1:])]
+    """Every row, pooled (seed "all") and per run, at full precision with its intervals and reward-bin shares."""
+    table = [{"start_set": row.start_set, "capacity": row.capacity, "strategy": row.strategy,
+              "seed": "all" if row.pooled else row.seed, "seeds": ";".join(map(str, row.seeds)),
+              "updates": ";".join("" if updates is None else str(updates) for updates in row.updates),
+              **summary_columns(row.summary, edges)} for row in rows]
     with path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["start_set", "capacity", "strategy", "runs", "episodes", "mean_length", "std_length",
-                         "min_length", "cfr", "mean_reward_per_step", *shares])
-        for row in rows:
-            s = row.summary
-            writer.writerow([row.start_set, row.capacity, row.strategy, row.runs, s.episodes, s.mean_length,
-                             s.std_length, s.min_length, s.cfr, s.mean_reward_per_step, *s.reward_shares])
+        writer = csv.DictWriter(handle, fieldnames=list(table[0]) if table else [])
+        writer.writeheader()
+        writer.writerows(table)
+
+
+def _table_head(header: list[str]) -> list[str]:
+    return [_table_line(header), "|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|"]
+
+
+def _table_line(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _seeds(row: ComparisonRow) -> str:
+    return ", ".join(map(str, row.seeds)) if row.seeds else "–"
+
+
+def _updates(row: ComparisonRow) -> str:
+    """Every run's updates, so a reader sees at once whether the runs of a row trained alike."""
+    return ", ".join("?" if updates is None else f"{updates:,d}" for updates in row.updates) or "–"
+
+
+def _number(value: float) -> str:
+    return f"{value:,.1f}" if math.isfinite(value) else "–"
 
 
 def _percent(share: float) -> str:

@@ -18,6 +18,7 @@ distinct trajectories each start produced rather than assume either way.
 from __future__ import annotations
 
 import dataclasses
+import math
 import traceback
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator, Protocol
@@ -25,7 +26,7 @@ from typing import Callable, Iterable, Iterator, Protocol
 import numpy as np
 import torch
 
-from actor.evaluation_stats import EvaluationEpisode, digest_of_actions, reward_bin_counts
+from actor.evaluation_stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
 from actor.sim import START_SETS, make_env, start_poses
 from actor.sim.privileged import PrivilegedDriver
 from common.config import Config, EnvConfig
@@ -149,6 +150,7 @@ class RunningEpisode:
     pose: Pose
     actions: list[int] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
+    progress_m: float = math.nan  # the simulator's info["progress_m"] after the latest step
 
     def finish(self, end: str, reward_edges: list[float]) -> EvaluationEpisode:
         job = self.job
@@ -156,18 +158,31 @@ class RunningEpisode:
             policy=job.policy, start_set=job.start_set, start_index=job.start_index, trial=job.trial,
             seed=job.seed, length=len(self.actions), end=end, episode_return=float(sum(self.rewards)),
             reward_bin_counts=reward_bin_counts(self.rewards, reward_edges),
-            actions_digest=digest_of_actions(self.actions))
+            actions_digest=digest_of_actions(self.actions), progress_m=self.progress_m)
 
 
 def end_reason(info: dict, terminated: bool, length: int, max_steps: int) -> str | None:
-    """Why the episode ended after this step, or None if it goes on."""
-    if info["collision"]:
-        return "collision"
-    if info["offroad"]:
-        return "offroad"
+    """Why the episode ended after this step, or None if it goes on.
+
+    A terminated episode ends for the reason the simulator gives in info["end"]
+    (one of TERMINAL_REASONS); a simulator without it is read from its collision
+    and offroad flags, a collision winning. An episode that goes on to the step
+    cap ends by "cap", whatever info["end"] says of the cut.
+    """
     if terminated:
-        raise ValueError(f"the env ended an episode for a reason the evaluation does not know: {info}")
+        reason = info.get("end")
+        if reason is None:
+            reason = "collision" if info.get("collision") else "offroad" if info.get("offroad") else None
+        if reason not in TERMINAL_REASONS:
+            raise ValueError(f"the env ended an episode for a reason the evaluation does not know: {info}")
+        return reason
     return "cap" if length >= max_steps else None
+
+
+def progress_of(info: dict) -> float:
+    """Metres of progress along the road this episode, NaN when the simulator does not report it."""
+    value = info.get("progress_m")
+    return math.nan if value is None else float(value)
 
 
 def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Policy], max_steps: int,
@@ -196,6 +211,7 @@ def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Pol
             observation, reward, terminated, _, info = envs[slot].step(action)
             episode.actions.append(action)
             episode.rewards.append(float(reward))
+            episode.progress_m = progress_of(info)
             episode.observation, episode.pose = observation, envs[slot].unwrapped.pose
             end = end_reason(info, terminated, len(episode.actions), max_steps)
             if end is not None:

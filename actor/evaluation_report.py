@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -13,14 +15,26 @@ EPISODES_CSV = "episodes.csv"
 SUMMARY_CSV = "summary.csv"
 SUMMARY_MD = "summary.md"
 CONFIG_TOML = "config.toml"
+FACTS_JSON = "facts.json"  # where the weights came from (updates, env steps, strategy, ...), read by the comparison
+
+# The SetSummary field of each statistic that has an interval (evaluation_intervals.STATISTICS).
+INTERVAL_FIELDS = {"mean_length": "mean_length", "iqm_length": "iqm_length", "cfr": "cfr",
+                   "progress_m": "mean_progress_m", "reward_per_step": "mean_reward_per_step"}
 
 COLUMN_LEGEND = (
     ("Episodes", "episodes run: episodes_per_start trials from each start of the set"),
     ("Mean / Std / Min length", "episode length in steps (population std); the cap is an episode's maximum"),
-    ("CFR", "collision-free rate: share of episodes that reach the step cap without a collision"),
-    ("Collision / Off-road", "share of episodes ended by hitting an obstacle / by leaving the road "
-                             "(more than offroad_distance from the centre-line)"),
+    ("IQM", "interquartile mean of the episode lengths: the mean of the middle half"),
+    ("CFR", "collision-free rate: share of episodes that reach the step cap (every other end is a failure)"),
+    ("Collision / Off-road / Stalled", "share of episodes ended by hitting an obstacle / by leaving the road "
+                                       "(more than offroad_distance from the centre-line) / by making no "
+                                       "progress along the road over the simulator's window"),
+    ("Progress", "metres driven along the road network per episode, in the direction of travel "
+                 "(– where the simulator does not report it)"),
     ("Reward/step", "mean step reward exp(-beta d), pooled over all steps of the set"),
+    ("[low, high]", "confidence interval by stratified bootstrap: training runs resampled whole, then each "
+                    "run's trials within each start (actor/evaluation_intervals.py); with one run it shows "
+                    "only the spread of the trials"),
     ("r in [a, b)", "share of all steps whose reward fell in the bin; the last bin holds the near-optimal steps"),
     ("Distinct/start", "different trajectories among the trials of one start, averaged over starts"),
 )
@@ -46,22 +60,53 @@ def write_episodes_csv(path: Path, episodes: Sequence[EvaluationEpisode], edges:
                              *episode.reward_bin_counts])
 
 
+def summary_columns(summary: SetSummary, edges: Sequence[float]) -> dict[str, object]:
+    """A summary row as flat CSV columns: each interval as <statistic>_low and <statistic>_high."""
+    statistic_of = {name: statistic for statistic, name in INTERVAL_FIELDS.items()}
+    columns: dict[str, object] = {}
+    for field in dataclasses.fields(SetSummary):
+        if field.name in ("reward_shares", "intervals"):
+            continue
+        columns[field.name] = getattr(summary, field.name)
+        if field.name in statistic_of:
+            interval = summary.intervals[statistic_of[field.name]]
+            columns[f"{statistic_of[field.name]}_low"] = interval.low
+            columns[f"{statistic_of[field.name]}_high"] = interval.high
+    columns.update(zip(_bin_keys("share", edges), summary.reward_shares))
+    return columns
+
+
 def write_summary_csv(path: Path, summaries: Sequence[SetSummary], edges: Sequence[float]) -> None:
-    plain = [field.name for field in dataclasses.fields(SetSummary) if field.name != "reward_shares"]
+    rows = [summary_columns(summary, edges) for summary in summaries]
     with path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow([*plain, *_bin_keys("share", edges)])
-        for summary in summaries:
-            writer.writerow([*(getattr(summary, name) for name in plain), *summary.reward_shares])
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]) if rows else [])
+        writer.writeheader()
+        writer.writerows(rows)
 
 
-def markdown_table(summaries: Sequence[SetSummary], edges: Sequence[float]) -> str:
-    header = ["Policy", "Set", "Episodes", "Mean length", "Std", "Min", "CFR", "Collision", "Off-road",
-              "Reward/step", *(f"r in {label}" for label in bin_labels(edges)), "Distinct/start"]
-    rows = [[s.policy, s.start_set, str(s.episodes), f"{s.mean_length:.2f}", f"{s.std_length:.2f}",
-             str(s.min_length), _percent(s.cfr), _percent(s.collision_share), _percent(s.offroad_share),
-             f"{s.mean_reward_per_step:.3f}", *(_percent(share) for share in s.reward_shares),
-             f"{s.distinct_per_start:.2f}"] for s in summaries]
+def with_interval(summary: SetSummary, statistic: str, percent: bool = False, digits: int = 2) -> str:
+    """'812.40 [701.20, 905.00]' or '12.00% [8.33, 15.67]'; '–' for a value the evaluation has not got."""
+    value = getattr(summary, INTERVAL_FIELDS[statistic])
+    interval = summary.intervals[statistic]
+    if not math.isfinite(value):
+        return "–"
+    scale, unit = (100.0, "%") if percent else (1.0, "")
+    text = f"{scale * value:,.{digits}f}{unit}"
+    if math.isfinite(interval.low):
+        text += f" [{scale * interval.low:,.{digits}f}, {scale * interval.high:,.{digits}f}]"
+    return text
+
+
+def markdown_table(summaries: Sequence[SetSummary], edges: Sequence[float], confidence: float = 0.95) -> str:
+    level = f"{100 * confidence:g}% CI"
+    header = ["Policy", "Set", "Episodes", f"Mean length [{level}]", f"IQM [{level}]", "Std", "Min",
+              f"CFR [{level}]", "Collision", "Off-road", "Stalled", f"Progress m [{level}]",
+              f"Reward/step [{level}]", *(f"r in {label}" for label in bin_labels(edges)), "Distinct/start"]
+    rows = [[s.policy, s.start_set, str(s.episodes), with_interval(s, "mean_length"), with_interval(s, "iqm_length"),
+             f"{s.std_length:.2f}", str(s.min_length), with_interval(s, "cfr", percent=True),
+             _percent(s.collision_share), _percent(s.offroad_share), _percent(s.stalled_share),
+             with_interval(s, "progress_m", digits=1), with_interval(s, "reward_per_step", digits=3),
+             *(_percent(share) for share in s.reward_shares), f"{s.distinct_per_start:.2f}"] for s in summaries]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
     return "\n".join(lines)
@@ -84,10 +129,10 @@ def greedy_variety_note(summaries: Sequence[SetSummary], trials: int) -> str:
 
 
 def markdown_report(summaries: Sequence[SetSummary], edges: Sequence[float], facts: dict[str, str],
-                    trials: int) -> str:
+                    trials: int, confidence: float = 0.95) -> str:
     lines = ["# Evaluation", ""]
     lines += [f"- {name}: {value}" for name, value in facts.items()]
-    lines += ["", markdown_table(summaries, edges), ""]
+    lines += ["", markdown_table(summaries, edges, confidence), ""]
     note = greedy_variety_note(summaries, trials)
     if note:
         lines += [note, ""]
@@ -97,15 +142,27 @@ def markdown_report(summaries: Sequence[SetSummary], edges: Sequence[float], fac
 
 
 def write_report(out_dir: Path, episodes: Sequence[EvaluationEpisode], summaries: Sequence[SetSummary],
-                 edges: Sequence[float], facts: dict[str, str], trials: int, config_toml: str) -> list[Path]:
-    """Writes the four files (the config the evaluation ran with last); returns their paths."""
+                 edges: Sequence[float], facts: dict[str, str], trials: int, config_toml: str,
+                 confidence: float = 0.95) -> list[Path]:
+    """Writes the five files (the config the evaluation ran with last); returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / EPISODES_CSV, out_dir / SUMMARY_CSV, out_dir / SUMMARY_MD, out_dir / CONFIG_TOML]
+    paths = [out_dir / EPISODES_CSV, out_dir / SUMMARY_CSV, out_dir / SUMMARY_MD, out_dir / FACTS_JSON,
+             out_dir / CONFIG_TOML]
     write_episodes_csv(paths[0], episodes, edges)
     write_summary_csv(paths[1], summaries, edges)
-    paths[2].write_text(markdown_report(summaries, edges, facts, trials))
-    paths[3].write_text(config_toml)
+    paths[2].write_text(markdown_report(summaries, edges, facts, trials, confidence))
+    paths[3].write_text(json.dumps(facts, indent=1) + "\n")
+    paths[4].write_text(config_toml)
     return paths
+
+
+def read_facts(out_dir: Path) -> dict[str, str]:
+    """The facts an evaluation wrote, or {} for one written before they were kept."""
+    try:
+        facts = json.loads((out_dir / FACTS_JSON).read_text())
+    except (OSError, ValueError):
+        return {}
+    return facts if isinstance(facts, dict) else {}
 
 
 def _percent(share: float) -> str:

@@ -240,11 +240,15 @@ class EvaluationConfig:
     seed: int = 0  # root of every trial's seed (env reset, random baseline, privileged driver's turns)
     progress_period_s: float = 1.0  # how often the progress line on stderr is refreshed
     live_timeout_s: float = 30.0  # --live: how long to wait for the learner's latest weights
+    # Intervals of the tables: stratified bootstrap over runs and trials (actor/evaluation_intervals.py).
+    bootstrap_replicates: int = 2000
+    confidence: float = 0.95
 
     def validate(self) -> None:
         _positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
-                  "progress_period_s", "live_timeout_s")
+                  "progress_period_s", "live_timeout_s", "bootstrap_replicates")
         _check(self.seed >= 0, "seed", "must be >= 0")
+        _check(0.0 < self.confidence < 1.0, "confidence", "must lie in (0, 1)")
         bins = self.reward_bins
         _check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
 

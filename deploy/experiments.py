@@ -5,7 +5,9 @@ subprocess) under <runs-dir>/<strategy>-b<capacity>-s<seed>/, then through
 `evaluate` (its greedy policy and the random baseline, train and test starts,
 into <run>/evaluation/). Runs go one after the other, or --parallel K at once.
 At the end, <runs-dir>/results/ receives the tables of the paper's tables 3-6
-(results.md, results.csv) and the figures of replay/log/figures.py.
+with bootstrap confidence intervals over the seeds (results.md, results.csv:
+pooled rows and one row per seed, with every run's updates), the figures of
+replay/log/figures.py and the performance profiles of actor/evaluation_profile.py.
 
 Stopping and running the same command again resumes: a run with an evaluation
 and a checkpoint at the step budget is done; a run whose checkpoint is short of
@@ -35,10 +37,12 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from actor.evaluate import CHECKPOINTS_DIR, OUTPUT_DIR as EVALUATION_DIR
+from actor.evaluate import CHECKPOINTS_DIR, OUTPUT_DIR as EVALUATION_DIR, bootstrap_of
 from actor.evaluation_comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, EvaluatedRun, comparison_markdown, comparison_rows,
                                          write_comparison_csv)
-from actor.evaluation_report import SUMMARY_CSV, bin_labels
+from actor.evaluation_intervals import Bootstrap
+from actor.evaluation_profile import plot_performance_profiles
+from actor.evaluation_report import SUMMARY_CSV, bin_labels, read_facts
 from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args
 from learner.checkpoint import LATEST, CheckpointError, load_checkpoint
 from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences,
@@ -58,7 +62,8 @@ GRID_KEYS = {"run.name": "the run names", "run.seed": "--seeds", "run.runs_dir":
 FIGURES = {"reward_curves.png": "mean return of the last 100 training episodes",
            "epsilon.png": "epsilon against env steps (epsilon-based strategies)",
            "loss_differences.png": "|Δloss| of consecutive updates, smoothed, against updates",
-           "reward_bins.png": "share of step rewards per bin, greedy policy, test starts"}
+           "reward_bins.png": "share of step rewards per bin, greedy policy, test starts",
+           "performance_profile.png": "share of greedy episodes longer than x steps, with bootstrap bands"}
 
 POLL_S = 0.5
 TRAIN, RESUME, EVALUATE, DONE = "train", "resume", "evaluate", "done"
@@ -98,6 +103,17 @@ def grid(strategies: list[str], capacities: list[int], seeds: list[int]) -> list
 
 
 # --- what a run still needs -----------------------------------------------------------------------------------
+
+def run_updates(run_dir: Path) -> int | None:
+    """The updates of the weights a run's evaluation used: from its facts.json, else from its checkpoint."""
+    facts = read_facts(run_dir / EVALUATION_DIR)
+    if str(facts.get("updates", "")).isdigit():
+        return int(facts["updates"])
+    try:
+        return int(load_checkpoint(run_dir / CHECKPOINTS_DIR / LATEST, ("learner",))["learner"]["updates"])
+    except (CheckpointError, KeyError, TypeError, ValueError):
+        return None
+
 
 def checkpoint_env_steps(path: Path) -> int:
     """The learner's clock in a checkpoint: the env steps of the whole system when it was saved."""
@@ -161,14 +177,24 @@ def check_config_flags(specs: list[RunSpec], options: Options) -> None:
         key = token.removeprefix("--").split("=")[0]
         if key in GRID_KEYS:
             raise ExperimentError(f"--{key} is set by the grid for each run ({GRID_KEYS[key]}); do not pass it")
-    parser = argparse.ArgumentParser(prog="deploy/experiments.py", add_help=False,
-                                     usage="deploy/experiments.py [options] [config flags of deploy/stack.py --help]")
-    add_config_arguments(parser)
+    parser = config_parser()
     for spec in specs:
         try:
             config_from_args(parser.parse_args([*options.extra, *grid_flags(spec, options)]))
         except ConfigError as error:
             raise ExperimentError(f"config error: {error}") from None
+
+
+def config_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="deploy/experiments.py", add_help=False,
+                                     usage="deploy/experiments.py [options] [config flags of deploy/stack.py --help]")
+    add_config_arguments(parser)
+    return parser
+
+
+def report_bootstrap(options: Options) -> Bootstrap:
+    """The intervals' settings (evaluation.bootstrap_replicates, .confidence, .seed) of the runs' config flags."""
+    return bootstrap_of(config_from_args(config_parser().parse_args(list(options.extra))))
 
 
 # --- child processes -------------------------------------------------------------------------------------------
@@ -301,11 +327,18 @@ class RunJob:
 
 
 def evaluation_headline(summary_csv: Path) -> str:
-    """'test: mean length 812.4, CFR 35.0%' from the greedy rows of an evaluate summary.csv."""
+    """'test: mean length 812.4 [701.0, 905.2], CFR 35.0% [28.3, 41.7]' from the greedy rows of an evaluate
+    summary.csv (the intervals over its trials, when the file has them)."""
     with summary_csv.open(newline="") as handle:
         rows = [row for row in csv.DictReader(handle) if row["policy"] == "greedy"]
-    return "; ".join(f"{row['start_set']}: mean length {float(row['mean_length']):,.1f}, "
-                     f"CFR {100 * float(row['cfr']):.1f}%" for row in rows)
+
+    def interval(row: dict, statistic: str, scale: float) -> str:
+        if not row.get(f"{statistic}_low"):
+            return ""
+        return f" [{scale * float(row[statistic + '_low']):,.1f}, {scale * float(row[statistic + '_high']):,.1f}]"
+
+    return "; ".join(f"{row['start_set']}: mean length {float(row['mean_length']):,.1f}{interval(row, 'mean_length', 1)}, "
+                     f"CFR {100 * float(row['cfr']):.1f}%{interval(row, 'cfr', 100)}" for row in rows)
 
 
 # --- the grid ----------------------------------------------------------------------------------------------------------
@@ -369,18 +402,20 @@ def write_results(specs: list[RunSpec], options: Options, facts: dict[str, str])
     results = options.runs_dir / RESULTS_DIR
     results.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    evaluated = [EvaluatedRun(spec.strategy, spec.capacity, options.run_dir(spec) / EVALUATION_DIR)
+    evaluated = [EvaluatedRun(spec.strategy, spec.capacity, options.run_dir(spec) / EVALUATION_DIR, spec.seed,
+                              run_updates(options.run_dir(spec)))
                  for spec in specs if (options.run_dir(spec) / EVALUATION_DIR / SUMMARY_CSV).is_file()]
     rows: list[ComparisonRow] = []
     edges: list[float] = []
+    bootstrap = report_bootstrap(options)
     if evaluated:
-        rows, edges = comparison_rows(evaluated)
+        rows, edges = comparison_rows(evaluated, bootstrap)
         write_comparison_csv(rows, edges, results / RESULTS_CSV)
         written.append(results / RESULTS_CSV)
     curves = read_curves(specs, options)
-    written += write_figures(curves, rows, edges, results)
+    written += write_figures(curves, rows, edges, results, bootstrap)
     figures = [path.name for path in written if path.suffix == ".png"]
-    (results / RESULTS_MD).write_text(results_markdown(rows, edges, facts, figures))
+    (results / RESULTS_MD).write_text(results_markdown(rows, edges, facts, figures, bootstrap))
     return [results / RESULTS_MD, *written]
 
 
@@ -397,8 +432,8 @@ def read_curves(specs: list[RunSpec], options: Options) -> list[RunCurves]:
     return curves
 
 
-def write_figures(curves: list[RunCurves], rows: list[ComparisonRow], edges: list[float], results: Path
-                  ) -> list[Path]:
+def write_figures(curves: list[RunCurves], rows: list[ComparisonRow], edges: list[float], results: Path,
+                  bootstrap: Bootstrap | None = None) -> list[Path]:
     paths = {name: results / name for name in FIGURES}
     written = []
     if curves:
@@ -413,6 +448,9 @@ def write_figures(curves: list[RunCurves], rows: list[ComparisonRow], edges: lis
     if panels:
         plot_reward_bins(panels, bin_labels(edges), paths["reward_bins.png"], FIGURES["reward_bins.png"])
         written.append(paths["reward_bins.png"])
+    if rows:
+        plot_performance_profiles(rows, paths["performance_profile.png"], bootstrap)
+        written.append(paths["performance_profile.png"])
     return written
 
 
@@ -420,18 +458,26 @@ def reward_bin_panels(rows: list[ComparisonRow]) -> dict[str, list[tuple[str, st
     """Test-set rows by capacity: (name, strategy, shares) per bar, the random policy last."""
     panels: dict[str, list[tuple[str, str, tuple[float, ...]]]] = {}
     for row in rows:
-        if row.start_set == "test":
+        if row.start_set == "test" and row.pooled:
             panels.setdefault(f"replay capacity {row.capacity:,d}", []).append(
                 (STRATEGY_NAMES[row.strategy], row.strategy, row.summary.reward_shares))
     return panels
 
 
-def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[str, str], figures: list[str]) -> str:
+def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[str, str], figures: list[str],
+                     bootstrap: Bootstrap | None = None) -> str:
+    bootstrap = bootstrap or Bootstrap()
+    level = f"{100 * bootstrap.confidence:g}%"
     lines = ["# Exploration strategies compared", ""]
     lines += [f"- {name}: {value}" for name, value in facts.items()]
     lines += ["", "Greedy policy, episodes pooled over the seeds of each strategy; the random policy "
-                  f"(uniform actions) is the same in every table. ({RANDOM!r} in results.csv.)", ""]
-    lines += [comparison_markdown(rows, edges) if rows else "No run has been evaluated yet.", ""]
+                  f"(uniform actions) is the same in every table. ({RANDOM!r} in results.csv.) "
+                  f"Brackets hold {level} percentile intervals of {bootstrap.replicates} bootstrap replicates: "
+                  "the runs (seeds) of a row drawn again whole, then each run's trials within each start "
+                  "(actor/evaluation_intervals.py). With one seed an interval shows only the spread of the "
+                  "trials; with a few seeds, read it as a guide. Updates lists every run's learner updates, "
+                  "in seed order. results.csv has the pooled rows (seed \"all\") and one row per seed.", ""]
+    lines += [comparison_markdown(rows, edges, bootstrap.confidence) if rows else "No run has been evaluated yet.", ""]
     lines += [f"![{FIGURES[name]}]({name})" for name in figures]
     return "\n".join(lines) + "\n"
 

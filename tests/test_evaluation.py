@@ -1,6 +1,7 @@
 """The evaluate command: statistics by hand, lockstep batching against one env at a time, end to end."""
 
 import csv
+import json
 import math
 import socket
 
@@ -11,10 +12,10 @@ import torch
 from actor.evaluate import (EvaluationError, Progress, build_parser, check_weights, checkpoint_config, live_source,
                             main, progress_line, run_jobs)
 from actor.evaluation_episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
-                                       evaluation_env_config, run_lockstep)
+                                       evaluation_env_config, progress_of, run_lockstep)
 from actor.evaluation_report import bin_labels, markdown_table
-from actor.evaluation_stats import (EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
-                                    summarise_all)
+from actor.evaluation_stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts,
+                                    summarise, summarise_all)
 from actor.sim import make_env
 from common.config import TransportConfig, load_config, to_dict
 from common.transport import Keys, open_session, serve
@@ -25,10 +26,11 @@ from learner.update import DoubleQLearner
 EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]
 
 
-def episode(length, end, episode_return, bins, start_index=0, digest="a", policy="greedy", start_set="test"):
+def episode(length, end, episode_return, bins, start_index=0, digest="a", policy="greedy", start_set="test",
+            progress_m=math.nan):
     return EvaluationEpisode(policy=policy, start_set=start_set, start_index=start_index, trial=0, seed=0,
                              length=length, end=end, episode_return=episode_return, reward_bin_counts=bins,
-                             actions_digest=digest)
+                             actions_digest=digest, progress_m=progress_m)
 
 
 # --- statistics ----------------------------------------------------------------------------------
@@ -48,21 +50,33 @@ def test_a_reward_outside_the_bins_is_an_error(reward):
 
 def test_summary_of_hand_made_episodes():
     episodes = [
-        episode(2, "collision", 1.0, (1, 0, 0, 1), start_index=0, digest="a"),
-        episode(4, "offroad", 2.0, (0, 2, 2, 0), start_index=0, digest="a"),
-        episode(6, "cap", 3.0, (0, 0, 3, 3), start_index=1, digest="b"),
-        episode(8, "cap", 4.0, (2, 2, 2, 2), start_index=1, digest="c"),
+        episode(2, "collision", 1.0, (1, 0, 0, 1), start_index=0, digest="a", progress_m=2.0),
+        episode(4, "offroad", 2.0, (0, 2, 2, 0), start_index=0, digest="a", progress_m=3.5),
+        episode(6, "stalled", 3.0, (0, 0, 3, 3), start_index=1, digest="b", progress_m=0.5),
+        episode(8, "cap", 4.0, (2, 2, 2, 2), start_index=1, digest="c", progress_m=8.0),
     ]
     row = summarise(episodes)
-    assert (row.policy, row.start_set, row.episodes) == ("greedy", "test", 4)
+    assert (row.policy, row.start_set, row.runs, row.episodes) == ("greedy", "test", 1, 4)
     assert row.mean_length == 5.0
+    assert row.iqm_length == 5.0  # the middle two of 2, 4, 6, 8
     assert row.std_length == pytest.approx(math.sqrt((9 + 1 + 1 + 9) / 4))  # population std
     assert (row.min_length, row.max_length) == (2, 8)
-    assert row.cfr == 0.5  # the two that reached the cap
-    assert (row.collision_share, row.offroad_share) == (0.25, 0.25)
+    assert row.cfr == 0.25  # only the one that reached the cap: stalling is no success
+    assert (row.collision_share, row.offroad_share, row.stalled_share) == (0.25, 0.25, 0.25)
+    assert row.mean_progress_m == pytest.approx(14.0 / 4)
     assert row.mean_reward_per_step == pytest.approx(10.0 / 20)  # pooled over the 20 steps
     assert row.reward_shares == pytest.approx((3 / 20, 4 / 20, 7 / 20, 6 / 20))
     assert row.distinct_per_start == 1.5  # start 0: one trajectory, start 1: two
+    cfr = row.intervals["cfr"]  # per start one of two trials resampled twice: CFR 0 .. 1/2
+    assert (cfr.low, cfr.high) == (0.0, 0.5)
+    length = row.intervals["mean_length"]
+    assert 2.0 <= length.low < 5.0 < length.high <= 8.0
+
+
+def test_without_progress_the_row_says_so():
+    row = summarise([episode(3, "cap", 3.0, (0, 0, 0, 3)), episode(5, "cap", 5.0, (0, 0, 0, 5))])
+    assert math.isnan(row.mean_progress_m) and math.isnan(row.intervals["progress_m"].low)
+    assert "| – |" in markdown_table([row], EDGES)
 
 
 def test_summaries_group_by_policy_and_set_and_refuse_mixed_or_empty_groups():
@@ -76,16 +90,34 @@ def test_summaries_group_by_policy_and_set_and_refuse_mixed_or_empty_groups():
     with pytest.raises(ValueError, match="empty"):
         summarise([])
     table = markdown_table(rows, EDGES).splitlines()
-    assert len(table) == 4 and table[2].startswith("| greedy | train | 2 | 4.00 | 1.00 | 3 | 100.00% |")
+    assert len(table) == 4
+    assert table[0].startswith("| Policy | Set | Episodes | Mean length [95% CI] | IQM [95% CI] | Std | Min | "
+                               "CFR [95% CI] | Collision | Off-road | Stalled | Progress m [95% CI] |")
+    # lengths 3 and 5, both at the cap: a replicate draws 2 of the 2, so the mean is 3, 4 or 5
+    assert table[2].startswith("| greedy | train | 2 | 4.00 [3.00, 5.00] | 4.00 [3.00, 5.00] | 1.00 | 3 | "
+                               "100.00% [100.00, 100.00] | 0.00% | 0.00% | 0.00% |")
 
 
 def test_end_reasons():
+    # the simulator's own reason, when it gives one
+    assert end_reason({"end": "stalled", "collision": False, "offroad": False}, True, 3, 30) == "stalled"
+    assert end_reason({"end": "offroad", "collision": False, "offroad": True}, True, 3, 30) == "offroad"
+    assert end_reason({"end": "cap", "collision": False, "offroad": False}, False, 30, 30) == "cap"
+    assert end_reason({"end": None, "collision": False, "offroad": False}, False, 29, 30) is None
+    # a simulator without info["end"]: its flags, a collision winning
     assert end_reason({"collision": True, "offroad": True}, True, 3, 30) == "collision"
     assert end_reason({"collision": False, "offroad": True}, True, 3, 30) == "offroad"
     assert end_reason({"collision": False, "offroad": False}, False, 29, 30) is None
     assert end_reason({"collision": False, "offroad": False}, False, 30, 30) == "cap"
     with pytest.raises(ValueError, match="does not know"):
         end_reason({"collision": False, "offroad": False}, True, 3, 30)
+    with pytest.raises(ValueError, match="does not know"):
+        end_reason({"end": "bored"}, True, 3, 30)
+
+
+def test_progress_is_the_last_steps_and_nan_when_not_reported():
+    assert progress_of({"progress_m": 12.5}) == 12.5
+    assert math.isnan(progress_of({"collision": False}))
 
 
 def test_progress_line():
@@ -197,9 +229,19 @@ def test_evaluate_a_checkpoint_end_to_end(tmp_path, capsys):
         ("greedy", "train"), ("greedy", "test"), ("random", "train"), ("random", "test")}
     assert all(1 <= int(row["length"]) <= 30 for row in episodes)
     assert all(sum(int(row[key]) for key in row if key.startswith("steps_")) == int(row["length"]) for row in episodes)
+    assert all(row["end"] in END_REASONS and (row["end"] == "cap") == (row["collision_free"] == "True")
+               for row in episodes)
+    progress = [float(row["progress_m"]) for row in episodes]  # NaN from a simulator that does not report it
+    assert all(math.isnan(value) for value in progress) or all(value >= 0 for value in progress)
     summary = read_csv(out / "summary.csv")
     assert [(row["policy"], row["start_set"], row["episodes"]) for row in summary] == [
         ("greedy", "train", "10"), ("greedy", "test", "10"), ("random", "train", "10"), ("random", "test", "10")]
+    for row in summary:
+        for statistic, value in (("mean_length", "mean_length"), ("cfr", "cfr"),
+                                 ("reward_per_step", "mean_reward_per_step"), ("iqm_length", "iqm_length")):
+            low, point, high = (float(row[key]) for key in (f"{statistic}_low", value, f"{statistic}_high"))
+            assert low - 1e-9 <= point <= high + 1e-9  # equal up to rounding where every draw agrees
+    assert json.loads((out / "facts.json").read_text())["updates"] == "0"
     markdown = (out / "summary.md").read_text()
     assert sum(line.startswith(("| greedy |", "| random |")) for line in markdown.splitlines()) == 4
     assert "max_steps = 30" in (out / "config.toml").read_text()

@@ -6,6 +6,7 @@ evaluate's own report writer, checkpoints with the learner's checkpoint writer.
 
 from __future__ import annotations
 
+import csv
 import importlib.util
 import math
 import sys
@@ -16,6 +17,8 @@ import pytest
 
 from actor.evaluation_comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                          read_episodes_csv, write_comparison_csv)
+from actor.evaluation_intervals import Bootstrap
+from actor.evaluation_profile import plot_performance_profiles
 from actor.evaluation_report import EPISODES_CSV, write_report
 from actor.evaluation_stats import EvaluationEpisode, summarise_all
 from common.config import load_config
@@ -135,31 +138,48 @@ def test_figures_refuse_what_they_cannot_draw(tmp_path):
 
 # --- evaluations pooled into the paper's tables --------------------------------------------------------------
 
-def episode(policy: str, start_set: str, length: int, end: str, bins: tuple[int, ...], start_index: int = 0
-            ) -> EvaluationEpisode:
+def episode(policy: str, start_set: str, length: int, end: str, bins: tuple[int, ...], start_index: int = 0,
+            progress_m: float = math.nan) -> EvaluationEpisode:
     return EvaluationEpisode(policy=policy, start_set=start_set, start_index=start_index, trial=0, seed=7,
                              length=length, end=end, episode_return=0.5 * length, reward_bin_counts=bins,
-                             actions_digest=f"d{length}")
+                             actions_digest=f"d{length}", progress_m=progress_m)
 
 
-def write_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4) -> Path:
-    """Greedy episodes of the given lengths on both sets (a length of 100 reaches the cap), one random each."""
+def write_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4, updates: int | None = None,
+                     progress: bool = False) -> Path:
+    """Greedy episodes of the given lengths on both sets (a length of 100 reaches the cap, 50 stalls), one
+    random each; with progress, each greedy episode drove 0.9 m per step."""
     episodes = []
     for start_set in ("train", "test"):
         for number, length in enumerate(greedy_lengths):
-            end = "cap" if length == 100 else "collision"
-            episodes.append(episode("greedy", start_set, length, end, (0, 0, 0, length), number))
+            end = {100: "cap", 50: "stalled"}.get(length, "collision")
+            episodes.append(episode("greedy", start_set, length, end, (0, 0, 0, length), number,
+                                    0.9 * length if progress else math.nan))
         episodes.append(episode("random", start_set, random_length, "offroad", (random_length, 0, 0, 0)))
-    write_report(directory, episodes, summarise_all(episodes), EDGES, {}, 1, "")
+    facts = {} if updates is None else {"updates": str(updates)}
+    write_report(directory, episodes, summarise_all(episodes), EDGES, facts, 1, "")
     return directory
 
 
 def test_episodes_csv_reads_back_as_written(tmp_path):
-    write_evaluation(tmp_path, [100, 10])
+    write_evaluation(tmp_path, [100, 50], progress=True)
     episodes, edges = read_episodes_csv(tmp_path / EPISODES_CSV)
     assert edges == EDGES
-    assert episodes[0] == episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0)
+    assert episodes[0] == episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0, 90.0)
+    assert (episodes[1].end, episodes[1].progress_m) == ("stalled", 45.0)
+    assert math.isnan(episodes[2].progress_m)  # the random episodes did not report progress
     assert [e.policy for e in episodes] == ["greedy", "greedy", "random"] * 2
+
+
+def test_an_episodes_csv_from_before_progress_reads_back_without_it(tmp_path):
+    write_evaluation(tmp_path, [100, 10])
+    lines = (tmp_path / EPISODES_CSV).read_text().splitlines()
+    column = lines[0].split(",").index("progress_m")
+    old = "\n".join(",".join(cell for number, cell in enumerate(line.split(",")) if number != column)
+                    for line in lines)
+    (tmp_path / EPISODES_CSV).write_text(old + "\n")
+    episodes, _ = read_episodes_csv(tmp_path / EPISODES_CSV)
+    assert len(episodes) == 6 and all(math.isnan(e.progress_m) for e in episodes)
 
 
 def test_a_file_that_is_not_an_episodes_csv_is_a_comparison_error(tmp_path):
@@ -171,30 +191,75 @@ def test_a_file_that_is_not_an_episodes_csv_is_a_comparison_error(tmp_path):
 
 
 def test_seeds_are_pooled_and_the_random_row_comes_once_per_table(tmp_path):
-    runs = [EvaluatedRun("softmax", 1000, write_evaluation(tmp_path / "softmax-s0", [100, 100])),
-            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s0", [100, 20])),
-            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s1", [100, 40], random_length=6)),
-            EvaluatedRun("bmc", 2000, write_evaluation(tmp_path / "bmc-b2000", [30, 30]))]
-    rows, edges = comparison_rows(runs)
+    runs = [EvaluatedRun("softmax", 1000, write_evaluation(tmp_path / "softmax-s0", [100, 100]), 0, 3500),
+            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s1", [100, 40], random_length=6), 1, 3580),
+            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s0", [100, 20]), 0, 3600),
+            EvaluatedRun("bmc", 2000, write_evaluation(tmp_path / "bmc-b2000", [30, 30]), 0, None)]
+    rows, edges = comparison_rows(runs, Bootstrap(replicates=4000))
     assert edges == EDGES
-    assert [(r.start_set, r.capacity, r.strategy, r.runs) for r in rows] == [
-        ("train", 1000, "bmc", 2), ("train", 1000, "softmax", 1), ("train", 1000, "random", 1),
-        ("train", 2000, "bmc", 1), ("train", 2000, "random", 1),
-        ("test", 1000, "bmc", 2), ("test", 1000, "softmax", 1), ("test", 1000, "random", 1),
-        ("test", 2000, "bmc", 1), ("test", 2000, "random", 1)]
-    bmc = rows[0].summary  # lengths 100, 20, 100, 40 of two seeds
-    assert (bmc.episodes, bmc.mean_length, bmc.min_length, bmc.cfr) == (4, 65.0, 20, 0.5)
-    assert bmc.std_length == pytest.approx(math.sqrt((35 ** 2 + 45 ** 2 + 35 ** 2 + 25 ** 2) / 4))
-    assert bmc.reward_shares == (0.0, 0.0, 0.0, 1.0)
-    assert rows[2].summary.mean_length == 4  # the first run's random episodes, not the second's (6)
+    layout = [("bmc", None, 2), ("bmc", 0, 1), ("bmc", 1, 1), ("softmax", None, 1), ("softmax", 0, 1),
+              ("random", None, 1)]
+    small = [("bmc", None, 1), ("bmc", 0, 1), ("random", None, 1)]
+    assert [(r.start_set, r.capacity, r.strategy, r.seed, r.runs) for r in rows] == [
+        (start_set, capacity, *row) for start_set in ("train", "test")
+        for capacity, table in ((1000, layout), (2000, small)) for row in table]
+    bmc = rows[0]  # seeds 0 and 1: lengths 100, 20 and 100, 40 from starts 0 and 1
+    assert (bmc.seeds, bmc.updates) == ((0, 1), (3600, 3580))  # in seed order
+    s = bmc.summary
+    assert (s.runs, s.episodes, s.mean_length, s.min_length, s.cfr, s.iqm_length) == (2, 4, 65.0, 20, 0.5, 70.0)
+    assert s.std_length == pytest.approx(math.sqrt((35 ** 2 + 45 ** 2 + 35 ** 2 + 25 ** 2) / 4))
+    assert s.reward_shares == (0.0, 0.0, 0.0, 1.0)
+    # One trial per start, so a replicate only redraws the two runs: both seed 0 (mean 60), one of each (65)
+    # or both seed 1 (70); each run reaches the cap once in two, so the CFR never moves.
+    assert (s.intervals["mean_length"].low, s.intervals["mean_length"].high) == (60.0, 70.0)
+    assert (s.intervals["cfr"].low, s.intervals["cfr"].high) == (0.5, 0.5)
+    assert (rows[1].summary.mean_length, rows[2].summary.mean_length) == (60.0, 70.0)  # each seed alone
+    assert rows[5].summary.mean_length == 4  # the first run's random episodes, not the second's (6)
 
     markdown = comparison_markdown(rows, edges)
     assert markdown.count("### ") == 4
-    assert "| BMC | 2 | 4 | 65.00 | 35.71 | 20 | 50.00% | 0.500 | 100.00% |" in markdown
-    assert "| Random policy | 1 | 1 | 4.00 | 0.00 | 4 | 0.00% | 0.500 | 0.00% |" in markdown
+    assert ("| BMC | 0, 1 | 3,600, 3,580 | 4 | 65.00 [60.00, 70.00] | 70.00 [60.00, 70.00] | 35.71 | 20 | "
+            "50.00% [50.00, 50.00] | 0.00% | – | 0.500 [0.500, 0.500] | 100.00% |") in markdown
+    assert "| Random policy | – | – | 1 | 4.00 [4.00, 4.00] |" in markdown
+    assert "| BMC | 0 | 3,600 | 2 | 60.00 [60.00, 60.00] |" in markdown  # the per-run table
+    assert markdown.count("Each run on its own") == 2  # the capacity-1000 tables; 2000 has one run a row
+    assert "| BMC | 0 | ? | 2 | 30.00" in markdown  # a run whose updates are unknown
+
     write_comparison_csv(rows, edges, tmp_path / "results.csv")
-    lines = (tmp_path / "results.csv").read_text().splitlines()
-    assert len(lines) == 1 + len(rows) and lines[0].endswith("share_0.75_1")
+    with (tmp_path / "results.csv").open() as handle:
+        table = list(csv.DictReader(handle))
+    assert len(table) == len(rows) and list(table[0])[-1] == "share_0.75_1"
+    first = table[0]
+    assert (first["strategy"], first["seed"], first["seeds"], first["updates"], first["runs"]) == (
+        "bmc", "all", "0;1", "3600;3580", "2")
+    assert (float(first["mean_length_low"]), float(first["mean_length_high"])) == (60.0, 70.0)
+    assert [(row["seed"], row["updates"]) for row in table[1:3]] == [("0", "3600"), ("1", "3580")]
+
+
+def test_a_runs_headline_gives_its_intervals(tmp_path):
+    write_evaluation(tmp_path, [100, 100])
+    assert experiments.evaluation_headline(tmp_path / "summary.csv") == (
+        "train: mean length 100.0 [100.0, 100.0], CFR 100.0% [100.0, 100.0]; "
+        "test: mean length 100.0 [100.0, 100.0], CFR 100.0% [100.0, 100.0]")
+
+
+def test_progress_and_stalls_reach_the_tables(tmp_path):
+    runs = [EvaluatedRun("vdbe", 1000, write_evaluation(tmp_path / "a", [100, 50], progress=True), 0, 10)]
+    rows, edges = comparison_rows(runs, Bootstrap(replicates=200))
+    s = rows[0].summary
+    assert (s.stalled_share, s.cfr, s.mean_progress_m) == (0.5, 0.5, pytest.approx(67.5))
+    assert "| VDBE | 0 | 10 | 2 | 75.00" in comparison_markdown(rows, edges)
+    assert "| 50.00% | 67.5 |" in comparison_markdown(rows, edges)
+
+
+def test_the_performance_profile_is_drawn_from_the_pooled_rows(tmp_path):
+    runs = [EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "s0", [100, 20]), 0, 1),
+            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "s1", [100, 40]), 1, 1)]
+    rows, _ = comparison_rows(runs, Bootstrap(replicates=200))
+    plot_performance_profiles(rows, tmp_path / "profile.png", Bootstrap(replicates=200))
+    assert_png(tmp_path / "profile.png")
+    with pytest.raises(ValueError, match="no pooled rows"):
+        plot_performance_profiles([row for row in rows if not row.pooled], tmp_path / "none.png")
 
 
 def test_evaluations_with_other_reward_bins_are_not_pooled(tmp_path):
@@ -214,14 +279,21 @@ def options(tmp_path: Path, steps: int = 1000, extra: tuple[str, ...] = ()):
     return experiments.Options(tmp_path, steps, trials=3, actors=None, extra=extra, progress_s=30.0)
 
 
-def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False) -> Path:
+def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False, updates: int | None = None
+             ) -> Path:
     """A run folder as the stack and evaluate leave it: a checkpoint with this clock, an evaluation."""
     run_dir.mkdir(parents=True, exist_ok=True)
     if env_steps is not None:
-        save_checkpoint(run_dir / "checkpoints", {"clock": {"env_steps": env_steps}})
+        save_checkpoint(run_dir / "checkpoints", {"clock": {"env_steps": env_steps}, "learner": {"updates": 7}})
     if evaluated:
-        write_evaluation(run_dir / "evaluation", [100, 50])
+        write_evaluation(run_dir / "evaluation", [100, 50], updates=updates)
     return run_dir
+
+
+def test_a_runs_updates_come_from_its_evaluation_then_its_checkpoint(tmp_path):
+    assert experiments.run_updates(make_run(tmp_path / "a", 1000, evaluated=True, updates=250)) == 250
+    assert experiments.run_updates(make_run(tmp_path / "b", 1000, evaluated=True)) == 7  # an older evaluation
+    assert experiments.run_updates(make_run(tmp_path / "c")) is None
 
 
 @pytest.mark.parametrize("env_steps, evaluated, expected", [
@@ -286,15 +358,18 @@ def test_the_results_of_finished_runs_are_written(tmp_path):
     specs = experiments.grid(["bmc", "softmax"], [50], [0])
     opts = options(tmp_path)
     for spec, strategy in zip(specs, ("bmc", "softmax")):
-        run = make_run(tmp_path / spec.name, 1000, evaluated=True)
+        run = make_run(tmp_path / spec.name, 1000, evaluated=True, updates=120)
         write_log(run / "traffic.mcap", spec.name, strategy, 50,
                   [record(10, 5.0, 1.0), learner_report(50, 0.2), record(12, 6.0, 0.5), learner_report(100, 0.1)])
     paths = experiments.write_results(specs, opts, {"budget": "1,000"})
-    assert sorted(path.name for path in paths) == ["epsilon.png", "loss_differences.png", "results.csv",
-                                                  "results.md", "reward_bins.png", "reward_curves.png"]
+    assert sorted(path.name for path in paths) == ["epsilon.png", "loss_differences.png", "performance_profile.png",
+                                                  "results.csv", "results.md", "reward_bins.png",
+                                                  "reward_curves.png"]
     for path in paths:
         if path.suffix == ".png":
             assert_png(path)
     markdown = (tmp_path / "results" / "results.md").read_text()
-    assert markdown.count("| BMC | 1 | 2 |") == 2 and "- budget: 1,000" in markdown
-    assert len((tmp_path / "results" / "results.csv").read_text().splitlines()) == 1 + 2 * 3
+    assert markdown.count("| BMC | 0 | 120 | 2 |") == 2 and "- budget: 1,000" in markdown
+    assert "95% percentile intervals of 2000 bootstrap replicates" in markdown
+    # per set: bmc pooled and its seed, softmax pooled and its seed, random
+    assert len((tmp_path / "results" / "results.csv").read_text().splitlines()) == 1 + 2 * 5
