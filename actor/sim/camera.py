@@ -1,17 +1,18 @@
-"""The front camera: an ego-centred, heading-up colour view of the road ahead.
+"""The top-down camera: an ego-centred, heading-up colour view of the map around the car.
 
-The paper crops its camera image top and bottom to the road and resizes it to
-200 x 66 with OpenCV. Our camera looks straight down, so it has no sky or
-bonnet to cut: its window *is* the crop, ``camera_ahead_m`` ahead of the
-car's centre to ``camera_behind_m`` behind it and ``camera_width_m`` across.
-What lies outside the window (behind the car, down a side street beyond the
-next corner) is not seen.
+Not the paper's camera (that is ``front_camera.py``, the default): this one
+looks straight down, so one frame shows the car's exact offset from the
+centre-line, its heading and every obstacle in its window, ``topdown_ahead_m``
+ahead of the car's centre to ``topdown_behind_m`` behind it and
+``topdown_width_m`` across. The task is then close to fully observed; it stays
+as ``env.camera = "topdown"`` for comparison. Its window is already 200 x 66.
 
 A frame costs one ``cv2.warpAffine`` (bilinear) of the pre-drawn world
 (``world_image.py``) straight into the 200 x 66 output: the crop, the rotation
 and the resize of the paper's pipeline are all affine, so one warp does them
-together. The ego car, the only moving thing, is then painted as a fixed
-rectangle, since it always sits at the same place of a heading-up view.
+together. The ego car is then painted as a fixed rectangle, since it always sits at
+the same place of a heading-up view, and traffic vehicles as rectangles
+mapped through the inverse of the same warp.
 (Warping into a taller image and averaging rows would alias thin kerbs a
 little less at about twice the cost; at 0.5 m per output row the kerb and
 pavement bands stay visible without it.)
@@ -25,36 +26,51 @@ import cv2
 import numpy as np
 
 from actor.sim import layout
-from actor.sim.world_image import EGO_CAR, GRASS, WorldImage
+from actor.sim.geometry import rectangle_corners
+from actor.sim.world_image import EGO_CAR, GRASS, TRAFFIC_CAR, WorldImage
 
 FRAME_HEIGHT = 66
 FRAME_WIDTH = 200
 FRAME_SHAPE = (FRAME_HEIGHT, FRAME_WIDTH, 3)
 
 
-class FrontCamera:
+class TopDownCamera:
     def __init__(self, world: WorldImage, ahead_m: float, behind_m: float, width_m: float) -> None:
         self.world = world
         self.ahead_m, self.behind_m, self.width_m = ahead_m, behind_m, width_m
         self.ego_rows, self.ego_columns = self.ego_pixels(FRAME_WIDTH, FRAME_HEIGHT)
 
-    def frame(self, x: float, y: float, heading: float) -> np.ndarray:
-        """The observation at a pose: uint8 RGB, shape (66, 200, 3), a new array each call."""
-        return self.view(x, y, heading, FRAME_WIDTH, FRAME_HEIGHT)
+    def frame(self, x: float, y: float, heading: float, movers: np.ndarray | None = None) -> np.ndarray:
+        """The observation at a pose: uint8 RGB, shape (66, 200, 3), a new array each call.
 
-    def view(self, x: float, y: float, heading: float, columns: int, rows: int) -> np.ndarray:
+        ``movers``: traffic vehicles as rows (x, y, heading, length, width)."""
+        return self.view(x, y, heading, FRAME_WIDTH, FRAME_HEIGHT, movers)
+
+    def view(self, x: float, y: float, heading: float, columns: int, rows: int,
+             movers: np.ndarray | None = None) -> np.ndarray:
         """The camera window at a pose as ``rows`` x ``columns`` RGB pixels, ego car included."""
         matrix = self.matrix(x, y, heading, columns, rows)
         warped = cv2.warpAffine(self.world.pixels, matrix, (columns, rows),
                                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=(*GRASS, 0))
         frame = cv2.cvtColor(warped, cv2.COLOR_RGBA2RGB)
+        if movers is not None and len(movers):
+            self._draw_movers(frame, matrix, movers)
         if (columns, rows) == (FRAME_WIDTH, FRAME_HEIGHT):
             frame[self.ego_rows, self.ego_columns] = EGO_CAR
         else:
             ego_rows, ego_columns = self.ego_pixels(columns, rows)
             frame[ego_rows, ego_columns] = EGO_CAR
         return frame
+
+    def _draw_movers(self, frame: np.ndarray, matrix: np.ndarray, movers: np.ndarray) -> None:
+        """Traffic rectangles: world corners to world-image pixels, then back through the warp."""
+        to_output = cv2.invertAffineTransform(matrix)
+        for corners in rectangle_corners(movers):
+            image_points = self.world.to_pixels(corners)
+            output = image_points @ to_output[:, :2].T + to_output[:, 2]
+            cv2.fillConvexPoly(frame, np.round(output * 16).astype(np.int32), TRAFFIC_CAR,
+                               cv2.LINE_8, 4)
 
     def matrix(self, x: float, y: float, heading: float, columns: int, rows: int) -> np.ndarray:
         """The 2 x 3 affine map from output pixel (u, v) to world-image pixel (column, row).

@@ -2,24 +2,28 @@
 
 The car holds a constant speed and only steers (five discrete angles); it sees
 through a front camera; its reward is exp(-beta * d) with d its distance to
-the nearest street centre-line, 0 on a collision. An episode ends on a
-collision with a parked car, tree or house, or on leaving the road
-(d > ``offroad_distance``); it is cut at ``max_steps``.
+the nearest street centre-line, 0 on a collision. An episode ends
+(``terminated``) on a collision with a parked car, tree, house or traffic
+vehicle, on leaving the road (d > ``offroad_distance``) or on stalling (too
+little new road in a window, see ``progress.py``); it is cut (``truncated``)
+at ``max_steps``. ``info["end"]`` says which: "collision", "offroad",
+"stalled" or "cap".
 
-Why the step is our own: ``AbstractEnv.step`` runs highway-env's simulation
-loop, where every ``Vehicle.step`` searches all lanes for the closest one and
-``Road.step`` tests the car against every object with polygon code, in
-Python, at every simulation frame. That costs far more than the whole step
-budget (>= 1,000 steps/s with the camera). This class still is an
-``AbstractEnv`` (its config, ``ObservationType``/``ActionType`` plumbing, a real
-highway-env ``Road`` with a ``RoadNetwork`` and ``Obstacle`` objects, and a
-highway-env ``Vehicle`` for the ego car, so highway-env's own renderers and
-observations work on it), but ``step`` advances the ego car itself: the
-kinematic bicycle of ``kinematics.py``, integrated exactly in one go, then
-one vectorised distance and one vectorised collision query against arrays
-precomputed from the same geometry (``neighbourhood.py``). ``reset`` is ours
-too, so that the action and observation spaces are built once and keep their
-seeds across episodes.
+What is highway-env's and what is ours:
+
+* highway-env's: the ``Road`` and its ``RoadNetwork`` (a connected two-way lane
+  graph, ``road.py``), the ego car (a ``Vehicle`` whose own ``step`` is the
+  motion model, ``vehicles.py``), the traffic (``IDMVehicle`` subclasses,
+  ``traffic.py``), the ``ObservationType``/``ActionType`` plumbing, so
+  highway-env's observations (Kinematics, OccupancyGrid, TimeToCollision, its
+  grey-scale renderer) run on this env.
+* ours: the step loop. ``AbstractEnv.step`` would also test every vehicle
+  against every object with Python polygon code at every simulation frame,
+  far beyond the step budget; instead the ego car is tested against arrays of
+  the same geometry in one vectorised query (``geometry.py``), and its
+  distance to the centre-line comes from the same pass that measures its
+  progress. ``reset`` is ours too, so that the spaces are built once and keep
+  their seeds across episodes.
 """
 
 from __future__ import annotations
@@ -32,21 +36,25 @@ import numpy as np
 from gymnasium import spaces
 from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
-from highway_env.envs.common.action import ActionType
+from highway_env.envs.common.action import ActionType, action_factory
 from highway_env.envs.common.observation import ObservationType, observation_factory
-from highway_env.vehicle.kinematics import Vehicle
 
 from actor.sim import layout
-from actor.sim.camera import FRAME_SHAPE, FrontCamera
-from actor.sim.kinematics import bicycle_step
+from actor.sim.camera import FRAME_SHAPE, TopDownCamera
+from actor.sim.geometry import Obstacles
 from actor.sim.neighbourhood import Pose, neighbourhood
-from actor.sim.road import neighbourhood_road
+from actor.sim.progress import ProgressMeter
+from actor.sim.road import LaneLocator, neighbourhood_road
+from actor.sim.vehicles import EgoVehicle
 from actor.sim.world_image import world_image
 from common.config import ConfigError, EnvConfig
 
 STEERING_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)  # times the maximum angle; positive turns right
 START_SETS = ("train", "test")
 OPTION_KEYS = ("start_set", "start_index")
+END_REASONS = ("collision", "offroad", "stalled", "cap")
+CAMERA_OBSERVATIONS = {"front": "FrontCamera", "topdown": "TopDownCamera"}
+NO_CIRCLES = np.zeros((0, 3))
 
 
 class SteeringAction(ActionType):
@@ -61,7 +69,7 @@ class SteeringAction(ActionType):
 
     @property
     def vehicle_class(self) -> type:
-        return Vehicle
+        return EgoVehicle
 
     def steering(self, action: Any) -> float:
         """The steering angle in radians of an action index; a clear error for anything else."""
@@ -73,41 +81,52 @@ class SteeringAction(ActionType):
         return STEERING_LEVELS[int(action)] * self.max_steering
 
     def act(self, action: Any) -> None:
-        self.controlled_vehicle.action = {"steering": self.steering(action), "acceleration": 0.0}
+        self.controlled_vehicle.act({"steering": self.steering(action), "acceleration": 0.0})
 
 
-class FrontCameraObservation(ObservationType):
-    """The heading-up colour frame of ``camera.py``: uint8 RGB, shape (66, 200, 3)."""
+class CameraObservation(ObservationType):
+    """One of the env's cameras: uint8 RGB, shape (66, 200, 3)."""
+
+    def __init__(self, env: AbstractEnv, camera: str, **kwargs: Any) -> None:
+        super().__init__(env)
+        self.camera = camera
 
     def space(self) -> spaces.Box:
         return spaces.Box(low=0, high=255, shape=FRAME_SHAPE, dtype=np.uint8)
 
     def observe(self) -> np.ndarray:
-        return self.env.camera.frame(*self.env.pose)
+        return self.env.cameras(self.camera).frame(*self.env.pose, self.env.traffic_rectangles())
 
 
 class NeighbourhoodEnv(AbstractEnv):
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 5}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, env_config: EnvConfig | None = None, render_mode: str | None = None,
-                 observation: dict | None = None) -> None:
-        """``observation`` swaps the camera for a highway-env observation config (benchmarks)."""
+                 observation: dict | None = None, action: dict | None = None) -> None:
+        """``observation`` / ``action``: a highway-env observation or action config that
+        replaces the camera or the five steering levels (benchmarks, tools)."""
         self.env_config = env_config if env_config is not None else EnvConfig()
         self.env_config.validate()
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ConfigError(f"render_mode: must be one of {self.metadata['render_modes']} or None")
         self.hood = neighbourhood()
-        scale, half_width = self.env_config.render_scale, self.env_config.offroad_distance
-        self.camera = FrontCamera(world_image(scale, half_width), self.env_config.camera_ahead_m,
-                                  self.env_config.camera_behind_m, self.env_config.camera_width_m)
+        self._cameras: dict[str, Any] = {}
         self.pose = (0.0, 0.0, 0.0)
         self.start_set, self.start_index = START_SETS[0], 0
-        self.distance, self.collision = 0.0, False
-        self.metadata = {**self.metadata, "render_fps": self.env_config.policy_frequency}
-        frequency = self.env_config.policy_frequency
-        super().__init__({"observation": observation or {"type": "FrontCamera"},
-                          "policy_frequency": frequency, "simulation_frequency": frequency},
-                         render_mode)
+        self.distance, self.collision, self.stalled = 0.0, False, False
+        self.place_name, self.streets_visited = "", set()
+        self.traffic = None
+        config = self.env_config
+        self.metadata = {**self.metadata, "render_fps": config.policy_frequency}
+        self.progress = ProgressMeter(self.hood.centre_lines,
+                                      memory_steps=round(config.progress_memory_s * config.policy_frequency),
+                                      window_steps=round(config.stall_window_s * config.policy_frequency),
+                                      min_progress_m=config.stall_min_progress_m,
+                                      step_m=config.speed / config.policy_frequency)
+        super().__init__({"observation": observation or {"type": CAMERA_OBSERVATIONS[config.camera]},
+                          "action": action or {"type": "SteeringAction"},
+                          "policy_frequency": config.policy_frequency,
+                          "simulation_frequency": config.simulation_frequency}, render_mode)
 
     @classmethod
     def default_config(cls) -> dict:
@@ -117,14 +136,34 @@ class NeighbourhoodEnv(AbstractEnv):
         return config
 
     def define_spaces(self) -> None:
-        observation = self.config["observation"]
-        if observation["type"] == "FrontCamera":
-            self.observation_type = FrontCameraObservation(self)
+        observation, action = self.config["observation"], self.config["action"]
+        cameras = {name: key for key, name in CAMERA_OBSERVATIONS.items()}
+        if observation["type"] in cameras:
+            self.observation_type = CameraObservation(self, cameras[observation["type"]])
         else:
             self.observation_type = observation_factory(self, observation)
-        self.action_type = SteeringAction(self, math.radians(self.env_config.max_steer_deg))
+        if action["type"] == "SteeringAction":
+            self.action_type = SteeringAction(self, math.radians(self.env_config.max_steer_deg))
+        else:
+            self.action_type = action_factory(self, action)
         self.observation_space = self.observation_type.space()
         self.action_space = self.action_type.space()
+
+    def cameras(self, name: str):
+        """The env's camera called ``name`` ("front" or "topdown"), built on first use."""
+        if name not in self._cameras:
+            self._cameras[name] = self._build_camera(name)
+        return self._cameras[name]
+
+    def _build_camera(self, name: str):
+        config = self.env_config
+        if name == "topdown":
+            return TopDownCamera(world_image(config.render_scale, config.offroad_distance),
+                                 config.topdown_ahead_m, config.topdown_behind_m, config.topdown_width_m)
+        from actor.sim.front_camera import PerspectiveCamera, ground_image
+        return PerspectiveCamera(ground_image(config.render_scale, config.offroad_distance), self.hood,
+                                 height_m=config.camera_height_m, pitch_deg=config.camera_pitch_deg,
+                                 hfov_deg=config.camera_hfov_deg, range_m=config.camera_range_m)
 
     # --- episode ---------------------------------------------------------------------------
 
@@ -137,7 +176,7 @@ class NeighbourhoodEnv(AbstractEnv):
         self.done = False
         self._reset()
         observation = self.observation_type.observe()
-        return observation, self._info(observation)
+        return observation, self._info()
 
     def _start(self, options: dict) -> tuple[str, int]:
         unknown = sorted(set(options) - set(OPTION_KEYS))
@@ -157,12 +196,31 @@ class NeighbourhoodEnv(AbstractEnv):
 
     def _reset(self) -> None:
         if self.road is None:
-            self.road = neighbourhood_road(self.hood, self.env_config.offroad_distance)
-            self.vehicle = self._ego_vehicle()
-            self.road.vehicles.append(self.vehicle)
+            self._build_road()
         start: Pose = self.hood.start_poses[self.start_set][self.start_index]
         self.vehicle.crashed = False
+        self.vehicle.speed = self.env_config.speed
+        self.vehicle.action = {"steering": 0.0, "acceleration": 0.0}
+        self.vehicle.history.clear()
+        self.vehicle.place = None
         self._move_to(*self._jittered(start))
+        self.progress.reset(self.segment, self.along)
+        self.streets_visited = {self.place_name}
+        self.stalled = False
+        if self.traffic is not None:
+            self.traffic.reset(self.np_random)
+            self._measure()
+
+    def _build_road(self) -> None:
+        config = self.env_config
+        self.road = neighbourhood_road(self.hood, config.lane_offset_m, 2 * (config.offroad_distance - config.lane_offset_m))
+        start = self.hood.start_poses[START_SETS[0]][0]
+        self.vehicle = self.action_type.vehicle_class(self.road, [start.x, start.y], start.heading, config.speed)
+        self.vehicle.locator = LaneLocator(self.road.network)
+        self.road.vehicles.append(self.vehicle)
+        if config.traffic_vehicles:
+            from actor.sim.traffic import Traffic
+            self.traffic = Traffic(self.road, config, self.vehicle)
 
     def _jittered(self, start: Pose) -> tuple[float, float, float]:
         """The start pose moved sideways and turned by uniform draws within the configured bounds."""
@@ -173,25 +231,27 @@ class NeighbourhoodEnv(AbstractEnv):
         sideways_x, sideways_y = -math.sin(start.heading), math.cos(start.heading)
         return start.x + shift * sideways_x, start.y + shift * sideways_y, _wrap_angle(start.heading + turn)
 
-    def _ego_vehicle(self) -> Vehicle:
-        vehicle = self.action_type.vehicle_class(self.road, [0.0, 0.0], 0.0, self.env_config.speed)
-        vehicle.LENGTH, vehicle.WIDTH = layout.CAR_LENGTH_M, layout.CAR_WIDTH_M
-        vehicle.diagonal = math.hypot(vehicle.LENGTH, vehicle.WIDTH)
-        return vehicle
-
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         if self.road is None:
             raise ConfigError("step: call reset() first")
         self.action_type.act(action)
-        x, y, heading = bicycle_step(*self.pose, self.env_config.speed,
-                                     self.vehicle.action["steering"], self.env_config.wheelbase_m,
-                                     1.0 / self.env_config.policy_frequency)
-        self._move_to(x, y, _wrap_angle(heading))
+        frames = self.env_config.simulation_frequency // self.env_config.policy_frequency
+        dt = 1.0 / self.env_config.simulation_frequency
+        for _ in range(frames):
+            if self.traffic is not None:
+                self.traffic.act()
+                self.traffic.step(dt)
+            self.vehicle.step(dt)
+            self._measure()
+            if self.collision:
+                break
         self.steps += 1
         self.time += 1.0 / self.env_config.policy_frequency
+        self.progress.update(self.segment, self.along)
+        self.streets_visited.add(self.place_name)
+        self.stalled = self.progress.stalled
         observation = self.observation_type.observe()
-        return (observation, self._reward(action), self._is_terminated(), self._is_truncated(),
-                self._info(observation, action))
+        return (observation, self._reward(), self._is_terminated(), self._is_truncated(), self._info())
 
     def place(self, x: float, y: float, heading: float) -> np.ndarray:
         """Puts the car at a pose in the current episode (tests, pictures); returns the observation."""
@@ -201,13 +261,32 @@ class NeighbourhoodEnv(AbstractEnv):
         return self.observation_type.observe()
 
     def _move_to(self, x: float, y: float, heading: float) -> None:
-        """Places the ego car and measures where it now is: distance to the road, collision."""
-        self.pose = (x, y, heading)
-        self.vehicle.position[:] = (x, y)
+        self.vehicle.position = np.array([x, y], dtype=np.float64)
         self.vehicle.heading = heading
-        self.distance = self.hood.centre_lines.distance(x, y)
-        self.collision = self.hood.obstacles.hits(x, y, heading, layout.CAR_LENGTH_M, layout.CAR_WIDTH_M)
-        self.vehicle.crashed = self.vehicle.crashed or self.collision
+        self.vehicle.on_state_update()
+        self._measure()
+
+    def _measure(self) -> None:
+        """Reads the ego car's state and measures where it now is: centre-line, collision."""
+        x, y = float(self.vehicle.position[0]), float(self.vehicle.position[1])
+        heading = _wrap_angle(float(self.vehicle.heading))
+        self.vehicle.heading = heading
+        self.pose = (x, y, heading)
+        self.segment, self.along, self.distance = self.hood.centre_lines.nearest(x, y)
+        self.place_name = self.hood.centre_line_places[self.segment]
+        self.collision = self.hood.obstacles.hits(x, y, heading, layout.CAR_LENGTH_M, layout.CAR_WIDTH_M) \
+            or self._hits_traffic(x, y, heading)
+        self.vehicle.crashed = self.collision
+
+    def _hits_traffic(self, x: float, y: float, heading: float) -> bool:
+        rectangles = self.traffic_rectangles()
+        if rectangles is None or not len(rectangles):
+            return False
+        return Obstacles(rectangles, NO_CIRCLES).hits(x, y, heading, layout.CAR_LENGTH_M, layout.CAR_WIDTH_M)
+
+    def traffic_rectangles(self) -> np.ndarray | None:
+        """The traffic vehicles as rows (x, y, heading, length, width), or None without traffic."""
+        return None if self.traffic is None else self.traffic.rectangles()
 
     # --- reward, ends, info --------------------------------------------------------------------
 
@@ -215,28 +294,41 @@ class NeighbourhoodEnv(AbstractEnv):
     def offroad(self) -> bool:
         return self.distance > self.env_config.offroad_distance
 
-    def _reward(self, action: Any) -> float:
+    def _reward(self) -> float:
         return 0.0 if self.collision else math.exp(-self.env_config.reward_beta * self.distance)
 
     def _is_terminated(self) -> bool:
-        return self.collision or self.offroad
+        return self.collision or self.offroad or self.stalled
 
     def _is_truncated(self) -> bool:
         return not self._is_terminated() and self.steps >= self.env_config.max_steps
 
-    def _info(self, obs: Any, action: Any = None) -> dict:
+    def end_reason(self) -> str | None:
+        """Why the episode ends at this step (one of END_REASONS), or None while it goes on."""
+        if self.collision:
+            return "collision"
+        if self.offroad:
+            return "offroad"
+        if self.stalled:
+            return "stalled"
+        return "cap" if self.steps >= self.env_config.max_steps else None
+
+    def _info(self) -> dict:
         return {"distance": self.distance, "collision": self.collision, "offroad": self.offroad,
-                "start_set": self.start_set, "start_index": self.start_index, "step": self.steps}
+                "stalled": self.stalled, "end": self.end_reason(),
+                "progress_m": self.progress.total_m, "street": self.place_name,
+                "streets_visited": tuple(sorted(self.streets_visited)),
+                "lane_index": self.vehicle.lane_index, "start_set": self.start_set,
+                "start_index": self.start_index, "step": self.steps}
 
     def render(self) -> np.ndarray | None:
-        """With ``render_mode="rgb_array"``: the camera window at full world resolution."""
+        """With ``render_mode="rgb_array"``: the observation's camera at four times the resolution."""
         if self.render_mode != "rgb_array":
             return None
-        config, scale = self.env_config, self.env_config.render_scale
-        columns = int(round(config.camera_width_m * scale))
-        rows = int(round((config.camera_ahead_m + config.camera_behind_m) * scale))
-        return self.camera.view(*self.pose, columns, rows)
+        camera = getattr(self.observation_type, "camera", self.env_config.camera)
+        return self.cameras(camera).view(*self.pose, 4 * FRAME_SHAPE[1], 4 * FRAME_SHAPE[0],
+                                         self.traffic_rectangles())
 
 
 def _wrap_angle(angle: float) -> float:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
+    return math.remainder(angle, math.tau)

@@ -64,6 +64,17 @@ class Segments:
         """Distance from (x, y) to the nearest segment."""
         return math.sqrt(float(np.min(self.squared_distances(x, y))))
 
+    def nearest(self, x: float, y: float) -> tuple[int, float, float]:
+        """(index of the nearest segment, where along it from 0 to 1, distance to it)."""
+        rel_x = x - self.starts[:, 0]
+        rel_y = y - self.starts[:, 1]
+        t = (rel_x * self.deltas[:, 0] + rel_y * self.deltas[:, 1]) * self.inverse_lengths2
+        np.clip(t, 0.0, 1.0, out=t)
+        gap_x = rel_x - t * self.deltas[:, 0]
+        gap_y = rel_y - t * self.deltas[:, 1]
+        index = int(np.argmin(gap_x * gap_x + gap_y * gap_y))
+        return index, float(t[index]), math.hypot(gap_x[index], gap_y[index])
+
     def squared_distances(self, x: float, y: float) -> np.ndarray:
         """Squared distance from (x, y) to each segment."""
         rel_x = x - self.starts[:, 0]

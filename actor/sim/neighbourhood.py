@@ -101,6 +101,7 @@ class Neighbourhood:
     houses: np.ndarray  # rows (x, y, heading, length, width)
     start_poses: dict[str, tuple[Pose, ...]]
     centre_lines: Segments
+    centre_line_places: tuple[str, ...]  # per centre-line segment: its street ("A1-B1") or junction
     obstacles: Obstacles
 
     def street(self, first: str, second: str) -> Street:
@@ -139,8 +140,15 @@ def neighbourhood() -> Neighbourhood:
     )
     starts = {name: tuple(_start_pose(streets, first, second, s) for first, second, s in poses)
               for name, poses in layout.START_POSES.items()}
+    places = tuple(street_name(st.first, st.second) for st in streets) + tuple(
+        turn.junction for turn in turns for _ in turn.points[1:])
     return Neighbourhood(junctions, streets, neighbours, turns, parked, trees, houses, starts,
-                         centre_lines, obstacles)
+                         centre_lines, places, obstacles)
+
+
+def street_name(first: str, second: str) -> str:
+    """A street's name, the same for both directions: its junctions in sorted order."""
+    return "-".join(sorted((first, second)))
 
 
 def oriented_street(streets, first: str, second: str) -> Street:

@@ -60,7 +60,7 @@ class PrivilegedDriver:
         while len(self.path) - self.index < PLAN_AHEAD_M / SPACING_M:
             self._extend()
         target = self.path[min(self.index + int(LOOKAHEAD_M / SPACING_M), len(self.path) - 1)]
-        wanted = pure_pursuit_steering(pose, target, self.config.wheelbase_m) / self.max_steering
+        wanted = pure_pursuit_steering(pose, target, layout.CAR_LENGTH_M) / self.max_steering
         return self._quantise(float(np.clip(wanted, -1.0, 1.0)))
 
     def _quantise(self, wanted: float) -> int:
@@ -130,7 +130,7 @@ class PrivilegedDriver:
         return start + int(np.argmin(np.einsum("ij,ij->i", gaps, gaps)))
 
 
-def pure_pursuit_steering(pose: tuple[float, float, float], target: np.ndarray, wheelbase: float) -> float:
+def pure_pursuit_steering(pose: tuple[float, float, float], target: np.ndarray, length: float) -> float:
     """Steering angle (radians, positive right) whose arc takes the car's centre through ``target``."""
     x, y, heading = pose
     dx, dy = target[0] - x, target[1] - y
@@ -140,8 +140,9 @@ def pure_pursuit_steering(pose: tuple[float, float, float], target: np.ndarray, 
     if distance2 < 1e-9:
         return 0.0
     curvature = 2.0 * across / distance2
-    # The centre's path has curvature sin(beta) / (wheelbase / 2) (see kinematics.py).
-    sin_beta = float(np.clip(curvature * wheelbase / 2, -0.99, 0.99))
+    # In highway-env's bicycle model (Vehicle.step) the centre's path has curvature
+    # sin(beta) / (length / 2), with slip angle beta = atan(tan(steering) / 2).
+    sin_beta = float(np.clip(curvature * length / 2, -0.99, 0.99))
     return math.atan(2.0 * math.tan(math.asin(sin_beta)))
 
 
