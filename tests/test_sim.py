@@ -300,7 +300,7 @@ def test_highway_env_grayscale_renderer_works_on_the_same_road():
 
 @pytest.mark.parametrize("observation", [
     {"type": "Kinematics"},
-    {"type": "OccupancyGrid", "features": ["presence", "on_road"], "grid_size": [[-20, 20], [-20, 20]],
+    {"type": "OccupancyGrid", "features": ["presence", "vx", "vy"], "grid_size": [[-20, 20], [-20, 20]],
      "grid_step": [2, 2], "absolute": False},
     {"type": "TimeToCollision", "horizon": 5},
 ], ids=["Kinematics", "OccupancyGrid", "TimeToCollision"])
@@ -504,11 +504,12 @@ def drive_privileged(config: EnvConfig, start_set: str, index: int) -> dict:
     return info
 
 
-@pytest.mark.parametrize("config", [TOPDOWN, CONFIG], ids=["10Hz", "5Hz"])
+@pytest.mark.parametrize("config, starts", [(TOPDOWN, range(10)), (CONFIG, (0, 4, 8))], ids=["10Hz", "5Hz"])
 @pytest.mark.parametrize("start_set", START_SETS)
-def test_privileged_driver_drives_full_episodes_from_every_start(config, start_set):
+def test_privileged_driver_drives_full_episodes_from_every_start(config, starts, start_set):
     # The camera plays no part in the dynamics; the top-down one is the cheaper to render.
-    for index in range(10):
+    # Every start at the default 10 Hz; a few at 5 Hz, where a step is 2 m of road.
+    for index in starts:
         info = drive_privileged(config, start_set, index)
         assert info["end"] == "cap" and info["step"] == config.max_steps, (start_set, index, info["end"])
         assert info["progress_m"] > 0.9 * config.max_steps * config.speed / config.policy_frequency
