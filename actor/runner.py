@@ -4,6 +4,11 @@ The network is stepped one frame at a time; its LSTM state lives for one
 episode. Weights and exploration state arrive on Zenoh callbacks, which only
 park the newest message in a mailbox; the stepping loop picks it up between
 steps, so a slow or absent learner never blocks driving.
+
+The learner is the authority on exploration: a state naming another strategy
+or other params than this actor's config replaces the actor's strategy (one log
+line). Between episodes the actor obeys the replay's rate limiter: it holds its
+next episode while the replay says the learner is behind (``replay/rate``).
 """
 
 from __future__ import annotations
@@ -20,10 +25,10 @@ import torch
 
 from actor.sim import make_env
 from common.config import Config
-from common.exploration import make_strategy
+from common.exploration import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every, setup_logging
 from common.network import D3RQN, load_numpy_weights
-from common.transport import Keys, declare_liveliness, open_session, publisher, request, subscribe
+from common.transport import Keys, RateLimitedLog, declare_liveliness, open_session, publisher, request, subscribe
 from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Stats, Weights
 
 log = logging.getLogger("actor")
@@ -44,7 +49,7 @@ class Mailbox:
         self._lock = threading.Lock()
         self._weights: Weights | None = None
         self._exploration: ExplorationState | None = None
-        self.learner_progress: dict | None = None  # kept, not taken: the pacing reads it repeatedly
+        self.hold_reason = ""  # the replay's word on the next episode: "behind", "budget" or "" (go)
 
     def offer_weights(self, message: Weights, key: str = "") -> None:
         with self._lock:
@@ -55,18 +60,16 @@ class Mailbox:
         with self._lock:
             self._exploration = message
 
-    def offer_progress(self, message: Stats, key: str = "") -> None:
+    def offer_rate(self, message: Stats, key: str = "") -> None:
+        """The replay's rate limiter; kept, not taken: the hold is read repeatedly."""
+        reason = message.values.get("hold_reason", "")
         with self._lock:
-            self.learner_progress = dict(message.values)
+            self.hold_reason = reason if isinstance(reason, str) else ""
 
-    def learner_lags(self, tolerance: float) -> bool:
-        """True while the learner is more than `tolerance` (a share, at least one update) behind."""
+    def must_hold(self) -> str:
+        """Why the next episode must wait ("" when it may start); no word from a replay: go."""
         with self._lock:
-            progress = self.learner_progress
-        if not progress:
-            return False
-        due = float(progress["updates_due"])
-        return float(progress["updates"]) < due - max(1.0, tolerance * due)
+            return self.hold_reason
 
     def take(self) -> tuple[Weights | None, ExplorationState | None]:
         with self._lock:
@@ -97,6 +100,7 @@ class Actor:
         self.weights_version = -1  # no weights yet: act uniformly at random
         self.episode_index = 0
         self.mailbox = Mailbox()
+        self._warn = RateLimitedLog()
 
     def apply_mail(self) -> None:
         weights, exploration = self.mailbox.take()
@@ -107,10 +111,22 @@ class Actor:
             except ValueError as error:
                 log.warning("ignoring weights version %d: %s", weights.version, error)
         if exploration is not None:
-            try:
-                self.strategy.load_state_dict(dataclasses.asdict(exploration))
-            except ValueError as error:
-                log.warning("ignoring exploration state: %s", error)
+            self.follow(dataclasses.asdict(exploration))
+
+    def follow(self, state: dict) -> None:
+        """Loads the learner's exploration state; another strategy or other params replace this
+        actor's strategy, with one log line. A state that cannot be used is logged and skipped."""
+        try:
+            if same_strategy(self.strategy, state):
+                self.strategy.load_state_dict(state)
+                return
+            replacement = strategy_from_state(state, self.config.network.n_actions)
+        except ValueError as error:
+            self._warn.warning("ignoring the learner's exploration state: %s", error)
+            return
+        log.info("following the learner's exploration: %s %s (this actor was configured with %s %s)",
+                 replacement.name, replacement.params(), self.strategy.name, self.strategy.params())
+        self.strategy = replacement
 
     def uses_network(self) -> bool:
         return self.weights_version >= 0 and self.strategy.started
@@ -177,14 +193,16 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     actor = Actor(config, actor_id)
-    log.info("actor %d (seed %d), strategy %s", actor_id, actor.seed, config.exploration.strategy)
+    log.info("actor %d (seed %d), strategy %s until the learner's exploration state says otherwise",
+             actor_id, actor.seed, config.exploration.strategy)
     keys = Keys(config.transport.namespace, config.run.name)
     session = open_session(config.transport)
     try:
         liveliness = declare_liveliness(session, keys.liveliness("actor", str(actor_id)))
-        subscriptions = [subscribe(session, keys.weights, actor.mailbox.offer_weights),
-                         subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
-                         subscribe(session, keys.learner_progress, actor.mailbox.offer_progress, expected=Stats)]
+        subscriptions = [subscribe(session, keys.weights, actor.mailbox.offer_weights, expected=Weights),
+                         subscribe(session, keys.exploration, actor.mailbox.offer_exploration,
+                                   expected=ExplorationState),
+                         subscribe(session, keys.replay_rate, actor.mailbox.offer_rate, expected=Stats)]
         episodes_out = publisher(session, keys.episodes)
         records_out = publisher(session, keys.metrics_source("actor", str(actor_id)))
         threading.Thread(target=_fetch_latest_weights, args=(session, keys, actor.mailbox), daemon=True).start()
@@ -205,7 +223,7 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, episod
     steps = 0
     returns: list[float] = []
     while not stop.is_set() and (max_episodes is None or actor.episode_index < max_episodes):
-        if actor.config.actor.pace_with_learner and not _learner_caught_up(actor, stop):
+        if not _replay_allows_next_episode(actor, stop):
             break
         episode, record = actor.run_episode(stop)
         if stop.is_set() and not (episode.terminated or episode.truncated):
@@ -233,13 +251,14 @@ def _replay_listening(episodes_out, stop: threading.Event) -> bool:
     return True
 
 
-def _learner_caught_up(actor: Actor, stop: threading.Event) -> bool:
-    """Waits at an episode boundary while the learner lags the update ratio; False if stopped."""
+def _replay_allows_next_episode(actor: Actor, stop: threading.Event) -> bool:
+    """Waits at an episode boundary while the replay's rate limiter says hold; False if stopped."""
     waiting = Every(actor.config.actor.log_period_s)
     started = time.monotonic()
-    while actor.mailbox.learner_lags(actor.config.learner.ratio_tolerance):
-        if stop.wait(0.02):
+    while reason := actor.mailbox.must_hold():
+        if stop.wait(0.01):
             return False
         if waiting.due():
-            log.info("holding the next episode for the learner to catch up (%.0fs so far)", time.monotonic() - started)
+            why = "the run's step budget is spent" if reason == "budget" else "the learner is behind"
+            log.info("holding the next episode: %s (%.0fs so far)", why, time.monotonic() - started)
     return True

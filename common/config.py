@@ -57,16 +57,28 @@ class NetworkConfig:
 @dataclass
 class ReplayConfig:
     capacity: int = 1000  # episodes; the paper studies 1,000 and 2,000
-    memory_budget_mb: float = 8192.0  # compressed frames plus metadata
+    # Compressed frames plus metadata; a cap, not an allocation. 16 GB holds 2,000 episodes of
+    # env.max_steps = 2,000 steps at up to 4.1 KB a frame (top-down camera: 3.1 KB). At start
+    # the replay logs how many full-length episodes fit, and warns loudly when fewer than
+    # `capacity` do; once episodes arrive it checks again with the measured frame size.
+    memory_budget_mb: float = 16384.0
+    frame_kb_estimate: float = 3.2  # one compressed frame, for the start-up check until measured
     max_message_mb: float = 64.0  # larger episode messages are rejected
     max_batch_size: int = 256  # largest trace batch one query may ask for
-    stats_period_s: float = 1.0  # the learner paces its updates by these stats
+    # The rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one
+    # update per learner.env_steps_per_update env steps: it holds trace batches while the learner
+    # is this many updates ahead, and holds the actors' next episode while it is this many behind.
+    # The whole run's ratio is off by at most this many updates; 1e9 lets both run free.
+    error_buffer_updates: float = 50.0
+    stats_period_s: float = 1.0
     log_period_s: float = 10.0
     seed: int = 0
 
     def validate(self) -> None:
-        _positive(self, "capacity", "memory_budget_mb", "max_message_mb", "max_batch_size",
-                  "stats_period_s", "log_period_s")
+        _positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
+                  "max_batch_size", "stats_period_s", "log_period_s")
+        _check(self.error_buffer_updates >= 1, "error_buffer_updates",
+               f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
 
 
 @dataclass
@@ -77,11 +89,12 @@ class LearnerConfig:
     batch_size: int = 10  # traces per batch
     trace_length: int = 10  # steps per trace (trace_length + 1 observations)
     n_mask: int = 7  # leading errors of each trace that are masked out
+    # One update per this many env steps of the whole system, counted from the start of updates;
+    # the replay's rate limiter holds whichever side runs ahead (replay.error_buffer_updates).
     env_steps_per_update: float = 4.0
-    ratio_tolerance: float = 0.1  # learner may run this share ahead of the ratio
-    start_episodes: int = 999  # updates start once the replay holds this many
-    start_steps: int = 50_000  # used instead by the decreasing schedule
-    total_env_steps: int = 1_000_000
+    start_episodes: int = 999  # updates start the moment the replay holds this many episodes
+    start_steps: int = 50_000  # used instead when the learner's strategy is decreasing epsilon
+    total_env_steps: int = 1_000_000  # the run ends here: actors hold, the learner pays the last steps
     weights_every: int = 50  # broadcast weights every K updates
     checkpoint_every: int = 5_000  # updates
     prefetch: int = 2  # batch requests kept in flight
@@ -98,7 +111,6 @@ class LearnerConfig:
         _check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
         _check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
         _check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
-        _check(self.ratio_tolerance >= 0, "ratio_tolerance", "must be >= 0")
         _check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
         _check(self.start_steps >= 0, "start_steps", "must be >= 0")
         _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
@@ -139,6 +151,9 @@ class VdbeConfig:
         _positive(self, "nu")
 
 
+BMC_OBSERVATIONS = ("per_step", "per_transition")
+
+
 @dataclass
 class BmcConfig:
     alpha0: float = 25.0
@@ -147,9 +162,14 @@ class BmcConfig:
     b0: float = 250.0
     mu0: float = 0.0
     tau0: float = 1.0
+    # Which transitions of each batch the posterior observes: "per_step" (the authors' rate:
+    # as many per update as env steps per update, the newest step of each trace first) or
+    # "per_transition" (every unmasked transition of the batch: 30 per update, 7.5 per env step).
+    observations: str = "per_step"
 
     def validate(self) -> None:
         _positive(self, "alpha0", "beta0", "a0", "b0", "tau0")
+        _check(self.observations in BMC_OBSERVATIONS, "observations", f"must be one of {', '.join(BMC_OBSERVATIONS)}")
 
 
 @dataclass
@@ -219,9 +239,6 @@ class EnvConfig:
 class ActorConfig:
     num_actors: int = 0  # local stack: 0 means one per spare core
     actor_id: int = 0
-    # Hold a new episode while the learner lags the update ratio by more than
-    # learner.ratio_tolerance, so fast actors cannot dilute the paper's 1 update per 4 steps.
-    pace_with_learner: bool = True
     log_period_s: float = 10.0
 
     def validate(self) -> None:
@@ -325,6 +342,8 @@ class Config:
                 section.validate()
             except ConfigError as error:
                 raise ConfigError(f"{path}.{error}" if path else str(error)) from None
+        _check(self.learner.start_episodes <= self.replay.capacity, "learner.start_episodes",
+               f"{self.learner.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
         return self
 
 
@@ -347,6 +366,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "smoke": {
         "replay.capacity": 50,
         "replay.stats_period_s": 0.5,
+        "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
         "learner.batch_size": 4,
         "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
         "learner.start_episodes": 2,
@@ -390,8 +410,17 @@ def load_config(preset: str = "paper", toml_path: str | Path | None = None,
     return config.validate()
 
 
+# Keys of earlier versions; a checkpoint's or log's config that holds one still loads (from_dict).
+RETIRED_KEYS = {
+    "learner.ratio_tolerance": "replaced by replay.error_buffer_updates (a number of updates)",
+    "actor.pace_with_learner": "the replay's rate limiter paces the actors; replay.error_buffer_updates 1e9 lets them run free",
+}
+
+
 def set_value(config: Config, dotted_key: str, value: Any) -> None:
     """Set one field by its dotted path, converting and type-checking the value."""
+    if dotted_key in RETIRED_KEYS:
+        raise ConfigError(f"{dotted_key}: retired key; {RETIRED_KEYS[dotted_key]}")
     *parents, name = dotted_key.split(".")
     target: Any = config
     for part in parents:
@@ -435,7 +464,8 @@ def from_dict(nested: dict[str, Any]) -> Config:
     """A config from the nested dict of a TOML document or a checkpoint."""
     config = Config()
     for key, value in _flatten(nested).items():
-        set_value(config, key, value)
+        if key not in RETIRED_KEYS:
+            set_value(config, key, value)
     return config.validate()
 
 

@@ -22,7 +22,13 @@ The actor only calls ``act``. The learner calls the hooks and sends
 - ``on_returns(g_greedy, g_uniform)``: epsilon-BMC. One Bayesian update per
   transition, in order. The caller has already applied (1 - terminal) to the
   bootstrap term (see ``greedy_and_uniform_returns``), so a terminal
-  transition's returns are just its reward.
+  transition's returns are just its reward. Which transitions of a batch the
+  learner passes is ``exploration.bmc.observations``: by default one per env
+  step (``bmc_observation_count``, ``newest_transitions``), the authors' rate.
+
+The learner is the authority on the strategy: an actor whose own config names
+another strategy or other params rebuilds its strategy from the learner's
+state (``strategy_from_state``).
 """
 
 from __future__ import annotations
@@ -363,6 +369,67 @@ class MaxBoltzmann(ExplorationStrategy):
 
     def _kappa(self) -> float:
         return self.config.kappa
+
+
+# The config sections each strategy's params() come from.
+STRATEGY_SECTIONS = {
+    "constant": ("constant",), "decreasing": ("decreasing",), "vdbe": ("vdbe",), "bmc": ("bmc",),
+    "softmax": ("softmax",), "max_boltzmann": ("max_boltzmann",), "vdbe_softmax": ("vdbe", "softmax"),
+}
+
+
+def same_strategy(strategy: ExplorationStrategy, state: dict) -> bool:
+    """Whether a state_dict() describes this strategy with these params."""
+    return state.get("strategy") == strategy.name and state.get("params") == strategy.params()
+
+
+def strategy_from_state(state: dict, n_actions: int) -> ExplorationStrategy:
+    """The strategy another process's state_dict() describes, built from its name and params
+    (not from the local config) and loaded with its state; ValueError if it cannot be."""
+    from common.config import Config, ConfigError, set_value  # the full config checks every value
+
+    try:
+        name, params = state["strategy"], state["params"]
+        sections = STRATEGY_SECTIONS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"exploration state names no known strategy ({str(state)[:200]})") from None
+    if not isinstance(params, dict):
+        raise ValueError(f"exploration params must be a map, got {params!r}")
+    config = Config()
+    config.exploration.strategy = name
+    owners = {f.name: section for section in sections
+              for f in dataclasses.fields(getattr(config.exploration, section))}
+    try:
+        for key, value in params.items():
+            if key not in owners:
+                raise ValueError(f"exploration param {key!r} is not one of {name}'s ({', '.join(sorted(owners))})")
+            set_value(config, f"exploration.{owners[key]}.{key}", value)
+        for section in sections:
+            getattr(config.exploration, section).validate()
+    except ConfigError as error:
+        raise ValueError(f"exploration params: {error}") from None
+    strategy = make_strategy(config.exploration, n_actions)
+    strategy.load_state_dict(state)
+    return strategy
+
+
+def bmc_observation_count(update: int, env_steps_per_update: float) -> int:
+    """How many transitions the `update`-th update (1-based) feeds BMC at one per env step:
+    floor(k * s) - floor((k - 1) * s), so k updates feed floor(k * s) in all."""
+    return math.floor(update * env_steps_per_update) - math.floor((update - 1) * env_steps_per_update)
+
+
+def newest_transitions(g_greedy: np.ndarray, g_uniform: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """`count` transitions of a batch's (B, U) returns: the newest step of each trace first, then
+    the one before it, and so on; kept in trace order, oldest first within a trace."""
+    greedy, uniform = np.asarray(g_greedy), np.asarray(g_uniform)
+    if greedy.shape != uniform.shape or greedy.ndim != 2:
+        raise ValueError(f"g_greedy {greedy.shape} and g_uniform {uniform.shape} must be equal (B, U) arrays")
+    traces, steps = greedy.shape
+    count = max(0, min(count, greedy.size))
+    rank = (steps - 1 - np.arange(steps))[None, :] * traces + np.arange(traces)[:, None]  # 0 = newest of trace 0
+    chosen = rank < count
+    return greedy[chosen], uniform[chosen]  # boolean indexing keeps row-major (trace, then time) order
 
 
 def make_strategy(config: ExplorationConfig, n_actions: int) -> ExplorationStrategy:

@@ -113,9 +113,9 @@ class Keys:
         return f"{self.root}/exploration"
 
     @property
-    def learner_progress(self) -> str:
-        """The learner's update count against the updates the system's steps pay for."""
-        return f"{self.root}/learner/progress"
+    def replay_rate(self) -> str:
+        """The replay's rate limiter: env steps, batches served, updates due, whether actors hold."""
+        return f"{self.root}/replay/rate"
 
     def metrics_source(self, role: str, process_id: str | int | None = None) -> str:
         """Metrics of one process: ``metrics/learner``, ``metrics/actor/3``."""
@@ -289,9 +289,8 @@ def serve(session: zenoh.Session, key: str, handler: Callable[[Message | None], 
 
     def answer_of(query: zenoh.Query) -> bytes | str | None:
         """The encoded reply, an error text, or None for no reply."""
-        payload = query.payload
         try:
-            request_message = None if payload is None or len(payload) == 0 else decode(payload.to_bytes(), expected)
+            request_message = _request_of(query, expected)
         except WireError as error:
             service.rejected += 1
             warn.warning("rejected a request on %s: %s", key, error)
@@ -306,6 +305,89 @@ def serve(session: zenoh.Session, key: str, handler: Callable[[Message | None], 
             return f"handler failed: {type(error).__name__}: {error}"
 
     return service.attach(session.declare_queryable(key, on_query))
+
+
+def _request_of(query: zenoh.Query, expected: type[Message] | None) -> Message | None:
+    """The query's decoded payload, None without one; WireError if it is malformed."""
+    payload = query.payload
+    return None if payload is None or len(payload) == 0 else decode(payload.to_bytes(), expected)
+
+
+class PendingQuery:
+    """A decoded query whose answer may come later, from any thread; answered once.
+
+    ``reply(message)`` sends the answer, ``drop()`` ends the query without one (the
+    requester's get returns no reply); either finalises the query, later calls do nothing.
+    """
+
+    def __init__(self, query: zenoh.Query, key: str, request: Message | None, warn: RateLimitedLog) -> None:
+        self.request = request
+        self.received = time.monotonic()
+        self._query: zenoh.Query | None = query
+        self._key = key
+        self._warn = warn
+        self._lock = threading.Lock()
+
+    @property
+    def answered(self) -> bool:
+        return self._query is None
+
+    def reply(self, message: Message) -> bool:
+        """Encodes and sends message; False if the query was already answered or the reply failed."""
+        data = encode(message)
+        return self._finish(lambda query: query.reply(self._key, data))
+
+    def reply_error(self, text: str) -> bool:
+        return self._finish(lambda query: query.reply_err(text))
+
+    def drop(self) -> None:
+        self._finish(None)
+
+    def _finish(self, send) -> bool:
+        with self._lock:
+            query, self._query = self._query, None
+        if query is None:
+            return False
+        try:
+            if send is not None:
+                send(query)
+            return True
+        except zenoh.ZError as error:
+            self._warn.warning("could not reply on %s: %s", self._key, error)
+            return False
+        finally:
+            query.drop()
+
+
+def serve_deferred(session: zenoh.Session, key: str, on_query: Callable[[PendingQuery], Any], *,
+                   expected: type[Message] | None = None) -> Receiver:
+    """Hands each query on key to on_query as a PendingQuery, which must be answered or dropped
+    later (a service that holds replies back, answering from its own thread).
+
+    on_query runs on zenoh's thread: it must only park the query, never wait. A malformed
+    request is logged, counted and answered with an error at once; so is an on_query that raises.
+    """
+    warn = RateLimitedLog()
+    service = Receiver(key)
+
+    def on_zenoh_query(query: zenoh.Query) -> None:
+        try:
+            request_message = _request_of(query, expected)
+        except WireError as error:
+            service.rejected += 1
+            warn.warning("rejected a request on %s: %s", key, error)
+            PendingQuery(query, key, None, warn).reply_error(f"bad request: {error}")
+            return
+        pending = PendingQuery(query, key, request_message, warn)
+        try:
+            on_query(pending)
+            service.received += 1
+        except Exception as error:  # a failing handler answers with an error instead of crashing the service
+            service.failed += 1
+            warn.warning("handler for %s failed", key, exc_info=True)
+            pending.reply_error(f"handler failed: {type(error).__name__}: {error}")
+
+    return service.attach(session.declare_queryable(key, on_zenoh_query))
 
 
 def request(session: zenoh.Session, key: str, message: Message | None, timeout_s: float, *,

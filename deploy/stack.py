@@ -4,12 +4,16 @@ Each role runs as its own process (a fresh interpreter, never a fork holding a
 Zenoh session). The replay opens its session as the router that the others
 connect to. This launcher shows one live progress line, writes everything for
 the run under <runs_dir>/<run>/, restarts an actor that dies, and stops every
-process on Ctrl-C or when the learner reaches its step budget.
+process on Ctrl-C or when the learner reaches its step budget. At the end it
+writes <runs_dir>/<run>/summary.json: env steps, updates and the achieved env
+steps per update of the whole run, from the learner's last metrics.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import signal
 import socket
@@ -26,6 +30,8 @@ from common.wire import EpisodeRecord, Stats
 
 STOP_GRACE_S = 20.0
 RESTART_BACKOFF_S = 2.0
+FINAL_METRICS_WAIT_S = 5.0
+SUMMARY = "summary.json"
 
 
 def free_port() -> int:
@@ -48,6 +54,7 @@ class Progress:
         self.episodes = 0
         self.replay: dict = {}
         self.learner: dict = {}
+        self.learner_final = threading.Event()  # the learner's last metrics, sent as it stops
         self._started = time.monotonic()
 
     def on_metric(self, message, key: str) -> None:
@@ -57,6 +64,8 @@ class Progress:
                 self.returns.append(message.episode_return)
             elif isinstance(message, Stats) and message.source == "learner":
                 self.learner = dict(message.values)
+                if self.learner.get("final"):
+                    self.learner_final.set()
 
     def on_replay_stats(self, message, key: str) -> None:
         if isinstance(message, Stats):
@@ -73,7 +82,25 @@ class Progress:
                     f"eps {float(self.learner.get('epsilon', 1.0)):.3f} | "
                     f"return(100) {mean_return:8.2f} | "
                     f"upd/s {float(self.learner.get('updates_per_s', 0.0)):5.2f} | "
-                    f"steps/s {float(self.replay.get('env_steps_total_per_s', 0.0)):6.1f}")
+                    f"steps/s {float(self.replay.get('env_steps_total_per_s', 0.0)):6.1f} | "
+                    f"steps/upd {float(self.learner.get('env_steps_per_update', math.nan)):5.2f}")
+
+    def summary(self, config: Config) -> dict:
+        """The run's figures from the learner's last metrics (and the replay's last stats)."""
+        with self._lock:
+            learner, replay = dict(self.learner), dict(self.replay)
+        return {
+            "run": config.run.name,
+            "strategy": config.exploration.strategy,
+            "learner_finished": bool(learner.get("final")),
+            "updates": int(learner.get("updates", 0)),
+            "env_steps": int(learner.get("env_steps", 0)),
+            "start_env_steps": learner.get("start_env_steps"),
+            "env_steps_per_update": learner.get("env_steps_per_update"),  # achieved, since the start mark
+            "env_steps_per_update_configured": config.learner.env_steps_per_update,
+            "replay_env_steps_total": int(replay.get("env_steps_total", 0)),
+            "episodes": self.episodes,
+        }
 
 
 class Stack:
@@ -93,11 +120,11 @@ class Stack:
         self.restarts = 0
 
     def start_all(self) -> None:
-        self._start("replay", "replay.main", ["--transport.mode", "router", "--transport.listen", self.endpoint])
+        resume = ["--resume"] if self.resume else []  # the replay's rate limiter counters, the learner's checkpoint
+        self._start("replay", "replay.main", ["--transport.mode", "router", "--transport.listen", self.endpoint] + resume)
         if self.config.record.enabled:  # the flight recorder writes <run dir>/traffic.mcap
             self._start("recorder", "replay.log.cli record", self._client_flags())
-        learner_flags = ["--resume"] if self.resume else []
-        self._start("learner", "learner.main", self._client_flags() + learner_flags)
+        self._start("learner", "learner.main", self._client_flags() + resume)
         for actor_id in range(self.actor_count):
             self._start_actor(actor_id)
 
@@ -193,6 +220,8 @@ def main(argv: list[str] | None = None) -> int:
                      subscribe(session, keys.replay_stats, progress.on_replay_stats)]
     try:
         code = stack.watch(stop, progress)
+        if stack.processes["learner"].poll() is not None:
+            progress.learner_final.wait(FINAL_METRICS_WAIT_S)
     finally:
         print("\n" + progress.line(), flush=True)
         print("stopping processes ...", flush=True)
@@ -200,6 +229,12 @@ def main(argv: list[str] | None = None) -> int:
         for subscription in subscriptions:
             subscription.undeclare()
         session.close()
+    summary = progress.summary(config)
+    (run_dir / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+    ratio = summary["env_steps_per_update"]
+    shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
+    print(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps per "
+          f"update (configured {config.learner.env_steps_per_update:g}); {run_dir / SUMMARY}", flush=True)
     print(f"stopped; actor restarts: {stack.restarts}; logs in {stack.logs}/", flush=True)
     return code
 

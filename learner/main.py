@@ -10,10 +10,11 @@ from common.config import add_config_arguments, parse_config_or_exit, print_conf
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="learner",
-        description="Learner: waits for learner.start_episodes episodes in the replay, then trains with "
-                    "one update per learner.env_steps_per_update environment steps of the whole system, "
-                    "broadcasts weights every learner.weights_every updates and the exploration state on "
-                    "every change, and checkpoints to <run.runs_dir>/<run.name>/checkpoints.")
+        description="Learner: trains on the replay's trace batches, which the replay's rate limiter starts "
+                    "serving when it holds learner.start_episodes episodes and then paces at one update per "
+                    "learner.env_steps_per_update environment steps of the whole system; broadcasts weights "
+                    "every learner.weights_every updates and the exploration state (which the actors follow) "
+                    "on every change, and checkpoints to <run.runs_dir>/<run.name>/checkpoints.")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the run's latest checkpoint")
     add_config_arguments(parser)

@@ -13,14 +13,16 @@ from common.wire import TraceBatch, TraceBatchRequest
 
 log = logging.getLogger("learner.prefetch")
 
-RETRY_PAUSE_S = 0.5
+RETRY_PAUSE_S = 0.1  # after no reply: the replay drops a request it held too long
 
 
 class Prefetcher:
     """`depth` worker threads, each asking for the next batch as soon as its last one is queued.
 
     `fetch(request)` is the transport call (a Zenoh get in production, a function
-    in tests); it returns a TraceBatch or None (no reply, timeout, empty replay).
+    in tests); it returns a TraceBatch or None (no reply, timeout, empty replay). The
+    replay holds a reply back while its rate limiter says the learner is ahead, so a
+    worker's wait for its batch is the learner's pacing.
     """
 
     def __init__(self, fetch: Callable[[TraceBatchRequest], TraceBatch | None],
@@ -38,11 +40,13 @@ class Prefetcher:
         for thread in self._threads:
             thread.start()
 
-    def next(self, stop: threading.Event) -> TraceBatch | None:
-        """The next batch, or None once `stop` is set."""
+    def next(self, stop: threading.Event, timeout_s: float | None = None) -> TraceBatch | None:
+        """The next batch, or None once `stop` is set or after timeout_s seconds without one."""
         started = time.monotonic()
         try:
             while not stop.is_set():
+                if timeout_s is not None and time.monotonic() - started >= timeout_s:
+                    return None
                 try:
                     return self._ready.get(timeout=0.1)
                 except queue.Empty:
@@ -51,10 +55,13 @@ class Prefetcher:
         finally:
             self.wait_s += time.monotonic() - started
 
-    def close(self) -> None:
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Stops the workers; one still waiting on a held request is left to end with the process
+        (daemon threads), so stopping never waits for the replay."""
         self._stop.set()
+        deadline = time.monotonic() + timeout_s
         for thread in self._threads:
-            thread.join(timeout=5.0)
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
 
     def _work(self) -> None:
         while not self._stop.is_set():

@@ -1,8 +1,12 @@
-"""The learner process: waits for the replay to fill, then trains and broadcasts.
+"""The learner process: trains on the replay's trace batches and broadcasts weights and exploration.
 
-Top to bottom, one loop: take a prefetched batch, wait if the system has not
-paid for this update with environment steps, update, feed the exploration
-strategy, broadcast what changed, checkpoint now and then.
+Top to bottom, one loop: take a prefetched batch, update, feed the exploration
+strategy, broadcast what changed, checkpoint now and then. The pacing is not
+here: the replay's rate limiter (replay/rate_limiter.py) answers the first
+batch request the moment updates start and holds replies back while the
+learner is ahead of one update per `learner.env_steps_per_update` env steps.
+The learner only counts, from the replay's numbers, the achieved ratio and
+when the step budget is paid for.
 """
 
 from __future__ import annotations
@@ -18,12 +22,11 @@ import numpy as np
 import torch
 
 from common.config import Config, to_dict
-from common.exploration import make_strategy
+from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.logs import Every, setup_logging
 from common.transport import Keys, declare_liveliness, open_session, publisher, request, serve, subscribe
 from common.wire import ExplorationState, Stats, TraceBatch, Weights
 from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from learner.pacing import StepClock
 from learner.prefetch import Prefetcher
 from learner.update import DoubleQLearner, TraceBatch as Traces
 
@@ -31,7 +34,58 @@ log = logging.getLogger("learner")
 
 SAMPLE_TIMEOUT_S = 30.0
 IDLE_POLL_S = 0.05
+WAIT_LOG_S = 10.0
 CHECKPOINT_SECTIONS = ("learner", "exploration", "clock", "config")
+
+
+class RunClock:
+    """The run's env steps and start mark as the replay counts them, and the updates they pay for.
+
+    Reports arrive from batches and two replay keys, not in order, so the count only grows.
+    """
+
+    def __init__(self, env_steps_per_update: float, error_buffer: float) -> None:
+        self.env_steps_per_update = env_steps_per_update
+        self.error_buffer = error_buffer
+        self.env_steps = 0  # env steps of the whole system, as the replay last reported them
+        self.start_env_steps: float | None = None  # the replay's start mark
+        self.finish_line: float | None = None  # updates at which the learner stops once the budget is spent
+
+    def observe(self, env_steps: int, start_env_steps: float | None = None) -> None:
+        self.env_steps = max(self.env_steps, int(env_steps))
+        if start_env_steps is not None and start_env_steps >= 0:
+            self.start_env_steps = float(start_env_steps)
+
+    def updates_due(self) -> float | None:
+        if self.start_env_steps is None:
+            return None
+        return (self.env_steps - self.start_env_steps) / self.env_steps_per_update
+
+    def env_steps_per_update_achieved(self, updates: int) -> float:
+        if self.start_env_steps is None or updates <= 0:
+            return math.nan
+        return (self.env_steps - self.start_env_steps) / updates
+
+    def finished(self, updates: int, total_env_steps: int) -> bool:
+        """Budget spent and its steps paid for: updates >= due, or, if actors keep outrunning the
+        learner, B updates past what was due when the budget was first seen spent."""
+        if self.env_steps < total_env_steps:
+            return False
+        due = self.updates_due()
+        if due is None:
+            return False
+        if self.finish_line is None:
+            self.finish_line = max(due, updates) + self.error_buffer
+        return updates >= due or updates >= self.finish_line
+
+    def state_dict(self) -> dict:
+        # "env_steps" is what deploy/experiments.py and evaluate read off a checkpoint.
+        return {"env_steps": self.env_steps, "start_env_steps": self.start_env_steps}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.env_steps = int(state.get("env_steps", 0))
+        mark = state.get("start_env_steps", state.get("steps_at_first_update"))
+        self.start_env_steps = None if mark is None else float(mark)
 
 
 class LearnerProcess:
@@ -41,8 +95,10 @@ class LearnerProcess:
         self.config = config
         self.learner = DoubleQLearner(config.network, config.learner)
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
-        self.clock = StepClock()
+        self.clock = RunClock(config.learner.env_steps_per_update, config.replay.error_buffer_updates)
         self.episodes_stored = 0
+        self.bmc_observations = 0  # transitions passed to the strategy's on_returns
+        self._resumed_env_steps: int | None = None
         self._lock = threading.Lock()
         self.latest_weights: Weights | None = None
         self.checkpoint_dir = Path(config.run.runs_dir) / config.run.name / "checkpoints"
@@ -55,45 +111,53 @@ class LearnerProcess:
 
     def on_replay_stats(self, stats: Stats, key: str = "") -> None:
         if isinstance(stats, Stats) and stats.source == "replay":
-            self._observe(int(stats.values.get("env_steps_total", 0)), int(stats.values.get("episodes", 0)))
+            values = stats.values
+            with self._lock:
+                self.episodes_stored = int(values.get("episodes", self.episodes_stored))
+            self._observe(values.get("env_steps_total"), values.get("rate_start_env_steps"))
 
-    def _observe(self, env_steps_total: int, episodes_stored: int) -> None:
+    def on_replay_rate(self, stats: Stats, key: str = "") -> None:
+        if isinstance(stats, Stats) and stats.source == "rate_limiter":
+            self._observe(stats.values.get("env_steps"), stats.values.get("start_env_steps"))
+
+    def _observe(self, env_steps, start_env_steps=None) -> None:
+        if not isinstance(env_steps, (int, float)):
+            return
+        mark = start_env_steps if isinstance(start_env_steps, (int, float)) else None
         with self._lock:
-            self.clock.observe(env_steps_total)
-            self.episodes_stored = episodes_stored
+            resumed = self._resumed_env_steps
+            if resumed is not None:
+                self._resumed_env_steps = None
+                if env_steps < resumed:
+                    log.warning("the replay counts %d env steps, fewer than this checkpoint's %d: it was started "
+                                "without --resume and lost the run's counters; the step budget now waits for "
+                                "its new count", env_steps, resumed)
+                    self.clock.env_steps = 0
+            self.clock.observe(int(env_steps), mark)
 
     def serve_latest_weights(self, request_message) -> Weights | None:
         return self.latest_weights
 
     # --- decisions ----------------------------------------------------------------------
 
-    def ready_to_start(self) -> bool:
-        """The paper waits for a full buffer (999 episodes); decreasing epsilon waits for n_start steps."""
+    def finished(self) -> bool:
+        """The step budget is spent and the learner has made the updates it pays for."""
         with self._lock:
-            if self.config.exploration.strategy == "decreasing":
-                return self.clock.env_steps >= self.config.learner.start_steps
-            return self.episodes_stored >= self.config.learner.start_episodes
+            return self.clock.finished(self.updates, self.config.learner.total_env_steps)
 
-    def may_update(self) -> bool:
+    def env_steps_per_update(self) -> float:
+        """The run's achieved ratio: env steps since the replay's start mark per update."""
         with self._lock:
-            return self.clock.may_update(self.updates, self.config.learner.env_steps_per_update,
-                                         self.config.learner.ratio_tolerance)
-
-    def budget_spent(self) -> bool:
-        with self._lock:
-            return self.clock.env_steps >= self.config.learner.total_env_steps
+            return self.clock.env_steps_per_update_achieved(self.updates)
 
     # --- the work -----------------------------------------------------------------------
 
     def start_updates(self) -> None:
-        with self._lock:
-            self.clock.start_updates()
         self.strategy.start()
 
     def train_on(self, batch: TraceBatch) -> float:
         """One update on one batch; feeds the strategy what it needs; returns the loss."""
-        # The clock reads only the replay's stats: batches from parallel requests arrive out of
-        # order, and an older count would look like a replay restart.
+        self._observe(batch.env_steps_total)
         traces = Traces(batch.observations_array(), np.array(batch.actions), np.array(batch.rewards),
                         np.array(batch.terminated))
         result = self.learner.update(traces, with_q_after=self.strategy.needs_q_after)
@@ -101,8 +165,18 @@ class LearnerProcess:
         if self.strategy.needs_q_after:
             self.strategy.on_update(result.q_before, result.q_after)
         if self.strategy.needs_returns:
-            self.strategy.on_returns(result.g_greedy, result.g_uniform)
+            g_greedy, g_uniform = self.bmc_transitions(result.g_greedy, result.g_uniform)
+            self.strategy.on_returns(g_greedy, g_uniform)
+            self.bmc_observations += np.size(g_greedy)
         return result.loss
+
+    def bmc_transitions(self, g_greedy: np.ndarray, g_uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """exploration.bmc.observations: "per_step" feeds one transition per env step (the authors'
+        rate), the newest of each trace first; "per_transition" every unmasked transition."""
+        if self.config.exploration.bmc.observations == "per_transition":
+            return g_greedy, g_uniform
+        count = bmc_observation_count(self.updates, self.config.learner.env_steps_per_update)
+        return newest_transitions(g_greedy, g_uniform, count)
 
     def make_weights(self) -> Weights:
         self.latest_weights = Weights(version=self.updates, tensors=self.learner.online_weights(),
@@ -124,6 +198,7 @@ class LearnerProcess:
         self.learner.load_state_dict(payload["learner"])
         self.strategy.load_state_dict(payload["exploration"])
         self.clock.load_state_dict(payload["clock"])
+        self._resumed_env_steps = self.clock.env_steps
         log.info("resumed from %s: %d updates, %d env steps", self.checkpoint_dir, self.updates, self.clock.env_steps)
 
 
@@ -148,7 +223,8 @@ def run_learner(config: Config, resume: bool = False) -> None:
     session = open_session(config.transport)
     try:
         declared = [declare_liveliness(session, keys.liveliness("learner", "0")),
-                    subscribe(session, keys.replay_stats, process.on_replay_stats),
+                    subscribe(session, keys.replay_stats, process.on_replay_stats, expected=Stats),
+                    subscribe(session, keys.replay_rate, process.on_replay_rate, expected=Stats),
                     serve(session, keys.weights_latest, process.serve_latest_weights)]
         outputs = Outputs(session, keys)
         outputs.weights(process.make_weights())
@@ -166,7 +242,6 @@ class Outputs:
         self._weights = publisher(session, keys.weights)
         self._exploration = publisher(session, keys.exploration)
         self._metrics = publisher(session, keys.metrics_source("learner", "0"))
-        self._progress = publisher(session, keys.learner_progress)
         self._last_exploration: dict | None = None
 
     def weights(self, weights: Weights) -> None:
@@ -178,13 +253,6 @@ class Outputs:
             self._exploration.put(ExplorationState(**state))
             self._last_exploration = state
 
-    def progress(self, process: LearnerProcess) -> None:
-        with process._lock:
-            due = process.clock.updates_due(process.config.learner.env_steps_per_update)
-            env_steps = process.clock.env_steps
-        self._progress.put(Stats(source="learner", time=time.time(),
-                                 values={"updates": process.updates, "updates_due": due, "env_steps": env_steps}))
-
     def metrics(self, values: dict) -> None:
         self._metrics.put(Stats(source="learner", time=time.time(), values=values))
 
@@ -192,36 +260,24 @@ class Outputs:
 def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, session, keys: Keys) -> None:
     config = process.config.learner
     heartbeat = Every(config.log_period_s)
-    while not process.ready_to_start() and not stop.is_set():
-        if heartbeat.due():
-            outputs.exploration(process.strategy, force=True)  # late actors learn the state too
-            log.info("waiting for the replay: %d/%d episodes, %d env steps", process.episodes_stored,
-                     config.start_episodes, process.clock.env_steps)
-        stop.wait(IDLE_POLL_S * 10)
-    if stop.is_set():
-        log.info("stopped before updates started; checkpoint %s", process.checkpoint())
-        return
-    if process.updates == 0:
-        process.start_updates()
-    else:
-        process.strategy.start()
-    outputs.exploration(process.strategy, force=True)
-    log.info("updates start at %d env steps with %d episodes stored", process.clock.env_steps,
-             process.episodes_stored)
-
     prefetcher = Prefetcher(lambda message: request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S),
                             config.batch_size, config.trace_length, config.prefetch)
+    batch = _first_batch(process, outputs, prefetcher, stop)
+    if batch is None:
+        prefetcher.close()
+        log.info("stopped before updates started; checkpoint %s", process.checkpoint())
+        return
+    process.start_updates()
+    outputs.exploration(process.strategy, force=True)
+    with process._lock:
+        mark = process.clock.start_env_steps
+    log.info("updates start: the replay's first batch, at %d env steps (start mark %s) with %d episodes stored",
+             batch.env_steps_total, "unknown" if mark is None else f"{mark:.0f}", batch.episodes_stored)
+    _warn_if_bmc_starves(process)
     report = Report(process, prefetcher)
     try:
-        while not stop.is_set() and not process.budget_spent():
-            if not process.may_update():
-                report.pace_wait(stop)
-                continue
-            batch = prefetcher.next(stop)
-            if batch is None:
-                break
+        while batch is not None:
             report.loss(process.train_on(batch))
-            outputs.progress(process)
             outputs.exploration(process.strategy)
             if process.updates % config.weights_every == 0:
                 outputs.weights(process.make_weights())
@@ -229,13 +285,46 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                 process.checkpoint()
             if heartbeat.due():
                 outputs.metrics(report.values())
+            batch = None
+            while batch is None and not stop.is_set() and not process.finished():
+                batch = prefetcher.next(stop, timeout_s=IDLE_POLL_S * 10)
+                if batch is None and heartbeat.due():
+                    outputs.metrics(report.values())
     finally:
         prefetcher.close()
         outputs.weights(process.make_weights())
         path = process.checkpoint()
-        outputs.metrics(report.values())
-        log.info("stopped after %d updates, %d env steps; checkpoint %s", process.updates,
-                 process.clock.env_steps, path)
+        outputs.metrics({**report.values(), "final": 1})
+        log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
+                 "checkpoint %s", process.updates, process.clock.env_steps, process.env_steps_per_update(),
+                 config.env_steps_per_update, path)
+
+
+def _first_batch(process: LearnerProcess, outputs: Outputs, prefetcher: Prefetcher,
+                 stop: threading.Event) -> TraceBatch | None:
+    """Waits for the replay's first batch: it comes the moment the replay's rate limiter starts updates."""
+    config = process.config.learner
+    waiting = Every(WAIT_LOG_S)
+    while not stop.is_set():
+        batch = prefetcher.next(stop, timeout_s=config.log_period_s)
+        if batch is not None:
+            return batch
+        outputs.exploration(process.strategy, force=True)  # late actors learn the state too
+        if waiting.due():
+            log.info("waiting for the replay to start updates: %d/%d episodes stored, %d env steps",
+                     process.episodes_stored, config.start_episodes, process.clock.env_steps)
+    return None
+
+
+def _warn_if_bmc_starves(process: LearnerProcess) -> None:
+    config = process.config
+    if not process.strategy.needs_returns or config.exploration.bmc.observations != "per_step":
+        return
+    available = config.learner.batch_size * (config.learner.trace_length - config.learner.n_mask)
+    if config.learner.env_steps_per_update > available:
+        log.warning("exploration.bmc.observations per_step: a batch holds %d unmasked transitions, fewer than "
+                    "learner.env_steps_per_update %g; BMC observes %d per update", available,
+                    config.learner.env_steps_per_update, available)
 
 
 class Report:
@@ -245,7 +334,6 @@ class Report:
         self.process = process
         self.prefetcher = prefetcher
         self.started = time.monotonic()
-        self.pace_wait_s = 0.0
         self.losses: list[float] = []
         self.loss_diffs: list[float] = []
         self._previous_loss: float | None = None
@@ -258,11 +346,6 @@ class Report:
             self.loss_diffs.append(abs(value - self._previous_loss))
         self._previous_loss = value
         self.losses.append(value)
-
-    def pace_wait(self, stop: threading.Event) -> None:
-        started = time.monotonic()
-        stop.wait(IDLE_POLL_S)
-        self.pace_wait_s += time.monotonic() - started
 
     def values(self) -> dict:
         now = time.monotonic()
@@ -278,13 +361,19 @@ class Report:
             "loss_abs_diff": float(np.mean(self.loss_diffs)) if self.loss_diffs else float("nan"),
             "epsilon": float(strategy.epsilon),
             "updates_per_s": (updates - window_updates) / elapsed,
+            # waiting for a batch: the replay holds replies while the learner is ahead of the ratio
             "data_wait_share": (self.prefetcher.wait_s - window_data_wait) / elapsed,
-            "pace_wait_s": self.pace_wait_s,
             "weights_version": self.process.latest_weights.version if self.process.latest_weights else -1,
+            "bmc_observations": self.process.bmc_observations,
         }
+        achieved = self.process.env_steps_per_update()
+        if math.isfinite(achieved):  # the whole run's ratio, from the replay's start mark
+            values["env_steps_per_update"] = achieved
+            values["start_env_steps"] = float(self.process.clock.start_env_steps)
         log.info("updates %(updates)d, env steps %(env_steps)d, loss %(loss).5f, epsilon %(epsilon).3f, "
                  "%(updates_per_s).2f updates/s, waiting for data %(data_wait_share).0f%% of the time, "
-                 "paced %(pace_wait_s).1fs in total", {**values, "data_wait_share": 100 * values["data_wait_share"]})
+                 "%(ratio).3f env steps per update", {**values, "data_wait_share": 100 * values["data_wait_share"],
+                                                      "ratio": achieved})
         self.losses.clear()
         self.loss_diffs.clear()
         self._window_start = (now, updates, self.prefetcher.wait_s)

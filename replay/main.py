@@ -12,16 +12,22 @@ def build_parser() -> argparse.ArgumentParser:
         prog="replay",
         description="Replay service: subscribes to episodes on <namespace>/<run>/episodes, stores up to "
                     "replay.capacity of them (oldest evicted first, within replay.memory_budget_mb), answers "
-                    "trace-batch queries on <namespace>/<run>/replay/sample and publishes stats.")
+                    "trace-batch queries on <namespace>/<run>/replay/sample and publishes stats. Its rate "
+                    "limiter keeps one learner update per learner.env_steps_per_update env steps: it holds "
+                    "batch replies while the learner is ahead and tells actors on <namespace>/<run>/replay/rate "
+                    "to hold their next episode while it is behind.")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the rate limiter's counters of the run's earlier replay "
+                             "(<run.runs_dir>/<run.name>/replay/rate_limiter.json); the store starts empty")
     add_config_arguments(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    _, config = parse_config_or_exit(build_parser(), argv)
+    args, config = parse_config_or_exit(build_parser(), argv)
     print_config("replay", config)
     from replay.service import run_replay
-    run_replay(config)
+    run_replay(config, resume=args.resume)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 Episodes keep their frames compressed exactly as they arrived; a sampled trace
 refers to the stored frame blobs, so overlapping traces never copy frames.
-Eviction is oldest-first, bounded by an episode count and a byte budget.
+Eviction is oldest-first, bounded by an episode count and a byte budget; evictions
+the budget forces below the count are counted apart, so a short buffer never goes unseen.
 """
 
 from __future__ import annotations
@@ -13,6 +14,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.wire import Episode, FrameStack, TraceBatch
+
+
+# actions (int64), rewards (float32) and weights versions (int64) of one stored step
+STEP_METADATA_BYTES = 8 + 4 + 8
+
+
+def full_episodes_fit(budget_bytes: int, max_steps: int, frame_bytes: float) -> int:
+    """How many episodes of max_steps steps (max_steps + 1 frames of frame_bytes) a budget holds."""
+    episode_bytes = (max_steps + 1) * frame_bytes + max_steps * STEP_METADATA_BYTES
+    return int(budget_bytes // episode_bytes)
 
 
 @dataclass(frozen=True)
@@ -48,6 +59,7 @@ class EpisodeStore:
         self.frames = 0
         self.inserted = 0
         self.evicted = 0
+        self.evicted_for_budget = 0  # evictions while fewer than `capacity` episodes were held
         self.short_dropped = 0
         self.env_steps_total = 0  # every step received, stored or not: the system's step count
 
@@ -66,8 +78,18 @@ class EpisodeStore:
         self.frames += len(stored.frames)
         self.inserted += 1
         while len(self._episodes) > self.capacity or (self.bytes > self.budget_bytes and len(self._episodes) > 1):
+            if len(self._episodes) <= self.capacity:
+                self.evicted_for_budget += 1
             self._evict_oldest()
         return True
+
+    @property
+    def frame_bytes_mean(self) -> float:
+        """Mean compressed size of a stored frame (nan while empty)."""
+        if not self.frames:
+            return float("nan")
+        steps = self.frames - len(self._episodes)
+        return (self.bytes - steps * STEP_METADATA_BYTES) / self.frames
 
     def sample(self, batch_size: int, request_id: int = 0) -> TraceBatch:
         """B traces of T steps: an episode uniformly, then a start uniformly inside it."""

@@ -1,9 +1,10 @@
+import logging
 import threading
 
 import numpy as np
 
 from common.config import load_config
-from common.exploration import exploration_message
+from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire import Stats, Weights
 from actor.runner import Actor, Mailbox, actor_seed
@@ -28,17 +29,41 @@ def test_mailbox_keeps_only_the_newest_weights():
     assert mailbox.take() == (None, None)
 
 
-def test_actor_waits_only_while_the_learner_lags_beyond_the_tolerance():
+def test_actor_holds_only_while_the_replay_says_so():
     mailbox = Mailbox()
-    assert not mailbox.learner_lags(0.1)  # no learner heard of: never hold
-    progress = lambda updates, due: mailbox.offer_progress(
-        Stats(source="learner", time=0.0, values={"updates": updates, "updates_due": due, "env_steps": 0}))
-    progress(95, 100)
-    assert not mailbox.learner_lags(0.1)  # 5 behind, 10 allowed
-    progress(89, 100)
-    assert mailbox.learner_lags(0.1)
-    progress(0, 1)
-    assert not mailbox.learner_lags(0.0)  # at least one update of slack
+    assert mailbox.must_hold() == ""  # no replay heard of: never hold
+    rate = lambda reason: mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": reason}))
+    rate("behind")
+    assert mailbox.must_hold() == "behind"
+    assert mailbox.must_hold() == "behind"  # kept, not taken
+    rate("")
+    assert mailbox.must_hold() == ""
+    rate("budget")
+    assert mailbox.must_hold() == "budget"
+
+
+def test_actor_follows_the_learners_strategy_and_params(caplog):
+    config = small_config()  # the actor is configured for constant epsilon
+    actor = Actor(config, actor_id=1)
+    learner_config = load_config("smoke", overrides={"exploration.strategy": "vdbe", "exploration.vdbe.nu": 3.0})
+    learner_side = make_strategy(learner_config.exploration, config.network.n_actions)
+    learner_side.start()
+    learner_side.on_update(np.array([1.0, 2.0]), np.array([2.0, 0.0]))
+    actor.mailbox.offer_exploration(exploration_message(learner_side))
+    with caplog.at_level(logging.INFO, logger="actor"):
+        actor.apply_mail()
+        actor.mailbox.offer_exploration(exploration_message(learner_side))
+        actor.apply_mail()  # the same strategy again: loaded, no second line
+    assert actor.strategy.name == "vdbe" and actor.strategy.params()["nu"] == 3.0
+    assert actor.strategy.epsilon == learner_side.epsilon < 1.0
+    lines = [r.getMessage() for r in caplog.records if "following the learner" in r.getMessage()]
+    assert len(lines) == 1 and "configured with constant" in lines[0]
+    # A state it cannot use is logged and skipped: the actor keeps the learner's last strategy.
+    broken = exploration_message(learner_side)
+    broken.state = {"epsilon": 7.0}
+    actor.mailbox.offer_exploration(broken)
+    actor.apply_mail()
+    assert actor.strategy.name == "vdbe" and actor.strategy.epsilon == learner_side.epsilon
 
 
 def test_episode_before_and_after_weights_and_start():

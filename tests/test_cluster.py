@@ -37,7 +37,7 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
         processes.append(process)
         return process
 
-    fast_stats = ("--replay.stats_period_s", "0.2")
+    fast_stats = ("--replay.stats_period_s", "0.2", "--run.runs_dir", str(tmp_path / "runs"))
     start_logged("hub", "replay.main", "--config", str(CONFIGS / "hub-replay.toml"), "--transport.listen", endpoint,
           *fast_stats)
     start_logged("other", "replay.main", "--run.name", "other", "--transport.mode", "client",

@@ -9,7 +9,8 @@ import scipy.stats
 from common.config import STRATEGIES, BmcConfig, DecreasingEpsilonConfig, ExplorationConfig, MaxBoltzmannConfig
 from common.exploration import (
     BmcPosterior, DecreasingEpsilonGreedy, EpsilonBmc, MaxBoltzmann, decreasing_epsilon,
-    exploration_message, greedy_and_uniform_returns, make_strategy, softmax_probabilities, student_t_pdf, vdbe_f,
+    bmc_observation_count, exploration_message, greedy_and_uniform_returns, make_strategy, newest_transitions,
+    same_strategy, softmax_probabilities, strategy_from_state, student_t_pdf, vdbe_f,
 )
 from common.wire import ExplorationState, decode, encode
 
@@ -76,7 +77,8 @@ def test_state_dict_round_trips_through_the_wire(name):
 def test_state_dict_holds_the_wire_fields():
     state = strategy("bmc").state_dict()
     assert set(state) == {"strategy", "params", "epsilon", "kappa", "started", "counters", "state"}
-    assert state["params"] == {"alpha0": 25.0, "beta0": 25.01, "a0": 250.0, "b0": 250.0, "mu0": 0.0, "tau0": 1.0}
+    assert state["params"] == {"alpha0": 25.0, "beta0": 25.01, "a0": 250.0, "b0": 250.0, "mu0": 0.0, "tau0": 1.0,
+                               "observations": "per_step"}
     assert state["state"] == {"alpha": 25.0, "beta": 25.01, "count": 0, "mean": 0.0, "m2": 0.0}
     assert state["counters"] == {"env_steps": 0, "updates": 0, "returns": 0}
 
@@ -97,6 +99,57 @@ def test_loading_a_wrong_state_is_a_value_error_and_changes_nothing():
         with pytest.raises(ValueError, match=message):
             policy.load_state_dict(state)
     assert policy.state_dict() == good
+
+
+# --- following another process's state (actors follow the learner) -----------------------
+
+@pytest.mark.parametrize("name", STRATEGIES)
+def test_a_strategy_is_rebuilt_from_its_state_alone(name):
+    config = ExplorationConfig(strategy=name)
+    config.vdbe.nu, config.softmax.kappa, config.bmc.alpha0 = 2.5, 0.3, 30.0  # not the defaults
+    learner_side = make_strategy(config, N_ACTIONS)
+    learner_side.start()
+    if learner_side.needs_q_after:
+        learner_side.on_update(np.array([1.0, 2.0]), np.array([1.5, 1.0]))
+    if learner_side.needs_returns:
+        learner_side.on_returns(np.array([1.0, 2.0]), np.array([0.5, 0.5]))
+    wire_state = dataclasses.asdict(decode(encode(exploration_message(learner_side)), ExplorationState))
+    actor_side = strategy_from_state(wire_state, N_ACTIONS)
+    assert type(actor_side) is type(learner_side) and same_strategy(actor_side, wire_state)
+    assert actor_side.state_dict() == learner_side.state_dict()
+    assert not same_strategy(strategy("bmc" if name != "bmc" else "vdbe"), wire_state)
+
+
+def test_a_state_that_cannot_be_followed_is_a_value_error():
+    good = strategy("vdbe").state_dict()
+    for state, message in [({**good, "strategy": "greedy"}, "no known strategy"),
+                           ({**good, "params": {**good["params"], "kappa": 0.1}}, "not one of vdbe's"),
+                           ({**good, "params": {**good["params"], "lam": 2.0}}, "lam"),
+                           ({**good, "params": {**good["params"], "nu": "x"}}, "nu"),
+                           ({**good, "params": [1]}, "must be a map"),
+                           ({**good, "state": {"epsilon": -1.0}}, "must lie in"),
+                           ("nothing", "no known strategy")]:
+        with pytest.raises(ValueError, match=message):
+            strategy_from_state(state, N_ACTIONS)
+
+
+# --- which transitions BMC observes --------------------------------------------------
+
+def test_per_step_counts_one_transition_per_env_step():
+    assert [bmc_observation_count(k, 4.0) for k in (1, 2, 3)] == [4, 4, 4]
+    assert [bmc_observation_count(k, 2.5) for k in (1, 2, 3, 4)] == [2, 3, 2, 3]  # 10 after 4 updates
+    assert sum(bmc_observation_count(k, 0.3) for k in range(1, 11)) == 3
+
+
+def test_newest_transition_of_each_trace_first():
+    g = np.arange(12.0).reshape(4, 3)  # 4 traces of 3 unmasked steps; step 2 is each trace's newest
+    greedy, uniform = newest_transitions(g, -g, 4)
+    assert greedy.tolist() == [2, 5, 8, 11] and uniform.tolist() == [-2, -5, -8, -11]
+    assert newest_transitions(g, g, 6)[0].tolist() == [1, 2, 4, 5, 8, 11]  # then the step before, traces 0 and 1
+    assert newest_transitions(g, g, 50)[0].tolist() == list(range(12))  # never more than the batch holds
+    assert newest_transitions(g, g, 0)[0].size == 0
+    with pytest.raises(ValueError):
+        newest_transitions(g, g[:2], 3)
 
 
 @pytest.mark.parametrize("q_values", [[1.0, 2.0], [0.0, math.nan, 0.0, 0.0, 0.0], [[0.0] * 5]])

@@ -1,5 +1,7 @@
-"""The main job, deploy/stack.py: starts the roles, restarts a dead actor, stops cleanly on Ctrl-C."""
+"""The main job, deploy/stack.py: starts the roles, restarts a dead actor, stops cleanly on Ctrl-C,
+and keeps the configured update ratio over a whole run."""
 
+import json
 import os
 import signal
 import subprocess
@@ -7,6 +9,9 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+from common.config import PRESETS
 from tests.processes import wait_for
 
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
@@ -65,3 +70,30 @@ def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
                     os.kill(pid, signal.SIGKILL)
                 except ProcessLookupError:
                     pass
+
+
+def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):
+    """The whole run's env steps per update, from the replay's start mark to the learner's last update,
+    as the learner's metrics and the run summary give it. The error buffer of the smoke preset is 2
+    updates and the run makes about 225, so the rate limiter alone keeps it within 1%."""
+    budget = 4_500
+    output = open(tmp_path / "stack.out", "wb")
+    stack = subprocess.Popen([sys.executable, str(STACK), "--preset", "smoke", "--actors", "1",
+                              "--run.runs_dir", str(tmp_path), "--run.name", "ratio", "--record.enabled", "false",
+                              "--learner.total_env_steps", str(budget),
+                              "--network.lstm_units", "16"],  # a small LSTM: the run takes seconds, not minutes
+                             stdout=output, stderr=subprocess.STDOUT, cwd=tmp_path)
+    try:
+        assert stack.wait(240) == 0, (tmp_path / "stack.out").read_text()[-3000:]
+    finally:
+        if stack.poll() is None:
+            stack.kill()
+            stack.wait()
+    summary = json.loads((tmp_path / "ratio" / "summary.json").read_text())
+    configured = PRESETS["smoke"]["learner.env_steps_per_update"]
+    assert summary["learner_finished"] and summary["env_steps_per_update_configured"] == configured
+    assert summary["env_steps"] >= budget and summary["updates"] >= 200
+    assert summary["env_steps_per_update"] == pytest.approx(
+        (summary["env_steps"] - summary["start_env_steps"]) / summary["updates"])
+    assert abs(summary["env_steps_per_update"] / configured - 1) < 0.01, summary
+    assert "env steps per update (configured 20)" in (tmp_path / "stack.out").read_text()

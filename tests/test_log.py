@@ -235,7 +235,7 @@ def recorded_run(tmp_path_factory):
     process = start(["deploy/stack.py", "--preset", "smoke", "--actors", "1", "--run.name", RUN,
                      "--run.runs_dir", str(base / "runs"), "--learner.total_env_steps", str(STACK_ENV_STEPS),
                      "--record.flush_period_s", "0.5",
-                     "--learner.ratio_tolerance", "100"],  # neither the actor nor the learner waits for the other
+                     "--replay.error_buffer_updates", "1e9"],  # neither the actor nor the learner waits for the other
                     log, cwd=ROOT)
     try:
         code = process.wait(STACK_TIMEOUT_S)
@@ -278,7 +278,8 @@ def fresh_replay(tmp_path):
     endpoint = loopback_endpoint()
     log = tmp_path / "replay.log"
     process = start(["-m", "replay.main", "--preset", "smoke", "--run.name", "fresh", "--transport.mode", "router",
-                     "--transport.listen", endpoint, "--replay.stats_period_s", "0.2"], log)
+                     "--transport.listen", endpoint, "--replay.stats_period_s", "0.2",
+                     "--run.runs_dir", str(tmp_path / "runs")], log)
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     try:
         yield endpoint, session, log

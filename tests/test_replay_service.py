@@ -1,12 +1,18 @@
-"""The replay process over real Zenoh: stores episodes, serves traces, shrugs off bad input."""
+"""The replay process over real Zenoh: stores episodes, serves traces, shrugs off bad input, and
+paces the learner and the actors with its rate limiter."""
 
+import json
+import logging
+import threading
+import time
 
 import numpy as np
 import pytest
 
-from common.config import TransportConfig
+from common.config import TransportConfig, load_config
 from common.transport import Keys, open_session, publisher, request, subscribe
 from common.wire import Episode, FrameStack, Stats, TraceBatch, TraceBatchRequest, encode
+from replay.service import ReplayService, counters_path
 from tests import processes
 from tests.processes import loopback_endpoint, start, stop
 
@@ -28,7 +34,7 @@ def replay(tmp_path):
     process = start(
         ["-m", "replay.main", "--preset", "smoke", "--run.name", RUN, "--transport.mode", "router",
          "--transport.listen", endpoint, "--replay.capacity", "3", "--replay.max_message_mb", "1",
-         "--replay.stats_period_s", "0.2"], tmp_path / "replay.log")
+         "--replay.stats_period_s", "0.2", "--run.runs_dir", str(tmp_path / "runs")], tmp_path / "replay.log")
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     stats: list[dict] = []
     subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats,
@@ -79,3 +85,124 @@ def test_stores_serves_and_survives_bad_input(replay):
     latest = stats[-1]
     assert latest["episodes"] == 3 and latest["evicted"] >= 1
     assert process.poll() is None, log_path.read_text()
+
+
+# --- the rate limiter over the wire ------------------------------------------------------------
+
+def ask(session, request_id: int, results: dict) -> threading.Thread:
+    """A trace-batch request in the background; its reply (or None) lands in results[request_id]."""
+    def run():
+        results[request_id] = request(session, Keys("d3rqn", RUN).replay_sample,
+                                      TraceBatchRequest(request_id=request_id, batch_size=2, trace_length=TRACE),
+                                      timeout_s=20.0, expected=TraceBatch)
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_replies_wait_for_steps_and_actors_wait_for_the_learner(replay, tmp_path):
+    """Smoke: updates start at 2 stored episodes, 1 update per 20 env steps, error buffer 2 updates."""
+    session, stats, process, log_path = replay
+    keys = Keys("d3rqn", RUN)
+    rates: list[dict] = []
+    rate_subscription = subscribe(session, keys.replay_rate, lambda m, k: rates.append(dict(m.values)),
+                                  expected=Stats)
+    episodes = publisher(session, keys.episodes)
+    wait_for(lambda: episodes.matched and rates, "the replay's subscription and rate message")
+    try:
+        results: dict = {}
+        early = ask(session, 0, results)  # before updates start: held, not refused
+        episodes.put(episode(12, 1))
+        time.sleep(0.5)
+        assert 0 not in results
+        episodes.put(episode(12, 2))  # the second stored episode: updates start at 24 env steps
+        early.join(20)
+        assert results[0] is not None and results[0].env_steps_total == 24
+        ask(session, 1, results).join(20)  # 2 served, 0 due: the buffer's two updates ahead
+        third = ask(session, 2, results)
+        time.sleep(0.5)
+        assert 2 not in results  # a third batch would put the learner 3 ahead
+        episodes.put(episode(20, 3))  # 20 more steps: 1 update due, so 3 <= 1 + 2
+        third.join(20)
+        assert results[2] is not None and results[2].env_steps_total == 44
+        assert all(r["hold_reason"] == "" for r in rates)
+
+        episodes.put(episode(120, 4))  # 7 due, 3 served: 4 behind, more than 2
+        wait_for(lambda: rates[-1]["hold_reason"] == "behind", "the actors told to hold")
+        ask(session, 3, results).join(20)
+        ask(session, 4, results).join(20)  # 5 served: 2 behind, within the buffer
+        wait_for(lambda: rates[-1]["hold_reason"] == "", "the actors released")
+        latest = rates[-1]
+        assert (latest["env_steps"], latest["batches_served"], latest["start_env_steps"]) == (164, 5, 24)
+        assert latest["updates_due"] == pytest.approx(7.0)
+        assert latest["env_steps_per_update"] == pytest.approx(140 / 5)
+        wait_for(lambda: stats and stats[-1]["rate_batches_served"] == 5, "the counters in the stats")
+    finally:
+        rate_subscription.undeclare()
+    stop(process)
+    saved = json.loads(counters_path(load_config("smoke", overrides={
+        "run.name": RUN, "run.runs_dir": str(tmp_path / "runs")})).read_text())
+    assert (saved["env_steps"], saved["served"], saved["start_mark"]) == (164, 5, 24)
+
+
+def test_a_resumed_replay_continues_its_counters(tmp_path):
+    config = load_config("smoke", overrides={"run.name": RUN, "run.runs_dir": str(tmp_path / "runs")})
+    path = counters_path(config)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"version": 1, "env_steps": 5_000, "served": 240, "start_mark": 200.0}))
+    endpoint = loopback_endpoint()
+    process = start(["-m", "replay.main", "--preset", "smoke", "--run.name", RUN, "--run.runs_dir",
+                     str(tmp_path / "runs"), "--transport.mode", "router", "--transport.listen", endpoint,
+                     "--replay.stats_period_s", "0.2", "--resume"], tmp_path / "replay.log")
+    session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+    stats: list[dict] = []
+    subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats, lambda m, k: stats.append(dict(m.values)),
+                             expected=Stats)
+    try:
+        episodes = publisher(session, Keys("d3rqn", RUN).episodes)
+        wait_for(lambda: episodes.matched and stats, "the resumed replay")
+        assert (stats[-1]["env_steps_total"], stats[-1]["rate_batches_served"]) == (5_000, 240)
+        episodes.put(episode(40, 1))  # the store restarts empty; the counters go on
+        wait_for(lambda: stats[-1]["env_steps_total"] == 5_040, "the next episode counted")
+        assert stats[-1]["episodes"] == 1 and stats[-1]["rate_updates_due"] == pytest.approx(4_840 / 20)
+    finally:
+        subscription.undeclare()
+        session.close()
+        stop(process)
+    assert "resumed the rate limiter" in (tmp_path / "replay.log").read_text()
+
+
+# --- the memory budget --------------------------------------------------------------------------
+
+def test_the_budget_check_says_how_many_full_episodes_fit(caplog):
+    # 60-step episodes: 61 frames of 3,276.8 B + 60 x 20 B of metadata = 201,084.8 B each;
+    # 10 MB = 10,485,760 B holds 52 of them, 5 MB 26, and 50 need 10,054,240 B (9.6 MB)
+    config = load_config("smoke", overrides={"replay.capacity": 50, "replay.memory_budget_mb": 10.0})
+    with caplog.at_level(logging.INFO, logger="replay"):
+        assert ReplayService(config).budget_report(3.2 * 1024, "estimate")
+    assert "holds 52 episodes of env.max_steps = 60 steps at 3.20 KB per frame" in caplog.text
+    caplog.clear()
+    config = load_config("smoke", overrides={"replay.capacity": 50, "replay.memory_budget_mb": 5.0})
+    with caplog.at_level(logging.INFO, logger="replay"):
+        assert not ReplayService(config).budget_report(3.2 * 1024, "estimate")
+    [record] = caplog.records
+    assert record.levelno == logging.WARNING and "holds only 26 of 50 episodes" in record.getMessage()
+    assert "--replay.memory_budget_mb 10" in record.getMessage()
+
+
+def test_the_default_budget_holds_2000_full_length_episodes():
+    config = load_config("paper", overrides={"replay.capacity": 2000})
+    assert config.env.max_steps == 2000
+    assert ReplayService(config).budget_report(3.2 * 1024, "the top-down camera's frames")
+    assert ReplayService(config).budget_report(4.0 * 1024, "frames a quarter larger")
+
+
+def test_budget_evictions_below_capacity_are_counted_and_warned(caplog):
+    config = load_config("smoke", overrides={"replay.capacity": 10, "replay.memory_budget_mb": 0.001})
+    service = ReplayService(config)
+    with caplog.at_level(logging.WARNING, logger="replay"):
+        for index in range(3):
+            service.on_episode(episode(12, index))
+    values = service.snapshot()
+    assert values["episodes"] == 1 and values["evicted_for_budget"] == 2
+    assert "MEMORY BUDGET IS EVICTING" in caplog.text

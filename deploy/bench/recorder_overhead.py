@@ -10,7 +10,7 @@ learner's updates/s over the same span is shown too. Log size per 1,000 env step
 is given for the whole file and without the Weights channel (a few 48 MB weights
 per run, whatever its length). Flags after `--` go to the stack.
 
-    .venv/bin/python deploy/bench/recorder_overhead.py [--steps 3000] [--rounds 2] [-- --actor.pace_with_learner false]
+    .venv/bin/python deploy/bench/recorder_overhead.py [--steps 3000] [--rounds 2] [-- --replay.error_buffer_updates 1e9]
 """
 
 from __future__ import annotations

@@ -1,0 +1,195 @@
+"""The one rate limiter of the system: env steps in, trace batches out, at a fixed ratio.
+
+After Reverb's ``SampleToInsertRatio``, with env steps as inserts and trace
+batches (one per learner update) as samples. The replay owns it and is the
+only place that counts both:
+
+- *Stage 1*, before updates start: every episode is taken, no batch is served.
+  Updates start exactly when the store holds ``start_episodes`` episodes (the
+  paper's 999), or, for decreasing epsilon, at ``start_steps`` env steps. The
+  env-step count at that moment is the *start mark*.
+- *Stage 2*: the updates the system's steps have paid for are
+  ``due = (env_steps - start_mark) / env_steps_per_update``; the error is
+  ``due - served``. A batch may be served while ``served + 1 <= due + B``
+  (the learner at most B updates ahead); actors are told to hold their next
+  episode while ``due - served > B`` (the learner more than B behind). B, the
+  error buffer, is a fixed number of updates, not a share of the total, so the
+  error of the whole run's ratio shrinks as the run grows. Steps that arrive
+  after the start mark (episodes still in flight when it was reached, the
+  random phase's last episodes) are owed like any others.
+- Once the run's step budget is reached, actors are held for good, so the
+  learner can pay for the last steps and stop on the configured ratio.
+
+An episode is inserted whole, so the actors' hold acts at episode boundaries:
+the learner can fall behind by B plus the episodes in flight, never more.
+
+Pure: no threads, no clock, no I/O. The replay service calls it under its lock
+and persists ``state_dict()``, so the counters survive a learner restart (the
+replay keeps running) and a replay restart (``replay --resume``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+STATE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class RateLimit:
+    """The limiter's settings, from learner.env_steps_per_update, learner.start_episodes,
+    learner.start_steps, learner.total_env_steps and replay.error_buffer_updates."""
+
+    env_steps_per_update: float
+    start_episodes: int
+    start_steps: int
+    error_buffer: float  # B, in updates
+    total_env_steps: int | None = None  # actors hold for good once this many steps arrived
+    start_by_steps: bool = False  # decreasing epsilon: start at start_steps, not start_episodes
+
+    def __post_init__(self) -> None:
+        if not self.env_steps_per_update > 0:
+            raise ValueError(f"env_steps_per_update must be > 0, got {self.env_steps_per_update}")
+        if self.start_episodes < 1 or self.start_steps < 0:
+            raise ValueError(f"start_episodes must be >= 1 and start_steps >= 0, got "
+                             f"{self.start_episodes} and {self.start_steps}")
+        if not self.error_buffer >= 1:  # Reverb: narrower buffers can block both sides
+            raise ValueError(f"error_buffer must be >= 1 update, got {self.error_buffer}")
+
+
+def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
+    """The RateLimit of a Config; `strategy` (the learner's, when known) picks the start rule."""
+    learner = config.learner
+    return RateLimit(
+        env_steps_per_update=learner.env_steps_per_update,
+        start_episodes=learner.start_episodes,
+        start_steps=learner.start_steps,
+        error_buffer=config.replay.error_buffer_updates,
+        total_env_steps=learner.total_env_steps,
+        start_by_steps=(strategy or config.exploration.strategy) == "decreasing",
+    )
+
+
+class RateLimiter:
+    """Counts env steps received and batches served; says who must wait."""
+
+    def __init__(self, limit: RateLimit) -> None:
+        self.limit = limit
+        self.env_steps = 0  # every step received, stored or not
+        self.served = 0  # trace batches served since updates started
+        self.start_mark: float | None = None  # env steps when updates started; None in stage 1
+
+    # --- events -------------------------------------------------------------------------
+
+    def on_episode(self, steps: int, episodes_stored: int) -> None:
+        """An episode of `steps` steps arrived; the store now holds `episodes_stored` episodes."""
+        if steps < 0:
+            raise ValueError(f"an episode has >= 0 steps, got {steps}")
+        before = self.env_steps
+        self.env_steps += steps
+        if self.start_mark is not None:
+            return
+        limit = self.limit
+        if limit.start_by_steps:
+            if self.env_steps >= limit.start_steps:
+                # exactly at start_steps: the crossing episode's later steps are owed already
+                self.start_mark = float(max(before, limit.start_steps))
+        elif episodes_stored >= limit.start_episodes:
+            self.start_mark = float(self.env_steps)
+
+    def on_served(self) -> None:
+        """One trace batch went out (call only after may_serve() said yes)."""
+        self.served += 1
+
+    def set_start_by_steps(self, by_steps: bool) -> bool:
+        """Changes the start rule (the learner's strategy decides it); False once updates started."""
+        if self.start_mark is not None:
+            return by_steps == self.limit.start_by_steps
+        self.limit = RateLimit(**{**self.limit.__dict__, "start_by_steps": by_steps})
+        return True
+
+    # --- decisions ----------------------------------------------------------------------
+
+    @property
+    def started(self) -> bool:
+        return self.start_mark is not None
+
+    @property
+    def updates_due(self) -> float:
+        """Updates the steps since the start mark pay for (0 in stage 1)."""
+        if self.start_mark is None:
+            return 0.0
+        return (self.env_steps - self.start_mark) / self.limit.env_steps_per_update
+
+    @property
+    def error(self) -> float:
+        """due - served: positive while the learner is behind, negative while it is ahead."""
+        return self.updates_due - self.served
+
+    def may_serve(self) -> bool:
+        """Whether one more batch keeps the learner within B updates ahead."""
+        return self.started and self.served + 1 <= self.updates_due + self.limit.error_buffer
+
+    @property
+    def budget_spent(self) -> bool:
+        total = self.limit.total_env_steps
+        return total is not None and self.env_steps >= total
+
+    def hold_reason(self) -> str:
+        """Why actors must hold their next episode: "behind", "budget", or "" (go on)."""
+        if self.budget_spent:
+            return "budget"
+        if self.started and self.error > self.limit.error_buffer:
+            return "behind"
+        return ""
+
+    def env_steps_per_update(self) -> float:
+        """The achieved ratio since the start mark (nan before the first batch)."""
+        if self.start_mark is None or self.served == 0:
+            return math.nan
+        return (self.env_steps - self.start_mark) / self.served
+
+    # --- persistence --------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        return {"version": STATE_VERSION, "env_steps": self.env_steps, "served": self.served,
+                "start_mark": self.start_mark}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Counters of an earlier replay of the same run; ValueError if they are not sound."""
+        try:
+            if state["version"] != STATE_VERSION:
+                raise ValueError(f"rate limiter state version {state['version']!r}, expected {STATE_VERSION}")
+            env_steps, served, mark = state["env_steps"], state["served"], state["start_mark"]
+        except (KeyError, TypeError) as error:
+            raise ValueError(f"malformed rate limiter state ({error!r})") from None
+        if not (_count(env_steps) and _count(served)):
+            raise ValueError(f"rate limiter counters must be non-negative integers, got {env_steps!r}, {served!r}")
+        if mark is not None and not (isinstance(mark, (int, float)) and 0 <= mark <= env_steps):
+            raise ValueError(f"rate limiter start mark {mark!r} must lie in [0, env_steps]")
+        if mark is None and served:
+            raise ValueError("rate limiter state served batches before updates started")
+        self.env_steps, self.served = env_steps, served
+        self.start_mark = None if mark is None else float(mark)
+
+    def values(self) -> dict[str, int | float | str]:
+        """The counters and decisions, for the replay's stats and the rate message."""
+        values: dict[str, int | float | str] = {
+            "env_steps": self.env_steps,
+            "batches_served": self.served,
+            "updates_due": self.updates_due,
+            "start_env_steps": -1.0 if self.start_mark is None else self.start_mark,
+            "hold_actors": 1 if self.hold_reason() else 0,
+            "hold_reason": self.hold_reason(),
+            "error_buffer_updates": self.limit.error_buffer,
+            "env_steps_per_update_target": self.limit.env_steps_per_update,
+        }
+        achieved = self.env_steps_per_update()
+        if math.isfinite(achieved):
+            values["env_steps_per_update"] = achieved
+        return values
+
+
+def _count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0

@@ -1,0 +1,100 @@
+"""What the learner counts: BMC observations per env step, the achieved ratio, when the run is paid for."""
+
+import numpy as np
+import pytest
+
+from common.config import load_config
+from common.wire import FrameStack, Stats, TraceBatch
+from learner.service import LearnerProcess, RunClock
+
+SIZE, STEPS, TRACES, MASK = 36, 4, 3, 2  # 3 traces x 2 unmasked steps: 6 transitions per batch
+
+
+def config_with(tmp_path, **overrides):
+    return load_config("smoke", overrides={
+        "network.frame_height": SIZE, "network.frame_width": SIZE, "network.lstm_units": 16,
+        "learner.trace_length": STEPS, "learner.n_mask": MASK, "learner.batch_size": TRACES,
+        "exploration.strategy": "bmc", "run.runs_dir": str(tmp_path), **overrides})
+
+
+def batch(index: int, env_steps_total: int) -> TraceBatch:
+    rng = np.random.default_rng(index)
+    frames = rng.integers(0, 256, size=(TRACES * (STEPS + 1), SIZE, SIZE, 3), dtype=np.uint8)
+    return TraceBatch(
+        request_id=index, observations=FrameStack.from_array(frames),
+        actions=rng.integers(0, 5, size=(TRACES, STEPS)), rewards=rng.random((TRACES, STEPS), dtype=np.float32),
+        terminated=np.zeros((TRACES, STEPS), bool), weights_version=np.zeros((TRACES, STEPS), np.int64),
+        env_steps_total=env_steps_total, episodes_stored=10)
+
+
+def rate(env_steps: int, start: float) -> Stats:
+    return Stats(source="rate_limiter", time=0.0, values={"env_steps": env_steps, "start_env_steps": start})
+
+
+def run_updates(process: LearnerProcess, updates: int, per_update: float, mark: int = 1_000) -> int:
+    """Updates paced at exactly `per_update` env steps each, as the replay's rate limiter serves them."""
+    process.on_replay_rate(rate(mark, mark))
+    process.start_updates()
+    steps = mark
+    for index in range(updates):
+        steps = mark + round((index + 1) * per_update)
+        process.train_on(batch(index, steps))
+    return steps - mark
+
+
+@pytest.mark.parametrize("per_update", [4.0, 2.5, 6.0])
+def test_per_step_bmc_observes_one_transition_per_env_step(tmp_path, per_update):
+    process = LearnerProcess(config_with(tmp_path, **{"learner.env_steps_per_update": per_update}))
+    assert process.config.exploration.bmc.observations == "per_step"
+    env_steps = run_updates(process, 8, per_update)
+    assert process.strategy.returns == process.bmc_observations == env_steps  # 32, 20 or 48
+    assert process.strategy.returns / env_steps == 1.0
+    assert process.strategy.posterior.count == env_steps
+
+
+def test_per_transition_bmc_observes_every_unmasked_transition(tmp_path):
+    process = LearnerProcess(config_with(tmp_path, **{"exploration.bmc.observations": "per_transition",
+                                                      "learner.env_steps_per_update": 4.0}))
+    env_steps = run_updates(process, 8, 4.0)
+    assert process.strategy.returns == 8 * TRACES * (STEPS - MASK) == 48
+    assert process.strategy.returns / env_steps == 1.5
+
+
+def test_per_step_cannot_observe_more_than_a_batch_holds(tmp_path):
+    process = LearnerProcess(config_with(tmp_path, **{"learner.env_steps_per_update": 20.0}))
+    run_updates(process, 3, 20.0)
+    assert process.strategy.returns == 3 * 6
+
+
+def test_the_achieved_ratio_counts_from_the_replays_start_mark(tmp_path):
+    process = LearnerProcess(config_with(tmp_path, **{"learner.env_steps_per_update": 4.0}))
+    run_updates(process, 10, 4.0, mark=500)
+    assert process.env_steps_per_update() == pytest.approx(4.0)
+    process.on_replay_rate(rate(548, 500))  # 12 updates due, 10 made
+    assert process.env_steps_per_update() == pytest.approx(4.8)
+
+
+def test_the_run_ends_when_its_budget_is_paid_for():
+    clock = RunClock(env_steps_per_update=4.0, error_buffer=5.0)
+    clock.observe(980, start_env_steps=100)
+    assert not clock.finished(updates=200, total_env_steps=1_000)  # budget not spent
+    clock.observe(1_020)  # 230 updates due
+    assert not clock.finished(updates=229, total_env_steps=1_000)
+    assert clock.finished(updates=230, total_env_steps=1_000)
+    # Actors that keep outrunning the learner: it stops B updates past what was due when it saw the budget spent.
+    outrun = RunClock(env_steps_per_update=4.0, error_buffer=5.0)
+    outrun.observe(1_020, start_env_steps=100)
+    assert not outrun.finished(updates=220, total_env_steps=1_000)  # 230 due: the finish line is 235
+    outrun.observe(1_100)  # 250 due
+    assert not outrun.finished(updates=234, total_env_steps=1_000)
+    assert outrun.finished(updates=235, total_env_steps=1_000)
+
+
+def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():
+    clock = RunClock(env_steps_per_update=4.0, error_buffer=1.0)
+    clock.observe(500, start_env_steps=100)
+    clock.observe(480)  # an older batch, answered late
+    assert clock.env_steps == 500 and clock.updates_due() == 100
+    again = RunClock(env_steps_per_update=4.0, error_buffer=1.0)
+    again.load_state_dict(clock.state_dict())
+    assert (again.env_steps, again.start_env_steps) == (500, 100)

@@ -1,0 +1,149 @@
+"""The replay's rate limiter (after Reverb's SampleToInsertRatio), case by hand-worked case."""
+
+import math
+
+import pytest
+
+from common.config import load_config
+from replay.rate_limiter import RateLimit, RateLimiter, rate_limit_from_config
+
+
+def limiter(per_update=4.0, start_episodes=3, start_steps=100, buffer=2.0, total=None, by_steps=False):
+    return RateLimiter(RateLimit(per_update, start_episodes, start_steps, buffer, total, by_steps))
+
+
+def serve_all(rate: RateLimiter) -> int:
+    served = 0
+    while rate.may_serve():
+        rate.on_served()
+        served += 1
+    return served
+
+
+def test_stage_one_takes_every_episode_and_serves_nothing():
+    rate = limiter()
+    rate.on_episode(500, episodes_stored=1)
+    rate.on_episode(500, episodes_stored=2)
+    assert not rate.started and not rate.may_serve() and rate.hold_reason() == ""
+    assert rate.updates_due == 0 and math.isnan(rate.env_steps_per_update())
+
+
+def test_updates_start_exactly_at_the_configured_episode():
+    rate = limiter(start_episodes=3)
+    rate.on_episode(10, episodes_stored=1)
+    rate.on_episode(20, episodes_stored=2)
+    rate.on_episode(30, episodes_stored=3)  # the third stored episode: the mark is 60 steps
+    assert rate.started and rate.start_mark == 60
+    assert rate.updates_due == 0
+    # B = 2 updates of slack ahead: two batches at once, then the learner waits for steps
+    assert serve_all(rate) == 2
+    rate.on_episode(7, episodes_stored=4)  # 67 - 60 = 7 steps: 1.75 updates due, 2 served
+    assert serve_all(rate) == 1  # 3 <= 1.75 + 2
+    assert rate.served == 3 and rate.error == pytest.approx(-1.25)
+
+
+def test_a_short_episode_counts_its_steps_but_not_as_stored():
+    rate = limiter(start_episodes=2)
+    rate.on_episode(40, episodes_stored=1)
+    rate.on_episode(5, episodes_stored=1)  # too short to store: its steps count, the store did not grow
+    assert not rate.started and rate.env_steps == 45
+    rate.on_episode(15, episodes_stored=2)
+    assert rate.start_mark == 60
+
+
+def test_decreasing_epsilon_starts_at_the_step_count_and_owes_the_rest_of_the_episode():
+    rate = limiter(start_steps=100, by_steps=True, buffer=1.0)
+    rate.on_episode(90, episodes_stored=1)
+    assert not rate.started
+    rate.on_episode(30, episodes_stored=2)  # crosses 100 at its 10th step
+    assert rate.start_mark == 100
+    assert rate.updates_due == pytest.approx(5.0)  # (120 - 100) / 4: the crossing episode's last 20 steps
+    assert serve_all(rate) == 6  # 5 due + 1 of slack
+
+
+def test_actors_hold_while_the_learner_is_more_than_the_buffer_behind():
+    rate = limiter(start_episodes=1, buffer=2.0)
+    rate.on_episode(20, episodes_stored=1)  # mark 20
+    rate.on_episode(8, episodes_stored=2)  # 2 due, 0 served: error 2, not more than B
+    assert rate.hold_reason() == ""
+    rate.on_episode(4, episodes_stored=3)  # 3 due: error 3 > 2
+    assert rate.hold_reason() == "behind"
+    rate.on_served()  # error 2: go again
+    assert rate.hold_reason() == ""
+
+
+def test_the_learner_and_the_actors_never_wait_for_each_other_at_once():
+    rate = limiter(start_episodes=1, buffer=1.0, per_update=3.0)
+    rate.on_episode(1, episodes_stored=1)
+    for steps in (1, 2, 3, 5, 8, 13, 21, 2, 1, 40, 3):
+        rate.on_episode(steps, episodes_stored=2)
+        for _ in range(3):  # any number of serves in between
+            assert rate.may_serve() or rate.hold_reason() == ""
+            if rate.may_serve():
+                rate.on_served()
+
+
+def test_error_buffer_is_a_number_of_updates_not_a_share():
+    rate = limiter(start_episodes=1, buffer=3.0)
+    rate.on_episode(0, episodes_stored=1)
+    rate.on_episode(400_000, episodes_stored=2)  # 100,000 due
+    assert serve_all(rate) == 100_003  # three ahead, whatever the total
+    rate.on_episode(4 * 4, episodes_stored=3)  # 100,004 due: error 1
+    assert rate.hold_reason() == ""
+    rate.on_episode(4 * 3, episodes_stored=4)  # 100,007 due: error 4 > 3
+    assert rate.hold_reason() == "behind"
+
+
+def test_achieved_ratio_counts_from_the_start_mark():
+    rate = limiter(start_episodes=1, per_update=4.0, buffer=1.0)
+    rate.on_episode(1_000, episodes_stored=1)  # random phase, before the mark: not owed
+    for _ in range(10):
+        rate.on_episode(40, episodes_stored=2)
+        serve_all(rate)
+    # 400 steps after the mark; the learner may be one update ahead: 101 served
+    assert rate.served == 101 and rate.env_steps_per_update() == pytest.approx(400 / 101)
+
+
+def test_budget_holds_the_actors_for_good():
+    rate = limiter(start_episodes=1, total=100, buffer=1.0)
+    rate.on_episode(60, episodes_stored=1)
+    assert rate.hold_reason() == ""
+    rate.on_episode(60, episodes_stored=2)  # 120 >= 100
+    assert rate.hold_reason() == "budget"
+    serve_all(rate)
+    assert rate.hold_reason() == "budget" and rate.served == 16  # (120 - 60) / 4 + 1
+
+
+def test_the_start_rule_follows_the_learner_until_updates_start():
+    rate = limiter(start_episodes=2, start_steps=50)
+    assert rate.set_start_by_steps(True)
+    rate.on_episode(60, episodes_stored=1)
+    assert rate.start_mark == 50
+    assert not rate.set_start_by_steps(False)  # too late: updates started by steps
+    assert rate.set_start_by_steps(True)
+
+
+def test_state_round_trips_and_bad_state_is_refused():
+    rate = limiter(start_episodes=1)
+    rate.on_episode(30, episodes_stored=1)
+    rate.on_episode(12, episodes_stored=2)
+    serve_all(rate)
+    again = limiter(start_episodes=1)
+    again.load_state_dict(rate.state_dict())
+    assert again.state_dict() == rate.state_dict() and again.values() == rate.values()
+    good = rate.state_dict()
+    for bad in ({**good, "version": 9}, {**good, "served": -1}, {**good, "env_steps": 1.5},
+                {**good, "start_mark": 10_000}, {**good, "start_mark": None}, {"env_steps": 3}, None):
+        with pytest.raises(ValueError):
+            limiter().load_state_dict(bad)
+
+
+def test_settings_come_from_the_config():
+    config = load_config("paper")
+    limit = rate_limit_from_config(config)
+    assert (limit.env_steps_per_update, limit.start_episodes, limit.start_steps, limit.total_env_steps) == \
+        (4.0, 999, 50_000, 1_000_000)
+    assert limit.error_buffer == config.replay.error_buffer_updates and not limit.start_by_steps
+    assert rate_limit_from_config(config, strategy="decreasing").start_by_steps
+    with pytest.raises(ValueError, match="error_buffer"):
+        RateLimit(4.0, 1, 0, 0.5)
