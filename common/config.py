@@ -82,6 +82,9 @@ class ReplayConfig:
                f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
 
 
+UPDATE_PATHS = ("auto", "trace", "autograd")
+
+
 @dataclass
 class LearnerConfig:
     lr: float = 1e-4
@@ -103,6 +106,10 @@ class LearnerConfig:
     # On a host shared with busy processes, fewer threads avoid oversubscription, which
     # slows an update several times over.
     torch_threads: int = 0
+    # How an update computes its passes (learner/update.py): "trace" (hand-written passes, CPU-tuned),
+    # "autograd" (nn.LSTM under autograd; cuDNN on CUDA), or "auto": both timed on the first batch
+    # (about a second at the paper's sizes), the faster kept for the process.
+    update_path: str = "auto"
     log_period_s: float = 10.0
     seed: int = 0
 
@@ -115,6 +122,7 @@ class LearnerConfig:
         _check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
         _check(self.start_steps >= 0, "start_steps", "must be >= 0")
         _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
+        _check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
 
 
 @dataclass
@@ -205,35 +213,73 @@ class ExplorationConfig:
         _check(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
 
 
+CAMERAS = ("front", "topdown")
+
+
 @dataclass
 class EnvConfig:
     speed: float = 10.0  # m/s, held constant
-    max_steer_deg: float = 25.0  # half of it follows the map's 12 m corner curves
+    max_steer_deg: float = 25.0  # highway-env's bicycle model then turns on a 9.9 m radius
     # Decisions per second. At 10 Hz a step is 1 m of road: random steering then stays on the
     # road for about 19 steps (median 15), enough for traces of 10; at 5 Hz only 7.6 (median 6).
     policy_frequency: int = 10
-    reward_beta: float = 0.8  # r = exp(-beta * d)
-    offroad_distance: float = 3.7  # m from the centre-line that ends an episode
+    # highway-env's motion model (forward Euler) is stepped this often; a multiple of policy_frequency.
+    simulation_frequency: int = 20
+    reward_beta: float = 0.8  # r = exp(-beta * d), d the distance to the street's centre-line
+    offroad_distance: float = 3.7  # m from the centre-line that ends an episode (the kerb)
     max_steps: int = 2000  # a cut, not a terminal state
-    camera_ahead_m: float = 30.0  # metres of road visible ahead of the car
-    camera_behind_m: float = 2.0
-    camera_width_m: float = 24.0
+    lane_offset_m: float = 2.0  # highway-env lanes run this far right of the centre-line, one per direction
+
+    # What the car sees: "front" (a pinhole camera on the roof, the paper's set-up) or
+    # "topdown" (a heading-up map crop, nearly fully observed; for comparison).
+    camera: str = "front"
+    camera_height_m: float = 1.4  # front camera above the road
+    camera_pitch_deg: float = 5.0  # front camera tilted down from the horizontal
+    camera_hfov_deg: float = 90.0  # front camera's horizontal field of view
+    camera_range_m: float = 50.0  # front camera: nothing farther than this is drawn (haze)
+    topdown_ahead_m: float = 30.0  # top-down camera: metres of road visible ahead of the car
+    topdown_behind_m: float = 2.0
+    topdown_width_m: float = 24.0
     render_scale: float = 8.0  # pixels per metre of the pre-drawn world
-    wheelbase_m: float = 2.7  # kinematic bicycle: at 25 degrees the car turns on a 6 m radius
 
     # Each start pose is shifted sideways and turned by a uniform draw within these bounds
     # (the env's RNG), so repeated trials from one start differ as AirSim's physics made them.
     start_jitter_m: float = 0.3
     start_jitter_deg: float = 3.0
 
+    # An episode that covers less than stall_min_progress_m of new road in stall_window_s ends
+    # as "stalled" (terminated, like leaving the road): circling on a junction is not driving.
+    # Road counts as new when not driven within progress_memory_s (shorter than a lap of the
+    # smallest block, about 27 s at 10 m/s, so going round a block keeps counting).
+    stall_window_s: float = 10.0
+    stall_min_progress_m: float = 25.0
+    progress_memory_s: float = 20.0
+
+    # Moving traffic (beyond the paper, which had none): highway-env IDM vehicles on routes of
+    # their own, at speeds drawn from [traffic_speed_min, traffic_speed_max] m/s.
+    traffic_vehicles: int = 0
+    traffic_speed_min: float = 6.0
+    traffic_speed_max: float = 9.0
+
     def validate(self) -> None:
-        _positive(self, "speed", "max_steer_deg", "policy_frequency", "reward_beta",
-                  "offroad_distance", "max_steps", "camera_ahead_m", "camera_width_m", "render_scale",
-                  "wheelbase_m")
-        _check(self.camera_behind_m >= 0, "camera_behind_m", "must be >= 0")
+        _positive(self, "speed", "max_steer_deg", "policy_frequency", "simulation_frequency",
+                  "reward_beta", "offroad_distance", "max_steps", "camera_height_m",
+                  "camera_hfov_deg", "camera_range_m", "topdown_ahead_m", "topdown_width_m",
+                  "render_scale", "stall_window_s", "progress_memory_s", "traffic_speed_min")
+        _check(self.camera in CAMERAS, "camera", f"must be one of {', '.join(CAMERAS)}")
+        _check(self.simulation_frequency % self.policy_frequency == 0, "simulation_frequency",
+               "must be a multiple of policy_frequency")
+        _check(0 <= self.lane_offset_m < self.offroad_distance, "lane_offset_m", "must lie in [0, offroad_distance)")
+        _check(self.topdown_behind_m >= 0, "topdown_behind_m", "must be >= 0")
         _check(self.max_steer_deg < 90, "max_steer_deg", "must be < 90")
+        _check(-45 < self.camera_pitch_deg < 45, "camera_pitch_deg", "must lie in (-45, 45)")
+        _check(self.camera_hfov_deg < 170, "camera_hfov_deg", "must be < 170")
         _check(0 <= self.start_jitter_m < self.offroad_distance, "start_jitter_m", "must lie in [0, offroad_distance)")
         _check(0 <= self.start_jitter_deg < 45, "start_jitter_deg", "must lie in [0, 45)")
+        _check(self.stall_min_progress_m >= 0, "stall_min_progress_m", "must be >= 0")
+        _check(0 <= self.traffic_vehicles <= 40, "traffic_vehicles", "must lie in [0, 40]")
+        _check(self.traffic_speed_min <= self.traffic_speed_max, "traffic_speed_max",
+               "must be >= traffic_speed_min")
 
 
 @dataclass

@@ -46,7 +46,8 @@ from actor.sim.neighbourhood import Pose, neighbourhood
 from actor.sim.progress import ProgressMeter
 from actor.sim.road import LaneLocator, neighbourhood_road
 from actor.sim.vehicles import EgoVehicle
-from actor.sim.world_image import world_image
+from actor.sim.front_camera import PerspectiveCamera
+from actor.sim.world_image import ground_image, world_image
 from common.config import ConfigError, EnvConfig
 
 STEERING_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)  # times the maximum angle; positive turns right
@@ -160,7 +161,6 @@ class NeighbourhoodEnv(AbstractEnv):
         if name == "topdown":
             return TopDownCamera(world_image(config.render_scale, config.offroad_distance),
                                  config.topdown_ahead_m, config.topdown_behind_m, config.topdown_width_m)
-        from actor.sim.front_camera import PerspectiveCamera, ground_image
         return PerspectiveCamera(ground_image(config.render_scale, config.offroad_distance), self.hood,
                                  height_m=config.camera_height_m, pitch_deg=config.camera_pitch_deg,
                                  hfov_deg=config.camera_hfov_deg, range_m=config.camera_range_m)
