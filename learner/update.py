@@ -33,6 +33,10 @@ separate-pass versions, with either history, live in learner/reference_update.py
 from __future__ import annotations
 
 import copy
+import dataclasses
+import logging
+import math
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -41,8 +45,10 @@ import torch
 
 from common.config import LearnerConfig, NetworkConfig
 from common.exploration import greedy_and_uniform_returns
-from common.network import D3RQN, resolve_device, weights_to_numpy
+from common.network import D3RQN, resolve_device, scale_frames, weights_to_numpy
 from learner.allocator import keep_freed_memory
+
+log = logging.getLogger("learner.update")
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,24 @@ def one_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: floa
     return LossTerms(loss, q_values.detach(), next_q_online)
 
 
+def trace_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int) -> LossTerms:
+    """one_pass_loss on D3RQN.trace_q_values: the same loss and gradients (within rounding), less work on the CPU.
+
+    The frames are scaled once for both networks, and s_T, whose online Q-values
+    only enter the loss detached (the argmax), is left out of the backward pass.
+    """
+    trace_length = batch.actions.shape[1]
+    traces = batch.actions.shape[0]
+    pixels = scale_frames(batch.observations, online.used_frame_size)
+    q_all = online.trace_q_values(pixels, traces, grad_steps=trace_length)
+    with torch.no_grad():
+        next_q_target = target.trace_q_values(pixels, traces)[:, 1:]
+    q_values, next_q_online = q_all[:, :-1], q_all[:, 1:].detach()
+    targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma)
+    loss = masked_squared_error(taken_action_values(q_values, batch.actions), targets, n_mask)
+    return LossTerms(loss, q_values.detach(), next_q_online)
+
+
 def to_tensors(batch: TraceBatch, network: NetworkConfig, trace_length: int, device: torch.device) -> TraceTensors:
     """Checks a batch against the configured sizes (ValueError naming the field) and moves it to device."""
     observations = np.asarray(batch.observations)
@@ -156,14 +180,20 @@ class DoubleQLearner:
 
     Constructing one sets the process's allocator to keep freed memory
     (learner/allocator.py): 10-18% more updates per second on CPU.
+
+    Without a loss_function, `learner.update_path` picks how the passes are
+    computed: trace_pass_loss ("trace") or one_pass_loss ("autograd"), which give
+    the same loss and gradients within rounding; "auto" times both on the first
+    batch and keeps the faster for every learner of the process with the same
+    device, sizes and thread count (choose_update_path).
     """
 
-    def __init__(self, network: NetworkConfig, learner: LearnerConfig, loss_function: LossFunction = one_pass_loss,
+    def __init__(self, network: NetworkConfig, learner: LearnerConfig, loss_function: LossFunction | None = None,
                  device: torch.device | None = None) -> None:
         self.network_config = network
         self.config = learner
-        self.loss_function = loss_function
         self.device = device if device is not None else resolve_device(network)
+        self.loss_function = loss_function if loss_function is not None else UPDATE_PATHS.get(learner.update_path)
         keep_freed_memory()
         with torch.random.fork_rng(devices=[]):  # seeded weights without touching the caller's RNG
             torch.manual_seed(learner.seed)
@@ -172,9 +202,23 @@ class DoubleQLearner:
         self.optimizer = _adam(self.online.parameters(), learner.lr)
         self.updates = 0
 
-    def update(self, batch: TraceBatch, with_q_after: bool = False) -> UpdateResult:
+    @property
+    def update_path(self) -> str:
+        """"trace", "autograd", the loss function's name, or "auto" until the first batch has chosen."""
+        for name, function in UPDATE_PATHS.items():
+            if self.loss_function is function and function is not None:
+                return name
+        return "auto" if self.loss_function is None else getattr(self.loss_function, "__name__", "custom")
+
+    def prepare(self, batch: TraceBatch) -> TraceTensors:
+        """Checks a batch and moves it to the learner's device (the copy-in part of update())."""
+        return to_tensors(batch, self.network_config, self.config.trace_length, self.device)
+
+    def update(self, batch: TraceBatch | TraceTensors, with_q_after: bool = False) -> UpdateResult:
         """One soft target update and one gradient step; with_q_after adds VDBE's extra forward pass."""
-        tensors = to_tensors(batch, self.network_config, self.config.trace_length, self.device)
+        tensors = batch if isinstance(batch, TraceTensors) else self.prepare(batch)
+        if self.loss_function is None:
+            self.loss_function = UPDATE_PATHS[choose_update_path(self, tensors)]
         n_mask = self.config.n_mask
         self.soft_update_target()
         terms = self.loss_function(self.online, self.target, tensors, self.config.gamma, n_mask)
@@ -182,7 +226,11 @@ class DoubleQLearner:
         terms.loss.backward()
         self.optimizer.step()
         self.updates += 1
+        return self.exploration_terms(tensors, terms, with_q_after)
 
+    def exploration_terms(self, tensors: TraceTensors, terms: LossTerms, with_q_after: bool) -> UpdateResult:
+        """What the strategies need from an update whose gradient step is done (the last part of update())."""
+        n_mask = self.config.n_mask
         q_unmasked = terms.q_values[:, n_mask:]
         greedy = q_unmasked.argmax(dim=-1)
         q_after = self._greedy_q_after(tensors.observations[:, :-1], greedy) if with_q_after else None
@@ -208,7 +256,10 @@ class DoubleQLearner:
     @torch.no_grad()
     def _greedy_q_after(self, frames: torch.Tensor, greedy: torch.Tensor) -> np.ndarray:
         """Q(h_t, a*_t) under the updated weights, for the unmasked steps."""
-        q_values, _ = self.online(frames)
+        if self.loss_function is trace_pass_loss:
+            q_values = self.online.trace_q_values(scale_frames(frames, self.online.used_frame_size), frames.shape[0])
+        else:
+            q_values, _ = self.online(frames)
         return _numpy(taken_action_values(q_values[:, self.config.n_mask:], greedy))
 
     def online_weights(self) -> dict[str, np.ndarray]:
@@ -234,6 +285,46 @@ class DoubleQLearner:
         except (RuntimeError, KeyError) as error:
             raise ValueError(f"learner checkpoint does not fit this network: {error}") from None
         self.updates = int(state["updates"])
+
+
+UPDATE_PATHS: dict[str, LossFunction | None] = {"trace": trace_pass_loss, "autograd": one_pass_loss, "auto": None}
+
+_chosen_paths: dict[tuple, str] = {}  # choose_update_path's measurements, per process
+
+
+def choose_update_path(learner: DoubleQLearner, batch: TraceTensors, rounds: int = 3) -> str:
+    """The faster of "trace" and "autograd" for this learner's device, sizes and threads, measured once per process.
+
+    Each round times one loss and backward pass of each path on `batch`, in
+    turn (nothing is changed: the gradients are dropped); the path with the
+    shorter best round wins. Measured after one untimed pass each.
+    """
+    key = (learner.device.type, learner.device.index, dataclasses.astuple(learner.network_config),
+           tuple(batch.observations.shape), torch.get_num_threads())
+    if key in _chosen_paths:
+        return _chosen_paths[key]
+    candidates = {name: function for name, function in UPDATE_PATHS.items() if function is not None}
+    best = {name: math.inf for name in candidates}
+    for round_ in range(rounds + 1):
+        for name, function in candidates.items():
+            _synchronize(learner.device)
+            started = time.perf_counter()
+            terms = function(learner.online, learner.target, batch, learner.config.gamma, learner.config.n_mask)
+            terms.loss.backward()
+            _synchronize(learner.device)
+            if round_:
+                best[name] = min(best[name], time.perf_counter() - started)
+            learner.optimizer.zero_grad(set_to_none=True)
+    chosen = min(best, key=best.get)
+    log.info("update path: %s (best of %d: %s)", chosen, rounds,
+             ", ".join(f"{name} {1e3 * seconds:.1f} ms" for name, seconds in best.items()))
+    _chosen_paths[key] = chosen
+    return chosen
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def _adam(parameters, lr: float) -> torch.optim.Adam:

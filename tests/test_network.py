@@ -2,9 +2,10 @@ import numpy as np
 import pytest
 import torch
 
+import common.network as network_module
 from common.config import ConfigError, NetworkConfig, load_config
 from common.network import (
-    D3RQN, conv_output_shape, load_numpy_weights, resolve_device, weights_to_numpy,
+    D3RQN, conv_input_extent, conv_output_shape, load_numpy_weights, resolve_device, scale_frames, weights_to_numpy,
 )
 
 TINY = NetworkConfig(frame_height=36, frame_width=40, lstm_units=8, n_actions=5)
@@ -185,3 +186,83 @@ def test_loading_mismatched_weights_is_a_value_error_and_changes_nothing():
             load_numpy_weights(net, tensors)
     after = weights_to_numpy(net)
     assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+# --- the learner's trace pass (D3RQN.trace_q_values) -------------------------------
+
+def lively_net(config: NetworkConfig = TINY, seed: int = 3) -> D3RQN:
+    """A network whose LSTM gates are far from their resting values, so that a wrong gate shows."""
+    net = make_net(config, seed)
+    with torch.no_grad():
+        for parameter in net.lstm.parameters():
+            parameter.mul_(3.0)
+    return net
+
+
+def test_scale_frames_is_time_major_channels_last_and_bit_identical():
+    frames = random_frames(TINY, batch=3, time=4, seed=9)
+    pixels = scale_frames(frames)
+    assert pixels.shape == (12, 3, 36, 40) and pixels.is_contiguous(memory_format=torch.channels_last)
+    expected = frames.transpose(0, 1).reshape(12, 36, 40, 3).permute(0, 3, 1, 2).float().mul_(1.0 / 255.0)
+    assert torch.equal(pixels, expected)  # the same rounding as forward()'s scaling
+    cropped = scale_frames(frames, (30, 31))
+    assert torch.equal(cropped, expected[:, :, :30, :31])
+
+
+def test_the_convolutions_read_only_the_top_left_60x196_of_a_paper_frame():
+    assert conv_input_extent(66, 200) == (60, 196)
+    assert conv_input_extent(36, 40) == (36, 36)
+    assert make_net(NetworkConfig()).used_frame_size == (60, 196)
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["fused-relu", "plain-conv"])
+@pytest.mark.parametrize("config", [TINY, NetworkConfig(frame_height=44, frame_width=50, lstm_units=12)],
+                         ids=["tiny", "cropped"])
+def test_trace_q_values_equal_forward(config, fused, monkeypatch):
+    monkeypatch.setattr(network_module, "_fused_relu_convolution_available", lambda device: fused)
+    net = lively_net(config)
+    frames = random_frames(config, batch=4, time=6, seed=10)
+    with torch.no_grad():
+        expected, _ = net(frames)
+        for size in (None, net.used_frame_size):
+            q_values = net.trace_q_values(scale_frames(frames, size), batch=4)
+            torch.testing.assert_close(q_values, expected, rtol=1e-5, atol=1e-6)
+    q_values = net.trace_q_values(scale_frames(frames, net.used_frame_size), batch=4)  # with autograd on
+    torch.testing.assert_close(q_values.detach(), expected, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["fused-relu", "plain-conv"])
+def test_trace_gradients_equal_autograd_through_forward(fused, monkeypatch):
+    monkeypatch.setattr(network_module, "_fused_relu_convolution_available", lambda device: fused)
+    net = lively_net()
+    frames = random_frames(TINY, batch=4, time=6, seed=11)
+    weights = torch.randn(4, 5, 5, generator=torch.Generator().manual_seed(12))  # a loss on steps 0..4 only
+
+    q_values = net.trace_q_values(scale_frames(frames, net.used_frame_size), batch=4, grad_steps=5)
+    (q_values[:, :5] * weights).sum().backward()
+    trace_gradients = {name: p.grad.clone() for name, p in net.named_parameters()}
+    net.zero_grad()
+    expected, _ = net(frames)
+    (expected[:, :5] * weights).sum().backward()
+    for name, parameter in net.named_parameters():
+        torch.testing.assert_close(trace_gradients[name], parameter.grad, rtol=1e-4, atol=1e-6, msg=name)
+    assert all(g.abs().max() > 0 for g in trace_gradients.values())
+
+
+def test_steps_past_grad_steps_carry_no_gradient():
+    net = lively_net()
+    frames = random_frames(TINY, batch=2, time=4, seed=13)
+    q_values = net.trace_q_values(scale_frames(frames), batch=2, grad_steps=3)
+    q_values[:, 3:].sum().backward()
+    assert all(p.grad is None or not p.grad.any() for p in net.parameters())
+
+
+def test_trace_q_values_check_their_arguments():
+    net = make_net()
+    pixels = scale_frames(random_frames(TINY, batch=2, time=3))
+    with pytest.raises(ValueError, match="pixels must be"):
+        net.trace_q_values(pixels, batch=4)  # 6 frames are not whole traces of 4
+    with pytest.raises(ValueError, match="pixels must be"):
+        net.trace_q_values(pixels[:, :, :30], batch=2)
+    with pytest.raises(ValueError, match="grad_steps"):
+        net.trace_q_values(pixels, batch=2, grad_steps=4)

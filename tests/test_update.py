@@ -7,12 +7,17 @@ import pytest
 import torch
 from torch import nn
 
-from common.config import LearnerConfig, NetworkConfig
+from torch.utils.flop_counter import FlopCounterMode
+
+from common.config import ConfigError, LearnerConfig, NetworkConfig, load_config
 from common.exploration import greedy_and_uniform_returns
 from learner.allocator import keep_freed_memory
 from learner.reference_update import paper_reference_loss, same_history_reference_loss
+import learner.update as update_module
+from learner.flops import update_flops
 from learner.update import (
-    DoubleQLearner, TraceBatch, TraceTensors, double_q_targets, masked_squared_error, one_pass_loss, to_tensors,
+    DoubleQLearner, TraceBatch, TraceTensors, choose_update_path, double_q_targets, masked_squared_error,
+    one_pass_loss, to_tensors, trace_pass_loss,
 )
 
 TINY = NetworkConfig(frame_height=36, frame_width=36, lstm_units=16, device="cpu")
@@ -120,14 +125,87 @@ def losses_and_gradients(loss_function, seed: int, terminal_last: bool = False):
     return terms, torch.cat([p.grad.flatten() for p in learner.online.parameters()])
 
 
+@pytest.mark.parametrize("loss_function, reference_function", [
+    (one_pass_loss, same_history_reference_loss),  # one autograd pass against three
+    (trace_pass_loss, one_pass_loss),  # the hand-written trace passes against the autograd pass
+], ids=["one-pass-vs-separate-passes", "trace-passes-vs-autograd"])
 @pytest.mark.parametrize("seed, terminal_last", [(0, False), (1, True)])
-def test_one_pass_equals_the_separate_passes_with_the_same_history(seed, terminal_last):
-    one, one_grad = losses_and_gradients(one_pass_loss, seed, terminal_last)
-    reference, reference_grad = losses_and_gradients(same_history_reference_loss, seed, terminal_last)
+def test_one_pass_equals_the_separate_passes_with_the_same_history(loss_function, reference_function, seed,
+                                                                   terminal_last):
+    one, one_grad = losses_and_gradients(loss_function, seed, terminal_last)
+    reference, reference_grad = losses_and_gradients(reference_function, seed, terminal_last)
     assert one.loss.item() == pytest.approx(reference.loss.item(), rel=1e-6)
     torch.testing.assert_close(one.q_values, reference.q_values, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(one.next_q_values, reference.next_q_values, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(one_grad, reference_grad, rtol=1e-4, atol=1e-7)
+
+
+def learner_on(path: str, network: NetworkConfig = TINY) -> DoubleQLearner:
+    return DoubleQLearner(network, dataclasses.replace(LEARNER, update_path=path))
+
+
+@pytest.mark.parametrize("network", [TINY, NetworkConfig(frame_height=44, frame_width=50, lstm_units=24, device="cpu")],
+                         ids=["tiny", "cropped-frames"])
+def test_the_two_update_paths_stay_together_over_several_updates(network):
+    """Five updates of each path from the same weights: the same losses, exploration terms, weights and Adam state."""
+    rng = np.random.default_rng(7)
+    batches = [random_batch(rng, network, terminal_last=bool(k % 2)) for k in range(5)]
+    trace, plain = learner_on("trace", network), learner_on("autograd", network)
+    assert (trace.update_path, plain.update_path) == ("trace", "autograd")
+    for k, batch in enumerate(batches):
+        with_q_after = k >= 3
+        a, b = trace.update(batch, with_q_after=with_q_after), plain.update(batch, with_q_after=with_q_after)
+        assert a.update == b.update == k + 1
+        assert a.loss == pytest.approx(b.loss, rel=1e-5)
+        for name in ("q_before", "g_greedy", "g_uniform") + (("q_after",) if with_q_after else ()):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-4, atol=1e-6, err_msg=name)
+    torch.testing.assert_close(flat_parameters(trace.online), flat_parameters(plain.online), rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(flat_parameters(trace.target), flat_parameters(plain.target), rtol=1e-4, atol=1e-6)
+    moments = lambda learner: torch.cat([state[key].flatten() for state in learner.optimizer.state.values()
+                                         for key in ("exp_avg", "exp_avg_sq")])
+    torch.testing.assert_close(moments(trace), moments(plain), rtol=1e-3, atol=1e-9)
+    assert not torch.equal(flat_parameters(trace.online), flat_parameters(learner_on("trace", network).online))
+
+
+def test_auto_measures_both_paths_once_per_process_and_changes_nothing(monkeypatch):
+    monkeypatch.setattr(update_module, "_chosen_paths", {})
+    calls = []
+    measured = update_module.UPDATE_PATHS.copy()
+    for name in ("trace", "autograd"):
+        function = measured[name]
+        measured[name] = lambda *args, _name=name, _function=function: calls.append(_name) or _function(*args)
+    monkeypatch.setattr(update_module, "UPDATE_PATHS", measured)
+    first = learner_on("auto")
+    assert first.update_path == "auto"
+    before = flat_parameters(first.online)
+    tensors = first.prepare(random_batch(np.random.default_rng(8)))
+    chosen = choose_update_path(first, tensors, rounds=2)
+    assert chosen in ("trace", "autograd") and calls.count("trace") == calls.count("autograd") == 3
+    assert torch.equal(flat_parameters(first.online), before)  # measuring updates nothing
+    assert all(p.grad is None for p in first.online.parameters())
+    second = learner_on("auto")
+    second.update(random_batch(np.random.default_rng(9)))  # the same sizes: no second measurement
+    assert len(calls) == 7 and second.update_path == chosen and second.updates == 1
+
+
+def test_an_unknown_update_path_is_a_config_error():
+    with pytest.raises(ConfigError, match="learner.update_path"):
+        load_config("paper", overrides={"learner.update_path": "fast"})
+
+
+def test_the_flop_count_matches_torchs_counter_on_the_autograd_path():
+    """learner/flops.py against torch.utils.flop_counter on one loss and backward pass of today's code."""
+    learner = learner_on("autograd")
+    tensors = learner.prepare(random_batch(np.random.default_rng(10)))
+    with FlopCounterMode(display=False) as counter:
+        one_pass_loss(learner.online, learner.target, tensors, LEARNER.gamma, LEARNER.n_mask).loss.backward()
+    assert counter.get_total_flops() == sum(update_flops(TINY, LEARNER, backward_steps=11).values())
+
+
+def test_one_update_at_the_papers_sizes_is_19_4_gflop():
+    phases = update_flops(NetworkConfig(), LearnerConfig())
+    assert sum(phases.values()) == pytest.approx(19.399e9, rel=1e-4)
+    assert phases["target forward"] == pytest.approx(phases["online forward: conv"] + phases["online forward: lstm + head"])
 
 
 def test_the_paper_passes_see_one_frame_less_history():

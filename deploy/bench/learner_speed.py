@@ -1,76 +1,335 @@
-"""Learner updates per second, one-pass against the paper's separate passes, and actor inference rate.
+"""Learner updates per second against the machine's measured peak, with a per-phase breakdown.
 
-Same random batch and same initial weights for every variant; the variants take
-turns within each repetition so that machine noise hits them alike. Warm-up
-updates are excluded. Sizes come from the config (paper: B = 10, T = 10,
-RGB 66 x 200, LSTM 512); torch keeps its default thread count, printed.
+In one run, on one batch and the same initial weights for every variant:
 
-    .venv/bin/python deploy/bench/learner_speed.py [--repeats 5] [--updates 5] [--actor-steps 300]
+1. the FLOPs of one update, counted from the network's shapes (learner/flops.py);
+2. the machine's fp32 peak: a large square GEMM, and plain GEMMs of the
+   update's own shapes (the LSTM projection forward and backward, the
+   recurrence, the convolutions as im2col products), whose times add up to the
+   ceiling the update would reach if every layer ran like a plain GEMM;
+3. updates/s of today's code and of the new code, and the fraction of the
+   peak they reach (FLOPs per update x updates/s / peak GFLOP/s);
+4. where the time of one update goes, phase by phase.
+
+Everything takes turns within each round (peak GEMMs, every variant, the
+staged updates), so that noise from other processes hits all alike; figures
+are medians over the rounds (best rounds in brackets). Warm-up excluded.
+Sizes come from the config (paper: B = 10, T = 10, RGB 66 x 200, LSTM 512).
+
+    .venv/bin/python deploy/bench/learner_speed.py [--threads 2] [--rounds 7] [--updates 3]
+    .venv/bin/python deploy/bench/learner_speed.py --threads 1 --clock cpu   # a busy machine: CPU time of the one thread
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import statistics
 import time
+from typing import Callable
 
 import numpy as np
 import torch
 
 from common.config import Config, add_config_arguments, parse_config_or_exit
-from common.network import D3RQN, resolve_device
-from learner.reference_update import paper_reference_loss, same_history_reference_loss
-from learner.update import DoubleQLearner, TraceBatch, one_pass_loss, to_tensors
+from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device, scale_frames
+from common.wire import FrameStack
+from learner.flops import conv_features, conv_multiply_adds, update_flops
+from learner.reference_update import paper_reference_loss
+from learner.update import (
+    DoubleQLearner, LossTerms, TraceBatch, double_q_targets, masked_squared_error, one_pass_loss,
+    taken_action_values, trace_pass_loss,
+)
 
-VARIANTS = {  # name: (loss function, with_q_after)
-    "paper reference (3 separate passes)": (paper_reference_loss, False),
-    "same-history reference (3 passes)": (same_history_reference_loss, False),
-    "one-pass": (one_pass_loss, False),
-    "one-pass + VDBE after-pass": (one_pass_loss, True),
+# key: (description, loss function, with_q_after); "today" is the code before issue 14.
+VARIANTS = {
+    "today": ("today: one-pass, autograd", one_pass_loss, False),
+    "new": ("new: one-pass, trace passes", trace_pass_loss, False),
+    "today+vdbe": ("today + VDBE after-pass", one_pass_loss, True),
+    "new+vdbe": ("new + VDBE after-pass", trace_pass_loss, True),
+    "paper": ("paper reference, 3 passes", paper_reference_loss, False),
 }
+DEFAULT_VARIANTS = "today,new,new+vdbe,paper"
+
+
+class Clock:
+    """Wall time, or the process's CPU time (robust on a busy machine, meaningful with one thread)."""
+
+    def __init__(self, kind: str, device: torch.device) -> None:
+        self.now = time.perf_counter if kind == "wall" else time.process_time
+        self.device = device
+
+    def __call__(self) -> float:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        return self.now()
+
+    def seconds(self, work: Callable[[], object], repeat: int = 1) -> float:
+        started = self()
+        for _ in range(repeat):
+            work()
+        return (self() - started) / repeat
 
 
 def random_batch(config: Config, seed: int = 0) -> TraceBatch:
+    """Blocky random frames (8 x 8 pixel tiles), which compress about as well as camera frames do."""
     rng = np.random.default_rng(seed)
     net, learner = config.network, config.learner
     steps = (learner.batch_size, learner.trace_length)
-    frames = (learner.batch_size, learner.trace_length + 1, net.frame_height, net.frame_width, net.frame_channels)
-    return TraceBatch(observations=rng.integers(0, 256, frames, dtype=np.uint8),
-                      actions=rng.integers(0, net.n_actions, steps), rewards=rng.random(steps).astype(np.float32),
-                      terminated=np.zeros(steps, bool))
+    tiles = rng.integers(0, 256, (*steps[:1], learner.trace_length + 1, net.frame_height // 8 + 1,
+                                  net.frame_width // 8 + 1, net.frame_channels), dtype=np.uint8)
+    frames = tiles.repeat(8, axis=2).repeat(8, axis=3)[:, :, :net.frame_height, :net.frame_width]
+    return TraceBatch(observations=np.ascontiguousarray(frames), actions=rng.integers(0, net.n_actions, steps),
+                      rewards=rng.random(steps).astype(np.float32), terminated=np.zeros(steps, bool))
 
 
-def updates_per_second(learner: DoubleQLearner, batch: TraceBatch, updates: int, with_q_after: bool) -> float:
-    started = time.perf_counter()
-    for _ in range(updates):
-        learner.update(batch, with_q_after=with_q_after)
-    return updates / (time.perf_counter() - started)
+# --- the peak -------------------------------------------------------------------------------
+
+def gemm_shapes(config: Config) -> dict[str, tuple[int, int, int, int, str]]:
+    """The update's matrix products as (m, k, n, calls in sequence, layout).
+
+    Layout "nt" multiplies by the transpose of a row-major (n, k) matrix, as a
+    linear layer's forward pass does; "tn" by the transpose of a row-major (k, m)
+    one, as its weight gradient does. The convolutions appear as their im2col
+    products (rows = output pixels of all frames). Each shape stands for the
+    FLOPs of its layer in the forward and backward passes of one update.
+    """
+    net, learner = config.network, config.learner
+    traces, steps = learner.batch_size, learner.trace_length + 1
+    frames, grad_frames = traces * steps, traces * learner.trace_length
+    units = net.lstm_units
+    shapes = {}
+    height, width, channels = net.frame_height, net.frame_width, net.frame_channels
+    for index, (filters, kernel, stride) in enumerate(CONV_LAYERS, 1):
+        height, width = (height - kernel) // stride + 1, (width - kernel) // stride + 1
+        shapes[f"conv{index} as im2col GEMM"] = (frames * height * width, channels * kernel * kernel, filters, 1, "nn")
+        channels = filters
+    features = channels * height * width
+    shapes["LSTM projection, forward"] = (frames, features, 4 * units, 1, "nt")
+    shapes["LSTM projection, input grad"] = (grad_frames, 4 * units, features, 1, "nn")
+    shapes["LSTM projection, weight grad"] = (4 * units, grad_frames, features, 1, "tn")
+    shapes["LSTM recurrence step"] = (traces, units, 4 * units, steps, "nn")
+    return shapes
 
 
-def bench_learner(config: Config, repeats: int, updates: int, warmup: int) -> dict[str, list[float]]:
+def shape_flops(config: Config) -> dict[str, float]:
+    """FLOPs of one update each GEMM shape stands for."""
+    net, learner = config.network, config.learner
+    traces, steps = learner.batch_size, learner.trace_length + 1
+    frames, grad_frames = traces * steps, traces * learner.trace_length
+    macs = conv_multiply_adds(net)
+    units = net.lstm_units
+    flops = {}
+    for index, count in enumerate(macs, 1):
+        backward = grad_frames * count * (1 if index == 1 else 2)
+        flops[f"conv{index} as im2col GEMM"] = 2.0 * (2 * frames * count + backward)
+    features = conv_features(net)
+    flops["LSTM projection, forward"] = 2.0 * 2 * frames * features * 4 * units
+    flops["LSTM projection, input grad"] = 2.0 * grad_frames * features * 4 * units
+    flops["LSTM projection, weight grad"] = 2.0 * grad_frames * features * 4 * units
+    recurrence = 2.0 * traces * units * 4 * units
+    flops["LSTM recurrence step"] = recurrence * (2 * steps + 2 * learner.trace_length - 1)
+    flops["dueling head (not timed)"] = 2.0 * (units // 2) * (net.n_actions + 1) * (2 * frames + 2 * grad_frames)
+    return flops
+
+
+class Gemms:
+    """Plain fp32 matrix products on the device: the square one and the update's shapes."""
+
+    def __init__(self, config: Config, device: torch.device, square: int) -> None:
+        self.square = square
+        generator = torch.Generator().manual_seed(0)
+        self.a = torch.randn(square, square, generator=generator).to(device)
+        self.b = torch.randn(square, square, generator=generator).to(device)
+        self.shapes = gemm_shapes(config)
+        self.operands = {}
+        for name, (m, k, n, calls, layout) in self.shapes.items():
+            a = torch.randn(*((k, m) if layout[0] == "t" else (m, k)), generator=generator).to(device)
+            b = torch.randn(*((n, k) if layout[1] == "t" else (k, n)), generator=generator).to(device)
+            self.operands[name] = (a.t() if layout[0] == "t" else a, b.t() if layout[1] == "t" else b, calls)
+
+    def square_seconds(self, clock: Clock) -> float:
+        return clock.seconds(lambda: torch.mm(self.a, self.b), repeat=2)
+
+    def shape_seconds(self, clock: Clock) -> dict[str, float]:
+        times = {}
+        for name, (a, b, calls) in self.operands.items():
+            times[name] = clock.seconds(lambda: [torch.mm(a, b) for _ in range(calls)])
+        return times
+
+    def shape_gflops(self, name: str, seconds: float) -> float:
+        m, k, n, calls, _ = self.shapes[name]
+        return 2.0 * m * k * n * calls / seconds / 1e9
+
+
+# --- the phases -----------------------------------------------------------------------------
+
+class PhaseTimer:
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self.seconds: dict[str, float] = {}
+        self._last = clock()
+
+    def mark(self, phase: str) -> None:
+        """The time since the previous mark goes to `phase`."""
+        now = self.clock()
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + now - self._last
+        self._last = now
+
+
+def staged_update(learner: DoubleQLearner, wire_frames: FrameStack, batch: TraceBatch, clock: Clock,
+                  with_q_after: bool) -> dict[str, float]:
+    """learner.update(batch) step by step, timing each phase; the same arithmetic in the same order."""
+    timer = PhaseTimer(clock)
+    observations = wire_frames.decode().reshape(batch.observations.shape)
+    timer.mark("frame decode (wire)")
+    tensors = learner.prepare(TraceBatch(observations, batch.actions, batch.rewards, batch.terminated))
+    timer.mark("copy-in and checks")
+    learner.soft_update_target()
+    timer.mark("soft target update")
+    traces, steps = batch.actions.shape
+    gamma, n_mask = learner.config.gamma, learner.config.n_mask
+    if learner.loss_function is trace_pass_loss:
+        pixels = scale_frames(tensors.observations, learner.online.used_frame_size)
+        timer.mark("frame scaling")
+        features = learner.online.trace_features(pixels, traces, steps)
+        timer.mark("online forward: conv")
+        q_all = learner.online.trace_head(features, traces, steps)
+        timer.mark("online forward: lstm + head")
+        with torch.no_grad():
+            next_q_target = learner.target.trace_q_values(pixels, traces)[:, 1:]
+        timer.mark("target forward")
+    else:
+        hook = learner.online.lstm.register_forward_pre_hook(lambda *_: timer.mark("online forward: conv"))
+        try:
+            q_all, _ = learner.online(tensors.observations)
+        finally:
+            hook.remove()
+        timer.mark("online forward: lstm + head")
+        with torch.no_grad():
+            next_q_target = learner.target(tensors.observations)[0][:, 1:]
+        timer.mark("target forward")
+    q_values, next_q_online = q_all[:, :-1], q_all[:, 1:].detach()
+    targets = double_q_targets(tensors.rewards, tensors.terminated, next_q_online, next_q_target, gamma)
+    loss = masked_squared_error(taken_action_values(q_values, tensors.actions), targets, n_mask)
+    timer.mark("loss")
+    learner.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    timer.mark("backward")
+    learner.optimizer.step()
+    timer.mark("Adam")
+    learner.updates += 1
+    terms = LossTerms(loss, q_values.detach(), next_q_online)
+    learner.exploration_terms(tensors, terms, with_q_after=False)
+    timer.mark("exploration hooks (Q, BMC returns)")
+    if with_q_after:
+        greedy = terms.q_values[:, n_mask:].argmax(dim=-1)
+        learner._greedy_q_after(tensors.observations[:, :-1], greedy)
+        timer.mark("VDBE after-pass")
+    return timer.seconds
+
+
+# --- the run --------------------------------------------------------------------------------
+
+def median(values: list[float]) -> float:
+    return statistics.median(values)
+
+
+def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: int, clock_kind: str,
+        square: int, with_phases: bool) -> None:
+    device = resolve_device(config.network)
+    clock = Clock(clock_kind, device)
+    net, learner_config = config.network, config.learner
+    flops = update_flops(net, learner_config)
+    flops_vdbe = update_flops(net, learner_config, with_q_after=True)
+    update_gflop = sum(flops.values()) / 1e9
+    executed_today = sum(update_flops(net, learner_config, backward_steps=learner_config.trace_length + 1).values())
+    used_height, used_width = conv_input_extent(net.frame_height, net.frame_width)
+    cropped = dataclasses.replace(net, frame_height=used_height, frame_width=used_width)
+    executed_new = sum(update_flops(cropped, learner_config).values())
+
+    print(f"\nFLOPs of one update (multiply-adds x 2 of convolutions and matrix products; learner/flops.py)")
+    for phase, value in flops.items():
+        print(f"  {phase:34s} {value / 1e9:7.3f} GFLOP")
+    print(f"  {'total':34s} {update_gflop:7.3f} GFLOP   (+ VDBE after-pass "
+          f"{flops_vdbe['VDBE after-pass'] / 1e9:.3f})")
+    print(f"  executed by today's code, which also back-propagates through s_T: {executed_today / 1e9:.3f} GFLOP; "
+          f"by the new code, which skips the {net.frame_height - used_height} bottom rows and "
+          f"{net.frame_width - used_width} right columns no convolution output reads: {executed_new / 1e9:.3f} GFLOP")
+    print("  fractions of peak below count the total above for every variant", flush=True)
+
     batch = random_batch(config)
-    learners = {name: DoubleQLearner(config.network, config.learner, loss) for name, (loss, _) in VARIANTS.items()}
+    wire_frames = FrameStack.from_array(batch.observations.reshape(-1, *batch.observations.shape[2:]))
+    gemms = Gemms(config, device, square)
+    learners = {name: DoubleQLearner(net, learner_config, VARIANTS[name][1], device=device) for name in variants}
+    staged = {path: DoubleQLearner(net, learner_config, loss, device=device)
+              for path, loss in (("today", one_pass_loss), ("new", trace_pass_loss))} if with_phases else {}
+
     for name, learner in learners.items():
-        updates_per_second(learner, batch, warmup, VARIANTS[name][1])
-    rates: dict[str, list[float]] = {name: [] for name in VARIANTS}
-    for repeat in range(repeats):
+        for _ in range(warmup):
+            learner.update(batch, with_q_after=VARIANTS[name][2])
+    for path, learner in staged.items():
+        for _ in range(warmup):
+            staged_update(learner, wire_frames, batch, clock, with_q_after=False)
+    gemms.square_seconds(clock)
+    gemms.shape_seconds(clock)
+
+    square_gflops: list[float] = []
+    shape_times: dict[str, list[float]] = {name: [] for name in gemms.shapes}
+    rates: dict[str, list[float]] = {name: [] for name in variants}
+    phases: dict[str, dict[str, list[float]]] = {path: {} for path in staged}
+    for round_ in range(rounds):
+        square_gflops.append(2.0 * square ** 3 / gemms.square_seconds(clock) / 1e9)
+        for name, seconds in gemms.shape_seconds(clock).items():
+            shape_times[name].append(seconds)
         for name, learner in learners.items():
-            rates[name].append(updates_per_second(learner, batch, updates, VARIANTS[name][1]))
-        progress = ", ".join(f"{name.split(' (')[0]} {values[-1]:.2f}/s" for name, values in rates.items())
-        print(f"  repeat {repeat + 1}/{repeats}: {progress}", flush=True)
-    return rates
+            rates[name].append(1.0 / clock.seconds(lambda: learner.update(batch, with_q_after=VARIANTS[name][2]),
+                                                   repeat=updates))
+        for path, learner in staged.items():
+            for phase, seconds in staged_update(learner, wire_frames, batch, clock, with_q_after=True).items():
+                phases[path].setdefault(phase, []).append(seconds)
+        progress = ", ".join(f"{name} {values[-1]:.2f}/s" for name, values in rates.items())
+        print(f"  round {round_ + 1}/{rounds}: square GEMM {square_gflops[-1]:.0f} GFLOP/s; {progress}", flush=True)
 
+    peak = median(square_gflops)
+    print(f"\npeak fp32 GEMM, {torch.get_num_threads()} threads, {clock_kind} clock")
+    print(f"  square {square}x{square}x{square}: median {peak:.1f} GFLOP/s (best {max(square_gflops):.1f})")
+    ceiling_seconds = 0.0
+    weights = shape_flops(config)
+    for name in gemms.shapes:
+        seconds = median(shape_times[name])
+        rate = gemms.shape_gflops(name, seconds)
+        ceiling_seconds += weights[name] / (rate * 1e9)
+        m, k, n, calls, _ = gemms.shapes[name]
+        repeat = f" x{calls} in sequence" if calls > 1 else ""
+        print(f"  {name:32s} {m:6d} x {k:5d} x {n:5d}{repeat:17s} {rate:7.1f} GFLOP/s ({100 * rate / peak:3.0f}% of square)")
+    timed = sum(weights[name] for name in gemms.shapes)
+    ceiling_gflops = timed / ceiling_seconds / 1e9
+    print(f"  the update's GEMM-shape ceiling: {ceiling_gflops:.1f} GFLOP/s ({100 * ceiling_gflops / peak:.0f}% of "
+          f"square) = {ceiling_gflops / update_gflop:.2f} updates/s if every layer ran like a plain GEMM of its shape")
 
-def paper_history_gap(config: Config) -> tuple[float, float]:
-    """Relative loss difference and max |Q(h_t+1)| difference, one-pass vs paper passes, same weights and batch."""
-    learner = DoubleQLearner(config.network, config.learner)
-    tensors = to_tensors(random_batch(config), config.network, config.learner.trace_length, learner.device)
-    gamma, n_mask = config.learner.gamma, config.learner.n_mask
-    with torch.no_grad():
-        one = one_pass_loss(learner.online, learner.target, tensors, gamma, n_mask)
-        paper = paper_reference_loss(learner.online, learner.target, tensors, gamma, n_mask)
-    relative = abs(one.loss.item() - paper.loss.item()) / one.loss.item()
-    return relative, (one.next_q_values - paper.next_q_values).abs().max().item()
+    print(f"\nupdates per second (median, best round in brackets), fraction of the square-GEMM peak")
+    for name, values in rates.items():
+        gflop = sum((flops_vdbe if VARIANTS[name][2] else flops).values()) / 1e9
+        achieved = gflop * median(values)
+        print(f"  {VARIANTS[name][0]:30s} {median(values):6.2f} [{max(values):6.2f}]  {1e3 / median(values):6.1f} ms  "
+              f"{achieved:6.1f} GFLOP/s = {100 * achieved / peak:4.1f}% of peak, "
+              f"{100 * achieved / ceiling_gflops:4.1f}% of the GEMM-shape ceiling")
+    if "today" in rates and "new" in rates:
+        today, new = rates["today"], rates["new"]
+        print(f"  new / today: {median(new) / median(today):.3f} by medians, {max(new) / max(today):.3f} by best rounds")
+
+    if staged:
+        print(f"\nphases of one update, ms (median over rounds; staged copies of update() with VDBE's after-pass)")
+        names = list(dict.fromkeys(name for path in phases.values() for name in path))
+        print(f"  {'phase':38s} " + " ".join(f"{path:>9s}" for path in phases))
+        for name in names:
+            cells = [f"{1e3 * median(phases[path][name]):9.2f}" if name in phases[path] else f"{'-':>9s}"
+                     for path in phases]
+            print(f"  {name:38s} " + " ".join(cells))
+        totals = [sum(median(values) for values in path.values()) for path in phases.values()]
+        print(f"  {'sum':38s} " + " ".join(f"{1e3 * total:9.2f}" for total in totals))
 
 
 def bench_actor_steps(config: Config, steps: int, repeats: int) -> list[float]:
@@ -93,50 +352,58 @@ def bench_actor_steps(config: Config, steps: int, repeats: int) -> list[float]:
     return rates
 
 
-def describe(values: list[float]) -> str:
-    return f"median {statistics.median(values):7.2f}  best {max(values):7.2f}  worst {min(values):7.2f}"
-
-
-def ratio(faster: list[float], slower: list[float]) -> str:
-    """Speed-up by medians and by best rounds (the least disturbed on a shared machine)."""
-    return (f"{statistics.median(faster) / statistics.median(slower):.3f} by medians, "
-            f"{max(faster) / max(slower):.3f} by best rounds")
+def describe_machine(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    model, flags = "unknown CPU", set()
+    with contextlib.suppress(OSError):
+        with open("/proc/cpuinfo") as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("model name") and model == "unknown CPU":
+                    model = line.split(":", 1)[1].strip()
+                elif line.startswith("flags") and not flags:
+                    flags = set(line.split(":", 1)[1].split())
+    wanted = ["avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_tile"]
+    return f"{model}; {' '.join(flag for flag in wanted if flag in flags) or 'no AVX flags read'}"
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="learner_speed", description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5, help="timed rounds per variant (default 5)")
-    parser.add_argument("--updates", type=int, default=5, help="updates per round (default 5)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's default)")
+    parser.add_argument("--rounds", type=int, default=7, help="rounds; every measurement once per round (default 7)")
+    parser.add_argument("--updates", type=int, default=3, help="updates per variant per round (default 3)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed updates per variant first (default 2)")
-    parser.add_argument("--actor-steps", type=int, default=300, help="single steps per actor round (default 300)")
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                        help="wall time, or the process's CPU time: steadier on a busy machine, but with more "
+                             "than one thread it also counts threads spinning while they wait (default wall)")
+    parser.add_argument("--square", type=int, default=2048, help="size of the square GEMM (default 2048)")
+    parser.add_argument("--variants", default=DEFAULT_VARIANTS,
+                        help="comma-separated, of: " + "; ".join(f"{key} ({text})" for key, (text, _, _) in VARIANTS.items())
+                        + f" (default: {DEFAULT_VARIANTS})")
+    parser.add_argument("--no-phases", action="store_true", help="skip the per-phase breakdown")
+    parser.add_argument("--actor-steps", type=int, default=300, help="single steps per actor round; 0 skips (default 300)")
     add_config_arguments(parser)
     args, config = parse_config_or_exit(parser, argv)
+    variants = [name.strip() for name in args.variants.split(",") if name.strip()]
+    unknown = [name for name in variants if name not in VARIANTS]
+    if unknown:
+        parser.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
     net, learner = config.network, config.learner
+    device = resolve_device(net)
 
-    print(f"torch {torch.__version__}, device {resolve_device(net)}, torch.get_num_threads() = {torch.get_num_threads()}")
+    print(f"torch {torch.__version__}, device {device} ({describe_machine(device)}), "
+          f"torch.get_num_threads() = {torch.get_num_threads()}")
     print(f"batch B={learner.batch_size} T={learner.trace_length} frames {net.frame_height}x{net.frame_width}"
-          f"x{net.frame_channels}, LSTM {net.lstm_units}, {args.repeats} rounds x {args.updates} updates "
-          f"after {args.warmup} warm-up updates", flush=True)
-    rates = bench_learner(config, args.repeats, args.updates, args.warmup)
+          f"x{net.frame_channels}, LSTM {net.lstm_units}; {args.rounds} rounds x {args.updates} updates per variant "
+          f"after {args.warmup} warm-up updates; {args.clock} clock", flush=True)
+    run(config, variants, args.rounds, args.updates, args.warmup, args.clock, args.square, not args.no_phases)
 
-    print("\nlearner updates per second")
-    for name, values in rates.items():
-        print(f"  {name:38s} {describe(values)}")
-    one, vdbe = rates["one-pass"], rates["one-pass + VDBE after-pass"]
-    print(f"  one-pass / paper reference:        {ratio(one, rates['paper reference (3 separate passes)'])}")
-    print(f"  one-pass / same-history reference: {ratio(one, rates['same-history reference (3 passes)'])}")
-    extra_ms = 1e3 / statistics.median(vdbe) - 1e3 / statistics.median(one)
-    print(f"  VDBE after-pass: +{extra_ms:.1f} ms per update by medians "
-          f"(+{100 * (statistics.median(one) / statistics.median(vdbe) - 1):.0f}%), "
-          f"+{1e3 / max(vdbe) - 1e3 / max(one):.1f} ms by best rounds")
-
-    relative, q_gap = paper_history_gap(config)
-    print(f"\none-pass vs paper passes on the same weights and batch: relative loss difference {relative:.2e}, "
-          f"max |Q(h_t+1) difference| {q_gap:.2e} (h_t+1 has one frame more history in one-pass)")
-
-    print(f"\nactor single-step inference (batch 1, one frame, state carried, inference_mode)", flush=True)
-    steps = bench_actor_steps(config, args.actor_steps, args.repeats)
-    print(f"  steps per second {describe(steps)}")
+    if args.actor_steps:
+        print(f"\nactor single-step inference (batch 1, one frame, state carried, inference_mode)", flush=True)
+        steps = bench_actor_steps(config, args.actor_steps, args.rounds)
+        print(f"  steps per second: median {median(steps):.1f}, best {max(steps):.1f}")
 
 
 if __name__ == "__main__":
