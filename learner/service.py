@@ -35,6 +35,9 @@ log = logging.getLogger("learner")
 SAMPLE_TIMEOUT_S = 30.0
 IDLE_POLL_S = 0.05
 WAIT_LOG_S = 10.0
+# Once the budget is paid for, the learner waits this long for episodes still in flight (an actor
+# that started one before it heard the budget was spent) and pays for them too before it stops.
+FINISH_GRACE_S = 2.0
 CHECKPOINT_SECTIONS = ("learner", "exploration", "clock", "config")
 
 
@@ -285,11 +288,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                 process.checkpoint()
             if heartbeat.due():
                 outputs.metrics(report.values())
-            batch = None
-            while batch is None and not stop.is_set() and not process.finished():
-                batch = prefetcher.next(stop, timeout_s=IDLE_POLL_S * 10)
-                if batch is None and heartbeat.due():
-                    outputs.metrics(report.values())
+            batch = _next_batch(process, prefetcher, stop, lambda: heartbeat.due() and outputs.metrics(report.values()))
     finally:
         prefetcher.close()
         outputs.weights(process.make_weights())
@@ -298,6 +297,26 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
         log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
                  "checkpoint %s", process.updates, process.clock.env_steps, process.env_steps_per_update(),
                  config.env_steps_per_update, path)
+
+
+def _next_batch(process: LearnerProcess, prefetcher: Prefetcher, stop: threading.Event, idle) -> TraceBatch | None:
+    """The next batch, or None when stopped or when the budget is paid for and stays so for
+    FINISH_GRACE_S; idle() runs while waiting."""
+    paid_since = None
+    while not stop.is_set():
+        if process.finished():
+            paid_since = paid_since or time.monotonic()
+            if time.monotonic() - paid_since >= FINISH_GRACE_S:
+                return None
+            idle()
+            stop.wait(IDLE_POLL_S)
+            continue
+        paid_since = None
+        batch = prefetcher.next(stop, timeout_s=IDLE_POLL_S * 10)
+        if batch is not None:
+            return batch
+        idle()
+    return None
 
 
 def _first_batch(process: LearnerProcess, outputs: Outputs, prefetcher: Prefetcher,

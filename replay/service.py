@@ -71,7 +71,7 @@ class ReplayService:
         self.learner_strategy: str | None = None
         self._measured = False
         self._warn_budget = RateLimitedLog(60.0)
-        self._announced: str | None = None  # the hold reason last published on replay/rate
+        self._announced: tuple[str, int] | None = None  # the hold reason and env steps last published on replay/rate
 
     # --- inputs from Zenoh callbacks (never wait) ----------------------------------------
 
@@ -143,10 +143,12 @@ class ReplayService:
                 served = self._serve_one_locked()
                 announce_now = False
                 if announce is not None:
+                    # a change of the hold; past the budget every new step too (the learner pays the last ones)
                     reason = self.limiter.hold_reason()
-                    announce_now = reason != self._announced or every.due()
+                    now = (reason, self.limiter.env_steps if reason == "budget" else 0)
+                    announce_now = now != self._announced or every.due()
                     if announce_now:
-                        self._announced = reason
+                        self._announced = now
                         values = self.limiter.values()
                 if served is None and not announce_now and not expired:
                     self._changed.wait(WAKE_S)
