@@ -82,7 +82,7 @@ class ReplayConfig:
                f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
 
 
-UPDATE_PATHS = ("auto", "trace", "autograd")
+UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
 
 
 @dataclass
@@ -107,8 +107,9 @@ class LearnerConfig:
     # slows an update several times over.
     torch_threads: int = 0
     # How an update computes its passes (learner/update.py): "trace" (hand-written passes, CPU-tuned),
-    # "autograd" (nn.LSTM under autograd; cuDNN on CUDA), or "auto": both timed on the first batch
-    # (about a second at the paper's sizes), the faster kept for the process.
+    # "trace-split" (the same, the target pass on a helper thread with half the torch threads),
+    # "autograd" (nn.LSTM under autograd; cuDNN on CUDA), or "auto": each timed on the first batch
+    # (a second or two at the paper's sizes), the fastest kept for the process.
     update_path: str = "auto"
     log_period_s: float = 10.0
     seed: int = 0

@@ -37,6 +37,7 @@ import dataclasses
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -125,6 +126,12 @@ def one_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: floa
     q_all, _ = online(batch.observations)
     with torch.no_grad():
         next_q_target = target(batch.observations)[0][:, 1:]
+    return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask)
+
+
+def one_pass_terms(q_all: torch.Tensor, next_q_target: torch.Tensor, batch: TraceTensors, gamma: float,
+                   n_mask: int) -> LossTerms:
+    """The loss from the online Q(h_0..h_T, .) (with gradient) and the target Q(h_1..h_T, .)."""
     q_values, next_q_online = q_all[:, :-1], q_all[:, 1:].detach()
     targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma)
     loss = masked_squared_error(taken_action_values(q_values, batch.actions), targets, n_mask)
@@ -137,16 +144,12 @@ def trace_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: fl
     The frames are scaled once for both networks, and s_T, whose online Q-values
     only enter the loss detached (the argmax), is left out of the backward pass.
     """
-    trace_length = batch.actions.shape[1]
-    traces = batch.actions.shape[0]
+    traces, trace_length = batch.actions.shape
     pixels = scale_frames(batch.observations, online.used_frame_size)
     q_all = online.trace_q_values(pixels, traces, grad_steps=trace_length)
     with torch.no_grad():
         next_q_target = target.trace_q_values(pixels, traces)[:, 1:]
-    q_values, next_q_online = q_all[:, :-1], q_all[:, 1:].detach()
-    targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma)
-    loss = masked_squared_error(taken_action_values(q_values, batch.actions), targets, n_mask)
-    return LossTerms(loss, q_values.detach(), next_q_online)
+    return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask)
 
 
 def to_tensors(batch: TraceBatch, network: NetworkConfig, trace_length: int, device: torch.device) -> TraceTensors:
@@ -182,10 +185,13 @@ class DoubleQLearner:
     (learner/allocator.py): 10-18% more updates per second on CPU.
 
     Without a loss_function, `learner.update_path` picks how the passes are
-    computed: trace_pass_loss ("trace") or one_pass_loss ("autograd"), which give
-    the same loss and gradients within rounding; "auto" times both on the first
-    batch and keeps the faster for every learner of the process with the same
-    device, sizes and thread count (choose_update_path).
+    computed (UPDATE_PATHS), all with the same loss and gradients within
+    rounding: "trace" (trace_pass_loss), "trace-split" (the same, with the soft
+    update and the target pass on a helper thread with half the torch threads
+    while the online forward pass runs on the other half), "autograd"
+    (one_pass_loss); "auto" times them on the first batch and keeps the fastest
+    for every learner of the process with the same device, sizes and thread
+    count (choose_update_path).
     """
 
     def __init__(self, network: NetworkConfig, learner: LearnerConfig, loss_function: LossFunction | None = None,
@@ -193,7 +199,6 @@ class DoubleQLearner:
         self.network_config = network
         self.config = learner
         self.device = device if device is not None else resolve_device(network)
-        self.loss_function = loss_function if loss_function is not None else UPDATE_PATHS.get(learner.update_path)
         keep_freed_memory()
         with torch.random.fork_rng(devices=[]):  # seeded weights without touching the caller's RNG
             torch.manual_seed(learner.seed)
@@ -201,14 +206,21 @@ class DoubleQLearner:
         self.target = copy.deepcopy(self.online).requires_grad_(False)
         self.optimizer = _adam(self.online.parameters(), learner.lr)
         self.updates = 0
+        self.split_passes = False  # the target pass on a helper thread (update path "trace-split")
+        if loss_function is not None:
+            self.loss_function: LossFunction | None = loss_function
+            self.update_path = next((name for name, (function, split) in UPDATE_PATHS.items()
+                                     if function is loss_function and not split), "custom")
+        else:
+            self.use_path(learner.update_path)
 
-    @property
-    def update_path(self) -> str:
-        """"trace", "autograd", the loss function's name, or "auto" until the first batch has chosen."""
-        for name, function in UPDATE_PATHS.items():
-            if self.loss_function is function and function is not None:
-                return name
-        return "auto" if self.loss_function is None else getattr(self.loss_function, "__name__", "custom")
+    def use_path(self, name: str) -> None:
+        """Switches to one of UPDATE_PATHS, or to "auto" (chosen on the next batch)."""
+        if name == "auto":
+            self.loss_function, self.split_passes = None, False
+        else:
+            self.loss_function, self.split_passes = UPDATE_PATHS[name]
+        self.update_path = name
 
     def prepare(self, batch: TraceBatch) -> TraceTensors:
         """Checks a batch and moves it to the learner's device (the copy-in part of update())."""
@@ -217,16 +229,47 @@ class DoubleQLearner:
     def update(self, batch: TraceBatch | TraceTensors, with_q_after: bool = False) -> UpdateResult:
         """One soft target update and one gradient step; with_q_after adds VDBE's extra forward pass."""
         tensors = batch if isinstance(batch, TraceTensors) else self.prepare(batch)
-        if self.loss_function is None:
-            self.loss_function = UPDATE_PATHS[choose_update_path(self, tensors)]
-        n_mask = self.config.n_mask
-        self.soft_update_target()
-        terms = self.loss_function(self.online, self.target, tensors, self.config.gamma, n_mask)
+        if self.update_path == "auto":
+            self.use_path(choose_update_path(self, tensors))
+        return self._update(tensors, with_q_after)
+
+    def _update(self, tensors: TraceTensors, with_q_after: bool) -> UpdateResult:
+        if self.split_passes:
+            terms = self._split_trace_pass_loss(tensors)
+        else:
+            self.soft_update_target()
+            terms = self.loss_function(self.online, self.target, tensors, self.config.gamma, self.config.n_mask)
         self.optimizer.zero_grad(set_to_none=True)
         terms.loss.backward()
         self.optimizer.step()
         self.updates += 1
         return self.exploration_terms(tensors, terms, with_q_after)
+
+    def _split_trace_pass_loss(self, batch: TraceTensors) -> LossTerms:
+        """trace_pass_loss with the soft target update and the target pass on a helper thread.
+
+        The two threads share torch's threads: no OpenMP team spans both passes,
+        which keeps them apart on a machine whose cores are busy with other work.
+        """
+        traces, trace_length = batch.actions.shape
+        pixels = scale_frames(batch.observations, self.online.used_frame_size)
+        threads = torch.get_num_threads()
+        helper_threads = max(1, threads // 2)
+
+        def soft_update_and_target_pass() -> torch.Tensor:
+            torch.set_num_threads(helper_threads)
+            self.soft_update_target()
+            with torch.no_grad():
+                return self.target.trace_q_values(pixels, traces)[:, 1:]
+
+        pending = _helper_thread().submit(soft_update_and_target_pass)
+        torch.set_num_threads(max(1, threads - helper_threads))
+        try:
+            q_all = self.online.trace_q_values(pixels, traces, grad_steps=trace_length)
+        finally:
+            torch.set_num_threads(threads)
+            next_q_target = pending.result()
+        return one_pass_terms(q_all, next_q_target, batch, self.config.gamma, self.config.n_mask)
 
     def exploration_terms(self, tensors: TraceTensors, terms: LossTerms, with_q_after: bool) -> UpdateResult:
         """What the strategies need from an update whose gradient step is done (the last part of update())."""
@@ -287,36 +330,55 @@ class DoubleQLearner:
         self.updates = int(state["updates"])
 
 
-UPDATE_PATHS: dict[str, LossFunction | None] = {"trace": trace_pass_loss, "autograd": one_pass_loss, "auto": None}
+# name: (loss function, soft update and target pass on a helper thread)
+UPDATE_PATHS: dict[str, tuple[LossFunction, bool]] = {
+    "trace": (trace_pass_loss, False),
+    "trace-split": (trace_pass_loss, True),
+    "autograd": (one_pass_loss, False),
+}
 
 _chosen_paths: dict[tuple, str] = {}  # choose_update_path's measurements, per process
+_helper: ThreadPoolExecutor | None = None
 
 
-def choose_update_path(learner: DoubleQLearner, batch: TraceTensors, rounds: int = 3) -> str:
-    """The faster of "trace" and "autograd" for this learner's device, sizes and threads, measured once per process.
+def _helper_thread() -> ThreadPoolExecutor:
+    global _helper
+    if _helper is None:
+        _helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="learner-target-pass")
+    return _helper
 
-    Each round times one loss and backward pass of each path on `batch`, in
-    turn (nothing is changed: the gradients are dropped); the path with the
-    shorter best round wins. Measured after one untimed pass each.
+
+def candidate_paths(device: torch.device, threads: int) -> list[str]:
+    """The update paths worth timing: "trace-split" needs two torch threads; on CUDA one stream does it all."""
+    return [name for name in UPDATE_PATHS if name != "trace-split" or (device.type == "cpu" and threads >= 2)]
+
+
+def choose_update_path(learner: DoubleQLearner, batch: TraceTensors, rounds: int = 2) -> str:
+    """The fastest update path for this learner's device, sizes and threads, measured once per process.
+
+    Whole updates (soft update, passes, backward, Adam) on a scratch copy of the
+    learner, so the learner itself is left as it was; each round times one update
+    of each path in turn, after one untimed update each; the shortest best round wins.
     """
+    threads = torch.get_num_threads()
     key = (learner.device.type, learner.device.index, dataclasses.astuple(learner.network_config),
-           tuple(batch.observations.shape), torch.get_num_threads())
+           tuple(batch.observations.shape), threads)
     if key in _chosen_paths:
         return _chosen_paths[key]
-    candidates = {name: function for name, function in UPDATE_PATHS.items() if function is not None}
-    best = {name: math.inf for name in candidates}
+    scratch = copy.deepcopy(learner)
+    best = {name: math.inf for name in candidate_paths(learner.device, threads)}
     for round_ in range(rounds + 1):
-        for name, function in candidates.items():
+        for name in best:
+            scratch.use_path(name)
             _synchronize(learner.device)
             started = time.perf_counter()
-            terms = function(learner.online, learner.target, batch, learner.config.gamma, learner.config.n_mask)
-            terms.loss.backward()
+            scratch._update(batch, with_q_after=False)
             _synchronize(learner.device)
             if round_:
                 best[name] = min(best[name], time.perf_counter() - started)
-            learner.optimizer.zero_grad(set_to_none=True)
+    del scratch
     chosen = min(best, key=best.get)
-    log.info("update path: %s (best of %d: %s)", chosen, rounds,
+    log.info("update path: %s (best of %d updates each with %d torch threads: %s)", chosen, rounds, threads,
              ", ".join(f"{name} {1e3 * seconds:.1f} ms" for name, seconds in best.items()))
     _chosen_paths[key] = chosen
     return chosen

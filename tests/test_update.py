@@ -16,7 +16,8 @@ from learner.reference_update import paper_reference_loss, same_history_referenc
 import learner.update as update_module
 from learner.flops import update_flops
 from learner.update import (
-    DoubleQLearner, TraceBatch, TraceTensors, choose_update_path, double_q_targets, masked_squared_error,
+    DoubleQLearner, TraceBatch, TraceTensors, candidate_paths, choose_update_path, double_q_targets,
+    masked_squared_error,
     one_pass_loss, to_tensors, trace_pass_loss,
 )
 
@@ -146,15 +147,19 @@ def learner_on(path: str, network: NetworkConfig = TINY) -> DoubleQLearner:
 
 @pytest.mark.parametrize("network", [TINY, NetworkConfig(frame_height=44, frame_width=50, lstm_units=24, device="cpu")],
                          ids=["tiny", "cropped-frames"])
-def test_the_two_update_paths_stay_together_over_several_updates(network):
-    """Five updates of each path from the same weights: the same losses, exploration terms, weights and Adam state."""
+@pytest.mark.parametrize("path", ["trace", "trace-split"])
+def test_the_update_paths_stay_together_over_several_updates(path, network):
+    """Five updates from the same weights: the same losses, exploration terms, weights and Adam state as autograd's."""
     rng = np.random.default_rng(7)
     batches = [random_batch(rng, network, terminal_last=bool(k % 2)) for k in range(5)]
-    trace, plain = learner_on("trace", network), learner_on("autograd", network)
-    assert (trace.update_path, plain.update_path) == ("trace", "autograd")
+    trace, plain = learner_on(path, network), learner_on("autograd", network)
+    assert (trace.update_path, plain.update_path) == (path, "autograd")
     for k, batch in enumerate(batches):
         with_q_after = k >= 3
-        a, b = trace.update(batch, with_q_after=with_q_after), plain.update(batch, with_q_after=with_q_after)
+        torch.set_num_threads(2 if path == "trace-split" else 1)  # split: one for each pass
+        a = trace.update(batch, with_q_after=with_q_after)
+        torch.set_num_threads(1)
+        b = plain.update(batch, with_q_after=with_q_after)
         assert a.update == b.update == k + 1
         assert a.loss == pytest.approx(b.loss, rel=1e-5)
         for name in ("q_before", "g_greedy", "g_uniform") + (("q_after",) if with_q_after else ()):
@@ -164,28 +169,30 @@ def test_the_two_update_paths_stay_together_over_several_updates(network):
     moments = lambda learner: torch.cat([state[key].flatten() for state in learner.optimizer.state.values()
                                          for key in ("exp_avg", "exp_avg_sq")])
     torch.testing.assert_close(moments(trace), moments(plain), rtol=1e-3, atol=1e-9)
-    assert not torch.equal(flat_parameters(trace.online), flat_parameters(learner_on("trace", network).online))
+    assert not torch.equal(flat_parameters(trace.online), flat_parameters(learner_on(path, network).online))
 
 
-def test_auto_measures_both_paths_once_per_process_and_changes_nothing(monkeypatch):
+def test_auto_times_every_path_once_per_process_and_changes_nothing(monkeypatch):
     monkeypatch.setattr(update_module, "_chosen_paths", {})
-    calls = []
-    measured = update_module.UPDATE_PATHS.copy()
-    for name in ("trace", "autograd"):
-        function = measured[name]
-        measured[name] = lambda *args, _name=name, _function=function: calls.append(_name) or _function(*args)
-    monkeypatch.setattr(update_module, "UPDATE_PATHS", measured)
+    timed = []
+    original = DoubleQLearner._update
+    monkeypatch.setattr(DoubleQLearner, "_update",
+                        lambda self, *args, **kwargs: timed.append(self.update_path) or original(self, *args, **kwargs))
+    torch.set_num_threads(2)  # "trace-split" needs two
     first = learner_on("auto")
     assert first.update_path == "auto"
-    before = flat_parameters(first.online)
+    before = flat_parameters(first.online), flat_parameters(first.target)
     tensors = first.prepare(random_batch(np.random.default_rng(8)))
     chosen = choose_update_path(first, tensors, rounds=2)
-    assert chosen in ("trace", "autograd") and calls.count("trace") == calls.count("autograd") == 3
-    assert torch.equal(flat_parameters(first.online), before)  # measuring updates nothing
-    assert all(p.grad is None for p in first.online.parameters())
+    assert chosen in ("trace", "trace-split", "autograd")
+    assert sorted(set(timed)) == ["autograd", "trace", "trace-split"] and len(timed) == 9  # 1 untimed + 2 each
+    assert torch.equal(flat_parameters(first.online), before[0]) and torch.equal(flat_parameters(first.target), before[1])
+    assert first.updates == 0 and not first.optimizer.state and first.update_path == "auto"
     second = learner_on("auto")
-    second.update(random_batch(np.random.default_rng(9)))  # the same sizes: no second measurement
-    assert len(calls) == 7 and second.update_path == chosen and second.updates == 1
+    second.update(random_batch(np.random.default_rng(9)))  # the same sizes and threads: no second measurement
+    assert len(timed) == 10 and second.update_path == chosen and second.updates == 1
+    assert candidate_paths(torch.device("cpu"), 1) == ["trace", "autograd"]
+    assert candidate_paths(torch.device("cuda"), 4) == ["trace", "autograd"]
 
 
 def test_an_unknown_update_path_is_a_config_error():

@@ -37,20 +37,24 @@ from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device
 from common.wire import FrameStack
 from learner.flops import conv_features, conv_multiply_adds, update_flops
 from learner.reference_update import paper_reference_loss
-from learner.update import (
-    DoubleQLearner, LossTerms, TraceBatch, double_q_targets, masked_squared_error, one_pass_loss,
-    taken_action_values, trace_pass_loss,
-)
+from learner.update import DoubleQLearner, TraceBatch, candidate_paths, one_pass_terms, trace_pass_loss
 
-# key: (description, loss function, with_q_after); "today" is the code before issue 14.
+# key: (description, update path or loss function, with_q_after); "today" is the code before issue 14.
 VARIANTS = {
-    "today": ("today: one-pass, autograd", one_pass_loss, False),
-    "new": ("new: one-pass, trace passes", trace_pass_loss, False),
-    "today+vdbe": ("today + VDBE after-pass", one_pass_loss, True),
-    "new+vdbe": ("new + VDBE after-pass", trace_pass_loss, True),
+    "today": ("today: one-pass, autograd", "autograd", False),
+    "new": ("new: trace passes", "trace", False),
+    "split": ("new: trace passes, split threads", "trace-split", False),
+    "today+vdbe": ("today + VDBE after-pass", "autograd", True),
+    "new+vdbe": ("new + VDBE after-pass", "trace", True),
     "paper": ("paper reference, 3 passes", paper_reference_loss, False),
 }
-DEFAULT_VARIANTS = "today,new,new+vdbe,paper"
+DEFAULT_VARIANTS = "today,new,split,new+vdbe,paper"
+
+
+def make_learner(config: Config, path, device: torch.device) -> DoubleQLearner:
+    if isinstance(path, str):
+        return DoubleQLearner(config.network, dataclasses.replace(config.learner, update_path=path), device=device)
+    return DoubleQLearner(config.network, config.learner, path, device=device)
 
 
 class Clock:
@@ -186,11 +190,15 @@ def staged_update(learner: DoubleQLearner, wire_frames: FrameStack, batch: Trace
     timer.mark("frame decode (wire)")
     tensors = learner.prepare(TraceBatch(observations, batch.actions, batch.rewards, batch.terminated))
     timer.mark("copy-in and checks")
-    learner.soft_update_target()
-    timer.mark("soft target update")
     traces, steps = batch.actions.shape
     gamma, n_mask = learner.config.gamma, learner.config.n_mask
-    if learner.loss_function is trace_pass_loss:
+    if learner.split_passes:
+        terms = learner._split_trace_pass_loss(tensors)
+        timer.mark("online forward || soft update + target forward")
+        q_all, next_q_target = None, None
+    elif learner.loss_function is trace_pass_loss:
+        learner.soft_update_target()
+        timer.mark("soft target update")
         pixels = scale_frames(tensors.observations, learner.online.used_frame_size)
         timer.mark("frame scaling")
         features = learner.online.trace_features(pixels, traces, steps)
@@ -201,6 +209,8 @@ def staged_update(learner: DoubleQLearner, wire_frames: FrameStack, batch: Trace
             next_q_target = learner.target.trace_q_values(pixels, traces)[:, 1:]
         timer.mark("target forward")
     else:
+        learner.soft_update_target()
+        timer.mark("soft target update")
         hook = learner.online.lstm.register_forward_pre_hook(lambda *_: timer.mark("online forward: conv"))
         try:
             q_all, _ = learner.online(tensors.observations)
@@ -210,17 +220,15 @@ def staged_update(learner: DoubleQLearner, wire_frames: FrameStack, batch: Trace
         with torch.no_grad():
             next_q_target = learner.target(tensors.observations)[0][:, 1:]
         timer.mark("target forward")
-    q_values, next_q_online = q_all[:, :-1], q_all[:, 1:].detach()
-    targets = double_q_targets(tensors.rewards, tensors.terminated, next_q_online, next_q_target, gamma)
-    loss = masked_squared_error(taken_action_values(q_values, tensors.actions), targets, n_mask)
-    timer.mark("loss")
+    if q_all is not None:
+        terms = one_pass_terms(q_all, next_q_target, tensors, gamma, n_mask)
+        timer.mark("loss")
     learner.optimizer.zero_grad(set_to_none=True)
-    loss.backward()
+    terms.loss.backward()
     timer.mark("backward")
     learner.optimizer.step()
     timer.mark("Adam")
     learner.updates += 1
-    terms = LossTerms(loss, q_values.detach(), next_q_online)
     learner.exploration_terms(tensors, terms, with_q_after=False)
     timer.mark("exploration hooks (Q, BMC returns)")
     if with_q_after:
@@ -262,9 +270,10 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
     batch = random_batch(config)
     wire_frames = FrameStack.from_array(batch.observations.reshape(-1, *batch.observations.shape[2:]))
     gemms = Gemms(config, device, square)
-    learners = {name: DoubleQLearner(net, learner_config, VARIANTS[name][1], device=device) for name in variants}
-    staged = {path: DoubleQLearner(net, learner_config, loss, device=device)
-              for path, loss in (("today", one_pass_loss), ("new", trace_pass_loss))} if with_phases else {}
+    learners = {name: make_learner(config, VARIANTS[name][1], device) for name in variants}
+    staged = {name: make_learner(config, path, device)
+              for name, path in (("today", "autograd"), ("new", "trace"), ("split", "trace-split"))
+              if path in candidate_paths(device, torch.get_num_threads())} if with_phases else {}
 
     for name, learner in learners.items():
         for _ in range(warmup):
@@ -321,7 +330,7 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
         print(f"  new / today: {median(new) / median(today):.3f} by medians, {max(new) / max(today):.3f} by best rounds")
 
     if staged:
-        print(f"\nphases of one update, ms (median over rounds; staged copies of update() with VDBE's after-pass)")
+        print(f"\nphases of one update, ms (median over rounds; update() step by step, with VDBE's after-pass)")
         names = list(dict.fromkeys(name for path in phases.values() for name in path))
         print(f"  {'phase':38s} " + " ".join(f"{path:>9s}" for path in phases))
         for name in names:
