@@ -25,7 +25,11 @@ the learner can fall behind by B plus the episodes in flight, never more.
 
 Pure: no threads, no clock, no I/O. The replay service calls it under its lock
 and persists ``state_dict()``, so the counters survive a learner restart (the
-replay keeps running) and a replay restart (``replay --resume``).
+replay keeps running) and a replay restart (``replay --resume``). A resumed
+replay's store is empty: as at the start, no batch is served until it holds
+``start_episodes`` episodes again, and the steps of that refill move the start
+mark on (they are not owed, as the random phase's are not) and are counted in
+``refill_env_steps``; meanwhile actors are not held for the learner.
 """
 
 from __future__ import annotations
@@ -78,7 +82,9 @@ class RateLimiter:
         self.limit = limit
         self.env_steps = 0  # every step received, stored or not
         self.served = 0  # trace batches served since updates started
-        self.start_mark: float | None = None  # env steps when updates started; None in stage 1
+        self.start_mark: float | None = None  # env steps when updates started (plus refills); None in stage 1
+        self.refilling = False  # resumed with an empty store: stage 1 again until start_episodes are stored
+        self.refill_env_steps = 0  # steps that refilled a resumed replay's store (not owed)
 
     # --- events -------------------------------------------------------------------------
 
@@ -88,6 +94,11 @@ class RateLimiter:
             raise ValueError(f"an episode has >= 0 steps, got {steps}")
         before = self.env_steps
         self.env_steps += steps
+        if self.refilling:
+            self.start_mark += steps
+            self.refill_env_steps += steps
+            self.refilling = episodes_stored < self.limit.start_episodes
+            return
         if self.start_mark is not None:
             return
         limit = self.limit
@@ -129,7 +140,7 @@ class RateLimiter:
 
     def may_serve(self) -> bool:
         """Whether one more batch keeps the learner within B updates ahead."""
-        return self.started and self.served + 1 <= self.updates_due + self.limit.error_buffer
+        return self.started and not self.refilling and self.served + 1 <= self.updates_due + self.limit.error_buffer
 
     @property
     def budget_spent(self) -> bool:
@@ -140,7 +151,7 @@ class RateLimiter:
         """Why actors must hold their next episode: "behind", "budget", or "" (go on)."""
         if self.budget_spent:
             return "budget"
-        if self.started and self.error > self.limit.error_buffer:
+        if self.started and not self.refilling and self.error > self.limit.error_buffer:
             return "behind"
         return ""
 
@@ -154,24 +165,27 @@ class RateLimiter:
 
     def state_dict(self) -> dict:
         return {"version": STATE_VERSION, "env_steps": self.env_steps, "served": self.served,
-                "start_mark": self.start_mark}
+                "start_mark": self.start_mark, "refill_env_steps": self.refill_env_steps}
 
     def load_state_dict(self, state: dict) -> None:
-        """Counters of an earlier replay of the same run; ValueError if they are not sound."""
+        """Counters of an earlier replay of the same run, whose store is lost: if updates had
+        started, they wait for the refill. ValueError if the counters are not sound."""
         try:
             if state["version"] != STATE_VERSION:
                 raise ValueError(f"rate limiter state version {state['version']!r}, expected {STATE_VERSION}")
             env_steps, served, mark = state["env_steps"], state["served"], state["start_mark"]
-        except (KeyError, TypeError) as error:
+            refill = state.get("refill_env_steps", 0)
+        except (KeyError, TypeError, AttributeError) as error:
             raise ValueError(f"malformed rate limiter state ({error!r})") from None
-        if not (_count(env_steps) and _count(served)):
+        if not (_count(env_steps) and _count(served) and _count(refill)):
             raise ValueError(f"rate limiter counters must be non-negative integers, got {env_steps!r}, {served!r}")
         if mark is not None and not (isinstance(mark, (int, float)) and 0 <= mark <= env_steps):
             raise ValueError(f"rate limiter start mark {mark!r} must lie in [0, env_steps]")
         if mark is None and served:
             raise ValueError("rate limiter state served batches before updates started")
-        self.env_steps, self.served = env_steps, served
+        self.env_steps, self.served, self.refill_env_steps = env_steps, served, refill
         self.start_mark = None if mark is None else float(mark)
+        self.refilling = mark is not None
 
     def values(self) -> dict[str, int | float | str]:
         """The counters and decisions, for the replay's stats and the rate message."""
@@ -182,6 +196,8 @@ class RateLimiter:
             "start_env_steps": -1.0 if self.start_mark is None else self.start_mark,
             "hold_actors": 1 if self.hold_reason() else 0,
             "hold_reason": self.hold_reason(),
+            "refilling": 1 if self.refilling else 0,
+            "refill_env_steps": self.refill_env_steps,
             "error_buffer_updates": self.limit.error_buffer,
             "env_steps_per_update_target": self.limit.env_steps_per_update,
         }

@@ -80,13 +80,16 @@ class ReplayService:
             return
         with self._lock:
             store, limiter = self.store, self.limiter
-            budget_evictions, started = store.evicted_for_budget, limiter.started
+            budget_evictions, started, refilling = store.evicted_for_budget, limiter.started, limiter.refilling
             store.add(episode)
             limiter.on_episode(len(episode.actions), len(store))
             if limiter.started and not started:
                 log.info("updates start: %d episodes stored, %d env steps (rule: %s)", len(store),
                          limiter.env_steps, f"{limiter.limit.start_steps} steps" if limiter.limit.start_by_steps
                          else f"{limiter.limit.start_episodes} episodes")
+            elif refilling and not limiter.refilling:
+                log.info("refilled: %d episodes stored; updates go on after %d env steps of refill, not owed",
+                         len(store), limiter.refill_env_steps)
             self._check_measured_budget()
             if store.evicted_for_budget > budget_evictions:
                 self._warn_budget.warning(
@@ -330,8 +333,10 @@ def _resume_counters(service: ReplayService, path: Path) -> None:
         log.warning("--resume: cannot use the counters in %s (%s); counting from zero", path, error)
         return
     limiter = service.limiter
-    log.info("resumed the rate limiter from %s: %d env steps, %d batches served, start mark %s", path,
-             limiter.env_steps, limiter.served, "none" if limiter.start_mark is None else f"{limiter.start_mark:.0f}")
+    log.info("resumed the rate limiter from %s: %d env steps, %d batches served, start mark %s%s", path,
+             limiter.env_steps, limiter.served, "none" if limiter.start_mark is None else f"{limiter.start_mark:.0f}",
+             f"; the store is empty: batches wait until it holds {limiter.limit.start_episodes} episodes again "
+             "(the refill's steps are not owed)" if limiter.refilling else "")
 
 
 def _check_budget_at_start(service: ReplayService, config: Config) -> None:

@@ -130,12 +130,28 @@ def test_state_round_trips_and_bad_state_is_refused():
     serve_all(rate)
     again = limiter(start_episodes=1)
     again.load_state_dict(rate.state_dict())
-    assert again.state_dict() == rate.state_dict() and again.values() == rate.values()
+    assert again.state_dict() == rate.state_dict() and again.refilling
     good = rate.state_dict()
     for bad in ({**good, "version": 9}, {**good, "served": -1}, {**good, "env_steps": 1.5},
-                {**good, "start_mark": 10_000}, {**good, "start_mark": None}, {"env_steps": 3}, None):
+                {**good, "start_mark": 10_000}, {**good, "start_mark": None}, {**good, "refill_env_steps": -3},
+                {"env_steps": 3}, None):
         with pytest.raises(ValueError):
             limiter().load_state_dict(bad)
+
+
+def test_a_resumed_replay_refills_its_store_before_serving_and_does_not_owe_the_refill():
+    rate = limiter(start_episodes=2, buffer=1.0)
+    rate.load_state_dict({"version": 1, "env_steps": 1_000, "served": 200, "start_mark": 200.0})
+    assert rate.refilling and not rate.may_serve()
+    assert rate.hold_reason() == ""  # 200 due, 200 served; and never "behind" while refilling
+    rate.on_episode(30, episodes_stored=1)
+    assert rate.refilling and not rate.may_serve() and rate.hold_reason() == ""
+    rate.on_episode(50, episodes_stored=2)  # refilled: the mark moved by the refill's 80 steps
+    assert not rate.refilling and rate.start_mark == 280 and rate.refill_env_steps == 80
+    assert rate.updates_due == 200 and serve_all(rate) == 1  # one ahead, as before the restart
+    rate.on_episode(40, episodes_stored=3)
+    assert rate.updates_due == 210 and serve_all(rate) == 10
+    assert rate.env_steps_per_update() == pytest.approx((1_120 - 280) / 211)
 
 
 def test_settings_come_from_the_config():

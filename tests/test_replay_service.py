@@ -162,9 +162,14 @@ def test_a_resumed_replay_continues_its_counters(tmp_path):
         episodes = publisher(session, Keys("d3rqn", RUN).episodes)
         wait_for(lambda: episodes.matched and stats, "the resumed replay")
         assert (stats[-1]["env_steps_total"], stats[-1]["rate_batches_served"]) == (5_000, 240)
-        episodes.put(episode(40, 1))  # the store restarts empty; the counters go on
-        wait_for(lambda: stats[-1]["env_steps_total"] == 5_040, "the next episode counted")
-        assert stats[-1]["episodes"] == 1 and stats[-1]["rate_updates_due"] == pytest.approx(4_840 / 20)
+        assert stats[-1]["rate_refilling"] == 1 and stats[-1]["rate_hold_reason"] == ""
+        for index, steps in enumerate((40, 20, 60)):  # the store restarts empty; the counters go on
+            episodes.put(episode(steps, index))
+        wait_for(lambda: stats[-1]["env_steps_total"] == 5_120, "the episodes counted")
+        latest = stats[-1]
+        # smoke: 2 episodes refill the store; their 60 steps move the start mark, the third's are owed
+        assert latest["episodes"] == 3 and latest["rate_refilling"] == 0 and latest["rate_refill_env_steps"] == 60
+        assert latest["rate_start_env_steps"] == 260 and latest["rate_updates_due"] == pytest.approx(4_860 / 20)
     finally:
         subscription.undeclare()
         session.close()
