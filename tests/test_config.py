@@ -70,12 +70,33 @@ def test_overrides_apply_over_file_over_preset(tmp_path):
     ("run.name", "a/b", "run.name: must be a non-empty key chunk"),
     ("learner.nope", 1, "learner.nope: unknown key"),
     ("nope.lr", 1, "nope.lr: unknown key"),
+    ("replay.error_buffer_updates", 0.5, "replay.error_buffer_updates: must be >= 1"),
+    ("replay.frame_kb_estimate", 0, "replay.frame_kb_estimate: must be > 0"),
+    ("exploration.bmc.observations", "per_batch", "exploration.bmc.observations: must be one of per_step, per_transition"),
+    ("learner.start_episodes", 1001, "learner.start_episodes: 1001 exceeds replay.capacity 1000"),
+    ("learner.ratio_tolerance", 0.1, "learner.ratio_tolerance: retired key; replaced by replay.error_buffer_updates"),
+    ("actor.pace_with_learner", False, "actor.pace_with_learner: retired key; the replay's rate limiter"),
 ])
 def test_bad_values_name_their_key(key, value, message):
     with pytest.raises(ConfigError) as error:
         load_config("paper", overrides={key: value})
     assert str(error.value).startswith(message)
     assert "\n" not in str(error.value)
+
+
+def test_a_saved_config_with_retired_pacing_keys_still_loads():
+    from common.config import from_dict, to_dict
+    saved = to_dict(load_config("smoke"))
+    saved["learner"]["ratio_tolerance"] = 0.1  # a checkpoint of an earlier version
+    saved["actor"]["pace_with_learner"] = True
+    assert from_dict(saved) == load_config("smoke")
+
+
+def test_the_pacing_and_buffer_defaults():
+    config = load_config("paper")
+    assert config.replay.error_buffer_updates == 50 and config.replay.memory_budget_mb == 16384
+    assert config.exploration.bmc.observations == "per_step"
+    assert load_config("smoke").replay.error_buffer_updates == 2
 
 
 def test_bad_toml_file_is_a_config_error(tmp_path):
