@@ -1,0 +1,211 @@
+"""The reference loop: the whole method in one process, one loop, top to bottom (as CleanRL's dqn_atari.py).
+
+The distributed roles split this loop over processes: actors act
+(actor/runner.py), the replay stores episodes and samples traces (replay/),
+the learner updates and feeds the exploration strategy (learner/service.py).
+Here it is one loop over env steps built from the same parts, with no copy of
+them: the env of ``actor.sim.make_env``, the D3RQN of common/network.py, the
+episode store of replay/store.py, the learner step of learner/update.py, the
+strategies of common/exploration.py and the evaluation of actor/evaluate.py.
+Read it to follow the method, run it to check the stack against, and
+benchmark the stack with it (deploy/bench/stack_speed.py).
+
+Each env step:
+
+1. act: uniformly at random until updates start, then the strategy's rule on
+   the Q-values of the acting network: the online weights of the latest
+   broadcast (every ``learner.weights_every`` updates), as an actor holds them,
+   with the LSTM state zeroed at every episode start;
+2. store: a finished episode goes into the store whole (traces are sampled
+   inside episodes: Bootstrapped Random Updates);
+3. start: updates start the moment the store holds ``learner.start_episodes``
+   episodes (decreasing epsilon: at ``learner.start_steps`` env steps), the
+   replay's rate limiter's rule;
+4. sample and update: one update per ``learner.env_steps_per_update`` env steps
+   since that moment, exactly;
+5. feed the strategy what the learner feeds it: the env step count (decreasing
+   epsilon), Q before and after each update (VDBE), and BMC's returns at the
+   rate of ``exploration.bmc.observations``.
+
+Training ends at an episode end once ``learner.total_env_steps`` steps are
+taken; then the greedy policy is evaluated on the evaluation protocol.
+
+    .venv/bin/python -m learner.reference_loop --preset smoke --exploration.strategy vdbe
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import math
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from actor.runner import actor_seed
+from actor.sim import make_env
+from common.config import Config, add_config_arguments, parse_config_or_exit, print_config
+from common.exploration import bmc_observation_count, make_strategy, newest_transitions
+from common.wire import Episode, FrameStack
+from learner.update import DoubleQLearner, TraceBatch as Traces, UpdateResult
+from replay.store import EpisodeStore
+
+
+@dataclass
+class LoopResult:
+    env_steps: int
+    episodes: int
+    updates: int
+    start_env_steps: int | None  # env steps when updates started
+    seconds_to_start: float  # wall time of the random phase
+    seconds_updating: float  # wall time from the start of updates to the end of training
+    mean_return: float  # of the last 100 episodes
+    epsilon: float
+    loss: float  # of the last update
+    summaries: list | None = None  # the evaluation's rows (actor.evaluation_stats.SetSummary), if evaluated
+
+    @property
+    def env_steps_per_update(self) -> float:
+        return (self.env_steps - self.start_env_steps) / self.updates if self.updates else math.nan
+
+
+def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | None = None,
+          log_period_s: float | None = None) -> LoopResult:
+    """Trains to the step budget (or for `update_seconds` of wall time once updates start), then evaluates."""
+    learner_config = config.learner
+    seed = actor_seed(config.run.seed, 0)  # the seed actor 0 of the stack would use
+    rng = np.random.default_rng(seed)
+    env = make_env(config.env, seed=seed)
+    learner = DoubleQLearner(config.network, learner_config)
+    acting = copy.deepcopy(learner.online).requires_grad_(False)
+    strategy = make_strategy(config.exploration, config.network.n_actions)
+    store = EpisodeStore(config.replay.capacity, int(config.replay.memory_budget_mb * 2**20),
+                         learner_config.trace_length, config.replay.seed)
+    start_by_steps = config.exploration.strategy == "decreasing"
+    log_every = log_period_s if log_period_s is not None else learner_config.log_period_s
+
+    began = last_log = time.monotonic()
+    started_at: float | None = None
+    start_mark: int | None = None  # env steps when updates started
+    acting_version = -1  # the broadcast the acting weights come from; -1: none yet, acts at random
+    env_steps = episodes = 0
+    returns: deque[float] = deque(maxlen=100)
+    result = None
+    episode_over = True
+    while True:
+        if episode_over:  # a new episode: reset the env and the LSTM state
+            observation, info = env.reset(options={"start_set": "train"})
+            state = acting.initial_state(1)
+            frames, actions, rewards, versions = [observation], [], [], []
+            episode_over = False
+
+        # 1. act
+        if strategy.started:
+            with torch.inference_mode():
+                frame = torch.from_numpy(observation).view(1, 1, *observation.shape).to(learner.device)
+                q_values, state = acting(frame, state)
+            action = strategy.act(q_values[0, 0].cpu().numpy(), rng)
+        else:
+            action = int(rng.integers(config.network.n_actions))
+        observation, reward, terminated, truncated, info = env.step(action)
+        env_steps += 1
+        frames.append(observation)
+        actions.append(action)
+        rewards.append(float(reward))
+        versions.append(acting_version)
+
+        # 2. store
+        if terminated or truncated:
+            store.add(Episode(
+                observations=FrameStack.from_array(np.stack(frames)), actions=np.asarray(actions, dtype=np.int64),
+                rewards=np.asarray(rewards, dtype=np.float32), terminated=bool(terminated),
+                truncated=bool(truncated and not terminated), actor_id=0, start_set=str(info["start_set"]),
+                start_index=int(info["start_index"]), weights_version=np.asarray(versions, dtype=np.int64),
+                epsilon=float(strategy.epsilon), seed=seed, episode_index=episodes))
+            episodes += 1
+            returns.append(sum(rewards))
+            episode_over = True
+
+        # 3. start (the store counts the steps of the episodes it received, as the replay does)
+        if start_mark is None and len(store) > 0 and (
+                store.env_steps_total >= learner_config.start_steps if start_by_steps
+                else len(store) >= learner_config.start_episodes):
+            start_mark, started_at = env_steps, time.monotonic()
+            strategy.start()
+            acting.load_state_dict(learner.online.state_dict())  # the learner's first broadcast, version 0
+            acting_version = 0
+
+        # 4. sample and update, one update per env_steps_per_update steps since the start
+        while start_mark is not None and learner.updates < (env_steps - start_mark) / learner_config.env_steps_per_update:
+            batch = store.sample(learner_config.batch_size)
+            result = learner.update(Traces(batch.observations_array(), np.asarray(batch.actions),
+                                           np.asarray(batch.rewards), np.asarray(batch.terminated)),
+                                    with_q_after=strategy.needs_q_after)
+            # 5. feed the strategy, as learner/service.py does after each update (the learner knows
+            # the steps of the episodes the replay has received; here every step taken is known)
+            strategy.on_env_steps(env_steps)
+            if strategy.needs_q_after:
+                strategy.on_update(result.q_before, result.q_after)
+            if strategy.needs_returns:
+                strategy.on_returns(*bmc_returns(result, config))
+            if learner.updates % learner_config.weights_every == 0:  # broadcast: the acting weights catch up
+                acting.load_state_dict(learner.online.state_dict())
+                acting_version = learner.updates
+
+        now = time.monotonic()
+        if now - last_log >= log_every:
+            last_log = now
+            print(f"reference loop: env steps {env_steps:,d}, episodes {episodes:,d}, updates {learner.updates:,d}, "
+                  f"epsilon {strategy.epsilon:.3f}, mean return (last 100) {np.mean(returns) if returns else 0:.2f}",
+                  file=sys.stderr, flush=True)
+        out_of_time = update_seconds is not None and started_at is not None and now - started_at >= update_seconds
+        if out_of_time or (episode_over and env_steps >= learner_config.total_env_steps):
+            break
+
+    env.close()
+    finished = time.monotonic()
+    outcome = LoopResult(
+        env_steps=env_steps, episodes=episodes, updates=learner.updates, start_env_steps=start_mark,
+        seconds_to_start=(started_at or finished) - began,
+        seconds_updating=finished - started_at if started_at is not None else 0.0,
+        mean_return=float(np.mean(returns)) if returns else math.nan, epsilon=float(strategy.epsilon),
+        loss=result.loss if result is not None else math.nan)
+    if evaluate_at_end:
+        from actor.evaluate import evaluate  # spawns the evaluation's worker processes
+        outcome.summaries = evaluate(config, learner.online_weights(), policies=("greedy",), show_progress=False)[1]
+    return outcome
+
+
+def bmc_returns(result: UpdateResult, config: Config) -> tuple[np.ndarray, np.ndarray]:
+    """BMC's observations of one update, at the learner's rate: "per_step" feeds as many transitions as the
+    update's env steps, the newest of each trace first (the authors' rate); "per_transition" every unmasked one."""
+    if config.exploration.bmc.observations == "per_transition":
+        return result.g_greedy, result.g_uniform
+    count = bmc_observation_count(result.update, config.learner.env_steps_per_update)
+    return newest_transitions(result.g_greedy, result.g_uniform, count)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="reference-loop", description=__doc__.splitlines()[0])
+    parser.add_argument("--no-evaluate", action="store_true", help="skip the evaluation at the end")
+    add_config_arguments(parser)
+    args, config = parse_config_or_exit(parser, argv)
+    print_config("reference-loop", config)
+    if config.learner.torch_threads:
+        torch.set_num_threads(config.learner.torch_threads)
+    result = train(config, evaluate_at_end=not args.no_evaluate)
+    print(f"reference loop: {result.env_steps:,d} env steps, {result.episodes:,d} episodes, {result.updates:,d} "
+          f"updates ({result.env_steps_per_update:.3f} env steps per update since updates started at "
+          f"{result.start_env_steps} env steps); random phase {result.seconds_to_start:.1f} s, updating "
+          f"{result.seconds_updating:.1f} s; mean return of the last 100 episodes {result.mean_return:.2f}")
+    if result.summaries:
+        from actor.evaluation_report import markdown_table
+        print(markdown_table(result.summaries, config.evaluation.reward_bins, config.evaluation.confidence))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""The reference loop trains on the smoke preset with every strategy, calling every hook the stack calls."""
+
+import collections
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from common.config import STRATEGIES, load_config
+from common.exploration import bmc_observation_count
+from learner import reference_loop
+
+HOOKS = ("start", "act", "on_env_steps", "on_update", "on_returns")
+BUDGET = 300  # env steps: two random episodes, then about 13 updates at the smoke preset's 20 steps per update
+
+
+def spy_on(strategy) -> collections.Counter:
+    """Counts the calls of each hook on this instance (and BMC's observations per call)."""
+    calls = collections.Counter()
+    calls["observations"] = []
+    for name in HOOKS:
+        method = getattr(strategy, name)
+
+        def counted(*args, _method=method, _name=name, **kwargs):
+            calls[_name] += 1
+            if _name == "on_returns":
+                calls["observations"].append(np.size(args[0]))
+            return _method(*args, **kwargs)
+
+        setattr(strategy, name, counted)
+    return calls
+
+
+@pytest.fixture
+def spied(monkeypatch):
+    """The strategies the loop builds, each with its call counter."""
+    built = []
+    make_strategy = reference_loop.make_strategy
+
+    def spying(config, n_actions):
+        strategy = make_strategy(config, n_actions)
+        built.append((strategy, spy_on(strategy)))
+        return strategy
+
+    monkeypatch.setattr(reference_loop, "make_strategy", spying)
+    torch.set_num_threads(1)
+    return built
+
+
+def smoke(strategy: str, **overrides):
+    """The smoke preset, with a narrower LSTM so that seven trainings take seconds (the command test
+    below runs the preset's own network)."""
+    return load_config("smoke", overrides={"exploration.strategy": strategy, "learner.total_env_steps": BUDGET,
+                                           "network.lstm_units": 64, **overrides})
+
+
+@pytest.mark.parametrize("name", STRATEGIES)
+def test_the_loop_trains_and_feeds_every_hook_of_the_strategy(name, spied):
+    config = smoke(name)
+    result = reference_loop.train(config, evaluate_at_end=False, log_period_s=1e9)
+    ((strategy, calls),) = spied
+    per_update = config.learner.env_steps_per_update
+
+    assert result.env_steps >= BUDGET and result.episodes >= 3
+    if name == "decreasing":  # starts at learner.start_steps env steps, the others at start_episodes episodes
+        assert result.start_env_steps >= config.learner.start_steps
+    else:
+        assert result.start_env_steps < config.learner.start_steps
+    assert result.updates == math.ceil((result.env_steps - result.start_env_steps) / per_update) >= 8
+    assert math.isfinite(result.loss)
+
+    # the actor's side: one start, then the strategy's rule at every step after it
+    assert calls["start"] == 1 and strategy.started
+    assert calls["act"] == result.env_steps - result.start_env_steps
+    # the learner's side, once per update, as learner/service.py calls them
+    assert calls["on_env_steps"] == result.updates
+    # update k comes at the first step that pays for it, k - 1 periods and one step after the start
+    assert strategy.env_steps == result.start_env_steps + (result.updates - 1) * per_update + 1
+    assert calls["on_update"] == (result.updates if strategy.needs_q_after else 0)
+    assert calls["on_returns"] == (result.updates if strategy.needs_returns else 0)
+    if strategy.needs_returns:  # BMC at the authors' rate: one per env step, at most a batch's unmasked steps
+        unmasked = config.learner.batch_size * (config.learner.trace_length - config.learner.n_mask)
+        assert calls["observations"] == [min(bmc_observation_count(k, per_update), unmasked)
+                                         for k in range(1, result.updates + 1)]
+        assert strategy.posterior.count == sum(calls["observations"])
+    if strategy.needs_q_after:
+        assert strategy.epsilon != config.exploration.vdbe.eps0  # VDBE's epsilon moved with the updates
+
+
+def test_bmc_per_transition_feeds_every_unmasked_step(spied):
+    config = smoke("bmc", **{"exploration.bmc.observations": "per_transition"})
+    result = reference_loop.train(config, evaluate_at_end=False, log_period_s=1e9)
+    unmasked = config.learner.batch_size * (config.learner.trace_length - config.learner.n_mask)
+    assert spied[0][1]["observations"] == [unmasked] * result.updates
+
+
+def test_the_command_trains_then_evaluates(spied, capsys):
+    reference_loop.main(["--preset", "smoke", "--learner.total_env_steps", "200", "--learner.log_period_s", "1000",
+                         "--evaluation.max_steps", "20"])
+    out = capsys.readouterr().out
+    assert "env steps per update since updates started" in out
+    assert out.count("| greedy | train |") == 1 and out.count("| greedy | test |") == 1
