@@ -23,11 +23,18 @@ class Prefetcher:
     in tests); it returns a TraceBatch or None (no reply, timeout, empty replay). The
     replay holds a reply back while its rate limiter says the learner is ahead, so a
     worker's wait for its batch is the learner's pacing.
+
+    `prepare(batch)`, if given, runs in the worker too, and next() returns what it
+    returns: the place to decode frames and stage them on the learner's device
+    (learner.update.BatchStager) while the previous update runs. An exception it
+    raises is raised by the next() that would have returned its result.
     """
 
     def __init__(self, fetch: Callable[[TraceBatchRequest], TraceBatch | None],
-                 batch_size: int, trace_length: int, depth: int) -> None:
+                 batch_size: int, trace_length: int, depth: int,
+                 prepare: Callable[[TraceBatch], object] | None = None) -> None:
         self._fetch = fetch
+        self._prepare = prepare
         self._batch_size = batch_size
         self._trace_length = trace_length
         self._ready: queue.Queue[TraceBatch] = queue.Queue(maxsize=depth)
@@ -48,9 +55,12 @@ class Prefetcher:
                 if timeout_s is not None and time.monotonic() - started >= timeout_s:
                     return None
                 try:
-                    return self._ready.get(timeout=0.1)
+                    item = self._ready.get(timeout=0.1)
                 except queue.Empty:
                     continue
+                if isinstance(item, _Failed):
+                    raise item.error
+                return item
             return None
         finally:
             self.wait_s += time.monotonic() - started
@@ -72,9 +82,19 @@ class Prefetcher:
             if batch is None:
                 self._stop.wait(RETRY_PAUSE_S)
                 continue
+            if self._prepare is not None:
+                try:
+                    batch = self._prepare(batch)
+                except Exception as error:  # handed to the consumer, which would have met it in the update
+                    batch = _Failed(error)
             while not self._stop.is_set():
                 try:
                     self._ready.put(batch, timeout=0.1)
                     break
                 except queue.Full:
                     continue
+
+
+class _Failed:
+    def __init__(self, error: Exception) -> None:
+        self.error = error

@@ -36,6 +36,7 @@ import copy
 import dataclasses
 import logging
 import math
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -70,6 +71,10 @@ class TraceTensors:
     actions: torch.Tensor  # int64 (B, T)
     rewards: torch.Tensor  # float32 (B, T)
     terminated: torch.Tensor  # float32 (B, T), 1.0 where terminal
+    # Prepared ahead by DoubleQLearner.stage: the frames as the trace passes read them
+    # (scale_frames(observations, used_frame_size)), and the CUDA event the copies end with.
+    pixels: torch.Tensor | None = None
+    ready: object | None = None
 
 
 @dataclass
@@ -145,15 +150,38 @@ def trace_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: fl
     only enter the loss detached (the argmax), is left out of the backward pass.
     """
     traces, trace_length = batch.actions.shape
-    pixels = scale_frames(batch.observations, online.used_frame_size)
+    pixels = trace_pixels(batch, online)
     q_all = online.trace_q_values(pixels, traces, grad_steps=trace_length)
     with torch.no_grad():
         next_q_target = target.trace_q_values(pixels, traces)[:, 1:]
     return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask)
 
 
+def trace_pixels(batch: TraceTensors, network: D3RQN) -> torch.Tensor:
+    """The batch's frames as the trace passes read them: staged ahead, or scaled now."""
+    if batch.pixels is not None:
+        return batch.pixels
+    return scale_frames(batch.observations, network.used_frame_size)
+
+
 def to_tensors(batch: TraceBatch, network: NetworkConfig, trace_length: int, device: torch.device) -> TraceTensors:
     """Checks a batch against the configured sizes (ValueError naming the field) and moves it to device."""
+    return _on_device(checked_arrays(batch, network, trace_length), device)
+
+
+def _on_device(arrays: tuple[np.ndarray, ...], device: torch.device) -> TraceTensors:
+    observations, actions, rewards, terminated = arrays
+    return TraceTensors(
+        observations=torch.from_numpy(observations).to(device),
+        actions=torch.as_tensor(actions, dtype=torch.int64, device=device),
+        rewards=torch.as_tensor(rewards, dtype=torch.float32, device=device),
+        terminated=torch.as_tensor(terminated, dtype=torch.float32, device=device),
+    )
+
+
+def checked_arrays(batch: TraceBatch, network: NetworkConfig, trace_length: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The batch's arrays, observations C-contiguous, once they fit the configured sizes (else a ValueError)."""
     observations = np.asarray(batch.observations)
     frame = (network.frame_height, network.frame_width, network.frame_channels)
     if observations.dtype != np.uint8 or observations.ndim != 5 or observations.shape[1:] != (trace_length + 1, *frame):
@@ -170,12 +198,88 @@ def to_tensors(batch: TraceBatch, network: NetworkConfig, trace_length: int, dev
         raise ValueError("rewards must be finite")
     if not np.isin(terminated, (0, 1)).all():
         raise ValueError("terminated must hold only 0/1 or booleans")
-    return TraceTensors(
-        observations=torch.from_numpy(np.ascontiguousarray(observations)).to(device),
-        actions=torch.as_tensor(actions, dtype=torch.int64, device=device),
-        rewards=torch.as_tensor(rewards, dtype=torch.float32, device=device),
-        terminated=torch.as_tensor(terminated, dtype=torch.float32, device=device),
-    )
+    return np.ascontiguousarray(observations), actions, rewards, terminated
+
+
+class _PinnedSlot:
+    """Page-locked host copies of one batch's arrays, and the event after which they may be rewritten."""
+
+    def __init__(self, observations: tuple[int, ...], steps: tuple[int, int]) -> None:
+        self.observations = torch.empty(observations, dtype=torch.uint8, pin_memory=True)
+        self.actions = torch.empty(steps, dtype=torch.int64, pin_memory=True)
+        self.rewards = torch.empty(steps, dtype=torch.float32, pin_memory=True)
+        self.terminated = torch.empty(steps, dtype=torch.float32, pin_memory=True)
+        self.copied: torch.cuda.Event | None = None
+
+    def fits(self, observations: tuple[int, ...]) -> bool:
+        return tuple(self.observations.shape) == observations
+
+
+class BatchStager:
+    """Gets batches onto the learner's device ahead of their update, from other threads (the prefetcher's).
+
+    On CUDA: each batch is written into one of `slots` page-locked host buffers
+    (reused in turn, after the copy that last read it has finished) and copied
+    with non-blocking copies on a side stream; the update waits for the copy's
+    event on its own stream, so the copy of batch k + 1 overlaps update k. On
+    CPU the arrays are used in place (no copy) and, for the trace passes, the
+    frames are scaled here, off the update's critical path.
+    """
+
+    def __init__(self, learner: "DoubleQLearner", slots: int = 2) -> None:
+        self.learner = learner
+        self.device = learner.device
+        self._slots: list[_PinnedSlot] = []
+        self._slot_count = slots
+        self._next = 0
+        self._stream = torch.cuda.Stream(self.device) if self.device.type == "cuda" else None
+        self._lock = threading.Lock()  # the prefetcher's workers stage concurrently
+
+    def stage(self, batch: TraceBatch) -> TraceTensors:
+        learner = self.learner
+        arrays = checked_arrays(batch, learner.network_config, learner.config.trace_length)
+        if self._stream is None:
+            tensors = _on_device(arrays, self.device)
+            if learner.loss_function is trace_pass_loss:
+                if threading.current_thread() is not threading.main_thread():
+                    torch.set_num_threads(1)  # the update's threads own the cores; this thread fills their gaps
+                pixels = scale_frames(tensors.observations, learner.online.used_frame_size)
+                tensors = dataclasses.replace(tensors, pixels=pixels)
+            return tensors
+        with self._lock:
+            slot = self._slot(arrays[0].shape, arrays[1].shape)
+            if slot.copied is not None:
+                slot.copied.synchronize()  # the copy that last read this slot is done
+            for pinned, array in zip((slot.observations, slot.actions, slot.rewards, slot.terminated), arrays):
+                pinned.numpy()[...] = array
+            with torch.cuda.stream(self._stream):
+                copies = [pinned.to(self.device, non_blocking=True)
+                          for pinned in (slot.observations, slot.actions, slot.rewards, slot.terminated)]
+                slot.copied = torch.cuda.Event()
+                slot.copied.record(self._stream)
+            return TraceTensors(*copies, ready=slot.copied)
+
+    def _slot(self, observations: tuple[int, ...], steps: tuple[int, int]) -> _PinnedSlot:
+        if len(self._slots) < self._slot_count:
+            self._slots.append(_PinnedSlot(observations, steps))
+            return self._slots[-1]
+        slot = self._slots[self._next]
+        self._next = (self._next + 1) % self._slot_count
+        if not slot.fits(observations):
+            if slot.copied is not None:
+                slot.copied.synchronize()
+            slot = self._slots[self._slots.index(slot)] = _PinnedSlot(observations, steps)
+        return slot
+
+
+def _wait_until_ready(tensors: TraceTensors) -> None:
+    """Makes the current CUDA stream wait for a staged batch's copies and keeps their memory until it is done."""
+    if tensors.ready is None:
+        return
+    stream = torch.cuda.current_stream(tensors.observations.device)
+    stream.wait_event(tensors.ready)
+    for tensor in (tensors.observations, tensors.actions, tensors.rewards, tensors.terminated):
+        tensor.record_stream(stream)
 
 
 class DoubleQLearner:
@@ -226,9 +330,17 @@ class DoubleQLearner:
         """Checks a batch and moves it to the learner's device (the copy-in part of update())."""
         return to_tensors(batch, self.network_config, self.config.trace_length, self.device)
 
+    def stager(self) -> BatchStager:
+        """A BatchStager for this learner: stage(batch) in the prefetch thread, update(staged) in the loop."""
+        return BatchStager(self)
+
     def update(self, batch: TraceBatch | TraceTensors, with_q_after: bool = False) -> UpdateResult:
-        """One soft target update and one gradient step; with_q_after adds VDBE's extra forward pass."""
+        """One soft target update and one gradient step; with_q_after adds VDBE's extra forward pass.
+
+        `batch` may come prepared (prepare(), or a BatchStager ahead of time).
+        """
         tensors = batch if isinstance(batch, TraceTensors) else self.prepare(batch)
+        _wait_until_ready(tensors)
         if self.update_path == "auto":
             self.use_path(choose_update_path(self, tensors))
         return self._update(tensors, with_q_after)
@@ -252,7 +364,7 @@ class DoubleQLearner:
         which keeps them apart on a machine whose cores are busy with other work.
         """
         traces, trace_length = batch.actions.shape
-        pixels = scale_frames(batch.observations, self.online.used_frame_size)
+        pixels = trace_pixels(batch, self.online)
         threads = torch.get_num_threads()
         helper_threads = max(1, threads // 2)
 
@@ -276,7 +388,7 @@ class DoubleQLearner:
         n_mask = self.config.n_mask
         q_unmasked = terms.q_values[:, n_mask:]
         greedy = q_unmasked.argmax(dim=-1)
-        q_after = self._greedy_q_after(tensors.observations[:, :-1], greedy) if with_q_after else None
+        q_after = self._greedy_q_after(tensors, greedy) if with_q_after else None
         g_greedy, g_uniform = greedy_and_uniform_returns(
             _numpy(tensors.rewards[:, n_mask:]), _numpy(terms.next_q_values[:, n_mask:]),
             _numpy(tensors.terminated[:, n_mask:]), self.config.gamma)
@@ -297,12 +409,14 @@ class DoubleQLearner:
         torch._foreach_lerp_(target, online, self.config.tau)
 
     @torch.no_grad()
-    def _greedy_q_after(self, frames: torch.Tensor, greedy: torch.Tensor) -> np.ndarray:
-        """Q(h_t, a*_t) under the updated weights, for the unmasked steps."""
+    def _greedy_q_after(self, tensors: TraceTensors, greedy: torch.Tensor) -> np.ndarray:
+        """Q(h_t, a*_t) under the updated weights, for the unmasked steps (over s_0..s_T-1)."""
+        traces, trace_length = tensors.actions.shape
         if self.loss_function is trace_pass_loss:
-            q_values = self.online.trace_q_values(scale_frames(frames, self.online.used_frame_size), frames.shape[0])
+            pixels = trace_pixels(tensors, self.online)[:trace_length * traces]  # time-major: s_T is the last rows
+            q_values = self.online.trace_q_values(pixels, traces)
         else:
-            q_values, _ = self.online(frames)
+            q_values, _ = self.online(tensors.observations[:, :-1])
         return _numpy(taken_action_values(q_values[:, self.config.n_mask:], greedy))
 
     def online_weights(self) -> dict[str, np.ndarray]:

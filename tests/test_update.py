@@ -1,4 +1,5 @@
 import copy
+import threading
 import dataclasses
 import platform
 
@@ -368,3 +369,81 @@ def test_learns_which_action_pays_on_a_synthetic_task():
     others = torch.cat([q_values[..., :best], q_values[..., best + 1:]], dim=-1)
     margin = q_values[..., best] - others.max(dim=-1).values
     assert margin.min() > 0.5, margin  # reward 1 for the best action, 0 for the others
+
+
+# --- batches staged ahead of their update (learner.update.BatchStager, learner.prefetch) ----
+
+def test_a_staged_batch_updates_exactly_like_a_plain_one():
+    batch = random_batch(np.random.default_rng(11), terminal_last=True)
+    plain, staged = learner_on("trace"), learner_on("trace")
+    tensors = staged.stager().stage(batch)
+    assert tensors.pixels is not None and tensors.ready is None  # CPU: frames scaled ahead, nothing to wait for
+    a, b = plain.update(batch, with_q_after=True), staged.update(tensors, with_q_after=True)
+    assert a.loss == b.loss
+    np.testing.assert_array_equal(a.q_after, b.q_after)
+    assert torch.equal(flat_parameters(plain.online), flat_parameters(staged.online))
+
+
+def test_staging_checks_the_batch_like_update():
+    good = random_batch(np.random.default_rng(12))
+    with pytest.raises(ValueError, match="rewards must be finite"):
+        learner_on("trace").stager().stage(dataclasses.replace(good, rewards=np.full((10, 10), np.nan)))
+
+
+def test_the_prefetcher_prepares_batches_in_its_workers_and_hands_on_their_errors():
+    from learner.prefetch import Prefetcher
+    batches = iter([random_batch(np.random.default_rng(13)), None, "bad"])
+    learner = learner_on("trace")
+    threads = []
+
+    def fetch(request):
+        return next(batches, None)
+
+    def prepare(batch):
+        threads.append(threading.current_thread().name)
+        if batch == "bad":
+            raise ValueError("a bad batch")
+        return learner.stager().stage(batch)
+
+    prefetcher = Prefetcher(fetch, batch_size=10, trace_length=10, depth=1, prepare=prepare)
+    stop = threading.Event()
+    try:
+        staged = prefetcher.next(stop, timeout_s=10)
+        assert isinstance(staged, TraceTensors) and staged.pixels is not None
+        with pytest.raises(ValueError, match="a bad batch"):
+            prefetcher.next(stop, timeout_s=10)
+    finally:
+        prefetcher.close()
+    assert threads == ["prefetch-0", "prefetch-0"]
+    assert learner.update(staged).update == 1
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="CUDA only: pinned host buffers and copies on a side stream need a CUDA device")
+def test_staged_copies_to_cuda_update_like_the_cpu():
+    network = dataclasses.replace(TINY, device="cuda")
+    rng = np.random.default_rng(14)
+    batches = [random_batch(rng) for _ in range(3)]
+    cuda, cpu = DoubleQLearner(network, LEARNER), learner_on("autograd")
+    stager = cuda.stager()
+    staged = [stager.stage(batch) for batch in batches]  # three batches through two pinned slots
+    assert all(t.ready is not None and t.observations.device.type == "cuda" for t in staged)
+    for batch, tensors in zip(batches, staged):
+        a, b = cuda.update(tensors), cpu.update(batch)
+        assert a.loss == pytest.approx(b.loss, rel=1e-3)
+    torch.testing.assert_close(flat_parameters(cuda.online).cpu(), flat_parameters(cpu.online), rtol=1e-3, atol=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only: the update paths on a CUDA device")
+def test_auto_on_cuda_times_trace_and_autograd_only():
+    learner = DoubleQLearner(dataclasses.replace(TINY, device="cuda"), dataclasses.replace(LEARNER, update_path="auto"))
+    learner.update(random_batch(np.random.default_rng(15)))
+    assert learner.update_path in ("trace", "autograd")
+
+
+def test_a_cuda_device_is_a_config_choice_the_learner_follows():
+    """The device switch on a CPU-only machine: "cpu" and "auto" put the learner on the CPU."""
+    for device in ("cpu", "auto"):
+        learner = DoubleQLearner(dataclasses.replace(TINY, device=device), LEARNER)
+        expected = "cuda" if device == "auto" and torch.cuda.is_available() else "cpu"
+        assert learner.device.type == expected == learner.prepare(random_batch(np.random.default_rng(16))).observations.device.type

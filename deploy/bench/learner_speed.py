@@ -27,6 +27,7 @@ import contextlib
 import dataclasses
 import statistics
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -39,16 +40,58 @@ from learner.flops import conv_features, conv_multiply_adds, update_flops
 from learner.reference_update import paper_reference_loss
 from learner.update import DoubleQLearner, TraceBatch, candidate_paths, one_pass_terms, trace_pass_loss
 
-# key: (description, update path or loss function, with_q_after); "today" is the code before issue 14.
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    description: str
+    path: object  # an update path (learner.update_path) or a loss function
+    with_q_after: bool = False
+    ahead: bool = False  # decode and stage the next batch on a thread while the update runs
+
+
+# "today" is the code before issue 14. Every variant decodes its batch from the wire format first.
 VARIANTS = {
-    "today": ("today: one-pass, autograd", "autograd", False),
-    "new": ("new: trace passes", "trace", False),
-    "split": ("new: trace passes, split threads", "trace-split", False),
-    "today+vdbe": ("today + VDBE after-pass", "autograd", True),
-    "new+vdbe": ("new + VDBE after-pass", "trace", True),
-    "paper": ("paper reference, 3 passes", paper_reference_loss, False),
+    "today": Variant("today: one-pass, autograd", "autograd"),
+    "new": Variant("new: trace passes", "trace"),
+    "split": Variant("new: trace passes, split threads", "trace-split"),
+    "ahead": Variant("new: trace, staged ahead", "trace", ahead=True),
+    "split-ahead": Variant("new: split, staged ahead", "trace-split", ahead=True),
+    "today+vdbe": Variant("today + VDBE after-pass", "autograd", with_q_after=True),
+    "new+vdbe": Variant("new + VDBE after-pass", "trace", with_q_after=True),
+    "paper": Variant("paper reference, 3 passes", paper_reference_loss),
 }
-DEFAULT_VARIANTS = "today,new,split,new+vdbe,paper"
+DEFAULT_VARIANTS = "today,new,split,ahead,new+vdbe,paper"
+
+
+class Runner:
+    """Runs one variant's updates on the wire batch, decoding it inline or staging it ahead on a thread."""
+
+    def __init__(self, variant: Variant, learner: DoubleQLearner, wire_frames: FrameStack, batch: TraceBatch) -> None:
+        self.variant, self.learner = variant, learner
+        self.wire_frames, self.batch = wire_frames, batch
+        self.stager = learner.stager()
+        self.thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage") if variant.ahead else None
+        self.pending = None
+
+    def decoded(self) -> TraceBatch:
+        observations = self.wire_frames.decode().reshape(self.batch.observations.shape)
+        return TraceBatch(observations, self.batch.actions, self.batch.rewards, self.batch.terminated)
+
+    def staged(self):
+        return self.stager.stage(self.decoded())
+
+    def updates(self, count: int) -> None:
+        for _ in range(count):
+            if self.thread is None:
+                self.learner.update(self.decoded(), with_q_after=self.variant.with_q_after)
+                continue
+            if self.pending is None:
+                self.pending = self.thread.submit(self.staged)
+            ready, self.pending = self.pending.result(), self.thread.submit(self.staged)
+            self.learner.update(ready, with_q_after=self.variant.with_q_after)
+
+    def close(self) -> None:
+        if self.thread is not None:
+            self.thread.shutdown()
 
 
 def make_learner(config: Config, path, device: torch.device) -> DoubleQLearner:
@@ -233,7 +276,7 @@ def staged_update(learner: DoubleQLearner, wire_frames: FrameStack, batch: Trace
     timer.mark("exploration hooks (Q, BMC returns)")
     if with_q_after:
         greedy = terms.q_values[:, n_mask:].argmax(dim=-1)
-        learner._greedy_q_after(tensors.observations[:, :-1], greedy)
+        learner._greedy_q_after(tensors, greedy)
         timer.mark("VDBE after-pass")
     return timer.seconds
 
@@ -270,14 +313,14 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
     batch = random_batch(config)
     wire_frames = FrameStack.from_array(batch.observations.reshape(-1, *batch.observations.shape[2:]))
     gemms = Gemms(config, device, square)
-    learners = {name: make_learner(config, VARIANTS[name][1], device) for name in variants}
+    runners = {name: Runner(VARIANTS[name], make_learner(config, VARIANTS[name].path, device), wire_frames, batch)
+               for name in variants}
     staged = {name: make_learner(config, path, device)
               for name, path in (("today", "autograd"), ("new", "trace"), ("split", "trace-split"))
               if path in candidate_paths(device, torch.get_num_threads())} if with_phases else {}
 
-    for name, learner in learners.items():
-        for _ in range(warmup):
-            learner.update(batch, with_q_after=VARIANTS[name][2])
+    for runner in runners.values():
+        runner.updates(warmup)
     for path, learner in staged.items():
         for _ in range(warmup):
             staged_update(learner, wire_frames, batch, clock, with_q_after=False)
@@ -292,15 +335,16 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
         square_gflops.append(2.0 * square ** 3 / gemms.square_seconds(clock) / 1e9)
         for name, seconds in gemms.shape_seconds(clock).items():
             shape_times[name].append(seconds)
-        for name, learner in learners.items():
-            rates[name].append(1.0 / clock.seconds(lambda: learner.update(batch, with_q_after=VARIANTS[name][2]),
-                                                   repeat=updates))
+        for name, runner in runners.items():
+            rates[name].append(updates / clock.seconds(lambda: runner.updates(updates)))
         for path, learner in staged.items():
             for phase, seconds in staged_update(learner, wire_frames, batch, clock, with_q_after=True).items():
                 phases[path].setdefault(phase, []).append(seconds)
         progress = ", ".join(f"{name} {values[-1]:.2f}/s" for name, values in rates.items())
         print(f"  round {round_ + 1}/{rounds}: square GEMM {square_gflops[-1]:.0f} GFLOP/s; {progress}", flush=True)
 
+    for runner in runners.values():
+        runner.close()
     peak = median(square_gflops)
     print(f"\npeak fp32 GEMM, {torch.get_num_threads()} threads, {clock_kind} clock")
     print(f"  square {square}x{square}x{square}: median {peak:.1f} GFLOP/s (best {max(square_gflops):.1f})")
@@ -318,11 +362,11 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
     print(f"  the update's GEMM-shape ceiling: {ceiling_gflops:.1f} GFLOP/s ({100 * ceiling_gflops / peak:.0f}% of "
           f"square) = {ceiling_gflops / update_gflop:.2f} updates/s if every layer ran like a plain GEMM of its shape")
 
-    print(f"\nupdates per second (median, best round in brackets), fraction of the square-GEMM peak")
+    print(f"\nupdates per second, each from a batch decoded from the wire format (median, best round in brackets)")
     for name, values in rates.items():
-        gflop = sum((flops_vdbe if VARIANTS[name][2] else flops).values()) / 1e9
+        gflop = sum((flops_vdbe if VARIANTS[name].with_q_after else flops).values()) / 1e9
         achieved = gflop * median(values)
-        print(f"  {VARIANTS[name][0]:30s} {median(values):6.2f} [{max(values):6.2f}]  {1e3 / median(values):6.1f} ms  "
+        print(f"  {VARIANTS[name].description:32s} {median(values):6.2f} [{max(values):6.2f}]  {1e3 / median(values):6.1f} ms  "
               f"{achieved:6.1f} GFLOP/s = {100 * achieved / peak:4.1f}% of peak, "
               f"{100 * achieved / ceiling_gflops:4.1f}% of the GEMM-shape ceiling")
     if "today" in rates and "new" in rates:
@@ -387,7 +431,7 @@ def main(argv: list[str] | None = None) -> None:
                              "than one thread it also counts threads spinning while they wait (default wall)")
     parser.add_argument("--square", type=int, default=2048, help="size of the square GEMM (default 2048)")
     parser.add_argument("--variants", default=DEFAULT_VARIANTS,
-                        help="comma-separated, of: " + "; ".join(f"{key} ({text})" for key, (text, _, _) in VARIANTS.items())
+                        help="comma-separated, of: " + "; ".join(f"{key} ({v.description})" for key, v in VARIANTS.items())
                         + f" (default: {DEFAULT_VARIANTS})")
     parser.add_argument("--no-phases", action="store_true", help="skip the per-phase breakdown")
     parser.add_argument("--actor-steps", type=int, default=300, help="single steps per actor round; 0 skips (default 300)")
