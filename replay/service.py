@@ -138,38 +138,52 @@ class ReplayService:
 
     def serve_pending(self, stop: threading.Event, announce=None) -> None:
         """Answers held requests while the limiter allows; calls announce(values) when the actors'
-        hold changes and at least every stats period. Runs until stop is set."""
+        hold changes and at least every stats period. Runs until stop is set; an error is logged
+        and the thread goes on."""
         every = Every(self.config.replay.stats_period_s)
+        warn = RateLimitedLog()
         while not stop.is_set():
-            with self._changed:
-                expired = self._expire_locked()
-                served = self._serve_one_locked()
-                announce_now = False
-                if announce is not None:
-                    # a change of the hold; past the budget every new step too (the learner pays the last ones)
-                    reason = self.limiter.hold_reason()
-                    now = (reason, self.limiter.env_steps if reason == "budget" else 0)
-                    announce_now = now != self._announced or every.due()
-                    if announce_now:
-                        self._announced = now
-                        values = self.limiter.values()
-                if served is None and not announce_now and not expired:
-                    self._changed.wait(WAKE_S)
-            for pending in expired:
-                pending.drop()
-            if announce_now:  # first: the actors' release is what the learner waits for next
-                announce(values)
-            if served is not None:
-                pending, batch = served
-                if not pending.reply(batch):
-                    log.warning("a trace batch could not be delivered (request %d)", batch.request_id)
+            try:
+                self._serve_round(every, announce)
+            except Exception:  # a reply thread that died would stop the learner for good
+                warn.warning("a reply thread failed; it goes on", exc_info=True)
+                stop.wait(WAKE_S)
+
+    def _serve_round(self, every: Every, announce) -> None:
+        """One pass: expire, serve one held request if allowed, announce a changed hold."""
+        with self._changed:
+            expired = self._expire_locked()
+            served = self._serve_one_locked()
+            announce_now = False
+            if announce is not None:
+                # a change of the hold; past the budget every new step too (the learner pays the last ones)
+                reason = self.limiter.hold_reason()
+                now = (reason, self.limiter.env_steps if reason == "budget" else 0)
+                announce_now = now != self._announced or every.due()
+                if announce_now:
+                    self._announced = now
+                    values = self.limiter.values()
+            if served is None and not announce_now and not expired:
+                self._changed.wait(WAKE_S)
+        for pending in expired:
+            pending.drop()
+        if announce_now:  # first: the actors' release is what the learner waits for next
+            announce(values)
+        if served is not None:
+            pending, batch = served
+            if not pending.reply(batch):
+                log.warning("a trace batch could not be delivered (request %d)", batch.request_id)
 
     def _serve_one_locked(self):
         if not (self._pending and len(self.store) and self.limiter.may_serve()):
             return None
         pending = self._pending.popleft()
         request = pending.request
-        batch = self.store.sample(request.batch_size, request.request_id)
+        try:
+            batch = self.store.sample(request.batch_size, request.request_id)
+        except Exception as error:
+            pending.reply_error(f"sampling failed: {type(error).__name__}: {error}")
+            raise
         self.limiter.on_served()
         self.traces_served += request.batch_size
         self._changed.notify_all()  # the announcing thread: the actors may go on now

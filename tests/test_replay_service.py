@@ -211,3 +211,55 @@ def test_budget_evictions_below_capacity_are_counted_and_warned(caplog):
     values = service.snapshot()
     assert values["episodes"] == 1 and values["evicted_for_budget"] == 2
     assert "MEMORY BUDGET IS EVICTING" in caplog.text
+
+
+class FakeQuery:
+    """What the reply threads see of a held Zenoh query."""
+
+    def __init__(self, request_id: int) -> None:
+        self.request = TraceBatchRequest(request_id=request_id, batch_size=2, trace_length=TRACE)
+        self.received = time.monotonic()
+        self.answer = None
+        self.done = threading.Event()
+
+    def reply(self, message) -> bool:
+        self.answer = message
+        self.done.set()
+        return True
+
+    def reply_error(self, text: str) -> bool:
+        self.answer = text
+        self.done.set()
+        return True
+
+    def drop(self) -> None:
+        self.done.set()
+
+
+def test_a_reply_thread_survives_a_failing_sample(caplog):
+    service = ReplayService(load_config("smoke"))
+    for index in range(2):
+        service.on_episode(episode(12, index))  # updates start: two batches of slack
+    real_sample, calls = service.store.sample, []
+
+    def flaky_sample(*args):
+        calls.append(args)
+        if len(calls) == 1:
+            raise RuntimeError("disk on fire")
+        return real_sample(*args)
+
+    service.store.sample = flaky_sample
+    stop, announced = threading.Event(), []
+    thread = threading.Thread(target=service.serve_pending, args=(stop, announced.append))
+    thread.start()
+    try:
+        first, second = FakeQuery(1), FakeQuery(2)
+        service.on_sample_request(first)
+        assert first.done.wait(10) and first.answer == "sampling failed: RuntimeError: disk on fire"
+        service.on_sample_request(second)
+        assert second.done.wait(10) and isinstance(second.answer, TraceBatch) and second.answer.request_id == 2
+    finally:
+        stop.set()
+        thread.join(10)
+    assert not thread.is_alive() and announced  # the rate message went out
+    assert service.limiter.served == 1  # the failed sample was not counted as served
