@@ -40,9 +40,12 @@ def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
                              stdout=output, stderr=subprocess.STDOUT, cwd=tmp_path)
     run_dir = tmp_path / "main"
     try:
-        actor_log = run_dir / "logs" / "actor-0.log"
-        wait_for(lambda: actor_log.exists() and "episodes" in actor_log.read_text(), "the actor's first report",
-                 120, [tmp_path / "stack.out", actor_log])
+        actor_log, learner_log = run_dir / "logs" / "actor-0.log", run_dir / "logs" / "learner.log"
+        # the actor's first report (not its config dump, which names start_episodes), and a learner
+        # past its start-up (its Ctrl-C handler is set): an interrupted import would leave no checkpoint
+        wait_for(lambda: actor_log.exists() and "INFO actor: episodes" in actor_log.read_text()
+                 and learner_log.exists() and "INFO learner: device" in learner_log.read_text(),
+                 "the actor's first report and the learner's start", 120, [tmp_path / "stack.out", actor_log])
         roles = children(stack.pid)
         assert sorted(" ".join(command.split()[2:3]) for command in roles.values()) == \
             ["actor.main", "learner.main", "replay.main"]
