@@ -1,8 +1,10 @@
 """The static world drawn once, with OpenCV, into one big RGB image.
 
 Roads, kerbs, pavements, centre-line dashes, parked cars, trees and houses
-never move, so each camera frame is only a warp of this image (see
-``camera.py``). Pixel (column c, row r) has its centre at world point
+never move, so each top-down camera frame is only a warp of this image (see
+``camera.py``). The perspective camera (``front_camera.py``) warps the ground
+alone (``ground_image``: the same picture without the objects, which it draws
+standing up instead). Pixel (column c, row r) has its centre at world point
 (x_min + (c + 0.5) / scale, y_min + (r + 0.5) / scale); y grows downwards on
 the map as in the image.
 
@@ -34,6 +36,15 @@ TREE_EDGE = (16, 56, 22)
 HOUSE = (150, 96, 72)
 HOUSE_EDGE = (104, 66, 50)
 EGO_CAR = (40, 104, 232)
+TRAFFIC_CAR = (236, 236, 240)  # white, far from the red of parked cars
+
+# Only the perspective camera's: what stands up, and the air around it.
+SKY = (112, 162, 226)  # at the top of the frame
+HAZE = (196, 208, 218)  # at the horizon, and what the ground fades into beyond the camera's range
+HOUSE_WALL = (214, 194, 160)
+HOUSE_ROOF = (132, 60, 46)
+TRUNK = (104, 72, 44)
+CANOPY = (44, 112, 44)
 
 KERB_WIDTH_M = 0.3
 PAVEMENT_WIDTH_M = 1.8
@@ -67,16 +78,29 @@ class WorldImage:
 def world_image(scale: float, road_half_width: float) -> WorldImage:
     """The neighbourhood at ``scale`` px/m; shared by every env of the process (read-only)."""
     hood = neighbourhood()
+    world = _ground(hood, scale, road_half_width)
+    _draw_rectangles(world, hood.houses, HOUSE, HOUSE_EDGE)
+    _draw_rectangles(world, np.array([car.rectangle for car in hood.parked_cars]), PARKED_CAR, None)
+    _draw_trees(world, hood)
+    world.pixels.flags.writeable = False
+    return world
+
+
+@functools.lru_cache(maxsize=4)
+def ground_image(scale: float, road_half_width: float) -> WorldImage:
+    """Grass, roads, kerbs, pavements and dashes only, same frame as ``world_image`` (read-only)."""
+    world = _ground(neighbourhood(), scale, road_half_width)
+    world.pixels.flags.writeable = False
+    return world
+
+
+def _ground(hood: Neighbourhood, scale: float, road_half_width: float) -> WorldImage:
     x_min, y_min, x_max, y_max = hood.bounds(MARGIN_M)
     shape = (int(round((y_max - y_min) * scale)), int(round((x_max - x_min) * scale)), 4)
     world = WorldImage(np.zeros(shape, dtype=np.uint8), x_min, y_min, scale)
     world.rgb[:] = GRASS
     _draw_roads(world, hood, road_half_width)
     _draw_dashes(world, hood)
-    _draw_rectangles(world, hood.houses, HOUSE, HOUSE_EDGE)
-    _draw_rectangles(world, np.array([car.rectangle for car in hood.parked_cars]), PARKED_CAR, None)
-    _draw_trees(world, hood)
-    world.pixels.flags.writeable = False
     return world
 
 

@@ -1,0 +1,538 @@
+"""The perspective front camera: what a camera on the car's roof sees of the street ahead.
+
+The paper films from the dashboard, then crops the image top and bottom to the
+road and resizes it to 200 x 66. Here the sensor is a pinhole camera
+``height_m`` above the car's centre, pitched ``pitch_deg`` down, with a 16:9
+image of square pixels that is 200 wide for ``hfov_deg`` across (200 x 112,
+focal length 100 px at 90 degrees). The crop keeps sensor rows 35 to 100: at
+the default pitch that is from 7 degrees above the horizon (12 rows of sky:
+the walls, canopies and far roofs of the street) down to 29 degrees below it,
+where the ground is 2.5 m ahead of the camera, just past the bonnet. The crop
+is already 200 wide, so its resize is the identity and the frame is rendered
+straight at 200 x 66; other sizes (``view``) scale the focal length with the
+width and keep the crop's centre. Rendering at twice the size and shrinking
+with ``cv2.INTER_AREA`` smooths edges and the far dashes, but measured 1.5
+times the cost of a frame; the distant ground, where aliasing is worst, fades
+into haze anyway, so it is not done.
+
+The ground is flat and the camera does not roll, so the ray through a pixel
+meets the ground at a projective function of the pixel: one homography
+(``cv2.warpPerspective``, bilinear) maps the frame's ground rows to the
+pre-drawn ground image (``world_image.ground_image``), and the distance
+ahead depends on the row alone. Only rows whose ground lies within
+``range_m`` are warped; above them the frame shows haze. The far half of the
+range fades into that haze row by row, and every object fades by how far
+ahead its footprint starts, so nothing pops into view at the range.
+
+Above the ground stand convex solids, parked cars and traffic as boxes and
+houses as boxes under a gable roof, each face shaded once by its normal
+against a fixed sun. A solid is drawn with its front faces only (back-face
+culling is exact for a convex solid), and a face that crosses the near plane
+is clipped to it, so a car being passed still shows the part in view. Trees
+are a trunk (the silhouette of a thin round post, a quad facing the camera)
+under a canopy (a sphere, drawn as a disc with a sunlit side). Objects are
+painted from far to near by the distance to the nearest point of their
+footprint, which orders things standing apart on a street correctly. Whatever
+is behind the car, beside it outside the field of view, or hidden behind
+something nearer is thus not in the frame.
+
+The per-frame cost is in numpy calls, not in array sizes: one matrix product
+tests every object's bounding sphere against the frustum and the range, one
+more projects every vertex of the few that remain, and Python only loops to
+hand the resulting polygons to OpenCV in painter's order.
+
+Coordinates are the simulator's: metres, x east, y south, z up, headings
+from +x towards +y. The image's columns grow to the driver's right, so the
+picture is not mirrored.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from actor.sim.camera import FRAME_HEIGHT, FRAME_WIDTH
+from actor.sim.geometry import rectangle_corners
+from actor.sim.neighbourhood import Neighbourhood
+from actor.sim.world_image import (CANOPY, GRASS, HAZE, HOUSE_ROOF, HOUSE_WALL, PARKED_CAR, SKY,
+                                   TRAFFIC_CAR, TRUNK, WorldImage)
+
+SENSOR_ROWS = 112  # 16:9 at FRAME_WIDTH columns
+CROP_TOP_ROW = 35  # the frame is sensor rows CROP_TOP_ROW .. CROP_TOP_ROW + FRAME_HEIGHT - 1
+
+NEAR_M = 0.1  # faces are clipped to this depth in front of the camera
+EDGE_ON = 1e-9  # a face is drawn if the camera is beyond its plane by more (seen edge-on it is a line)
+SUBPIXEL_BITS = 4
+FOG_START = 0.5  # fraction of the range where the fade into haze begins
+SKY_GRADIENT_DEG = 20.0  # elevation where the sky has turned from haze to SKY
+
+CAR_HEIGHT_M = 1.5
+TRUNK_RADIUS_M = 0.3
+CANOPY_CENTRE_M = 4.0  # a canopy of radius 2 m spans 2 m to 6 m above the ground
+HOUSE_WALL_HEIGHTS_M = (5.0, 6.5, 5.5)  # cycled over the houses so that the rooflines differ
+ROOF_RISE_M = 3.5
+
+# Shading: brightness = AMBIENT + DIFFUSE * max(0, normal . SUN), at most 1.
+SUN = np.array([-0.35, 0.45, 0.82]) / np.linalg.norm([-0.35, 0.45, 0.82])  # towards the sun
+SUN_XYZ = tuple(SUN.tolist())
+AMBIENT = 0.6
+DIFFUSE = 0.4
+HIGHLIGHT_SHIFT = 0.35  # a canopy's sunlit disc: offset towards the sun, times the canopy's radius
+HIGHLIGHT_RADIUS = 0.6  # and its radius
+HIGHLIGHT_MIN_PX = 4  # canopy radius (in frame pixels) below which the sunlit side is not drawn
+
+HAZE_RGB = np.array(HAZE, dtype=np.float64)
+TREE_COLOURS = np.array([TRUNK, np.multiply(CANOPY, AMBIENT), CANOPY])  # trunk, canopy, its sunlit side
+
+# Solids are stored with FACES faces of OUTLINE vertices each: shorter outlines
+# repeat their last vertex, and a padding face has a zero plane (never drawn).
+FACES = 6
+OUTLINE = 5
+# A unit box in its own frame (along, across, up, 1): bottom corners 0-3 in
+# ``rectangle_corners``' order (front right, front left, back left, back
+# right), the same corners at the top 4-7; faces front, back, right, left,
+# top, padding, with their outward planes.
+BOX_VERTICES = np.array([(a, b, z, 1.0) for z in (0.0, 1.0) for a, b in ((1, 1), (1, -1), (-1, -1), (-1, 1))])
+BOX_FACES = np.array([(0, 1, 5, 4, 4), (2, 3, 7, 6, 6), (3, 0, 4, 7, 7), (1, 2, 6, 5, 5),
+                      (4, 5, 6, 7, 7), (0, 0, 0, 0, 0)])
+BOX_OUTLINES = BOX_VERTICES[BOX_FACES.ravel()]
+BOX_PLANES = np.array([(1, 0, 0, -1), (-1, 0, 0, -1), (0, 1, 0, -1), (0, -1, 0, -1), (0, 0, 1, -1),
+                       (0, 0, 0, 0)], dtype=np.float64)
+# House vertices: a box's up to the wall tops, then the ridge's front (8) and
+# back (9) ends. Faces: front and back walls with their gables, right and
+# left walls, right and left roof.
+HOUSE_FACES = np.array([(0, 1, 5, 8, 4), (2, 3, 7, 9, 6), (3, 0, 4, 7, 7), (1, 2, 6, 5, 5),
+                        (4, 8, 9, 7, 7), (5, 6, 9, 8, 8)])
+# A tree is three polygons: its trunk, its canopy's disc and the disc's sunlit
+# side. The trunk's outline comes from its foot (0) and top (1) points, each
+# widened sideways in the image; a disc's 16 sides are 2 px inside the circle
+# at a radius of 120 px.
+TREE_POLYGONS = 3
+TRUNK_POINTS = np.array([0, 0, 1, 1])
+TRUNK_SIDES = np.array([[-1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [-1.0, 0.0]])
+DISC_SIDES = 16
+DISC = np.column_stack([np.cos(np.arange(DISC_SIDES) * 2 * math.pi / DISC_SIDES),
+                        np.sin(np.arange(DISC_SIDES) * 2 * math.pi / DISC_SIDES)])
+
+# The culling tests after the five frustum planes (``_in_view``: ahead less reach,
+# the footprint's axes against the heading, the camera's offset along and across
+# them) are linear in the camera's (fx, fy, x, y, fx x + fy y, 1): for each test,
+# the feature column and the term that multiplies it.
+CULL_TERM_NAMES = ("fx", "fy", "x", "y", "f.p", "1")
+CULL_TESTS = ({0: "fx", 1: "fy", 3: "-f.p", 8: "-1"}, {4: "fx", 5: "fy"}, {4: "fy", 5: "-fx"},
+              {4: "-x", 5: "-y", 6: "1"}, {4: "-y", 5: "x", 7: "1"})
+CULL_TERMS = np.zeros((len(CULL_TERM_NAMES), len(CULL_TESTS), 9))
+for _test, _columns in enumerate(CULL_TESTS):
+    for _column, _term in _columns.items():
+        CULL_TERMS[CULL_TERM_NAMES.index(_term.lstrip("-")), _test, _column] = -1.0 if _term[0] == "-" else 1.0
+CULL_TERMS = CULL_TERMS.reshape(len(CULL_TERM_NAMES), -1)
+
+
+@dataclass(frozen=True)
+class _Extents:
+    """What culling needs of each object, one column per object, so that one matrix product
+    per frame (``_in_view``) gives every test and each test's values are contiguous."""
+    features: np.ndarray  # (9, n): sphere centre x, y, z, 1, cos, sin, x cos + y sin, y cos - x sin, reach
+    radius: np.ndarray  # (n,) bounding sphere radius
+    half: np.ndarray  # (2, n) half length and half width of the footprint rectangle (centred below
+    # the sphere, turned by the heading in cos, sin), widened all round by ``reach``
+
+    def join(self, other: _Extents) -> _Extents:
+        return _Extents(np.hstack([self.features, other.features]), np.hstack([self.radius, other.radius]),
+                        np.hstack([self.half, other.half]))
+
+
+@dataclass(frozen=True)
+class _Solids:
+    """Convex solids standing on the ground, as arrays over solids (first axis)."""
+    outlines: np.ndarray  # (n, FACES, OUTLINE, 4) homogeneous world points of each face's outline
+    planes: np.ndarray  # (n, FACES, 4) outward face planes: the camera at p sees a face if plane . (p, 1)
+    # > EDGE_ON (the planes of boxes are scaled by their inverse sizes, which keeps the sign)
+    colours: np.ndarray  # (n, FACES, 3) shaded RGB
+    extents: _Extents
+
+    def join(self, other: _Solids) -> _Solids:
+        return _Solids(np.concatenate([self.outlines, other.outlines]), np.concatenate([self.planes, other.planes]),
+                       np.concatenate([self.colours, other.colours]), self.extents.join(other.extents))
+
+
+@dataclass(frozen=True)
+class _Trees:
+    points: np.ndarray  # (n, 2, 4) homogeneous trunk foot and canopy centre
+    radii: np.ndarray  # (n,) canopy radius
+    extents: _Extents
+
+
+@dataclass(frozen=True)
+class _Lens:
+    """What depends on the output size only: intrinsics, frustum, sky, fog rows."""
+    zoom: float  # columns / FRAME_WIDTH
+    to_fixed: np.ndarray  # 3 x 3 intrinsics to cv2's fixed point: camera point to (u z, v z, z)
+    ground_top: int  # first row whose ground lies within range; the rows from here are warped
+    from_band: np.ndarray  # 3 x 3: band pixel (u, v - ground_top, 1) to camera ray (x/z, y/z, 1)
+    background: np.ndarray  # (rows, columns, 4) sky and haze
+    fog_ground: np.ndarray  # (fog rows, columns) float32 weight of the ground in the rows from ground_top
+    fog_haze: np.ndarray  # the same rows' weight of the haze
+    haze_rows: np.ndarray  # (fog rows, columns, 4) haze
+    planes: np.ndarray  # (5, 4) frustum planes (a, b, c, d) in camera coordinates: p is outside
+    # a plane if (a, b, c) . p + d > 0; the four frame edges, then the near plane
+
+
+@dataclass(frozen=True)
+class _Pose:
+    position: np.ndarray  # (4,) homogeneous camera centre
+    to_camera: np.ndarray  # 4 x 4: homogeneous world point to camera point (right, down, forward)
+    forward: tuple[float, float]  # horizontal unit vector along the heading
+    sun: tuple[float, float]  # unit direction towards the sun in the image (right, down)
+
+
+class PerspectiveCamera:
+    def __init__(self, world: WorldImage, hood: Neighbourhood, height_m: float = 1.4,
+                 pitch_deg: float = 5.0, hfov_deg: float = 90.0, range_m: float = 50.0) -> None:
+        """``world``: the ground image (``ground_image``); ``hood``: what stands on it."""
+        self.world = world
+        self.height, self.pitch = height_m, math.radians(pitch_deg)
+        self.hfov, self.range = math.radians(hfov_deg), range_m
+        self.fog_start = FOG_START * range_m
+        self.trees = _trees(hood.trees)
+        parked = _boxes(np.array([car.rectangle for car in hood.parked_cars]).reshape(-1, 5), CAR_HEIGHT_M,
+                        PARKED_CAR)
+        self.solids = parked.join(_houses(hood.houses))
+        # Trees first, then solids (static ones, then the frame's movers): culling keeps the order.
+        self.extents = self.trees.extents.join(self.solids.extents)
+        self.lenses: dict[tuple[int, int], _Lens] = {}
+
+    def frame(self, x: float, y: float, heading: float, movers: np.ndarray | None = None) -> np.ndarray:
+        """The observation at a pose: uint8 RGB, shape (66, 200, 3), a new array each call.
+
+        ``movers``: traffic vehicles as rows (x, y, heading, length, width)."""
+        return self.view(x, y, heading, FRAME_WIDTH, FRAME_HEIGHT, movers)
+
+    def view(self, x: float, y: float, heading: float, columns: int, rows: int,
+             movers: np.ndarray | None = None) -> np.ndarray:
+        """The same camera at ``rows`` x ``columns`` pixels (pictures, ``render``): the field
+        of view across is kept, pixels stay square and the crop's centre stays where it is."""
+        lens = self.lens(columns, rows)
+        pose = self.pose(x, y, heading)
+        canvas = lens.background.copy()
+        self._draw_ground(canvas, lens, pose)
+        image = cv2.cvtColor(canvas, cv2.COLOR_RGBA2RGB)
+        self._draw_objects(image, lens, pose, movers)
+        return image
+
+    def pose(self, x: float, y: float, heading: float) -> _Pose:
+        c, s = math.cos(heading), math.sin(heading)
+        cp, sp = math.cos(self.pitch), math.sin(self.pitch)
+        h = self.height
+        # Rows: the image's right, its down (world down tipped back by the pitch) and the
+        # optical axis (forward tipped down by the pitch), each with its offset for the
+        # camera at (x, y, h).
+        to_camera = np.array([[-s, c, 0.0, s * x - c * y],
+                              [-sp * c, -sp * s, -cp, sp * (c * x + s * y) + cp * h],
+                              [cp * c, cp * s, -sp, sp * h - cp * (c * x + s * y)],
+                              [0.0, 0.0, 0.0, 1.0]])
+        sun_x, sun_y, sun_z = SUN_XYZ
+        sun_right, sun_down = c * sun_y - s * sun_x, -sp * (c * sun_x + s * sun_y) - cp * sun_z
+        norm = math.hypot(sun_right, sun_down) or 1.0
+        return _Pose(np.array([x, y, h, 1.0]), to_camera, (c, s), (sun_right / norm, sun_down / norm))
+
+    # --- ground -----------------------------------------------------------------------------
+
+    def _draw_ground(self, canvas: np.ndarray, lens: _Lens, pose: _Pose) -> None:
+        band = canvas[lens.ground_top:]
+        if not len(band):
+            return
+        cv2.warpPerspective(self.world.pixels, self._homography(lens, pose), band.shape[1::-1],
+                            dst=band, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=(*GRASS, 0))
+        fog = band[:len(lens.fog_ground)]
+        if len(fog):
+            cv2.blendLinear(fog, lens.haze_rows, lens.fog_ground, lens.fog_haze, dst=fog)
+
+    def _homography(self, lens: _Lens, pose: _Pose) -> np.ndarray:
+        """Band pixel to world-image pixel: pixel to ray, ray to where it meets the ground, ground
+        to the world image's pixels."""
+        x, y, height, _ = pose.position
+        world, scale = self.world, self.world.scale
+        # The ray p + t r meets z = 0 at p - height r / r_z: homogeneously (x r_z - height r_x, ...).
+        ray_to_world = np.array([[-height * scale, 0.0, scale * (x - world.x_min) - 0.5],
+                                 [0.0, -height * scale, scale * (y - world.y_min) - 0.5],
+                                 [0.0, 0.0, 1.0]])
+        return ray_to_world @ (pose.to_camera[:3, :3].T @ lens.from_band)
+
+    # --- objects ----------------------------------------------------------------------------
+
+    def _draw_objects(self, image: np.ndarray, lens: _Lens, pose: _Pose,
+                      movers: np.ndarray | None) -> None:
+        moving = None if movers is None or not len(movers) else np.asarray(movers, dtype=np.float64)
+        extents = self.extents
+        if moving is not None:
+            extents = extents.join(_box_extents(moving, CAR_HEIGHT_M))
+        index, nearest, ahead = self._in_view(lens, pose, extents)
+        n_trees, n_solids = len(self.trees.radii), len(self.solids.colours)
+        first_solid = int(np.searchsorted(index, n_trees))
+        solid_index = index[first_solid:] - n_trees
+        first_mover = int(np.searchsorted(solid_index, n_solids))
+        seen = solid_index[:first_mover]
+        faces = self.solids.outlines[seen], self.solids.planes[seen], self.solids.colours[seen]
+        if first_mover < len(solid_index):
+            traffic = _box_faces(moving[solid_index[first_mover:] - n_solids], CAR_HEIGHT_M, TRAFFIC_CAR)
+            faces = tuple(np.concatenate([a, b]) for a, b in zip(faces, traffic))
+        fog = self._fog(ahead)
+        projection = lens.to_fixed @ pose.to_camera[:3]
+        trees = self._tree_polygons(index[:first_solid], fog[:first_solid], lens, pose, projection)
+        solids = self._face_polygons(*faces, fog[first_solid:], pose, projection)
+        polygons, colours = trees[0] + solids[0], trees[1] + solids[1]
+        shown = np.flatnonzero(np.concatenate([trees[2], solids[2]]))
+        # Painter's order: the farthest nearest point first, and within a tree its trunk,
+        # then its canopy, then the canopy's sunlit side (a solid's faces never overlap).
+        tree_nearest = nearest[:first_solid]
+        keys = np.concatenate([np.tile(tree_nearest, TREE_POLYGONS), np.repeat(nearest[first_solid:], FACES)])
+        ranks = np.concatenate([np.repeat(np.arange(TREE_POLYGONS), len(tree_nearest)),
+                                np.zeros(len(keys) - TREE_POLYGONS * len(tree_nearest))])
+        for i in shown[np.lexsort((ranks[shown], -keys[shown]))].tolist():
+            cv2.fillConvexPoly(image, polygons[i], colours[i], cv2.LINE_8, SUBPIXEL_BITS)
+
+    def _in_view(self, lens: _Lens, pose: _Pose,
+                 extents: _Extents) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Objects whose bounding sphere meets the frustum and whose footprint starts within the
+        range: their index (ascending), the distance from the camera to the nearest point of
+        their footprint, and how far ahead that footprint starts."""
+        (fx, fy), (x, y, _, _) = pose.forward, pose.position
+        # Rows of ``tests @ features``: the sphere centre's signed distance to the five
+        # frustum planes; how far ahead the footprint's centre lies less its reach; the
+        # footprint's axes against the heading; the camera's offset from the footprint's
+        # centre along and across those axes.
+        tests = np.zeros((10, 9))
+        tests[:5, :4] = lens.planes @ pose.to_camera
+        tests[5:] = (np.array([fx, fy, x, y, fx * x + fy * y, 1.0]) @ CULL_TERMS).reshape(5, 9)
+        values = tests @ extents.features
+        half_length, half_width = extents.half
+        ahead = values[5] - np.abs(values[6]) * half_length - np.abs(values[7]) * half_width
+        index = np.flatnonzero((values[:5].max(axis=0) <= extents.radius) & (ahead <= self.range))
+        gaps = np.maximum(np.abs(values[8:, index]) - extents.half[:, index], 0.0)
+        return index, np.hypot(gaps[0], gaps[1]) - extents.features[8, index], ahead[index]
+
+    def _fog(self, ahead: np.ndarray) -> np.ndarray:
+        """Weight of the haze, by how far ahead the ground or an object starts (1 beyond range)."""
+        return np.clip((ahead - self.fog_start) / (self.range - self.fog_start), 0.0, 1.0)
+
+    def _face_polygons(self, outlines: np.ndarray, planes: np.ndarray, colours: np.ndarray, fog: np.ndarray,
+                       pose: _Pose, projection: np.ndarray) -> tuple[list, list, np.ndarray]:
+        """The solids' faces, n FACES of them in order: fixed-point polygons, colours, and which
+        to draw (those that face the camera, cut to the near plane where they cross it)."""
+        projected = outlines @ projection.T  # (n, FACES, OUTLINE, 3): (u z, v z, z) in fixed point
+        depth = projected[..., 2]
+        pixels = projected[..., :2] / np.maximum(depth, NEAR_M)[..., None]
+        polygons = list(np.rint(pixels).astype(np.int32, order="C").reshape(-1, OUTLINE, 2))
+        shown = planes @ pose.position > EDGE_ON
+        for i, face in np.argwhere(shown & (depth < NEAR_M).any(axis=2)).tolist():
+            cut = _clipped(projected[i, face].tolist())
+            if cut is None:
+                shown[i, face] = False
+            else:
+                polygons[i * FACES + face] = cut
+        return polygons, _fogged(colours, fog[:, None, None]).reshape(-1, 3).tolist(), shown.ravel()
+
+    def _tree_polygons(self, index: np.ndarray, fog: np.ndarray, lens: _Lens, pose: _Pose,
+                       projection: np.ndarray) -> tuple[list, list, np.ndarray]:
+        """The trees' trunks, then their canopy discs, then the discs' sunlit sides, as in
+        ``_face_polygons``. A sunlit side too small to show is not drawn; nor is a tree whose
+        canopy reaches the near plane: it stands beside the camera, outside the field of view
+        (a tree is beyond the pavement, so at least a car's half width away)."""
+        projected = self.trees.points[index] @ projection.T  # (n, 2, 3): foot, canopy centre
+        radii = self.trees.radii[index]
+        depth = projected[..., 2]
+        inverse = 1.0 / np.maximum(depth, NEAR_M)
+        middles = projected[..., :2] * inverse[..., None]  # fixed-point pixels
+        half_widths = (lens.to_fixed[0, 0] * TRUNK_RADIUS_M) * inverse[:, TRUNK_POINTS, None]
+        trunks = np.rint(middles[:, TRUNK_POINTS] + half_widths * TRUNK_SIDES).astype(np.int32, order="C")
+        # Discs as polygons too: cv2.circle costs more per call than a fill.
+        canopy_radii = lens.to_fixed[0, 0] * radii * inverse[:, 1]
+        shifts = np.multiply.outer([0.0, HIGHLIGHT_SHIFT], np.multiply.outer(canopy_radii, pose.sun))
+        centres = middles[None, :, 1] + shifts  # (2, n, 2): canopies, then their sunlit sides
+        radii_px = np.multiply.outer((1.0, HIGHLIGHT_RADIUS), canopy_radii)
+        discs = np.rint(centres[..., None, :] + radii_px[..., None, None] * DISC).astype(np.int32, order="C")
+        seen = depth[:, 1] > radii + NEAR_M
+        shown = np.concatenate([seen, seen, seen & (canopy_radii >= HIGHLIGHT_MIN_PX * lens.zoom * (1 << SUBPIXEL_BITS))])
+        colours = _fogged(TREE_COLOURS, fog[:, None, None]).transpose(1, 0, 2).reshape(-1, 3).tolist()
+        return list(trunks) + list(discs.reshape(-1, DISC_SIDES, 2)), colours, shown
+
+    # --- per output size --------------------------------------------------------------------
+
+    def lens(self, columns: int, rows: int) -> _Lens:
+        if (columns, rows) not in self.lenses:
+            self.lenses[columns, rows] = self._make_lens(columns, rows)
+        return self.lenses[columns, rows]
+
+    def _make_lens(self, columns: int, rows: int) -> _Lens:
+        zoom = columns / FRAME_WIDTH
+        focal = columns / 2 / math.tan(self.hfov / 2)
+        # The sensor's centre lies SENSOR_ROWS / 2 - CROP_TOP_ROW frame rows below the
+        # frame's top edge; another height keeps the crop's centre.
+        centre_row = zoom * (SENSOR_ROWS / 2 - CROP_TOP_ROW) + (rows - zoom * FRAME_HEIGHT) / 2 - 0.5
+        centre = ((columns - 1) / 2, centre_row)
+        one = 1 << SUBPIXEL_BITS
+        to_fixed = np.array([[one * focal, 0.0, one * centre[0]], [0.0, one * focal, one * centre_row],
+                             [0.0, 0.0, 1.0]])
+        slope = (np.arange(rows) - centre_row) / focal  # ray's y / z, per row
+        cp, sp = math.cos(self.pitch), math.sin(self.pitch)
+        down, forward = sp + slope * cp, cp - slope * sp  # of the row's central ray
+        with np.errstate(divide="ignore"):
+            ahead = np.where(down > 0, self.height * forward / down, np.inf)
+        ground_top = int(np.searchsorted(-ahead, -self.range))  # ahead falls down the frame
+        from_band = np.array([[1 / focal, 0.0, -centre[0] / focal],
+                              [0.0, 1 / focal, (ground_top - centre_row) / focal],
+                              [0.0, 0.0, 1.0]])
+        fog = self._fog(ahead[ground_top:])
+        fog = np.repeat(fog[:int(np.count_nonzero(fog)), None], columns, axis=1).astype(np.float32)
+        haze_rows = np.zeros(fog.shape + (4,), dtype=np.uint8)
+        haze_rows[..., :3] = HAZE
+        return _Lens(zoom, to_fixed, ground_top, from_band,
+                     _background(columns, np.degrees(np.arctan2(-down, forward))),
+                     1 - fog, fog, haze_rows, _frustum(focal, centre, columns, rows))
+
+
+def _background(columns: int, elevation_deg: np.ndarray) -> np.ndarray:
+    """Haze at and below the horizon, turning to SKY towards SKY_GRADIENT_DEG above it."""
+    t = np.clip(elevation_deg / SKY_GRADIENT_DEG, 0.0, 1.0)[:, None]
+    colours = np.rint(np.array(HAZE) * (1 - t) + np.array(SKY) * t).astype(np.uint8)
+    background = np.zeros((len(elevation_deg), columns, 4), dtype=np.uint8)
+    background[..., :3] = colours[:, None, :]
+    return background
+
+
+def _frustum(focal: float, centre: tuple[float, float], columns: int, rows: int) -> np.ndarray:
+    """Unit-normal planes (camera coordinates) of the frame's four edges and the near plane."""
+    left, right = (centre[0] + 0.5) / focal, (columns - 0.5 - centre[0]) / focal
+    top, bottom = (centre[1] + 0.5) / focal, (rows - 0.5 - centre[1]) / focal
+    sides = np.array([[1.0, 0.0, -right], [-1.0, 0.0, -left], [0.0, 1.0, -bottom], [0.0, -1.0, -top]])
+    sides /= np.linalg.norm(sides, axis=1, keepdims=True)
+    return np.vstack([np.column_stack([sides, np.zeros(4)]), [0.0, 0.0, -1.0, NEAR_M]])
+
+
+def _fogged(colours: np.ndarray, fog: np.ndarray) -> np.ndarray:
+    """Integer RGB of ``colours`` faded towards the haze by ``fog`` (broadcast)."""
+    return np.rint(colours + (HAZE_RGB - colours) * fog).astype(int)
+
+
+def _clipped(outline: list[list[float]]) -> np.ndarray | None:
+    """A face outline in (u z, v z, z) cut to z >= NEAR_M (the map from the world is linear, so
+    cut points interpolate), then divided through to fixed-point pixels; None if nothing is left."""
+    kept = []
+    for point, following in zip(outline, outline[1:] + outline[:1]):
+        inside = point[2] >= NEAR_M
+        if inside:
+            kept.append(point)
+        if inside != (following[2] >= NEAR_M):
+            t = (NEAR_M - point[2]) / (following[2] - point[2])
+            kept.append([a + t * (b - a) for a, b in zip(point, following)])
+    if len(kept) < 3:
+        return None
+    return np.array([[round(u / z), round(v / z)] for u, v, z in kept], dtype=np.int32)
+
+
+# --- the objects ----------------------------------------------------------------------------
+
+def _extents(centres: np.ndarray, radius: np.ndarray, headings: np.ndarray, half: np.ndarray,
+             reach: np.ndarray) -> _Extents:
+    """Culling rows of objects with bounding spheres (``centres``, ``radius``) over footprints
+    centred below them: rectangles (``headings``, ``half``) widened all round by ``reach``."""
+    cos, sin = np.cos(headings), np.sin(headings)
+    x, y = centres[:, 0], centres[:, 1]
+    features = np.vstack([centres.T, np.ones(len(x)), cos, sin, x * cos + y * sin, y * cos - x * sin, reach])
+    return _Extents(features, radius, half.T.copy())
+
+
+def _box_extents(rectangles: np.ndarray, height: float | np.ndarray) -> _Extents:
+    """Culling rows of solids ``height`` tall on rectangles (x, y, heading, length, width)."""
+    height = np.broadcast_to(np.asarray(height, dtype=np.float64), (len(rectangles),))
+    half = rectangles[:, 3:5] / 2
+    centres = np.column_stack([rectangles[:, :2], height / 2])
+    radius = np.sqrt((half ** 2).sum(axis=1) + (height / 2) ** 2)
+    return _extents(centres, radius, rectangles[:, 2], half, np.zeros(len(rectangles)))
+
+
+def _boxes(rectangles: np.ndarray, height: float, colour: tuple[int, int, int]) -> _Solids:
+    """Boxes ``height`` tall on rectangles (x, y, heading, length, width)."""
+    return _Solids(*_box_faces(rectangles, height, colour), _box_extents(rectangles, height))
+
+
+def _box_faces(rectangles: np.ndarray, height: float,
+               colour: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Outlines, planes and colours of boxes: the unit box moved into place by one affine map
+    each, and its planes by the inverse map. (A loop, since a frame has only a few movers.)"""
+    places, inverses, lights = [], [], []
+    sun_x, sun_y, sun_z = SUN_XYZ
+    for x, y, heading, length, width in rectangles.tolist():
+        c, s = math.cos(heading), math.sin(heading)
+        half_length, half_width = length / 2, width / 2
+        places.append(((c * half_length, -s * half_width, 0.0, x), (s * half_length, c * half_width, 0.0, y),
+                       (0.0, 0.0, height, 0.0), (0.0, 0.0, 0.0, 1.0)))
+        inverses.append(((c / half_length, s / half_length, 0.0, -(c * x + s * y) / half_length),
+                         (-s / half_width, c / half_width, 0.0, (s * x - c * y) / half_width),
+                         (0.0, 0.0, 1.0 / height, 0.0), (0.0, 0.0, 0.0, 1.0)))
+        # The sun against the outward normals: along, back, right, left, up, padding.
+        along, across = c * sun_x + s * sun_y, c * sun_y - s * sun_x
+        lights.append((along, -along, across, -across, sun_z, 0.0))
+    light = AMBIENT + DIFFUSE * np.maximum(np.array(lights).reshape(-1, FACES), 0.0)
+    outlines = (BOX_OUTLINES @ np.array(places).reshape(-1, 4, 4).transpose(0, 2, 1))
+    return (outlines.reshape(-1, FACES, OUTLINE, 4), BOX_PLANES @ np.array(inverses).reshape(-1, 4, 4),
+            np.multiply.outer(light, colour))
+
+
+def _houses(houses: np.ndarray) -> _Solids:
+    """Houses on rectangles (x, y, heading, length, width): walls, then a gable roof whose ridge
+    runs along the longer side."""
+    houses = np.array(houses, dtype=np.float64)
+    turned = houses[:, 4] > houses[:, 3]
+    houses[turned, 2] += math.pi / 2
+    houses[turned, 3:5] = houses[turned, 4:2:-1]
+    n = len(houses)
+    walls = np.resize(np.array(HOUSE_WALL_HEIGHTS_M), n)
+    corners = rectangle_corners(houses)
+    c, s, zero = np.cos(houses[:, 2]), np.sin(houses[:, 2]), np.zeros(n)
+    along, across, up = (np.column_stack(v) for v in ((c, s, zero), (-s, c, zero), (zero, zero, zero + 1)))
+    half_length = houses[:, None, 3:4] / 2
+    ridge_ends = houses[:, None, :2] + np.stack([along[:, :2], -along[:, :2]], axis=1) * half_length
+    vertices = np.concatenate([_lifted(corners, zero), _lifted(corners, walls),
+                               _lifted(ridge_ends, walls + ROOF_RISE_M)], axis=1)
+    half_width = houses[:, 4:5] / 2
+    roofs = [ROOF_RISE_M * across + half_width * up, -ROOF_RISE_M * across + half_width * up]
+    roofs = [roof / np.linalg.norm(roof, axis=1, keepdims=True) for roof in roofs]
+    normals = np.stack([along, -along, across, -across, *roofs], axis=1)
+    outlines = vertices[:, HOUSE_FACES]
+    offsets = np.einsum("nfk,nfk->nf", normals, outlines[:, :, 0])
+    light = AMBIENT + DIFFUSE * np.maximum(normals @ SUN, 0.0)
+    colours = np.array([HOUSE_WALL] * 4 + [HOUSE_ROOF] * 2, dtype=np.float64)
+    return _Solids(np.concatenate([outlines, np.ones(outlines.shape[:-1] + (1,))], axis=-1),
+                   np.concatenate([normals, -offsets[..., None]], axis=-1), light[..., None] * colours,
+                   _box_extents(houses, walls + ROOF_RISE_M))
+
+
+def _trees(trees: np.ndarray) -> _Trees:
+    """Trees at rows (x, y, canopy radius); the footprint is the canopy's circle."""
+    n = len(trees)
+    foot = np.column_stack([trees[:, :2], np.zeros(n), np.ones(n)])
+    centre = np.column_stack([trees[:, :2], np.full(n, CANOPY_CENTRE_M), np.ones(n)])
+    radii = trees[:, 2].copy()
+    # The sphere through the trunk's foot and the canopy's top holds the whole
+    # canopy too, as long as the canopy is clear of the ground.
+    middle = (CANOPY_CENTRE_M + radii) / 2
+    extents = _extents(np.column_stack([trees[:, :2], middle]), middle, np.zeros(n), np.zeros((n, 2)), radii)
+    return _Trees(np.stack([foot, centre], axis=1), radii, extents)
+
+
+def _lifted(points: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """Ground points (n, k, 2) at one height per row as (n, k, 3)."""
+    return np.concatenate([points, np.broadcast_to(heights[:, None, None], points.shape[:2] + (1,))], axis=2)
+
+
+def front_strip(camera: PerspectiveCamera, poses, gap: int = 2) -> np.ndarray:
+    """Frames at ``poses`` (x, y, heading), top to bottom, ``gap`` haze rows apart (pictures)."""
+    separator = np.full((gap, FRAME_WIDTH, 3), HAZE, dtype=np.uint8)
+    frames = [camera.frame(*pose) for pose in poses]
+    return np.concatenate([part for f in frames for part in (f, separator)][:-1])
