@@ -69,7 +69,8 @@ class ReplayConfig:
     # The rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one
     # update per learner.env_steps_per_update env steps: it holds trace batches while the learner
     # is this many updates ahead, and holds the actors' next episode while it is this many behind.
-    # The whole run's ratio is off by at most this many updates; 1e9 lets both run free.
+    # The whole run's ratio is off by at most this many updates. A buffer of at least the updates
+    # the budget pays for (1e9) holds nobody: the run is unpaced and ends at the budget.
     error_buffer_updates: float = 50.0
     stats_period_s: float = 1.0
     log_period_s: float = 10.0

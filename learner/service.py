@@ -71,9 +71,12 @@ class RunClock:
 
     def finished(self, updates: int, total_env_steps: int) -> bool:
         """Budget spent and its steps paid for: updates >= due, or, if actors keep outrunning the
-        learner, B updates past what was due when the budget was first seen spent."""
+        learner, B updates past what was due when the budget was first seen spent. An unpaced run
+        (B at least the updates the whole budget pays for: nobody is ever held) ends at the budget."""
         if self.env_steps < total_env_steps:
             return False
+        if self.error_buffer >= total_env_steps / self.env_steps_per_update:
+            return True
         due = self.updates_due()
         if due is None:
             return False

@@ -90,6 +90,12 @@ def test_the_run_ends_when_its_budget_is_paid_for():
     assert outrun.finished(updates=235, total_env_steps=1_000)
 
 
+def test_an_unpaced_run_ends_at_its_budget_without_paying_the_rest():
+    clock = RunClock(env_steps_per_update=4.0, error_buffer=1e9)  # more than the 250 updates 1,000 steps pay
+    clock.observe(1_020, start_env_steps=100)
+    assert clock.finished(updates=10, total_env_steps=1_000)
+
+
 def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():
     clock = RunClock(env_steps_per_update=4.0, error_buffer=1.0)
     clock.observe(500, start_env_steps=100)
