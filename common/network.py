@@ -102,12 +102,12 @@ class D3RQN(nn.Module):
     def trace_q_values(self, pixels: torch.Tensor, batch: int, grad_steps: int | None = None) -> torch.Tensor:
         """Q-values (batch, time, n_actions) of whole traces from a zero state, as forward() computes them.
 
-        `pixels` comes from scale_frames (time-major; whole frames or
-        used_frame_size, which saves the work on pixels nothing reads). With autograd on, the
-        gradient flows through the first `grad_steps` steps only (default: all);
-        the Q-values of later steps come detached, and their frames are left out
-        of the backward pass. Used by the learner (learner/update.py); forward()
-        serves the rest.
+        `pixels` comes from scale_frames (time-major; whole frames, or cut to
+        used_frame_size, which saves the work on pixels nothing reads). With
+        autograd on, the gradient flows through the first `grad_steps` steps only
+        (default: all); the Q-values of later steps come detached, and their
+        frames are left out of the backward pass. Used by the learner
+        (learner/update.py); forward() serves the rest.
         """
         frames = pixels.shape[0]
         time = frames // batch
@@ -181,7 +181,8 @@ def _native_cpu_lstm():
 # floating-point rounding, tests/test_network.py) with less work on the CPU:
 #
 # - frames are scaled to [0, 1] once per batch (scale_frames), time-major, and
-#   the online and target networks share them;
+#   the online and target networks share them; only the 60x196 of a 66x200
+#   frame that the VALID convolutions read are kept;
 # - each convolution runs with its ReLU fused (oneDNN post-op), and the three
 #   layers' backward is written out by hand (_ConvStack);
 # - the LSTM's input projection is one GEMM over all frames (_Projection) and
@@ -193,7 +194,9 @@ def _native_cpu_lstm():
 # - frames past `grad_steps` (the learner's s_T, whose Q-values only enter
 #   detached) go through the forward pass but not through the backward pass.
 #
-# Every measurement behind these choices is in deploy/bench/learner_speed.py.
+# Each choice measured faster, one thread, on the project's 2-core Xeon with
+# torch 2.13; deploy/bench/learner_speed.py times the whole against autograd's,
+# and the learner picks between the two by timing both (learner/update.py).
 
 
 def scale_frames(frames: torch.Tensor, size: tuple[int, int] | None = None,

@@ -28,6 +28,14 @@ gradient. In the paper's algorithm the next-state passes start from a zero
 state at s_1, so h_t+1 there has seen s_1..s_t+1; here it has seen s_0..s_t+1,
 one frame more, the same history the online Q(h_t, .) is built on. The
 separate-pass versions, with either history, live in learner/reference_update.py.
+
+Two implementations of that one pass give the same loss and gradients within
+rounding: one_pass_loss runs D3RQN.forward under autograd (nn.LSTM; cuDNN on
+CUDA); trace_pass_loss runs D3RQN.trace_q_values, hand-written passes that do
+less work on the CPU (common/network.py says what they skip). The learner picks
+one per `learner.update_path`, by default by timing both on its first batch.
+Batches can be checked, decoded and put on the device ahead of their update
+(BatchStager, from the prefetcher's threads).
 """
 
 from __future__ import annotations

@@ -429,7 +429,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                         help="wall time, or the process's CPU time: steadier on a busy machine, but with more "
                              "than one thread it also counts threads spinning while they wait (default wall)")
-    parser.add_argument("--square", type=int, default=2048, help="size of the square GEMM (default 2048)")
+    parser.add_argument("--square", type=int, default=0,
+                        help="size of the square GEMM (default 2048 on CPU, 8192 on CUDA)")
     parser.add_argument("--variants", default=DEFAULT_VARIANTS,
                         help="comma-separated, of: " + "; ".join(f"{key} ({v.description})" for key, v in VARIANTS.items())
                         + f" (default: {DEFAULT_VARIANTS})")
@@ -451,7 +452,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"batch B={learner.batch_size} T={learner.trace_length} frames {net.frame_height}x{net.frame_width}"
           f"x{net.frame_channels}, LSTM {net.lstm_units}; {args.rounds} rounds x {args.updates} updates per variant "
           f"after {args.warmup} warm-up updates; {args.clock} clock", flush=True)
-    run(config, variants, args.rounds, args.updates, args.warmup, args.clock, args.square, not args.no_phases)
+    square = args.square or (8192 if device.type == "cuda" else 2048)
+    run(config, variants, args.rounds, args.updates, args.warmup, args.clock, square, not args.no_phases)
 
     if args.actor_steps:
         print(f"\nactor single-step inference (batch 1, one frame, state carried, inference_mode)", flush=True)
