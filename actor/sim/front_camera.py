@@ -38,8 +38,9 @@ something nearer is thus not in the frame.
 
 The per-frame cost is in numpy calls, not in array sizes: one matrix product
 tests every object's bounding sphere against the frustum and the range, one
-more projects every vertex of the few that remain, and Python only loops to
-hand the resulting polygons to OpenCV in painter's order.
+more projects every point of the parts of the few that remain (faces of
+solids and the camera-facing parts of trees alike), and Python only loops to
+hand the resulting polygons and discs to OpenCV in painter's order.
 
 Coordinates are the simulator's: metres, x east, y south, z up, headings
 from +x towards +y. The image's columns grow to the driver's right, so the
@@ -82,10 +83,12 @@ AMBIENT = 0.6
 DIFFUSE = 0.4
 HIGHLIGHT_SHIFT = 0.35  # a canopy's sunlit disc: offset towards the sun, times the canopy's radius
 HIGHLIGHT_RADIUS = 0.6  # and its radius
-HIGHLIGHT_MIN_PX = 4  # canopy radius (in frame pixels) below which the sunlit side is not drawn
+# Far away a part is too small to matter and not drawn: a sunlit side of radius
+# below this (in frame pixels; beyond about 30 m), a trunk narrower (beyond 40 m).
+HIGHLIGHT_MIN_PX = 4.0
+TRUNK_MIN_PX = 1.5
 
 HAZE_RGB = np.array(HAZE, dtype=np.float64)
-TREE_COLOURS = np.array([TRUNK, np.multiply(CANOPY, AMBIENT), CANOPY])  # trunk, canopy, its sunlit side
 
 # Solids are stored with FACES faces of OUTLINE vertices each: shorter outlines
 # repeat their last vertex, and a padding face has a zero plane (never drawn).
@@ -106,16 +109,10 @@ BOX_PLANES = np.array([(1, 0, 0, -1), (-1, 0, 0, -1), (0, 1, 0, -1), (0, -1, 0, 
 # left walls, right and left roof.
 HOUSE_FACES = np.array([(0, 1, 5, 8, 4), (2, 3, 7, 9, 6), (3, 0, 4, 7, 7), (1, 2, 6, 5, 5),
                         (4, 8, 9, 7, 7), (5, 6, 9, 8, 8)])
-# A tree is three polygons: its trunk, its canopy's disc and the disc's sunlit
-# side. The trunk's outline comes from its foot (0) and top (1) points, each
-# widened sideways in the image; a disc's 16 sides are 2 px inside the circle
-# at a radius of 120 px.
-TREE_POLYGONS = 3
-TRUNK_POINTS = np.array([0, 0, 1, 1])
-TRUNK_SIDES = np.array([[-1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [-1.0, 0.0]])
-DISC_SIDES = 16
-DISC = np.column_stack([np.cos(np.arange(DISC_SIDES) * 2 * math.pi / DISC_SIDES),
-                        np.sin(np.arange(DISC_SIDES) * 2 * math.pi / DISC_SIDES)])
+# A tree is three camera-facing parts: its trunk (a quad between its foot and its
+# top, widened along the camera's right axis), its canopy's disc and the disc's
+# sunlit side (discs drawn as circles).
+TREE_PARTS = 3
 
 # The culling tests after the five frustum planes (``_in_view``: ahead less reach,
 # the footprint's axes against the heading, the camera's offset along and across
@@ -124,11 +121,18 @@ DISC = np.column_stack([np.cos(np.arange(DISC_SIDES) * 2 * math.pi / DISC_SIDES)
 CULL_TERM_NAMES = ("fx", "fy", "x", "y", "f.p", "1")
 CULL_TESTS = ({0: "fx", 1: "fy", 3: "-f.p", 8: "-1"}, {4: "fx", 5: "fy"}, {4: "fy", 5: "-fx"},
               {4: "-x", 5: "-y", 6: "1"}, {4: "-y", 5: "x", 7: "1"})
-CULL_TERMS = np.zeros((len(CULL_TERM_NAMES), len(CULL_TESTS), 9))
-for _test, _columns in enumerate(CULL_TESTS):
-    for _column, _term in _columns.items():
-        CULL_TERMS[CULL_TERM_NAMES.index(_term.lstrip("-")), _test, _column] = -1.0 if _term[0] == "-" else 1.0
-CULL_TERMS = CULL_TERMS.reshape(len(CULL_TERM_NAMES), -1)
+
+
+def _cull_terms() -> np.ndarray:
+    """CULL_TESTS as a (terms, tests x 9 features) matrix: (terms) @ it gives the tests' rows."""
+    terms = np.zeros((len(CULL_TERM_NAMES), len(CULL_TESTS), 9))
+    for test, columns in enumerate(CULL_TESTS):
+        for column, term in columns.items():
+            terms[CULL_TERM_NAMES.index(term.lstrip("-")), test, column] = -1.0 if term[0] == "-" else 1.0
+    return terms.reshape(len(CULL_TERM_NAMES), -1)
+
+
+CULL_TERMS = _cull_terms()
 
 
 @dataclass(frozen=True)
@@ -146,24 +150,27 @@ class _Extents:
 
 
 @dataclass(frozen=True)
-class _Solids:
-    """Convex solids standing on the ground, as arrays over solids (first axis)."""
-    outlines: np.ndarray  # (n, FACES, OUTLINE, 4) homogeneous world points of each face's outline
-    planes: np.ndarray  # (n, FACES, 4) outward face planes: the camera at p sees a face if plane . (p, 1)
-    # > EDGE_ON (the planes of boxes are scaled by their inverse sizes, which keeps the sign)
-    colours: np.ndarray  # (n, FACES, 3) shaded RGB
-    extents: _Extents
+class _Parts:
+    """What is drawn, as arrays over parts: the faces of solids (polygons) and the parts of
+    trees (a quad and two discs, all facing the camera)."""
+    points: np.ndarray  # (n, OUTLINE, 5): homogeneous world points (x, y, z, 1), each with how far
+    # to move it along the camera's right axis (which keeps a tree's parts facing the camera)
+    planes: np.ndarray  # (n, 4): a part is drawn if plane . (camera, 1) > EDGE_ON (faces:
+    # outward planes, scaled by the inverse sizes for boxes, which keeps the sign; trees: always)
+    colours: np.ndarray  # (n, 3) shaded RGB
+    kinds: np.ndarray  # (n, 3): whether a disc (centre at point 0, radius out to point 1); the
+    # depth point 0 must exceed, else the part is not drawn (a face is clipped instead: -inf);
+    # the smallest size, in frame pixels, at which the part is drawn: from point 0 to point 1
+    # across the image (a disc's radius, a trunk's width)
 
-    def join(self, other: _Solids) -> _Solids:
-        return _Solids(np.concatenate([self.outlines, other.outlines]), np.concatenate([self.planes, other.planes]),
-                       np.concatenate([self.colours, other.colours]), self.extents.join(other.extents))
+    def take(self, index: np.ndarray) -> _Parts:
+        return _Parts(self.points[index], self.planes[index], self.colours[index], self.kinds[index])
 
-
-@dataclass(frozen=True)
-class _Trees:
-    points: np.ndarray  # (n, 2, 4) homogeneous trunk foot and canopy centre
-    radii: np.ndarray  # (n,) canopy radius
-    extents: _Extents
+    def join(self, other: _Parts) -> _Parts:
+        return _Parts(*(np.concatenate([a, b]) for a, b in ((self.points, other.points),
+                                                            (self.planes, other.planes),
+                                                            (self.colours, other.colours),
+                                                            (self.kinds, other.kinds))))
 
 
 @dataclass(frozen=True)
@@ -186,7 +193,6 @@ class _Pose:
     position: np.ndarray  # (4,) homogeneous camera centre
     to_camera: np.ndarray  # 4 x 4: homogeneous world point to camera point (right, down, forward)
     forward: tuple[float, float]  # horizontal unit vector along the heading
-    sun: tuple[float, float]  # unit direction towards the sun in the image (right, down)
 
 
 class PerspectiveCamera:
@@ -197,12 +203,14 @@ class PerspectiveCamera:
         self.height, self.pitch = height_m, math.radians(pitch_deg)
         self.hfov, self.range = math.radians(hfov_deg), range_m
         self.fog_start = FOG_START * range_m
-        self.trees = _trees(hood.trees)
-        parked = _boxes(np.array([car.rectangle for car in hood.parked_cars]).reshape(-1, 5), CAR_HEIGHT_M,
-                        PARKED_CAR)
-        self.solids = parked.join(_houses(hood.houses))
-        # Trees first, then solids (static ones, then the frame's movers): culling keeps the order.
-        self.extents = self.trees.extents.join(self.solids.extents)
+        parked = np.array([car.rectangle for car in hood.parked_cars]).reshape(-1, 5)
+        houses = _houses(hood.houses)
+        self.n_trees, self.n_solids = len(hood.trees), len(parked) + len(houses[0])
+        # Trees first, then solids (static ones, then the frame's movers): culling keeps the
+        # order, and the parts of object i are TREE_PARTS or FACES consecutive rows.
+        cars = _face_parts(*_box_faces(parked, CAR_HEIGHT_M, PARKED_CAR))
+        self.parts = _tree_parts(hood.trees).join(cars).join(_face_parts(*houses[:3]))
+        self.extents = _tree_extents(hood.trees).join(_box_extents(parked, CAR_HEIGHT_M)).join(houses[3])
         self.lenses: dict[tuple[int, int], _Lens] = {}
 
     def frame(self, x: float, y: float, heading: float, movers: np.ndarray | None = None) -> np.ndarray:
@@ -234,10 +242,7 @@ class PerspectiveCamera:
                               [-sp * c, -sp * s, -cp, sp * (c * x + s * y) + cp * h],
                               [cp * c, cp * s, -sp, sp * h - cp * (c * x + s * y)],
                               [0.0, 0.0, 0.0, 1.0]])
-        sun_x, sun_y, sun_z = SUN_XYZ
-        sun_right, sun_down = c * sun_y - s * sun_x, -sp * (c * sun_x + s * sun_y) - cp * sun_z
-        norm = math.hypot(sun_right, sun_down) or 1.0
-        return _Pose(np.array([x, y, h, 1.0]), to_camera, (c, s), (sun_right / norm, sun_down / norm))
+        return _Pose(np.array([x, y, h, 1.0]), to_camera, (c, s))
 
     # --- ground -----------------------------------------------------------------------------
 
@@ -272,29 +277,50 @@ class PerspectiveCamera:
         if moving is not None:
             extents = extents.join(_box_extents(moving, CAR_HEIGHT_M))
         index, nearest, ahead = self._in_view(lens, pose, extents)
-        n_trees, n_solids = len(self.trees.radii), len(self.solids.colours)
-        first_solid = int(np.searchsorted(index, n_trees))
-        solid_index = index[first_solid:] - n_trees
-        first_mover = int(np.searchsorted(solid_index, n_solids))
-        seen = solid_index[:first_mover]
-        faces = self.solids.outlines[seen], self.solids.planes[seen], self.solids.colours[seen]
-        if first_mover < len(solid_index):
-            traffic = _box_faces(moving[solid_index[first_mover:] - n_solids], CAR_HEIGHT_M, TRAFFIC_CAR)
-            faces = tuple(np.concatenate([a, b]) for a, b in zip(faces, traffic))
-        fog = self._fog(ahead)
-        projection = lens.to_fixed @ pose.to_camera[:3]
-        trees = self._tree_polygons(index[:first_solid], fog[:first_solid], lens, pose, projection)
-        solids = self._face_polygons(*faces, fog[first_solid:], pose, projection)
-        polygons, colours = trees[0] + solids[0], trees[1] + solids[1]
-        shown = np.flatnonzero(np.concatenate([trees[2], solids[2]]))
-        # Painter's order: the farthest nearest point first, and within a tree its trunk,
-        # then its canopy, then the canopy's sunlit side (a solid's faces never overlap).
-        tree_nearest = nearest[:first_solid]
-        keys = np.concatenate([np.tile(tree_nearest, TREE_POLYGONS), np.repeat(nearest[first_solid:], FACES)])
-        ranks = np.concatenate([np.repeat(np.arange(TREE_POLYGONS), len(tree_nearest)),
-                                np.zeros(len(keys) - TREE_POLYGONS * len(tree_nearest))])
-        for i in shown[np.lexsort((ranks[shown], -keys[shown]))].tolist():
-            cv2.fillConvexPoly(image, polygons[i], colours[i], cv2.LINE_8, SUBPIXEL_BITS)
+        first_solid = int(np.searchsorted(index, self.n_trees))
+        trees, solids = index[:first_solid], index[first_solid:] - self.n_trees
+        first_mover = int(np.searchsorted(solids, self.n_solids))
+        rows = np.concatenate([(TREE_PARTS * trees[:, None] + np.arange(TREE_PARTS)).ravel(),
+                               (TREE_PARTS * self.n_trees + FACES * solids[:first_mover, None]
+                                + np.arange(FACES)).ravel()])
+        parts = self.parts.take(rows)
+        if first_mover < len(solids):
+            traffic = moving[solids[first_mover:] - self.n_solids]
+            parts = parts.join(_face_parts(*_box_faces(traffic, CAR_HEIGHT_M, TRAFFIC_CAR)))
+        counts = np.full(len(index), FACES)
+        counts[:first_solid] = TREE_PARTS
+        self._paint(image, lens, pose, parts, np.repeat(nearest, counts), np.repeat(self._fog(ahead), counts))
+
+    def _paint(self, image: np.ndarray, lens: _Lens, pose: _Pose, parts: _Parts, nearest: np.ndarray,
+               fog: np.ndarray) -> None:
+        """Projects the parts in one pass and fills them far to near (by ``nearest``, their
+        object's distance; a stable sort keeps each object's parts in their order)."""
+        # Moving a point along the camera's right axis moves it along the camera's x only.
+        projection = np.hstack([lens.to_fixed @ pose.to_camera[:3], lens.to_fixed[:, :1]])
+        projected = parts.points @ projection.T  # (n, OUTLINE, 3): (u z, v z, z) in fixed point
+        depth = projected[..., 2]
+        fixed = np.rint(projected[..., :2] / np.maximum(depth, NEAR_M)[..., None]).astype(np.int32, order="C")
+        discs, clearance, smallest = parts.kinds.T
+        sizes = np.abs(fixed[:, 1, 0] - fixed[:, 0, 0])  # a disc's radius, a trunk's width
+        crossing = (depth < NEAR_M).any(axis=1)
+        faces = clearance == -np.inf
+        shown = ((parts.planes @ pose.position > EDGE_ON) & (depth[:, 0] > clearance)
+                 & (sizes >= smallest * (lens.zoom * (1 << SUBPIXEL_BITS))) & (faces | ~crossing))
+        polygons = list(fixed)
+        for i in np.flatnonzero(shown & crossing).tolist():
+            cut = _clipped(projected[i].tolist())
+            if cut is None:
+                shown[i] = False
+            else:
+                polygons[i] = cut
+        colours = _fogged(parts.colours, fog[:, None]).tolist()
+        centres, radii, discs = fixed[:, 0].tolist(), sizes.tolist(), (discs > 0).tolist()
+        drawn = np.flatnonzero(shown)
+        for i in drawn[np.argsort(-nearest[drawn], kind="stable")].tolist():
+            if discs[i]:
+                cv2.circle(image, centres[i], radii[i], colours[i], cv2.FILLED, cv2.LINE_8, SUBPIXEL_BITS)
+            else:
+                cv2.fillConvexPoly(image, polygons[i], colours[i], cv2.LINE_8, SUBPIXEL_BITS)
 
     def _in_view(self, lens: _Lens, pose: _Pose,
                  extents: _Extents) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -319,47 +345,6 @@ class PerspectiveCamera:
     def _fog(self, ahead: np.ndarray) -> np.ndarray:
         """Weight of the haze, by how far ahead the ground or an object starts (1 beyond range)."""
         return np.clip((ahead - self.fog_start) / (self.range - self.fog_start), 0.0, 1.0)
-
-    def _face_polygons(self, outlines: np.ndarray, planes: np.ndarray, colours: np.ndarray, fog: np.ndarray,
-                       pose: _Pose, projection: np.ndarray) -> tuple[list, list, np.ndarray]:
-        """The solids' faces, n FACES of them in order: fixed-point polygons, colours, and which
-        to draw (those that face the camera, cut to the near plane where they cross it)."""
-        projected = outlines @ projection.T  # (n, FACES, OUTLINE, 3): (u z, v z, z) in fixed point
-        depth = projected[..., 2]
-        pixels = projected[..., :2] / np.maximum(depth, NEAR_M)[..., None]
-        polygons = list(np.rint(pixels).astype(np.int32, order="C").reshape(-1, OUTLINE, 2))
-        shown = planes @ pose.position > EDGE_ON
-        for i, face in np.argwhere(shown & (depth < NEAR_M).any(axis=2)).tolist():
-            cut = _clipped(projected[i, face].tolist())
-            if cut is None:
-                shown[i, face] = False
-            else:
-                polygons[i * FACES + face] = cut
-        return polygons, _fogged(colours, fog[:, None, None]).reshape(-1, 3).tolist(), shown.ravel()
-
-    def _tree_polygons(self, index: np.ndarray, fog: np.ndarray, lens: _Lens, pose: _Pose,
-                       projection: np.ndarray) -> tuple[list, list, np.ndarray]:
-        """The trees' trunks, then their canopy discs, then the discs' sunlit sides, as in
-        ``_face_polygons``. A sunlit side too small to show is not drawn; nor is a tree whose
-        canopy reaches the near plane: it stands beside the camera, outside the field of view
-        (a tree is beyond the pavement, so at least a car's half width away)."""
-        projected = self.trees.points[index] @ projection.T  # (n, 2, 3): foot, canopy centre
-        radii = self.trees.radii[index]
-        depth = projected[..., 2]
-        inverse = 1.0 / np.maximum(depth, NEAR_M)
-        middles = projected[..., :2] * inverse[..., None]  # fixed-point pixels
-        half_widths = (lens.to_fixed[0, 0] * TRUNK_RADIUS_M) * inverse[:, TRUNK_POINTS, None]
-        trunks = np.rint(middles[:, TRUNK_POINTS] + half_widths * TRUNK_SIDES).astype(np.int32, order="C")
-        # Discs as polygons too: cv2.circle costs more per call than a fill.
-        canopy_radii = lens.to_fixed[0, 0] * radii * inverse[:, 1]
-        shifts = np.multiply.outer([0.0, HIGHLIGHT_SHIFT], np.multiply.outer(canopy_radii, pose.sun))
-        centres = middles[None, :, 1] + shifts  # (2, n, 2): canopies, then their sunlit sides
-        radii_px = np.multiply.outer((1.0, HIGHLIGHT_RADIUS), canopy_radii)
-        discs = np.rint(centres[..., None, :] + radii_px[..., None, None] * DISC).astype(np.int32, order="C")
-        seen = depth[:, 1] > radii + NEAR_M
-        shown = np.concatenate([seen, seen, seen & (canopy_radii >= HIGHLIGHT_MIN_PX * lens.zoom * (1 << SUBPIXEL_BITS))])
-        colours = _fogged(TREE_COLOURS, fog[:, None, None]).transpose(1, 0, 2).reshape(-1, 3).tolist()
-        return list(trunks) + list(discs.reshape(-1, DISC_SIDES, 2)), colours, shown
 
     # --- per output size --------------------------------------------------------------------
 
@@ -456,11 +441,6 @@ def _box_extents(rectangles: np.ndarray, height: float | np.ndarray) -> _Extents
     return _extents(centres, radius, rectangles[:, 2], half, np.zeros(len(rectangles)))
 
 
-def _boxes(rectangles: np.ndarray, height: float, colour: tuple[int, int, int]) -> _Solids:
-    """Boxes ``height`` tall on rectangles (x, y, heading, length, width)."""
-    return _Solids(*_box_faces(rectangles, height, colour), _box_extents(rectangles, height))
-
-
 def _box_faces(rectangles: np.ndarray, height: float,
                colour: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Outlines, planes and colours of boxes: the unit box moved into place by one affine map
@@ -484,9 +464,9 @@ def _box_faces(rectangles: np.ndarray, height: float,
             np.multiply.outer(light, colour))
 
 
-def _houses(houses: np.ndarray) -> _Solids:
-    """Houses on rectangles (x, y, heading, length, width): walls, then a gable roof whose ridge
-    runs along the longer side."""
+def _houses(houses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, _Extents]:
+    """Outlines, planes, colours (as ``_box_faces``) and extents of houses on rectangles (x, y,
+    heading, length, width): walls, then a gable roof whose ridge runs along the longer side."""
     houses = np.array(houses, dtype=np.float64)
     turned = houses[:, 4] > houses[:, 3]
     houses[turned, 2] += math.pi / 2
@@ -508,22 +488,62 @@ def _houses(houses: np.ndarray) -> _Solids:
     offsets = np.einsum("nfk,nfk->nf", normals, outlines[:, :, 0])
     light = AMBIENT + DIFFUSE * np.maximum(normals @ SUN, 0.0)
     colours = np.array([HOUSE_WALL] * 4 + [HOUSE_ROOF] * 2, dtype=np.float64)
-    return _Solids(np.concatenate([outlines, np.ones(outlines.shape[:-1] + (1,))], axis=-1),
-                   np.concatenate([normals, -offsets[..., None]], axis=-1), light[..., None] * colours,
-                   _box_extents(houses, walls + ROOF_RISE_M))
+    return (np.concatenate([outlines, np.ones(outlines.shape[:-1] + (1,))], axis=-1),
+            np.concatenate([normals, -offsets[..., None]], axis=-1), light[..., None] * colours,
+            _box_extents(houses, walls + ROOF_RISE_M))
 
 
-def _trees(trees: np.ndarray) -> _Trees:
-    """Trees at rows (x, y, canopy radius); the footprint is the canopy's circle."""
+def _face_parts(outlines: np.ndarray, planes: np.ndarray, colours: np.ndarray) -> _Parts:
+    """The faces of solids (outlines, planes, colours, each over (solid, face)) as parts."""
+    n = outlines.shape[0] * FACES
+    points = np.concatenate([outlines, np.zeros(outlines.shape[:-1] + (1,))], axis=-1).reshape(n, OUTLINE, 5)
+    kinds = np.broadcast_to([0.0, -np.inf, 0.0], (n, 3))
+    return _Parts(points, planes.reshape(n, 4), colours.reshape(n, 3), kinds)
+
+
+def _tree_parts(trees: np.ndarray) -> _Parts:
+    """Each tree's trunk, canopy disc and the disc's sunlit side (shifted towards the sun, so
+    it shows on the side the sun lights), from rows (x, y, canopy radius)."""
     n = len(trees)
-    foot = np.column_stack([trees[:, :2], np.zeros(n), np.ones(n)])
-    centre = np.column_stack([trees[:, :2], np.full(n, CANOPY_CENTRE_M), np.ones(n)])
-    radii = trees[:, 2].copy()
+    x, y, radii = trees.T
+    centre = np.column_stack([x, y, np.full(n, CANOPY_CENTRE_M), np.ones(n)])
+    foot = centre * (1.0, 1.0, 0.0, 1.0)
+    lit = centre + np.append(HIGHLIGHT_SHIFT * SUN, 0.0) * radii[:, None]
+    # Outlines: the trunk's foot left and right, its top right and left; a disc's centre,
+    # then a point on its rim (repeated).
+    rim = np.r_[0.0, np.ones(OUTLINE - 1)]
+    trunk = _billboard(np.stack([foot, foot, centre, centre, centre], axis=1),
+                       TRUNK_RADIUS_M * np.array([-1.0, 1.0, 1.0, -1.0, -1.0]))
+    canopy = _billboard(np.repeat(centre[:, None], OUTLINE, axis=1), np.outer(radii, rim))
+    sunlit = _billboard(np.repeat(lit[:, None], OUTLINE, axis=1), np.outer(HIGHLIGHT_RADIUS * radii, rim))
+    always = np.broadcast_to([0.0, 0.0, 0.0, 1.0], (n * TREE_PARTS, 4))
+    colours = np.broadcast_to(np.array([TRUNK, np.multiply(CANOPY, AMBIENT), CANOPY], dtype=np.float64),
+                              (n, TREE_PARTS, 3))
+    # A part is left out when it reaches the near plane: the tree then stands beside the
+    # camera, outside the field of view (beyond the pavement, so at least a car's half width away).
+    kinds = np.stack([np.column_stack([np.zeros(n), np.full(n, TRUNK_RADIUS_M + NEAR_M),
+                                       np.full(n, TRUNK_MIN_PX)]),
+                      np.column_stack([np.ones(n), radii + NEAR_M, np.zeros(n)]),
+                      np.column_stack([np.ones(n), HIGHLIGHT_RADIUS * radii + NEAR_M,
+                                       np.full(n, HIGHLIGHT_MIN_PX)])], axis=1)
+    return _Parts(np.stack([trunk, canopy, sunlit], axis=1).reshape(-1, OUTLINE, 5), always,
+                  colours.reshape(-1, 3), kinds.reshape(-1, 3))
+
+
+def _billboard(anchors: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """Homogeneous points (n, OUTLINE, 4), each with how far to move it along the camera's
+    right axis (broadcast to (n, OUTLINE)), as ``_Parts.points``."""
+    return np.concatenate([anchors, np.broadcast_to(spread, anchors.shape[:2])[..., None]], axis=-1)
+
+
+def _tree_extents(trees: np.ndarray) -> _Extents:
+    """Culling rows of trees at rows (x, y, canopy radius): the footprint is the canopy's circle."""
+    n = len(trees)
     # The sphere through the trunk's foot and the canopy's top holds the whole
     # canopy too, as long as the canopy is clear of the ground.
-    middle = (CANOPY_CENTRE_M + radii) / 2
-    extents = _extents(np.column_stack([trees[:, :2], middle]), middle, np.zeros(n), np.zeros((n, 2)), radii)
-    return _Trees(np.stack([foot, centre], axis=1), radii, extents)
+    middle = (CANOPY_CENTRE_M + trees[:, 2]) / 2
+    return _extents(np.column_stack([trees[:, :2], middle]), middle, np.zeros(n), np.zeros((n, 2)),
+                    trees[:, 2])
 
 
 def _lifted(points: np.ndarray, heights: np.ndarray) -> np.ndarray:
