@@ -15,7 +15,8 @@ Each env step:
 1. act: uniformly at random until updates start, then the strategy's rule on
    the Q-values of the acting network: the online weights of the latest
    broadcast (every ``learner.weights_every`` updates), as an actor holds them,
-   with the LSTM state zeroed at every episode start;
+   with the LSTM state zeroed at every episode start, on one torch thread as an
+   actor runs (the updates get ``learner.torch_threads``);
 2. store: a finished episode goes into the store whole (traces are sampled
    inside episodes: Bootstrapped Random Updates);
 3. start: updates start the moment the store holds ``learner.start_episodes``
@@ -87,6 +88,9 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
                          learner_config.trace_length, config.replay.seed)
     start_by_steps = config.exploration.strategy == "decreasing"
     log_every = log_period_s if log_period_s is not None else learner_config.log_period_s
+    if learner_config.torch_threads:
+        torch.set_num_threads(learner_config.torch_threads)
+    update_threads = torch.get_num_threads()
 
     began = last_log = time.monotonic()
     started_at: float | None = None
@@ -105,9 +109,11 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
 
         # 1. act
         if strategy.started:
+            torch.set_num_threads(1)  # one frame: more threads only wait for each other
             with torch.inference_mode():
                 frame = torch.from_numpy(observation).view(1, 1, *observation.shape).to(learner.device)
                 q_values, state = acting(frame, state)
+            torch.set_num_threads(update_threads)
             action = strategy.act(q_values[0, 0].cpu().numpy(), rng)
         else:
             action = int(rng.integers(config.network.n_actions))
@@ -195,8 +201,6 @@ def main(argv: list[str] | None = None) -> None:
     add_config_arguments(parser)
     args, config = parse_config_or_exit(parser, argv)
     print_config("reference-loop", config)
-    if config.learner.torch_threads:
-        torch.set_num_threads(config.learner.torch_threads)
     result = train(config, evaluate_at_end=not args.no_evaluate)
     print(f"reference loop: {result.env_steps:,d} env steps, {result.episodes:,d} episodes, {result.updates:,d} "
           f"updates ({result.env_steps_per_update:.3f} env steps per update since updates started at "

@@ -1,12 +1,16 @@
-"""Benchmark: the distributed stack against a single-process loop, and the replay flat out.
+"""Benchmark: the distributed stack against the reference loop, side by side, and the replay flat out.
 
-1. single process, as the paper's code runs: act, store, one update per 4 steps
-   (here done at the end of each episode: the same work, in bigger bursts);
-2. the local stack (replay + learner + actors over loopback Zenoh), same preset;
+1. the reference loop (learner/reference_loop.py): act, store, sample, update
+   and feed the exploration strategy in one process, one update per
+   learner.env_steps_per_update env steps, every strategy hook called;
+2. the local stack (replay + learner + actors over loopback Zenoh), same config;
 3. the replay service queried for trace batches as fast as it answers.
 
-Each figure is measured after updates start, over --seconds of wall time.
-Usage: .venv/bin/python deploy/bench/stack_speed.py [--seconds 60] [config flags]
+Parts 1 and 2 are measured once updates run at the configured ratio, over
+--seconds of wall time: the loop from the start of updates, the stack once the
+learner has paid for the steps the actors took before they heard that updates
+began. Both fill the buffer with at most 50 episodes first.
+Usage: .venv/bin/python deploy/bench/stack_speed.py [--seconds 60] [--actors 1] [config flags]
 """
 
 from __future__ import annotations
@@ -28,8 +32,8 @@ from actor.runner import Actor
 from common.config import Config, TransportConfig, add_config_arguments, parse_config_or_exit, to_toml
 from common.transport import Keys, open_session, publisher, request, subscribe
 from common.wire import Stats, TraceBatch, TraceBatchRequest
+from learner.reference_loop import train
 from learner.update import DoubleQLearner, TraceBatch as Traces
-from replay.store import EpisodeStore
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -40,33 +44,24 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def single_process(config: Config, seconds: float) -> tuple[float, float]:
-    """The paper's loop in one process; returns (env steps/s, updates/s) after the fill."""
-    actor = Actor(config, actor_id=0)
-    learner = DoubleQLearner(config.network, config.learner)
-    store = EpisodeStore(config.replay.capacity, 1 << 40, config.learner.trace_length)
-    stop = threading.Event()
-    while len(store) < config.learner.start_episodes:  # random phase
-        store.add(actor.run_episode(stop)[0])
-    actor.strategy.start()
-    actor.network.load_state_dict(learner.online.state_dict())
-    actor.weights_version = 0
-    steps = updates = 0
-    per_update = config.learner.env_steps_per_update
-    started = time.monotonic()
-    while time.monotonic() - started < seconds:
-        episode, _ = actor.run_episode(stop)  # the updates it pays for follow at its end
-        store.add(episode)
-        steps += len(episode.actions)
-        while updates < steps / per_update and time.monotonic() - started < seconds:
-            batch = store.sample(config.learner.batch_size)
-            learner.update(Traces(batch.observations_array(), np.array(batch.actions), np.array(batch.rewards),
-                                  np.array(batch.terminated)))
-            updates += 1
-            if updates % config.learner.weights_every == 0:
-                actor.network.load_state_dict(learner.online.state_dict())
-    elapsed = time.monotonic() - started
-    return steps / elapsed, updates / elapsed
+def reference_loop(config: Config, seconds: float) -> tuple[float, float]:
+    """learner/reference_loop.py for `seconds` once updates start; returns (env steps/s, updates/s) over them."""
+    if config.learner.update_path == "auto":
+        time_update_paths(config)
+    result = train(config, evaluate_at_end=False, update_seconds=seconds)
+    steps = result.env_steps - result.start_env_steps
+    return steps / result.seconds_updating, result.updates / result.seconds_updating
+
+
+def time_update_paths(config: Config) -> None:
+    """learner.update_path "auto" times the update paths on the first batch, once per process; do it here, so
+    the loop's measured window does not hold it (the stack is measured long after its learner did it)."""
+    learner_config, network = config.learner, config.network
+    shape = (learner_config.batch_size, learner_config.trace_length + 1, network.frame_height, network.frame_width,
+             network.frame_channels)
+    steps = shape[:1] + (learner_config.trace_length,)
+    DoubleQLearner(network, learner_config).update(Traces(np.zeros(shape, np.uint8), np.zeros(steps, np.int64),
+                                                          np.zeros(steps, np.float32), np.zeros(steps, bool)))
 
 
 def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, float]:
@@ -79,22 +74,20 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
         stack = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "stack.py"), *flags],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         session = open_session(TransportConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
-        seen: dict[str, dict] = {}
+        seen: dict[str, float] = {}  # the replay's latest stats
         keys = Keys(config.transport.namespace, "bench")
-        remember = lambda message, key: seen.__setitem__(key, dict(message.values))
-        subscriptions = [subscribe(session, keys.replay_stats, remember, expected=Stats),
-                         subscribe(session, keys.learner_progress, remember, expected=Stats)]
+        subscription = subscribe(session, keys.replay_stats, lambda message, key: seen.update(message.values),
+                                 expected=Stats)
         try:
             # Steps the actors took at random-play speed before they heard that updates began are
-            # owed updates; measure once the learner has caught up with them.
-            while not caught_up(seen.get(keys.learner_progress), config.learner.ratio_tolerance):
+            # owed updates; measure once the learner has paid them (within the rate limiter's buffer).
+            while not caught_up(seen):
                 time.sleep(0.2)
-            first = (time.monotonic(), seen[keys.replay_stats]["env_steps_total"], seen[keys.learner_progress]["updates"])
+            first = (time.monotonic(), seen["env_steps_total"], seen["rate_batches_served"])
             time.sleep(seconds)
-            last = (time.monotonic(), seen[keys.replay_stats]["env_steps_total"], seen[keys.learner_progress]["updates"])
+            last = (time.monotonic(), seen["env_steps_total"], seen["rate_batches_served"])
         finally:
-            for subscription in subscriptions:
-                subscription.undeclare()
+            subscription.undeclare()
             session.close()
             stack.send_signal(signal.SIGINT)
             stack.wait(120)
@@ -102,15 +95,21 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
     return (last[1] - first[1]) / elapsed, (last[2] - first[2]) / elapsed
 
 
-def caught_up(progress: dict | None, tolerance: float) -> bool:
-    return bool(progress) and progress["updates"] >= 1 and progress["updates"] >= progress["updates_due"] * (1 - tolerance)
+def caught_up(replay: dict) -> bool:
+    """Updates have started and the learner is within the rate limiter's error buffer of what is due."""
+    if replay.get("rate_start_env_steps", -1) < 0 or replay.get("rate_batches_served", 0) < 1:
+        return False
+    return replay["rate_updates_due"] - replay["rate_batches_served"] <= replay["rate_error_buffer_updates"]
 
 
 def replay_flat_out(config: Config, seconds: float, clients: int) -> tuple[float, float]:
     """Fills a replay process with real episodes and queries it from `clients` threads."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    # The rate limiter let loose: updates start at the first episode, and 1e9 updates of error buffer never hold.
     replay = subprocess.Popen([sys.executable, "-m", "replay.main", "--run.name", "flat", "--transport.mode", "router",
-                               "--transport.listen", endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                               "--transport.listen", endpoint, "--learner.start_episodes", "1",
+                               "--replay.error_buffer_updates", "1e9"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     keys = Keys(config.transport.namespace, "flat")
     try:
@@ -158,13 +157,18 @@ def main() -> None:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; B={config.learner.batch_size} "
           f"T={config.learner.trace_length}, LSTM {config.network.lstm_units}, "
           f"{config.learner.env_steps_per_update:g} env steps per update; {args.seconds:.0f} s windows", flush=True)
-    print("1/3 single process ...", flush=True)
-    single = single_process(config, args.seconds)
-    print(f"    env steps/s {single[0]:8.1f}   updates/s {single[1]:6.2f}", flush=True)
+    print("1/3 reference loop (one process) ...", flush=True)
+    loop = reference_loop(config, args.seconds)
     print(f"2/3 local stack with {args.actors} actor(s) ...", flush=True)
     stack = local_stack(config, args.seconds, args.actors)
-    print(f"    env steps/s {stack[0]:8.1f}   updates/s {stack[1]:6.2f}", flush=True)
-    print(f"    stack / single process: env steps {stack[0] / single[0]:.2f}x, updates {stack[1] / single[1]:.2f}x")
+    print(f"    {'':28} {'env steps/s':>12} {'updates/s':>10} {'steps/update':>13}")
+    for name, (steps, updates) in (("reference loop", loop), (f"local stack, {args.actors} actor(s)", stack)):
+        print(f"    {name:28} {steps:12.1f} {updates:10.2f} {steps / updates:13.2f}")
+    print(f"    {'stack / reference loop':28} {stack[0] / loop[0]:11.2f}x {stack[1] / loop[1]:9.2f}x", flush=True)
+    if abs(stack[0] / stack[1] / config.learner.env_steps_per_update - 1) > 0.1:
+        print(f"    (the stack's window is short against the rate limiter's error buffer of "
+              f"{config.replay.error_buffer_updates:g} updates, so its steps per update are off the configured "
+              f"{config.learner.env_steps_per_update:g}: compare updates/s, or lengthen --seconds)", flush=True)
     print(f"3/3 replay flat out, {args.clients} client threads ...", flush=True)
     traces, megabytes = replay_flat_out(config, min(args.seconds, 20.0), args.clients)
     print(f"    traces served/s {traces:8.1f}   ({megabytes:.1f} MB/s of compressed frames)")
