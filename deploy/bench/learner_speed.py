@@ -46,6 +46,7 @@ class Variant:
     path: object  # an update path (learner.update_path) or a loss function
     with_q_after: bool = False
     ahead: bool = False  # decode and stage the next batch on a thread while the update runs
+    threads: int = 0  # torch threads for this variant's updates; 0: the run's
 
 
 # "today" is the code before issue 14. Every variant decodes its batch from the wire format first.
@@ -55,6 +56,7 @@ VARIANTS = {
     "split": Variant("new: trace passes, split threads", "trace-split"),
     "ahead": Variant("new: trace, staged ahead", "trace", ahead=True),
     "split-ahead": Variant("new: split, staged ahead", "trace-split", ahead=True),
+    "new-1t": Variant("new: trace passes, 1 thread", "trace", threads=1),
     "today+vdbe": Variant("today + VDBE after-pass", "autograd", with_q_after=True),
     "new+vdbe": Variant("new + VDBE after-pass", "trace", with_q_after=True),
     "paper": Variant("paper reference, 3 passes", paper_reference_loss),
@@ -80,6 +82,14 @@ class Runner:
         return self.stager.stage(self.decoded())
 
     def updates(self, count: int) -> None:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(self.variant.threads or threads)
+        try:
+            self._updates(count)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _updates(self, count: int) -> None:
         for _ in range(count):
             if self.thread is None:
                 self.learner.update(self.decoded(), with_q_after=self.variant.with_q_after)
@@ -308,7 +318,8 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
     print(f"  executed by today's code, which also back-propagates through s_T: {executed_today / 1e9:.3f} GFLOP; "
           f"by the new code, which skips the {net.frame_height - used_height} bottom rows and "
           f"{net.frame_width - used_width} right columns no convolution output reads: {executed_new / 1e9:.3f} GFLOP")
-    print("  fractions of peak below count the total above for every variant", flush=True)
+    print("  fractions of peak below count the total above for every variant, against the peak at the run's "
+          "thread count", flush=True)
 
     batch = random_batch(config)
     wire_frames = FrameStack.from_array(batch.observations.reshape(-1, *batch.observations.shape[2:]))
@@ -376,13 +387,13 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
     if staged:
         print(f"\nphases of one update, ms (median over rounds; update() step by step, with VDBE's after-pass)")
         names = list(dict.fromkeys(name for path in phases.values() for name in path))
-        print(f"  {'phase':38s} " + " ".join(f"{path:>9s}" for path in phases))
+        print(f"  {'phase':48s} " + " ".join(f"{path:>9s}" for path in phases))
         for name in names:
             cells = [f"{1e3 * median(phases[path][name]):9.2f}" if name in phases[path] else f"{'-':>9s}"
                      for path in phases]
-            print(f"  {name:38s} " + " ".join(cells))
+            print(f"  {name:48s} " + " ".join(cells))
         totals = [sum(median(values) for values in path.values()) for path in phases.values()]
-        print(f"  {'sum':38s} " + " ".join(f"{1e3 * total:9.2f}" for total in totals))
+        print(f"  {'sum':48s} " + " ".join(f"{1e3 * total:9.2f}" for total in totals))
 
 
 def bench_actor_steps(config: Config, steps: int, repeats: int) -> list[float]:
