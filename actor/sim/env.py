@@ -215,7 +215,7 @@ class NeighbourhoodEnv(AbstractEnv):
         config = self.env_config
         self.road = neighbourhood_road(self.hood, config.lane_offset_m, 2 * (config.offroad_distance - config.lane_offset_m))
         start = self.hood.start_poses[START_SETS[0]][0]
-        self.vehicle = self.action_type.vehicle_class(self.road, [start.x, start.y], start.heading, config.speed)
+        self.vehicle = EgoVehicle(self.road, [start.x, start.y], start.heading, config.speed)
         self.vehicle.locator = LaneLocator(self.road.network)
         self.road.vehicles.append(self.vehicle)
         if config.traffic_vehicles:
@@ -242,9 +242,10 @@ class NeighbourhoodEnv(AbstractEnv):
                 self.traffic.act()
                 self.traffic.step(dt)
             self.vehicle.step(dt)
-            self._measure()
-            if self.collision:
+            if self._collided():  # a frame's contact counts even if the car moves on
                 break
+        self.vehicle.refresh_lane()
+        self._measure()
         self.steps += 1
         self.time += 1.0 / self.env_config.policy_frequency
         self.progress.update(self.segment, self.along)
@@ -263,20 +264,26 @@ class NeighbourhoodEnv(AbstractEnv):
     def _move_to(self, x: float, y: float, heading: float) -> None:
         self.vehicle.position = np.array([x, y], dtype=np.float64)
         self.vehicle.heading = heading
-        self.vehicle.on_state_update()
+        self.vehicle.refresh_lane()
         self._measure()
 
     def _measure(self) -> None:
         """Reads the ego car's state and measures where it now is: centre-line, collision."""
+        self._collided()
+        x, y, _ = self.pose
+        self.segment, self.along, self.distance = self.hood.centre_lines.nearest(x, y)
+        self.place_name = self.hood.centre_line_places[self.segment]
+
+    def _collided(self) -> bool:
+        """Takes the ego car's pose and tests it against every obstacle and traffic vehicle."""
         x, y = float(self.vehicle.position[0]), float(self.vehicle.position[1])
         heading = _wrap_angle(float(self.vehicle.heading))
         self.vehicle.heading = heading
         self.pose = (x, y, heading)
-        self.segment, self.along, self.distance = self.hood.centre_lines.nearest(x, y)
-        self.place_name = self.hood.centre_line_places[self.segment]
         self.collision = self.hood.obstacles.hits(x, y, heading, layout.CAR_LENGTH_M, layout.CAR_WIDTH_M) \
             or self._hits_traffic(x, y, heading)
         self.vehicle.crashed = self.collision
+        return self.collision
 
     def _hits_traffic(self, x: float, y: float, heading: float) -> bool:
         rectangles = self.traffic_rectangles()

@@ -35,7 +35,7 @@ from actor.sim.neighbourhood import Neighbourhood
 
 SAMPLE_SPACING_M = 0.5  # between the lane points LaneLocator searches
 TIE_M = 0.3  # a lane this much worse than the best still counts as the best (continuity)
-CELL_M = 8.0  # LaneLocator's grid: a car's cell and its 8 neighbours hold every lane point within 8 m
+CELL_M = 5.0  # LaneLocator's grid: a car's cell and its 8 neighbours hold every lane point within 5 m
 SPEED_LIMIT = 14.0  # m/s, what highway-env's vehicles aim for at most
 
 
@@ -161,9 +161,11 @@ class LaneLocator:
         self.lane_of = np.concatenate(lane_of)
         self.along = np.concatenate(along)
         number = {index: n for n, index in enumerate(self.indices)}
-        self.continuations = [np.array([n] + [number[(index[1], after, 0)]
-                                              for after in network.graph.get(index[1], {})])
-                              for n, index in enumerate(self.indices)]
+        # continues[a, b]: lane b is lane a or one of its successors.
+        self.continues = np.eye(len(self.indices), dtype=bool)
+        for n, index in enumerate(self.indices):
+            for after in network.graph.get(index[1], {}):
+                self.continues[n, number[(index[1], after, 0)]] = True
         self.number = number
         self._build_grid()
 
@@ -177,9 +179,9 @@ class LaneLocator:
             for di in (-1, 0, 1):
                 for dj in (-1, 0, 1):
                     owners.setdefault((i + di, j + dj), []).append(point)
-        self.near = {cell: (np.array(points), self.points[points], self.directions[points])
-                     for cell, points in owners.items()}
-        self.everything = (None, self.points, self.directions)
+        self.near = {cell: (np.array(points), self.points[points], self.directions[points],
+                            self.lane_of[points]) for cell, points in owners.items()}
+        self.everything = (None, self.points, self.directions, self.lane_of)
 
     def locate(self, x: float, y: float, heading: float, previous: LaneIndex | None = None) -> LanePlace:
         """The car's lane, preferring ``previous`` or its successors among equally near ones.
@@ -187,7 +189,7 @@ class LaneLocator:
         Far from every lane (off the map) the whole set is searched."""
         cell = (int((x - self.origin[0]) // CELL_M), int((y - self.origin[1]) // CELL_M))
         candidates = self.near.get(cell, self.everything)
-        keep = None if previous is None else self.continuations[self.number[previous]]
+        keep = None if previous is None else self.continues[self.number[previous]]
         nearest = self._nearest(x, y, heading, candidates, keep)
         if nearest is None:
             nearest = self._nearest(x, y, heading, self.everything, keep)
@@ -201,9 +203,9 @@ class LaneLocator:
 
     def _nearest(self, x: float, y: float, heading: float, candidates: tuple,
                  keep: np.ndarray | None) -> int | None:
-        """The best point facing ``heading`` among (indices, points, directions), or one of
-        lanes ``keep`` within TIE_M of it."""
-        indices, points, directions = candidates
+        """The best point facing ``heading`` among (indices, points, directions, lanes), or
+        one of the lanes marked in ``keep`` within TIE_M of it."""
+        indices, points, directions, lanes = candidates
         gaps = points - (x, y)
         facing = directions @ (math.cos(heading), math.sin(heading))
         scores = np.sqrt(np.einsum("ij,ij->i", gaps, gaps)) + np.arccos(np.clip(facing, -1.0, 1.0))
@@ -212,8 +214,7 @@ class LaneLocator:
         if not np.isfinite(scores[best]):
             return None
         if keep is not None:
-            lanes = self.lane_of if indices is None else self.lane_of[indices]
-            kept = np.where(np.isin(lanes, keep), scores, np.inf)
+            kept = np.where(keep[lanes], scores, np.inf)
             best_kept = int(np.argmin(kept))
             if kept[best_kept] <= scores[best] + TIE_M:
                 best = best_kept

@@ -7,7 +7,9 @@ forward Euler at the simulation frequency, heading rate
 all 90 lanes that costs more than our whole step budget; this subclass answers
 the same question from ``LaneLocator``'s vectorised search, so ``lane_index``,
 ``lane``, position, heading and speed are at every step the ones the simulator
-uses, and highway-env's observations read them.
+uses, and highway-env's observations read them. Within one decision the
+simulation frames move the car several times; the lane is looked up once,
+after the last of them (``refresh_lane``), which is when anyone reads it.
 
 It also answers the two questions highway-env's ``TimeToCollision``
 observation asks of a speed-controlled ``MDPVehicle``: its choice of target
@@ -41,6 +43,9 @@ class EgoVehicle(Vehicle):
         return float(self.target_speeds[index])
 
     def on_state_update(self) -> None:
+        """Called by ``Vehicle.step`` after every simulation frame: the lane waits for the last."""
+
+    def refresh_lane(self) -> None:
         if self.locator is None:
             return
         previous = self.place.index if self.place is not None else None
