@@ -9,15 +9,33 @@ The learner is the authority on exploration: a state naming another strategy
 or other params than this actor's config replaces the actor's strategy (one log
 line). Between episodes the actor obeys the replay's rate limiter: it holds its
 next episode while the replay says the learner is behind (``replay/rate``).
+
+Nothing that arrives is taken on trust: weights must name the network's tensors
+with their shapes (and finite values, checked again when loaded), an exploration
+state must describe a strategy completely, a rate message must say "", "behind"
+or "budget". What is refused is counted by kind and logged at a bounded rate; the
+counts go out on ``metrics/actor_stats/<id>``. The newest acceptable weights win,
+whatever their version: a learner resumed from an older checkpoint counts its
+versions from there.
+
+Finished episodes go to an outbox that one thread sends from, in order, while a
+replay is alive (its liveliness token) and subscribed. While none is (a replay
+restart) they wait there; when it holds actor.queue_episodes episodes or
+actor.queue_mb MB, the actor holds its next episode. Episodes still waiting when
+the actor stops are counted as dropped. Each episode carries this process's
+random incarnation, so the replay never stores one twice and counts the ones that
+never arrived.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import secrets
 import signal
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,8 +46,12 @@ from common.config import Config
 from common.exploration import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every, setup_logging
 from common.network import D3RQN, load_numpy_weights
-from common.transport import Keys, RateLimitedLog, declare_liveliness, open_session, publisher, request, subscribe
-from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Stats, Weights
+from common.transport import (Keys, declare_liveliness, open_session, publisher, request, subscribe,
+                              watch_liveliness)
+from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights
+
+MEGABYTE = 1 << 20
+HOLD_REASONS = ("", "behind", "budget")
 
 log = logging.getLogger("actor")
 
@@ -43,28 +65,65 @@ def actor_seed(run_seed: int, actor_id: int) -> int:
 
 
 class Mailbox:
-    """Holds only the newest message of each kind; written by callbacks, read by the loop."""
+    """Holds only the newest acceptable message of each kind; written by callbacks, read by the loop.
 
-    def __init__(self) -> None:
+    ``shapes`` (tensor name -> shape) is what weights must hold; without it any weights are kept."""
+
+    def __init__(self, shapes: dict[str, tuple[int, ...]] | None = None,
+                 rejections: Rejections | None = None) -> None:
         self._lock = threading.Lock()
         self._weights: Weights | None = None
         self._exploration: ExplorationState | None = None
+        self._heard_weights = False  # a broadcast arrived: the answer to the start-up ask is older
         self.hold_reason = ""  # the replay's word on the next episode: "behind", "budget" or "" (go)
+        self.shapes = shapes
+        self.rejections = rejections or Rejections(log)
 
     def offer_weights(self, message: Weights, key: str = "") -> None:
-        with self._lock:
-            if self._weights is None or message.version > self._weights.version:
-                self._weights = message
+        """A broadcast: the newest that fits the network replaces what is held."""
+        if self._fits(message):
+            with self._lock:
+                self._weights, self._heard_weights = message, True
+
+    def offer_latest(self, message: Weights) -> None:
+        """The learner's answer to the start-up ask: kept unless a broadcast came first."""
+        if self._fits(message):
+            with self._lock:
+                if not self._heard_weights:
+                    self._weights = message
+
+    def _fits(self, message) -> bool:
+        if not isinstance(message, Weights):
+            self.rejections.reject("weights_wrong_type", f"a {type(message).__name__} where weights belong")
+            return False
+        if self.shapes is not None:
+            shapes = {name: np.shape(array) for name, array in message.tensors.items()}
+            if shapes != self.shapes:
+                wrong = sorted(set(shapes.items()) ^ set(self.shapes.items()))[:4]
+                self.rejections.reject("weights_network", f"weights version {message.version} are for another "
+                                                          f"network (names or shapes differ: {wrong} ...)")
+                return False
+        return True
 
     def offer_exploration(self, message: ExplorationState, key: str = "") -> None:
+        if not isinstance(message, ExplorationState):
+            self.rejections.reject("exploration_wrong_type", f"a {type(message).__name__} on exploration")
+            return
         with self._lock:
             self._exploration = message
 
     def offer_rate(self, message: Stats, key: str = "") -> None:
-        """The replay's rate limiter; kept, not taken: the hold is read repeatedly."""
-        reason = message.values.get("hold_reason", "")
+        """The replay's rate limiter; kept, not taken: the hold is read repeatedly. A message that
+        does not say "", "behind" or "budget" is refused and the last word stands."""
+        values = message.values if isinstance(message, Stats) and message.source == "rate_limiter" else None
+        reason = values.get("hold_reason") if values is not None else None
+        if reason not in HOLD_REASONS:
+            shown = f"hold_reason {reason!r}" if values is not None else f"a {type(message).__name__}"
+            self.rejections.reject("rate", f"replay/rate: {shown} (expected a rate_limiter Stats saying "
+                                           f"'', 'behind' or 'budget')")
+            return
         with self._lock:
-            self.hold_reason = reason if isinstance(reason, str) else ""
+            self.hold_reason = reason
 
     def must_hold(self) -> str:
         """Why the next episode must wait ("" when it may start); no word from a replay: go."""
@@ -99,17 +158,19 @@ class Actor:
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
         self.weights_version = -1  # no weights yet: act uniformly at random
         self.episode_index = 0
-        self.mailbox = Mailbox()
-        self._warn = RateLimitedLog()
+        self.incarnation = secrets.randbits(62) | 1  # names this process's episodes (never 0: unnamed)
+        self.rejections = Rejections(log)
+        shapes = {name: tuple(tensor.shape) for name, tensor in self.network.state_dict().items()}
+        self.mailbox = Mailbox(shapes, self.rejections)
 
     def apply_mail(self) -> None:
         weights, exploration = self.mailbox.take()
-        if weights is not None and weights.version > self.weights_version:
+        if weights is not None:
             try:
                 load_numpy_weights(self.network, weights.tensors)
                 self.weights_version = weights.version
             except ValueError as error:
-                log.warning("ignoring weights version %d: %s", weights.version, error)
+                self.rejections.reject("weights_values", f"weights version {weights.version}: {error}")
         if exploration is not None:
             self.follow(dataclasses.asdict(exploration))
 
@@ -122,7 +183,7 @@ class Actor:
                 return
             replacement = strategy_from_state(state, self.config.network.n_actions)
         except ValueError as error:
-            self._warn.warning("ignoring the learner's exploration state: %s", error)
+            self.rejections.reject("exploration_invalid", f"the learner's exploration state: {error}")
             return
         log.info("following the learner's exploration: %s %s (this actor was configured with %s %s)",
                  replacement.name, replacement.params(), self.strategy.name, self.strategy.params())
@@ -174,6 +235,7 @@ class Actor:
             epsilon=epsilon,
             seed=self.seed,
             episode_index=self.episode_index,
+            incarnation=self.incarnation,
         )
         record = EpisodeRecord(
             actor_id=self.actor_id, episode_index=self.episode_index, length=len(buffer.actions),
@@ -184,8 +246,104 @@ class Actor:
         return episode, record
 
 
+class Outbox:
+    """Finished episodes on their way to the replay, in order: bounded by a count and a byte size.
+
+    The driving loop offers episodes and waits while the outbox is full; one sender thread
+    (run) publishes them while the replay listens and waits while it does not."""
+
+    def __init__(self, max_episodes: int, max_bytes: int) -> None:
+        self.max_episodes = max_episodes
+        self.max_bytes = max_bytes
+        self._queue: deque[tuple[Episode, int]] = deque()
+        self._bytes = 0
+        self._changed = threading.Condition()
+        self.sent = 0
+        self.dropped = 0  # episodes given up: unsent when the actor stopped, or failed to send
+
+    def __len__(self) -> int:
+        with self._changed:
+            return len(self._queue)
+
+    def offer(self, episode: Episode, stop: threading.Event) -> bool:
+        """Queues the episode once there is room; False if stopped first (the episode is dropped)."""
+        size = episode.observations.nbytes + episode.actions.nbytes * 3
+        waiting = Every(REPLAY_WAIT_LOG_S)
+        with self._changed:
+            while self._queue and (len(self._queue) >= self.max_episodes or self._bytes + size > self.max_bytes):
+                if stop.is_set():
+                    self.dropped += 1
+                    return False
+                if waiting.due():
+                    log.warning("%d finished episodes (%.1f MB) wait for a replay: holding the next episode",
+                                len(self._queue), self._bytes / MEGABYTE)
+                self._changed.wait(0.1)
+            self._queue.append((episode, size))
+            self._bytes += size
+            self._changed.notify_all()
+        return True
+
+    def run(self, send, listening, stop: threading.Event) -> None:
+        """Sends the oldest episode whenever listening() says a replay is there; until stop."""
+        waiting = Every(REPLAY_WAIT_LOG_S)
+        while not stop.is_set():
+            with self._changed:
+                if not self._queue:
+                    self._changed.wait(0.1)
+                    continue
+                episode, size = self._queue[0]
+            if not listening():
+                if waiting.due():
+                    log.warning("no replay listens; %d finished episodes wait", len(self))
+                stop.wait(0.1)
+                continue
+            try:
+                send(episode)
+                sent = True
+            except Exception as error:  # an episode that cannot be sent must not stop the others
+                log.warning("could not send episode %d: %s; dropped", episode.episode_index, error)
+                sent = False
+            with self._changed:
+                self._queue.popleft()
+                self._bytes -= size
+                self.sent += sent
+                self.dropped += not sent
+                self._changed.notify_all()
+
+    def drain(self, stop: threading.Event) -> None:
+        """Waits until every queued episode is sent, or stop."""
+        with self._changed:
+            while self._queue and not stop.is_set():
+                self._changed.wait(0.1)
+
+    def drop_rest(self) -> int:
+        with self._changed:
+            count = len(self._queue)
+            self._queue.clear()
+            self._bytes = 0
+            self.dropped += count
+            return count
+
+
+class ReplayWatch:
+    """Whether the run's replay is alive, from its liveliness token (gone when it dies, back when it returns)."""
+
+    def __init__(self) -> None:
+        self._alive: set[str] = set()
+        self._lock = threading.Lock()
+
+    def on_change(self, key: str, alive: bool) -> None:
+        with self._lock:
+            (self._alive.add if alive else self._alive.discard)(key)
+
+    @property
+    def alive(self) -> bool:
+        with self._lock:
+            return bool(self._alive)
+
+
 def run_actor(config: Config, max_episodes: int | None = None) -> None:
-    """Runs episodes until stopped (SIGINT/SIGTERM) or after max_episodes."""
+    """Runs episodes until stopped (SIGINT/SIGTERM) or after max_episodes (then waits until they are sent)."""
     actor_id = config.actor.actor_id
     setup_logging(f"actor-{actor_id}")
     torch.set_num_threads(1)  # one core per actor; the learner owns the rest
@@ -193,32 +351,72 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     actor = Actor(config, actor_id)
-    log.info("actor %d (seed %d), strategy %s until the learner's exploration state says otherwise",
-             actor_id, actor.seed, config.exploration.strategy)
+    log.info("actor %d (seed %d, incarnation %x), strategy %s until the learner's exploration state says otherwise",
+             actor_id, actor.seed, actor.incarnation, config.exploration.strategy)
     keys = Keys(config.transport.namespace, config.run.name)
+    outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE))
+    replay = ReplayWatch()
     session = open_session(config.transport)
+    sending = threading.Event()  # the sender and the stats thread stop once driving is over
     try:
         liveliness = declare_liveliness(session, keys.liveliness("actor", str(actor_id)))
-        subscriptions = [subscribe(session, keys.weights, actor.mailbox.offer_weights, expected=Weights),
-                         subscribe(session, keys.exploration, actor.mailbox.offer_exploration,
-                                   expected=ExplorationState),
-                         subscribe(session, keys.replay_rate, actor.mailbox.offer_rate, expected=Stats)]
+        # no expected type: a message of another type reaches the mailbox, which counts it
+        receivers = {"weights": subscribe(session, keys.weights, actor.mailbox.offer_weights),
+                     "exploration": subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
+                     "rate": subscribe(session, keys.replay_rate, actor.mailbox.offer_rate),
+                     "liveliness": watch_liveliness(session, keys.liveliness("replay", "0"), replay.on_change)}
         episodes_out = publisher(session, keys.episodes)
         records_out = publisher(session, keys.metrics_source("actor", str(actor_id)))
-        threading.Thread(target=_fetch_latest_weights, args=(session, keys, actor.mailbox), daemon=True).start()
-        _drive(actor, stop, max_episodes, episodes_out, records_out)
+        stats_out = publisher(session, keys.metrics_source("actor_stats", str(actor_id)))
+        threads = [
+            threading.Thread(target=_fetch_latest_weights, args=(session, keys, actor.mailbox), daemon=True),
+            threading.Thread(target=outbox.run, args=(episodes_out.put, lambda: replay.alive and episodes_out.matched,
+                                                      sending), name="outbox", daemon=True),
+            threading.Thread(target=_report_stats, args=(actor, outbox, receivers, stats_out, sending),
+                             name="stats", daemon=True)]
+        for thread in threads:
+            thread.start()
+        _drive(actor, stop, max_episodes, outbox, records_out)
+        outbox.drain(stop)
+        sending.set()
+        for thread in threads[1:]:
+            thread.join(timeout=5.0)
+        unsent = outbox.drop_rest()
+        if unsent:
+            log.warning("stopping with %d finished episodes unsent: dropped", unsent)
+        stats_out.put(_stats(actor, outbox, receivers))
+        for declared in (*receivers.values(), liveliness):
+            declared.undeclare()
     finally:
+        sending.set()
         session.close()
-    log.info("actor %d stopped after %d episodes", actor_id, actor.episode_index)
+    log.info("actor %d stopped after %d episodes: %d sent, %d dropped", actor_id, actor.episode_index,
+             outbox.sent, outbox.dropped)
+
+
+def _stats(actor: Actor, outbox: Outbox, receivers: dict) -> Stats:
+    values = {"episodes": actor.episode_index, "episodes_sent": outbox.sent, "episodes_dropped": outbox.dropped,
+              "episodes_queued": len(outbox), "weights_version": actor.weights_version,
+              **actor.rejections.values(),
+              **{f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}}
+    return Stats(source="actor", time=time.time(), values=values)
+
+
+def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop: threading.Event) -> None:
+    while not stop.wait(actor.config.actor.log_period_s):
+        try:
+            stats_out.put(_stats(actor, outbox, receivers))
+        except Exception:  # the stats must never stop the actor
+            log.warning("could not publish the actor's stats", exc_info=True)
 
 
 def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox) -> None:
     reply = request(session, keys.weights_latest, None, LATEST_WEIGHTS_TIMEOUT_S)
-    if isinstance(reply, Weights):
-        mailbox.offer_weights(reply)
+    if reply is not None:
+        mailbox.offer_latest(reply)
 
 
-def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, episodes_out, records_out) -> None:
+def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, records_out) -> None:
     report = Every(actor.config.actor.log_period_s)
     steps = 0
     returns: list[float] = []
@@ -228,27 +426,16 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, episod
         episode, record = actor.run_episode(stop)
         if stop.is_set() and not (episode.terminated or episode.truncated):
             break  # an interrupted episode is not a real one
-        if not _replay_listening(episodes_out, stop):
+        if not outbox.offer(episode, stop):
             break
-        episodes_out.put(episode)
         records_out.put(record)
         steps += record.length
         returns.append(record.episode_return)
         if report.due():
-            log.info("episodes %d, steps %d, mean return %.2f, weights v%d, epsilon %.3f",
-                     actor.episode_index, steps, float(np.mean(returns)), actor.weights_version, record.epsilon)
+            log.info("episodes %d, steps %d, mean return %.2f, weights v%d, epsilon %.3f; %d sent, %d waiting, "
+                     "%d rejected messages", actor.episode_index, steps, float(np.mean(returns)),
+                     actor.weights_version, record.epsilon, outbox.sent, len(outbox), actor.rejections.total)
             returns.clear()
-
-
-def _replay_listening(episodes_out, stop: threading.Event) -> bool:
-    """Zenoh drops a put that no subscriber matches, so an episode waits for the replay."""
-    waiting = Every(REPLAY_WAIT_LOG_S)
-    while not episodes_out.matched:
-        if stop.wait(0.1):
-            return False
-        if waiting.due():
-            log.warning("no replay is subscribed to episodes; holding the finished episode")
-    return True
 
 
 def _replay_allows_next_episode(actor: Actor, stop: threading.Event) -> bool:

@@ -75,12 +75,20 @@ class ReplayConfig:
     stats_period_s: float = 1.0
     log_period_s: float = 10.0
     seed: int = 0
+    # An episode (or trace batch) with a reward of larger magnitude is refused as absurd; the
+    # env's rewards exp(-beta d) lie in [0, 1].
+    reward_limit: float = 100.0
+    # The replay writes its episodes and counters to <runs_dir>/<run>/replay/snapshot/ this often
+    # (and at exit); only episodes new since the last snapshot are written. `replay --resume`
+    # restores it. 0 turns snapshots off.
+    snapshot_period_s: float = 30.0
 
     def validate(self) -> None:
         _positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
-                  "max_batch_size", "stats_period_s", "log_period_s")
+                  "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
         _check(self.error_buffer_updates >= 1, "error_buffer_updates",
                f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
+        _check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
 
 
 UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
@@ -289,11 +297,15 @@ class ActorConfig:
     num_actors: int = 0  # local stack: 0 means one per spare core
     actor_id: int = 0
     log_period_s: float = 10.0
+    # Finished episodes wait in a queue while no replay listens (a replay restart); the actor
+    # holds its next episode while the queue has this many episodes or this many MB.
+    queue_episodes: int = 32
+    queue_mb: float = 256.0
 
     def validate(self) -> None:
         _check(self.num_actors >= 0, "num_actors", "must be >= 0")
         _check(self.actor_id >= 0, "actor_id", "must be >= 0")
-        _positive(self, "log_period_s")
+        _positive(self, "log_period_s", "queue_episodes", "queue_mb")
 
 
 @dataclass
@@ -327,6 +339,20 @@ class TransportConfig:
     multicast_scouting: bool = False
     namespace: str = "d3rqn"
     connect_timeout_s: float = 10.0  # client mode: how long opening a session retries its connect endpoints
+    # TLS on tls/<host>:<port> endpoints (README "Securing a cluster"; d3rqn-certs makes the files).
+    # PEM files; relative paths start from the working directory.
+    tls_ca: str = ""  # the run's CA: listeners' certificates (and with tls_mtls, peers') must be signed by it
+    tls_certificate: str = ""  # this host's certificate, shown when listening (and with tls_mtls, connecting)
+    tls_key: str = ""  # its private key
+    tls_mtls: bool = False  # mutual TLS: listeners admit only peers with a certificate signed by tls_ca
+    tls_verify_name: bool = True  # a connecting process checks the listener's certificate names the address dialled
+    # Access control on this session's links (the router's), by the common name of each peer's
+    # certificate (needs tls_mtls; common/access.py lists what each role may do). Deny by default.
+    acl: bool = False
+    acl_learners: list[str] = field(default_factory=lambda: ["learner"])
+    acl_actors: list[str] = field(default_factory=lambda: ["actor"])
+    acl_replays: list[str] = field(default_factory=lambda: ["replay"])  # a replay that is not the router
+    acl_observers: list[str] = field(default_factory=lambda: ["recorder"])  # read everything, write nothing
 
     def validate(self) -> None:
         _check(self.mode in ("peer", "client", "router"), "mode", "must be 'peer', 'client' or 'router'")
@@ -335,6 +361,26 @@ class TransportConfig:
             for endpoint in getattr(self, key):
                 _check("/" in endpoint, key, f"endpoint {endpoint!r} must look like 'tcp/127.0.0.1:7447'")
         _check(_is_key_chunk(self.namespace), "namespace", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+        self._validate_security()
+
+    def _validate_security(self) -> None:
+        _check(bool(self.tls_certificate) == bool(self.tls_key), "tls_key",
+               "tls_certificate and tls_key go together: give both or neither")
+        if any(endpoint.startswith("tls/") for endpoint in self.listen):
+            _check(bool(self.tls_certificate), "tls_certificate", "a tls/ listener needs a certificate and key")
+        if any(endpoint.startswith("tls/") for endpoint in self.listen + self.connect):
+            _check(bool(self.tls_ca), "tls_ca", "tls/ endpoints need the run's CA certificate")
+        if self.tls_mtls:
+            _check(bool(self.tls_certificate and self.tls_ca), "tls_mtls", "needs tls_ca, tls_certificate and tls_key")
+            for key in ("listen", "connect"):
+                for endpoint in getattr(self, key):
+                    _check(endpoint.startswith("tls/"), key,
+                           f"endpoint {endpoint!r}: with tls_mtls every endpoint must be tls/ (another would admit peers without a certificate)")
+        if self.acl:
+            _check(self.tls_mtls, "acl", "needs tls_mtls: the access rules tell peers apart by their certificates")
+        for key in ("acl_learners", "acl_actors", "acl_replays", "acl_observers"):
+            for name in getattr(self, key):
+                _check(bool(name.strip()), key, "common names must not be empty")
 
 
 @dataclass

@@ -15,13 +15,23 @@ without recompressing, and a reader decodes only the frames it needs.
 ``decode`` checks each blob's zstd header (declared size = frame size) but does
 not decompress; ``FrameStack.decode`` and ``FrameStack.verify`` do, and raise
 WireError for a blob whose content is corrupt.
+
+A message that decodes can still not fit the run: frames of another size, actions
+outside the action space, absurd rewards. ``RunShape`` holds what a run's messages
+must fit, ``check_episode`` and ``check_trace_batch`` check it (every frame of an
+episode is decompressed), and ``stat_number`` reads one value of a Stats message
+without trusting it. Each WireError has a ``kind`` (a short name for counting), and
+``Rejections`` counts refused input by kind and logs it at a bounded rate.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import threading
+import time
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Sequence
 
@@ -40,7 +50,13 @@ INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 
 
 class WireError(ValueError):
-    """A message cannot be encoded or decoded; the text names the field and the fault."""
+    """A message cannot be encoded or decoded, or does not fit the run; the text names the field
+    and the fault, ``kind`` names the fault for counting ("undecodable", "wrong_type", "invalid",
+    or a RunShape check's kind such as "frame_shape" or "actions")."""
+
+    def __init__(self, text: str, kind: str = "invalid") -> None:
+        super().__init__(text)
+        self.kind = kind
 
 
 # --- frames ----------------------------------------------------------------------
@@ -442,7 +458,10 @@ class Episode(Message):
     weights_version: np.ndarray = wired(Array("int64", 1))  # [L] version each step was acted with
     epsilon: float = wired(PROBABILITY)
     seed: int = wired(Integer())
-    episode_index: int = wired(COUNT)  # per actor
+    episode_index: int = wired(COUNT)  # per actor process, from 0
+    # A random number per actor process: (actor_id, incarnation, episode_index) names an episode, so the
+    # replay stores none twice and counts the indices that never arrived. 0: unnamed (older senders).
+    incarnation: int = wired(COUNT, default=0)
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -465,6 +484,9 @@ class TraceBatchRequest(Message):
     request_id: int = wired(Integer())
     batch_size: int = wired(Integer(min_value=1))
     trace_length: int = wired(Integer(min_value=1))
+    # A learner process's first request (request_id 0) states the updates it starts from (its
+    # checkpoint's, 0 when fresh): the replay owes again the batches a killed learner never kept.
+    learner_updates: int = wired(Integer(min_value=-1), default=-1)  # -1: not stated
 
 
 @dataclass(eq=False)
@@ -567,6 +589,10 @@ def _codecs(cls: type[Message]) -> list[tuple[str, Codec]]:
     return [(f.name, f.metadata["codec"]) for f in dataclasses.fields(cls)]
 
 
+def _defaulted(cls: type[Message]) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+
+
 def encode(message: Message) -> bytes:
     """The message as bytes; raises WireError if a field is invalid."""
     tag = type(message).__name__
@@ -584,17 +610,18 @@ def decode(data: bytes, expected: type[Message] | None = None) -> Message:
     try:
         envelope = msgpack.unpackb(data, raw=False, strict_map_key=True)
     except Exception as error:  # msgpack signals bad input with several exception types
-        raise WireError(f"not a msgpack message ({type(error).__name__}: {error})") from None
+        raise WireError(f"not a msgpack message ({type(error).__name__}: {error})", "undecodable") from None
     if not isinstance(envelope, dict) or set(envelope) != {"schema", "type", "fields"}:
-        raise WireError("not a wire message: expected a map with keys schema, type, fields")
+        raise WireError("not a wire message: expected a map with keys schema, type, fields", "undecodable")
     if type(envelope["schema"]) is not int or envelope["schema"] != SCHEMA_VERSION:
-        raise WireError(f"schema version {envelope['schema']!r} is not supported (this build reads version {SCHEMA_VERSION})")
+        raise WireError(f"schema version {envelope['schema']!r} is not supported (this build reads version "
+                        f"{SCHEMA_VERSION})", "undecodable")
     tag = envelope["type"]
     cls = MESSAGE_TYPES.get(tag) if isinstance(tag, str) else None
     if cls is None:
-        raise WireError(f"unknown message type {tag!r}")
+        raise WireError(f"unknown message type {tag!r}", "undecodable")
     if expected is not None and cls is not expected:
-        raise WireError(f"expected message type {expected.__name__}, got {tag}")
+        raise WireError(f"expected message type {expected.__name__}, got {tag}", "wrong_type")
     return _build(cls, envelope["fields"])
 
 
@@ -604,11 +631,125 @@ def _build(cls: type[Message], fields: Any) -> Message:
         raise WireError(f"{tag}: fields must be a map")
     codecs = _codecs(cls)
     names = {name for name, _ in codecs}
-    missing, extra = names - set(fields), set(fields) - names
+    missing, extra = names - set(fields) - _defaulted(cls), set(fields) - names
     if missing:
         raise WireError(f"{tag}: missing field(s) {', '.join(sorted(missing))}")
     if extra:
         raise WireError(f"{tag}: unexpected field(s) {', '.join(sorted(map(str, extra)))}")
-    message = cls(**{name: codec.unpack(fields[name], f"{tag}.{name}") for name, codec in codecs})
+    # a field with a default may be absent: messages of senders that predate it still decode
+    message = cls(**{name: codec.unpack(fields[name], f"{tag}.{name}") for name, codec in codecs if name in fields})
     message.check()
     return message
+
+
+# --- does a message fit the run? -------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RunShape:
+    """What the messages of one run must fit, from its configuration."""
+
+    frame_shape: tuple[int, int, int]  # H, W, C of every observation
+    n_actions: int  # actions are indices in [0, n_actions)
+    max_steps: int  # no episode is longer (env.max_steps)
+    reward_limit: float  # |reward| above this is absurd (the env's rewards lie in [0, 1])
+
+    @classmethod
+    def of(cls, config: Any) -> RunShape:
+        """The shape of a common.config.Config."""
+        network = config.network
+        return cls((network.frame_height, network.frame_width, network.frame_channels), network.n_actions,
+                   config.env.max_steps, config.replay.reward_limit)
+
+
+def _misfit(kind: str, text: str) -> WireError:
+    return WireError(text, kind)
+
+
+def _check_steps(actions: np.ndarray, rewards: np.ndarray, frames: FrameStack, shape: RunShape, what: str) -> None:
+    if frames.frame_shape != shape.frame_shape:
+        raise _misfit("frame_shape", f"{what}: frames of shape {list(frames.frame_shape)}, the run's are "
+                                     f"{list(shape.frame_shape)}")
+    if actions.size and (actions.min() < 0 or actions.max() >= shape.n_actions):
+        raise _misfit("actions", f"{what}: actions in [{actions.min()}, {actions.max()}], the run has "
+                                 f"{shape.n_actions} actions")
+    if rewards.size and float(np.abs(rewards).max()) > shape.reward_limit:
+        raise _misfit("rewards", f"{what}: a reward of magnitude {float(np.abs(rewards).max()):.3g} exceeds "
+                                 f"replay.reward_limit {shape.reward_limit:g}")
+
+
+def check_episode(episode: Episode, shape: RunShape) -> None:
+    """Raises WireError (with its kind) unless the decoded episode fits the run; decompresses every frame."""
+    if len(episode) > shape.max_steps:
+        raise _misfit("length", f"Episode: {len(episode)} steps, more than env.max_steps {shape.max_steps}")
+    _check_steps(np.asarray(episode.actions), np.asarray(episode.rewards), episode.observations, shape, "Episode")
+    if np.min(episode.weights_version) < -1:  # -1: acted before any weights
+        raise _misfit("weights_version", "Episode: a weights version below -1")
+    try:
+        episode.observations.verify()
+    except WireError as error:
+        raise _misfit("frames_corrupt", f"Episode.observations: {error}") from None
+
+
+def check_trace_batch(batch: TraceBatch, shape: RunShape, batch_size: int, trace_length: int) -> None:
+    """Raises WireError (with its kind) unless the batch is what was asked for and fits the run. Frames are
+    decompressed when used (TraceBatch.observations_array raises WireError for a corrupt one)."""
+    if (batch.batch_size, batch.trace_length) != (batch_size, trace_length):
+        raise _misfit("batch_shape", f"TraceBatch: {batch.batch_size} traces of {batch.trace_length} steps, "
+                                     f"asked for {batch_size} of {trace_length}")
+    _check_steps(np.asarray(batch.actions), np.asarray(batch.rewards), batch.observations, shape, "TraceBatch")
+
+
+def stat_number(values: Any, name: str, *, integer: bool = False, minimum: float = -math.inf,
+                maximum: float = math.inf) -> float | int | None:
+    """values[name] when it is a finite number within [minimum, maximum] (and integral if asked),
+    else None: a Stats value read without trusting that it is there or what it is."""
+    value = values.get(name) if isinstance(values, dict) else None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    if isinstance(value, float) and not math.isfinite(value) or not minimum <= value <= maximum:
+        return None
+    if integer:
+        if value != int(value):
+            return None
+        return int(value)
+    return value
+
+
+# --- counting what is refused -----------------------------------------------------------------
+
+class Rejections:
+    """Refused input by kind: counted, and logged at most once per kind per period (the next line
+    of a kind says how many were not shown). Thread-safe: Zenoh calls back on several threads."""
+
+    def __init__(self, logger: logging.Logger, period_s: float = 10.0, clock=time.monotonic) -> None:
+        self._log = logger
+        self._period_s = period_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.counts: Counter[str] = Counter()
+        self._last: dict[str, float] = {}
+        self._unshown: Counter[str] = Counter()
+
+    def reject(self, kind: str, text: str) -> None:
+        with self._lock:
+            self.counts[kind] += 1
+            now = self._clock()
+            if now - self._last.get(kind, -math.inf) < self._period_s:
+                self._unshown[kind] += 1
+                return
+            self._last[kind] = now
+            unshown, self._unshown[kind] = self._unshown[kind], 0
+        more = f" ({unshown} more of this kind since the last line)" if unshown else ""
+        self._log.warning("rejected (%s): %s%s", kind, text[:500], more)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+    def values(self, prefix: str = "rejected_") -> dict[str, int]:
+        """{prefix + kind: count} and {prefix + "total": sum}, for a Stats message."""
+        with self._lock:
+            counts = dict(self.counts)
+        return {**{f"{prefix}{kind}": count for kind, count in sorted(counts.items())},
+                f"{prefix}total": sum(counts.values())}

@@ -3,10 +3,18 @@
 Each role runs as its own process (a fresh interpreter, never a fork holding a
 Zenoh session). The replay opens its session as the router that the others
 connect to. This launcher shows one live progress line, writes everything for
-the run under <runs_dir>/<run>/, restarts an actor that dies, and stops every
-process on Ctrl-C or when the learner reaches its step budget. At the end it
-writes <runs_dir>/<run>/summary.json: env steps, updates and the achieved env
-steps per update of the whole run, from the learner's last metrics.
+the run under <runs_dir>/<run>/, and stops every process on Ctrl-C or when the
+learner reaches its step budget (it exits with code 0).
+
+Any process that dies otherwise is started again after a backoff (RESTART_BACKOFF_S,
+doubled for each death in a row up to RESTART_BACKOFF_MAX_S; a process that lived
+STABLE_S starts from the first step again): the replay with --resume (its snapshot
+and counters), the learner with --resume once it has a checkpoint, the recorder
+(into a new traffic-<n>.mcap) and actors as they were. The others ride it out: they
+reconnect to a restarted replay on their own. The progress line counts restarts,
+and at the end <runs_dir>/<run>/summary.json gives env steps, updates and the
+achieved env steps per update of the whole run, from the learner's last metrics,
+and the restarts of each process.
 """
 
 from __future__ import annotations
@@ -26,12 +34,15 @@ from pathlib import Path
 
 from common.config import Config, add_config_arguments, parse_config_or_exit, to_toml
 from common.transport import Keys, open_session, subscribe
-from common.wire import EpisodeRecord, Stats
+from common.wire import EpisodeRecord, Stats, stat_number
 
 STOP_GRACE_S = 20.0
-RESTART_BACKOFF_S = 2.0
+RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubled for each death in a row
+RESTART_BACKOFF_MAX_S = 30.0
+STABLE_S = 60.0  # a process that lived this long before dying is restarted after RESTART_BACKOFF_S again
 FINAL_METRICS_WAIT_S = 5.0
 SUMMARY = "summary.json"
+CHECKPOINT = Path("checkpoints") / "latest.pt"
 
 
 def free_port() -> int:
@@ -58,53 +69,86 @@ class Progress:
         self._started = time.monotonic()
 
     def on_metric(self, message, key: str) -> None:
+        """Episode records and the learner's metrics; anything else on metrics/** is not for the line.
+        Values are read without trusting them: a missing or wrongly typed one shows as its default."""
         with self._lock:
             if isinstance(message, EpisodeRecord):
                 self.episodes += 1
                 self.returns.append(message.episode_return)
-            elif isinstance(message, Stats) and message.source == "learner":
+            elif isinstance(message, Stats) and message.source == "learner" and key.endswith("/metrics/learner/0"):
                 self.learner = dict(message.values)
-                if self.learner.get("final"):
+                if self.learner.get("final") == 1:
                     self.learner_final.set()
 
     def on_replay_stats(self, message, key: str) -> None:
-        if isinstance(message, Stats):
+        if isinstance(message, Stats) and message.source == "replay":
             with self._lock:
                 self.replay = dict(message.values)
 
-    def line(self) -> str:
+    def line(self, restarts: int = 0) -> str:
         with self._lock:
             mean_return = sum(self.returns) / len(self.returns) if self.returns else float("nan")
-            steps = int(self.replay.get("env_steps_total", 0))
+            learner, replay = self.learner, self.replay
             elapsed = time.monotonic() - self._started
-            return (f"[{elapsed:7.0f}s] env steps {steps:>9,d} | episodes {self.episodes:>6,d} | "
-                    f"updates {int(self.learner.get('updates', 0)):>7,d} | "
-                    f"eps {float(self.learner.get('epsilon', 1.0)):.3f} | "
+            return (f"[{elapsed:7.0f}s] env steps {_count(replay, 'env_steps_total'):>9,d} | "
+                    f"episodes {self.episodes:>6,d} | "
+                    f"updates {_count(learner, 'updates'):>7,d} | "
+                    f"eps {_number(learner, 'epsilon', 1.0):.3f} | "
                     f"return(100) {mean_return:8.2f} | "
-                    f"upd/s {float(self.learner.get('updates_per_s', 0.0)):5.2f} | "
-                    f"steps/s {float(self.replay.get('env_steps_total_per_s', 0.0)):6.1f} | "
-                    f"steps/upd {float(self.learner.get('env_steps_per_update', math.nan)):5.2f}")
+                    f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
+                    f"steps/s {_number(replay, 'env_steps_total_per_s', 0.0):6.1f} | "
+                    f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
+                    f"restarts {restarts}")
 
-    def summary(self, config: Config) -> dict:
+    def summary(self, config: Config, restarts: dict[str, int] | None = None) -> dict:
         """The run's figures from the learner's last metrics (and the replay's last stats)."""
         with self._lock:
             learner, replay = dict(self.learner), dict(self.replay)
+        ratio = stat_number(learner, "env_steps_per_update")
         return {
             "run": config.run.name,
             "strategy": config.exploration.strategy,
-            "learner_finished": bool(learner.get("final")),
-            "updates": int(learner.get("updates", 0)),
-            "env_steps": int(learner.get("env_steps", 0)),
-            "start_env_steps": learner.get("start_env_steps"),
-            "env_steps_per_update": learner.get("env_steps_per_update"),  # achieved, since the start mark
+            "learner_finished": learner.get("final") == 1,
+            "updates": _count(learner, "updates"),
+            "env_steps": _count(learner, "env_steps"),
+            "start_env_steps": stat_number(learner, "start_env_steps"),
+            "env_steps_per_update": ratio,  # achieved, since the start mark
             "env_steps_per_update_configured": config.learner.env_steps_per_update,
-            "replay_env_steps_total": int(replay.get("env_steps_total", 0)),
+            "replay_env_steps_total": _count(replay, "env_steps_total"),
             "episodes": self.episodes,
+            "restarts": dict(restarts or {}),
         }
 
 
+def _number(values: dict, name: str, default: float) -> float:
+    value = stat_number(values, name)
+    return default if value is None else float(value)
+
+
+def _count(values: dict, name: str) -> int:
+    value = stat_number(values, name, integer=True, minimum=0)
+    return 0 if value is None else value
+
+
+class Role:
+    """One process of the stack, how to start it, and its deaths."""
+
+    def __init__(self, name: str, module: str, flags: list[str]) -> None:
+        self.name = name
+        self.module = module
+        self.flags = flags
+        self.process: subprocess.Popen | None = None
+        self.started = 0.0
+        self.restarts = 0
+        self.deaths_in_a_row = 0
+        self.restart_at: float | None = None  # set while waiting to be started again
+
+    def backoff_s(self) -> float:
+        return min(RESTART_BACKOFF_S * 2 ** (self.deaths_in_a_row - 1), RESTART_BACKOFF_MAX_S)
+
+
 class Stack:
-    """Starts, watches and stops the processes of one local run."""
+    """Starts, watches, restarts and stops the processes of one local run."""
 
     def __init__(self, config: Config, config_path: Path, run_dir: Path, endpoint: str,
                  actors: int, resume: bool) -> None:
@@ -114,43 +158,63 @@ class Stack:
         self.logs.mkdir(parents=True, exist_ok=True)
         self.base = ["--config", str(config_path)]
         self.endpoint = endpoint
-        self.actor_count = actors
-        self.resume = resume
-        self.processes: dict[str, subprocess.Popen] = {}
-        self.restarts = 0
+        self.resume = resume  # the first start: the replay's snapshot and counters, the learner's checkpoint
+        client = ["--transport.mode", "client", "--transport.connect", endpoint]
+        self.roles: dict[str, Role] = {"replay": Role("replay", "replay.main", [
+            "--transport.mode", "router", "--transport.listen", endpoint])}
+        if config.record.enabled:  # the flight recorder writes <run dir>/traffic.mcap
+            self.roles["recorder"] = Role("recorder", "replay.log.cli record", client)
+        self.roles["learner"] = Role("learner", "learner.main", client)
+        for actor_id in range(actors):
+            self.roles[f"actor-{actor_id}"] = Role(f"actor-{actor_id}", "actor.main",
+                                                   client + ["--actor.actor_id", str(actor_id)])
+
+    @property
+    def processes(self) -> dict[str, subprocess.Popen]:
+        return {name: role.process for name, role in self.roles.items() if role.process is not None}
+
+    @property
+    def restarts(self) -> dict[str, int]:
+        return {name: role.restarts for name, role in self.roles.items()}
 
     def start_all(self) -> None:
-        resume = ["--resume"] if self.resume else []  # the replay's rate limiter counters, the learner's checkpoint
-        self._start("replay", "replay.main", ["--transport.mode", "router", "--transport.listen", self.endpoint] + resume)
-        if self.config.record.enabled:  # the flight recorder writes <run dir>/traffic.mcap
-            self._start("recorder", "replay.log.cli record", self._client_flags())
-        self._start("learner", "learner.main", self._client_flags() + resume)
-        for actor_id in range(self.actor_count):
-            self._start_actor(actor_id)
+        for role in self.roles.values():
+            self._start(role, first=True)
 
     def watch(self, stop: threading.Event, progress: Progress) -> int:
-        """Returns the learner's exit code; restarts dead actors meanwhile."""
+        """Returns 0 once the learner has finished (exit code 0); restarts what dies meanwhile."""
         last_line = 0.0
         while not stop.is_set():
-            learner_code = self.processes["learner"].poll()
-            if learner_code is not None:
-                return learner_code
-            if self.processes["replay"].poll() is not None:
-                print("\nreplay exited unexpectedly; stopping the stack (see logs/replay.log)", file=sys.stderr)
-                return 1
-            self._restart_dead_actors()
-            if time.monotonic() - last_line >= 1.0:
-                print("\r" + progress.line(), end="", flush=True)
-                last_line = time.monotonic()
+            now = time.monotonic()
+            for role in self.roles.values():
+                code = role.process.poll() if role.restart_at is None else None
+                if code == 0 and role.name == "learner":
+                    return 0  # the budget is paid for: the run is over
+                if code is not None:
+                    self._died(role, code, now)
+                elif role.restart_at is not None and now >= role.restart_at:
+                    role.restart_at = None
+                    role.restarts += 1
+                    self._start(role)
+            if now - last_line >= 1.0:
+                print("\r" + progress.line(sum(self.restarts.values())), end="", flush=True)
+                last_line = now
             stop.wait(0.2)
         return 0
 
+    def _died(self, role: Role, code: int, now: float) -> None:
+        role.deaths_in_a_row = 1 if now - role.started >= STABLE_S else role.deaths_in_a_row + 1
+        role.restart_at = now + role.backoff_s()
+        print(f"\n{role.name} exited with code {code}; restarting it in {role.backoff_s():.0f}s "
+              f"(see logs/{role.name}.log)", file=sys.stderr, flush=True)
+
     def stop_all(self) -> None:
         """Learner first (it checkpoints), then actors, the recorder (it has seen their last messages), replay last."""
-        order = (["learner"] + sorted(name for name in self.processes if name.startswith("actor"))
+        order = (["learner"] + sorted(name for name in self.roles if name.startswith("actor"))
                  + ["recorder", "replay"])
         for name in order:
-            process = self.processes.get(name)
+            role = self.roles.get(name)
+            process = role.process if role is not None else None
             if process is not None and process.poll() is None:
                 process.send_signal(signal.SIGINT)
                 try:
@@ -160,26 +224,21 @@ class Stack:
                     process.kill()
                     process.wait()
 
-    def _client_flags(self) -> list[str]:
-        return ["--transport.mode", "client", "--transport.connect", self.endpoint]
+    def _resume_flags(self, role: Role, first: bool) -> list[str]:
+        if role.name == "replay":
+            return ["--resume"] if self.resume or not first else []
+        if role.name == "learner" and (self.resume or not first) and (self.run_dir / CHECKPOINT).exists():
+            return ["--resume"]
+        return []
 
-    def _start_actor(self, actor_id: int) -> None:
-        self._start(f"actor-{actor_id}", "actor.main", self._client_flags() + ["--actor.actor_id", str(actor_id)])
-
-    def _start(self, name: str, module: str, flags: list[str]) -> None:
-        log = open(self.logs / f"{name}.log", "ab")
-        command = [sys.executable, "-m", *module.split(), *self.base, *flags]  # module, then any subcommand
-        self.processes[name] = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
-                                                stdin=subprocess.DEVNULL, start_new_session=True)
+    def _start(self, role: Role, first: bool = False) -> None:
+        log = open(self.logs / f"{role.name}.log", "ab")
+        command = [sys.executable, "-m", *role.module.split(), *self.base, *role.flags,
+                   *self._resume_flags(role, first)]  # module, then any subcommand
+        role.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL, start_new_session=True)
+        role.started = time.monotonic()
         log.close()
-
-    def _restart_dead_actors(self) -> None:
-        for name, process in list(self.processes.items()):
-            if name.startswith("actor-") and process.poll() is not None:
-                print(f"\n{name} exited with code {process.returncode}; restarting it", file=sys.stderr)
-                self.restarts += 1
-                time.sleep(RESTART_BACKOFF_S)
-                self._start_actor(int(name.split("-")[1]))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -190,7 +249,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--actors", type=int, default=None,
                         help="number of actors (default: actor.num_actors, or one per spare core)")
     parser.add_argument("--port", type=int, default=0, help="loopback port of the replay's router (default: a free one)")
-    parser.add_argument("--resume", action="store_true", help="resume the learner from the run's latest checkpoint")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run: the learner from its latest checkpoint, the replay from its "
+                             "snapshot and counters")
     add_config_arguments(parser)
     return parser
 
@@ -223,19 +284,20 @@ def main(argv: list[str] | None = None) -> int:
         if stack.processes["learner"].poll() is not None:
             progress.learner_final.wait(FINAL_METRICS_WAIT_S)
     finally:
-        print("\n" + progress.line(), flush=True)
+        print("\n" + progress.line(sum(stack.restarts.values())), flush=True)
         print("stopping processes ...", flush=True)
         stack.stop_all()
         for subscription in subscriptions:
             subscription.undeclare()
         session.close()
-    summary = progress.summary(config)
+    summary = progress.summary(config, stack.restarts)
     (run_dir / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
     print(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps per "
           f"update (configured {config.learner.env_steps_per_update:g}); {run_dir / SUMMARY}", flush=True)
-    print(f"stopped; actor restarts: {stack.restarts}; logs in {stack.logs}/", flush=True)
+    restarted = ", ".join(f"{name} {count}" for name, count in stack.restarts.items() if count) or "none"
+    print(f"stopped; restarts: {restarted}; logs in {stack.logs}/", flush=True)
     return code
 
 

@@ -7,10 +7,21 @@ batch request the moment updates start and holds replies back while the
 learner is ahead of one update per `learner.env_steps_per_update` env steps.
 The learner only counts, from the replay's numbers, the achieved ratio and
 when the step budget is paid for.
+
+What it takes is checked: a batch must be what was asked for and fit the run
+(frame shape, every frame it uses decompressed, actions inside the action space,
+rewards within replay.reward_limit), the replay's numbers must be there, finite
+and plausible (no more env steps than the budget plus a full buffer of
+full-length episodes). A refused batch or message is counted by kind
+(``rejected_<kind>`` in the learner's metrics) and logged at a bounded rate; an
+update that fails anyway is dropped and counted (``failed_updates``), and the
+learner goes on with the next batch, unless MAX_FAILED_IN_A_ROW fail in a row
+(a fault of the learner, not of one batch).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import signal
@@ -25,7 +36,8 @@ from common.config import Config, to_dict
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.logs import Every, setup_logging
 from common.transport import Keys, declare_liveliness, open_session, publisher, request, serve, subscribe
-from common.wire import ExplorationState, Stats, TraceBatch, Weights
+from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
+                         WireError, check_trace_batch, stat_number)
 from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from learner.prefetch import Prefetcher
 from learner.update import DoubleQLearner, TraceBatch as Traces
@@ -39,6 +51,7 @@ WAIT_LOG_S = 10.0
 # that started one before it heard the budget was spent) and pays for them too before it stops.
 FINISH_GRACE_S = 2.0
 CHECKPOINT_SECTIONS = ("learner", "exploration", "clock", "config")
+MAX_FAILED_IN_A_ROW = 20  # updates that raise on consecutive batches: the learner itself is at fault; it stops
 
 
 class RunClock:
@@ -108,6 +121,14 @@ class LearnerProcess:
         self._lock = threading.Lock()
         self.latest_weights: Weights | None = None
         self.checkpoint_dir = Path(config.run.runs_dir) / config.run.name / "checkpoints"
+        self.shape = RunShape.of(config)
+        self.rejections = Rejections(log)
+        self.failed_updates = 0
+        self._failed_in_a_row = 0
+        self.receivers: dict = {}  # door -> transport Receiver, whose `rejected` counts malformed messages
+        # More env steps than this cannot be true: actors are held once the budget is spent, and
+        # what is still in flight then is less than a full buffer of full-length episodes.
+        self.max_env_steps = config.learner.total_env_steps + config.replay.capacity * config.env.max_steps
 
     @property
     def updates(self) -> int:
@@ -116,20 +137,40 @@ class LearnerProcess:
     # --- inputs from Zenoh callbacks ----------------------------------------------------
 
     def on_replay_stats(self, stats: Stats, key: str = "") -> None:
-        if isinstance(stats, Stats) and stats.source == "replay":
-            values = stats.values
-            with self._lock:
-                self.episodes_stored = int(values.get("episodes", self.episodes_stored))
-            self._observe(values.get("env_steps_total"), values.get("rate_start_env_steps"))
+        if self._replay_numbers(stats, "replay", "env_steps_total", "rate_start_env_steps", "stats"):
+            episodes = stat_number(stats.values, "episodes", integer=True, minimum=0)
+            if episodes is not None:
+                with self._lock:
+                    self.episodes_stored = episodes
 
     def on_replay_rate(self, stats: Stats, key: str = "") -> None:
-        if isinstance(stats, Stats) and stats.source == "rate_limiter":
-            self._observe(stats.values.get("env_steps"), stats.values.get("start_env_steps"))
+        self._replay_numbers(stats, "rate_limiter", "env_steps", "start_env_steps", "rate")
 
-    def _observe(self, env_steps, start_env_steps=None) -> None:
-        if not isinstance(env_steps, (int, float)):
-            return
-        mark = start_env_steps if isinstance(start_env_steps, (int, float)) else None
+    def _replay_numbers(self, stats, source: str, steps_name: str, mark_name: str, door: str) -> bool:
+        """Observes the env steps and start mark of a replay message; False (counted) if they are
+        missing, of the wrong type or absurd."""
+        if not isinstance(stats, Stats) or stats.source != source:
+            shown = f"source {stats.source!r}" if isinstance(stats, Stats) else f"a {type(stats).__name__}"
+            self.rejections.reject(f"{door}_wrong_type", f"{shown} on replay/{door}, expected a {source} Stats")
+            return False
+        env_steps = stat_number(stats.values, steps_name, integer=True, minimum=0, maximum=self.max_env_steps)
+        if env_steps is None:
+            self.rejections.reject(f"{door}_values", f"replay/{door}: {steps_name} "
+                                   f"{stats.values.get(steps_name)!r} is missing, not a count, or more than "
+                                   f"{self.max_env_steps} (budget plus a full buffer)")
+            return False
+        mark = stats.values.get(mark_name)
+        if mark is not None and mark != -1:  # -1: updates have not started
+            mark = stat_number(stats.values, mark_name, minimum=0, maximum=env_steps)
+            if mark is None:
+                self.rejections.reject(f"{door}_values", f"replay/{door}: {mark_name} "
+                                       f"{stats.values.get(mark_name)!r} is not a number in [0, {env_steps}]")
+                return False
+        self._observe(env_steps, mark)
+        return True
+
+    def _observe(self, env_steps: int, start_env_steps: float | None = None) -> None:
+        mark = start_env_steps if isinstance(start_env_steps, (int, float)) and start_env_steps >= 0 else None
         with self._lock:
             resumed = self._resumed_env_steps
             if resumed is not None:
@@ -142,6 +183,11 @@ class LearnerProcess:
             self.clock.observe(int(env_steps), mark)
 
     def serve_latest_weights(self, request_message) -> Weights | None:
+        """A query without payload gets the latest weights; one carrying a message is refused."""
+        if request_message is not None:
+            self.rejections.reject("weights_query", f"a query for the latest weights carrying a "
+                                                    f"{type(request_message).__name__}")
+            return None
         return self.latest_weights
 
     # --- decisions ----------------------------------------------------------------------
@@ -161,12 +207,35 @@ class LearnerProcess:
     def start_updates(self) -> None:
         self.strategy.start()
 
-    def train_on(self, batch: TraceBatch) -> float:
-        """One update on one batch; feeds the strategy what it needs; returns the loss."""
+    def train_on(self, batch: TraceBatch) -> float | None:
+        """One update on one batch; feeds the strategy what it needs; returns the loss, or None when
+        the batch was refused or the update failed (counted)."""
+        config = self.config.learner
+        try:
+            if not isinstance(batch, TraceBatch):
+                raise WireError(f"a {type(batch).__name__} in reply to a trace-batch request", "wrong_type")
+            check_trace_batch(batch, self.shape, config.batch_size, config.trace_length)
+            if batch.env_steps_total > self.max_env_steps:
+                raise WireError(f"TraceBatch: {batch.env_steps_total} env steps, more than {self.max_env_steps}",
+                                "values")
+            observations = batch.observations_array()
+        except WireError as error:
+            self.rejections.reject(f"batch_{error.kind}", str(error))
+            return None
         self._observe(batch.env_steps_total)
-        traces = Traces(batch.observations_array(), np.array(batch.actions), np.array(batch.rewards),
-                        np.array(batch.terminated))
-        result = self.learner.update(traces, with_q_after=self.strategy.needs_q_after)
+        traces = Traces(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated))
+        try:
+            result = self.learner.update(traces, with_q_after=self.strategy.needs_q_after)
+        except Exception:
+            self.failed_updates += 1
+            self._failed_in_a_row += 1
+            if self._failed_in_a_row >= MAX_FAILED_IN_A_ROW:
+                raise
+            self.rejections.reject("update_failed", f"an update failed ({self.failed_updates} so far); "
+                                                    f"the batch is dropped")
+            log.debug("the failed update", exc_info=True)
+            return None
+        self._failed_in_a_row = 0
         self.strategy.on_env_steps(self.clock.env_steps)
         if self.strategy.needs_q_after:
             self.strategy.on_update(result.q_before, result.q_after)
@@ -228,10 +297,12 @@ def run_learner(config: Config, resume: bool = False) -> None:
     keys = Keys(config.transport.namespace, config.run.name)
     session = open_session(config.transport)
     try:
+        # no expected type: a message of another type reaches the process, which counts it
         declared = [declare_liveliness(session, keys.liveliness("learner", "0")),
-                    subscribe(session, keys.replay_stats, process.on_replay_stats, expected=Stats),
-                    subscribe(session, keys.replay_rate, process.on_replay_rate, expected=Stats),
+                    subscribe(session, keys.replay_stats, process.on_replay_stats),
+                    subscribe(session, keys.replay_rate, process.on_replay_rate),
                     serve(session, keys.weights_latest, process.serve_latest_weights)]
+        process.receivers = dict(zip(("stats", "rate", "weights_query"), declared[1:]))
         outputs = Outputs(session, keys)
         outputs.weights(process.make_weights())
         _train(process, outputs, stop, session, keys)
@@ -266,8 +337,14 @@ class Outputs:
 def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, session, keys: Keys) -> None:
     config = process.config.learner
     heartbeat = Every(config.log_period_s)
-    prefetcher = Prefetcher(lambda message: request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S),
-                            config.batch_size, config.trace_length, config.prefetch)
+    started_from = process.updates
+
+    def fetch(message: TraceBatchRequest):
+        if message.request_id == 0:  # this process's first request: the replay re-owes what a dead learner lost
+            message = dataclasses.replace(message, learner_updates=started_from)
+        return request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S)
+
+    prefetcher = Prefetcher(fetch, config.batch_size, config.trace_length, config.prefetch)
     batch = _first_batch(process, outputs, prefetcher, stop)
     if batch is None:
         prefetcher.close()
@@ -277,18 +354,21 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
     outputs.exploration(process.strategy, force=True)
     with process._lock:
         mark = process.clock.start_env_steps
-    log.info("updates start: the replay's first batch, at %d env steps (start mark %s) with %d episodes stored",
-             batch.env_steps_total, "unknown" if mark is None else f"{mark:.0f}", batch.episodes_stored)
+    log.info("updates start: the replay's first batch, at %s env steps (start mark %s) with %s episodes stored",
+             getattr(batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
+             getattr(batch, "episodes_stored", "?"))  # not yet checked: train_on does that
     _warn_if_bmc_starves(process)
     report = Report(process, prefetcher)
     try:
         while batch is not None:
-            report.loss(process.train_on(batch))
-            outputs.exploration(process.strategy)
-            if process.updates % config.weights_every == 0:
-                outputs.weights(process.make_weights())
-            if process.updates % config.checkpoint_every == 0:
-                process.checkpoint()
+            loss = process.train_on(batch)
+            if loss is not None:  # None: the batch was refused or its update failed (counted)
+                report.loss(loss)
+                outputs.exploration(process.strategy)
+                if process.updates % config.weights_every == 0:
+                    outputs.weights(process.make_weights())
+                if process.updates % config.checkpoint_every == 0:
+                    process.checkpoint()
             if heartbeat.due():
                 outputs.metrics(report.values())
             batch = _next_batch(process, prefetcher, stop, lambda: heartbeat.due() and outputs.metrics(report.values()))
@@ -387,6 +467,9 @@ class Report:
             "data_wait_share": (self.prefetcher.wait_s - window_data_wait) / elapsed,
             "weights_version": self.process.latest_weights.version if self.process.latest_weights else -1,
             "bmc_observations": self.process.bmc_observations,
+            "failed_updates": self.process.failed_updates,
+            **self.process.rejections.values(),
+            **{f"malformed_{door}": receiver.rejected for door, receiver in self.process.receivers.items()},
         }
         achieved = self.process.env_steps_per_update()
         if math.isfinite(achieved):  # the whole run's ratio, from the replay's start mark

@@ -12,13 +12,17 @@ def build_parser() -> argparse.ArgumentParser:
         prog="replay",
         description="Replay service: subscribes to episodes on <namespace>/<run>/episodes, stores up to "
                     "replay.capacity of them (oldest evicted first, within replay.memory_budget_mb), answers "
-                    "trace-batch queries on <namespace>/<run>/replay/sample and publishes stats. Its rate "
+                    "trace-batch queries on <namespace>/<run>/replay/sample and publishes stats. Every episode is "
+                    "checked against the run's config (frames, actions, rewards) before it is stored, and the "
+                    "store is snapshotted every replay.snapshot_period_s seconds. Its rate "
                     "limiter keeps one learner update per learner.env_steps_per_update env steps: it holds "
                     "batch replies while the learner is ahead and tells actors on <namespace>/<run>/replay/rate "
                     "to hold their next episode while it is behind.")
     parser.add_argument("--resume", action="store_true",
-                        help="continue the rate limiter's counters of the run's earlier replay "
-                             "(<run.runs_dir>/<run.name>/replay/rate_limiter.json); the store starts empty")
+                        help="continue the run's earlier replay: restore its episodes from its snapshot "
+                             "(<run.runs_dir>/<run.name>/replay/snapshot/) and its rate limiter's counters "
+                             "(replay/rate_limiter.json); without it the replay starts empty and removes an "
+                             "earlier snapshot")
     add_config_arguments(parser)
     return parser
 

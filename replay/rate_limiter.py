@@ -26,10 +26,12 @@ the learner can fall behind by B plus the episodes in flight, never more.
 Pure: no threads, no clock, no I/O. The replay service calls it under its lock
 and persists ``state_dict()``, so the counters survive a learner restart (the
 replay keeps running) and a replay restart (``replay --resume``). A resumed
-replay's store is empty: as at the start, no batch is served until it holds
-``start_episodes`` episodes again, and the steps of that refill move the start
-mark on (they are not owed, as the random phase's are not) and are counted in
-``refill_env_steps``; meanwhile actors are not held for the learner.
+replay restores its store from its snapshot (replay/snapshot.py); if that holds
+fewer than ``start_episodes`` episodes (none without a snapshot), then, as at the
+start, no batch is served until it holds ``start_episodes`` episodes again, and
+the steps of that refill move the start mark on (they are not owed, as the random
+phase's are not) and are counted in ``refill_env_steps``; meanwhile actors are not
+held for the learner.
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ class RateLimiter:
         self.start_mark: float | None = None  # env steps when updates started (plus refills); None in stage 1
         self.refilling = False  # resumed with an empty store: stage 1 again until start_episodes are stored
         self.refill_env_steps = 0  # steps that refilled a resumed replay's store (not owed)
+        self.lost_updates = 0  # batches served to a learner that died before checkpointing their updates
 
     # --- events -------------------------------------------------------------------------
 
@@ -112,6 +115,15 @@ class RateLimiter:
     def on_served(self) -> None:
         """One trace batch went out (call only after may_serve() said yes)."""
         self.served += 1
+
+    def on_learner_start(self, updates: int) -> int:
+        """A learner process starts from `updates` (its checkpoint's): the batches served beyond them
+        were lost with the learner that died, and are owed again. Returns how many."""
+        if not 0 <= updates < self.served:
+            return 0
+        lost, self.served = self.served - updates, updates
+        self.lost_updates += lost
+        return lost
 
     def set_start_by_steps(self, by_steps: bool) -> bool:
         """Changes the start rule (the learner's strategy decides it); False once updates started."""
@@ -165,27 +177,29 @@ class RateLimiter:
 
     def state_dict(self) -> dict:
         return {"version": STATE_VERSION, "env_steps": self.env_steps, "served": self.served,
-                "start_mark": self.start_mark, "refill_env_steps": self.refill_env_steps}
+                "start_mark": self.start_mark, "refill_env_steps": self.refill_env_steps,
+                "lost_updates": self.lost_updates}
 
-    def load_state_dict(self, state: dict) -> None:
-        """Counters of an earlier replay of the same run, whose store is lost: if updates had
-        started, they wait for the refill. ValueError if the counters are not sound."""
+    def load_state_dict(self, state: dict, episodes_stored: int = 0) -> None:
+        """Counters of an earlier replay of the same run whose store now holds episodes_stored
+        episodes (restored from its snapshot, or none): if updates had started and fewer than
+        start_episodes are stored, they wait for the refill. ValueError if the counters are not sound."""
         try:
             if state["version"] != STATE_VERSION:
                 raise ValueError(f"rate limiter state version {state['version']!r}, expected {STATE_VERSION}")
             env_steps, served, mark = state["env_steps"], state["served"], state["start_mark"]
-            refill = state.get("refill_env_steps", 0)
+            refill, lost = state.get("refill_env_steps", 0), state.get("lost_updates", 0)
         except (KeyError, TypeError, AttributeError) as error:
             raise ValueError(f"malformed rate limiter state ({error!r})") from None
-        if not (_count(env_steps) and _count(served) and _count(refill)):
+        if not (_count(env_steps) and _count(served) and _count(refill) and _count(lost)):
             raise ValueError(f"rate limiter counters must be non-negative integers, got {env_steps!r}, {served!r}")
         if mark is not None and not (isinstance(mark, (int, float)) and 0 <= mark <= env_steps):
             raise ValueError(f"rate limiter start mark {mark!r} must lie in [0, env_steps]")
         if mark is None and served:
             raise ValueError("rate limiter state served batches before updates started")
-        self.env_steps, self.served, self.refill_env_steps = env_steps, served, refill
+        self.env_steps, self.served, self.refill_env_steps, self.lost_updates = env_steps, served, refill, lost
         self.start_mark = None if mark is None else float(mark)
-        self.refilling = mark is not None
+        self.refilling = mark is not None and episodes_stored < self.limit.start_episodes
 
     def values(self) -> dict[str, int | float | str]:
         """The counters and decisions, for the replay's stats and the rate message."""
@@ -198,6 +212,7 @@ class RateLimiter:
             "hold_reason": self.hold_reason(),
             "refilling": 1 if self.refilling else 0,
             "refill_env_steps": self.refill_env_steps,
+            "lost_updates": self.lost_updates,
             "error_buffer_updates": self.limit.error_buffer,
             "env_steps_per_update_target": self.limit.env_steps_per_update,
         }

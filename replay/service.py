@@ -7,12 +7,25 @@ hold their next episode (the learner is behind, or the run's budget is spent).
 
 Zenoh delivers on its own threads, which only park what arrives: every touch of
 the store and the limiter holds one lock, and held requests are answered by the
-service's reply threads. A malformed or oversized message is logged, counted and
-dropped; nothing stored is lost because of it.
+service's reply threads.
+
+Nothing is taken on trust. An episode is stored only if it fits the run
+(common.wire.check_episode: frame shape, every frame decompressed, actions inside
+the action space, rewards finite and within replay.reward_limit, no longer than
+env.max_steps) and was not taken before (replay/ledger.py); a request only if it
+asks for what the replay serves, and while fewer than MAX_PENDING requests are
+held; an exploration state only if it describes a strategy completely. What is
+refused is counted by kind (``rejected_<door>_<fault>`` in the stats) and logged at
+a bounded rate; nothing stored is lost because of it.
+
+Every replay.snapshot_period_s the episodes new since the last snapshot and the
+counters go to <run>/replay/snapshot/ (replay/snapshot.py), outside the lock;
+``replay --resume`` restores them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -24,12 +37,16 @@ from collections import deque
 from pathlib import Path
 
 from common.config import Config
+from common.exploration import strategy_from_state
 from common.logs import Every, setup_logging
 from common.transport import (
     Keys, PendingQuery, RateLimitedLog, declare_liveliness, open_session, publisher, serve_deferred, subscribe,
 )
-from common.wire import Episode, ExplorationState, Stats, TraceBatchRequest
+from common.wire import Episode, ExplorationState, Rejections, RunShape, Stats, TraceBatchRequest, WireError, \
+    check_episode
+from replay.ledger import EpisodeLedger
 from replay.rate_limiter import RateLimiter, rate_limit_from_config
+from replay.snapshot import Restored, SnapshotError, Snapshotter, SnapshotView
 from replay.store import EpisodeStore, full_episodes_fit
 
 log = logging.getLogger("replay")
@@ -41,12 +58,19 @@ REPLY_THREADS = 2
 WAKE_S = 0.1  # reply threads look at expiries and the rate message at least this often
 MEASURE_AFTER_FRAMES = 1_000  # the budget check is repeated once with the measured frame size
 COUNTERS_FILE = "rate_limiter.json"
+SNAPSHOT_DIR = "snapshot"
 RATE_SOURCE = "rate_limiter"  # the Stats source of replay/rate messages (replay/stats: "replay")
+MAX_PENDING = 32  # held trace-batch requests; beyond, a request is refused at once (the learner keeps 2)
 
 
 def counters_path(config: Config) -> Path:
     """Where the replay keeps its rate limiter's counters: <runs_dir>/<run>/replay/rate_limiter.json."""
     return Path(config.run.runs_dir) / config.run.name / "replay" / COUNTERS_FILE
+
+
+def snapshot_path(config: Config) -> Path:
+    """Where the replay keeps its snapshot: <runs_dir>/<run>/replay/snapshot/."""
+    return Path(config.run.runs_dir) / config.run.name / "replay" / SNAPSHOT_DIR
 
 
 class ReplayService:
@@ -68,60 +92,108 @@ class ReplayService:
         self.traces_served = 0
         self.rejected_requests = 0
         self.expired_requests = 0
+        self.failed_samples = 0
         self.learner_strategy: str | None = None
         self._measured = False
         self._warn_budget = RateLimitedLog(60.0)
         self._announced: tuple[str, int] | None = None  # the hold reason and env steps last published on replay/rate
+        self.shape = RunShape.of(config)
+        self.ledger = EpisodeLedger()
+        self.rejections = Rejections(log)
+        self.snapshotter = Snapshotter(snapshot_path(config))
+        self._snapshot_lock = threading.Lock()  # one snapshot at a time
+        self.snapshot_stats: dict[str, int | float] = {"snapshots_written": 0, "snapshot_failures": 0,
+                                                       "snapshot_pause_max_ms": 0.0}
+        self.snapshot_taken: float | None = None  # time.time() of the last snapshot's view
+        self.restored_episodes = 0
+        self.restore_skipped = 0
 
     # --- inputs from Zenoh callbacks (never wait) ----------------------------------------
 
     def on_episode(self, episode: Episode, key: str = "") -> None:
         if not isinstance(episode, Episode):
+            self.rejections.reject("episode_wrong_type", f"a {type(episode).__name__} on {key or 'episodes'}")
+            return
+        try:  # outside the lock: decompressing every frame takes a while
+            check_episode(episode, self.shape)
+        except WireError as error:
+            self.rejections.reject(f"episode_{error.kind}", f"episode {episode.episode_index} of actor "
+                                                            f"{episode.actor_id}: {error}")
             return
         with self._lock:
-            store, limiter = self.store, self.limiter
-            budget_evictions, started, refilling = store.evicted_for_budget, limiter.started, limiter.refilling
-            store.add(episode)
-            limiter.on_episode(len(episode.actions), len(store))
-            if limiter.started and not started:
-                log.info("updates start: %d episodes stored, %d env steps (rule: %s)", len(store),
-                         limiter.env_steps, f"{limiter.limit.start_steps} steps" if limiter.limit.start_by_steps
-                         else f"{limiter.limit.start_episodes} episodes")
-            elif refilling and not limiter.refilling:
-                log.info("refilled: %d episodes stored; updates go on after %d env steps of refill, not owed",
-                         len(store), limiter.refill_env_steps)
-            self._check_measured_budget()
-            if store.evicted_for_budget > budget_evictions:
-                self._warn_budget.warning(
-                    "MEMORY BUDGET IS EVICTING: the replay holds %d episodes, fewer than replay.capacity %d, "
-                    "because replay.memory_budget_mb %.0f is full; raise it to keep the configured buffer",
-                    len(store), store.capacity, self.config.replay.memory_budget_mb)
-            self._changed.notify_all()
+            admitted = self.ledger.admit(episode.actor_id, episode.incarnation, episode.episode_index)
+            if admitted:
+                self._store_locked(episode)
+        if not admitted:
+            self.rejections.reject("episode_duplicate", f"episode {episode.episode_index} of actor "
+                                   f"{episode.actor_id} (incarnation {episode.incarnation:x}) was stored before")
+
+    def _store_locked(self, episode: Episode) -> None:
+        store, limiter = self.store, self.limiter
+        budget_evictions, started, refilling = store.evicted_for_budget, limiter.started, limiter.refilling
+        store.add(episode)
+        limiter.on_episode(len(episode.actions), len(store))
+        if limiter.started and not started:
+            log.info("updates start: %d episodes stored, %d env steps (rule: %s)", len(store),
+                     limiter.env_steps, f"{limiter.limit.start_steps} steps" if limiter.limit.start_by_steps
+                     else f"{limiter.limit.start_episodes} episodes")
+        elif refilling and not limiter.refilling:
+            log.info("refilled: %d episodes stored; updates go on after %d env steps of refill, not owed",
+                     len(store), limiter.refill_env_steps)
+        self._check_measured_budget()
+        if store.evicted_for_budget > budget_evictions:
+            self._warn_budget.warning(
+                "MEMORY BUDGET IS EVICTING: the replay holds %d episodes, fewer than replay.capacity %d, "
+                "because replay.memory_budget_mb %.0f is full; raise it to keep the configured buffer",
+                len(store), store.capacity, self.config.replay.memory_budget_mb)
+        self._changed.notify_all()
 
     def on_sample_request(self, pending: PendingQuery) -> None:
         """Parks a trace-batch request; a reply thread answers it when the rate limiter allows."""
         request = pending.request
-        if not isinstance(request, TraceBatchRequest) or request.trace_length != self.store.trace_length \
-                or not 0 < request.batch_size <= self.max_trace_batch:
+        fault = self._request_fault(request)
+        if fault is None and request.learner_updates >= 0:
             with self._lock:
-                self.rejected_requests += 1
-            shown = (f"{request.batch_size} traces of {request.trace_length} steps"
-                     if isinstance(request, TraceBatchRequest) else repr(request))
-            log.warning("rejected a request for %s (serving up to %d traces of %d steps)",
-                        shown, self.max_trace_batch, self.store.trace_length)
-            pending.drop()
-            return
+                lost = self.limiter.on_learner_start(request.learner_updates)
+            if lost:
+                log.info("a learner starts from %d updates: the %d batches served beyond them were lost with "
+                         "the learner that died, and are owed again", request.learner_updates, lost)
+        if fault is None:
+            with self._lock:
+                if len(self._pending) < MAX_PENDING:
+                    self._pending.append(pending)
+                    self._changed.notify_all()
+                    return
+            fault = ("request_overflow", f"{MAX_PENDING} requests are held already")
         with self._lock:
-            self._pending.append(pending)
-            self._changed.notify_all()
+            self.rejected_requests += 1
+        kind, text = fault
+        self.rejections.reject(kind, text)
+        pending.reply_error(f"rejected: {text}")
+
+    def _request_fault(self, request) -> tuple[str, str] | None:
+        if not isinstance(request, TraceBatchRequest):
+            return "request_wrong_type", f"a {type(request).__name__} on replay/sample, not a TraceBatchRequest"
+        if request.trace_length != self.store.trace_length or not 0 < request.batch_size <= self.max_trace_batch:
+            return "request_size", (f"a request for {request.batch_size} traces of {request.trace_length} steps "
+                                    f"(serving up to {self.max_trace_batch} traces of {self.store.trace_length} steps)")
+        return None
 
     def on_exploration(self, state: ExplorationState, key: str = "") -> None:
-        """The learner's strategy decides the start rule (decreasing epsilon starts by steps)."""
+        """The learner's strategy decides the start rule (decreasing epsilon starts by steps); a state
+        that does not describe a strategy completely is refused."""
         if not isinstance(state, ExplorationState):
+            self.rejections.reject("exploration_wrong_type", f"a {type(state).__name__} on {key or 'exploration'}")
             return
         with self._lock:
             if state.strategy == self.learner_strategy:
                 return
+        try:
+            strategy_from_state(dataclasses.asdict(state), self.config.network.n_actions)
+        except ValueError as error:
+            self.rejections.reject("exploration_invalid", str(error))
+            return
+        with self._lock:
             self.learner_strategy = state.strategy
             by_steps = state.strategy == "decreasing"
             changed = by_steps != self.limiter.limit.start_by_steps
@@ -181,7 +253,8 @@ class ReplayService:
         request = pending.request
         try:
             batch = self.store.sample(request.batch_size, request.request_id)
-        except Exception as error:
+        except Exception as error:  # dropped and counted; the next request is served as usual
+            self.failed_samples += 1
             pending.reply_error(f"sampling failed: {type(error).__name__}: {error}")
             raise
         self.limiter.on_served()
@@ -229,7 +302,8 @@ class ReplayService:
 
     # --- counters ------------------------------------------------------------------------
 
-    def snapshot(self) -> dict[str, int | float | str]:
+    def stats(self) -> dict[str, int | float | str]:
+        """The values of the replay/stats message."""
         with self._lock:
             store = self.store
             values: dict[str, int | float | str] = {
@@ -238,22 +312,83 @@ class ReplayService:
                 "evicted_for_budget": store.evicted_for_budget, "short_dropped": store.short_dropped,
                 "env_steps_total": store.env_steps_total, "traces_served": self.traces_served,
                 "rejected_requests": self.rejected_requests, "expired_requests": self.expired_requests,
-                "pending_requests": len(self._pending),
+                "failed_samples": self.failed_samples, "pending_requests": len(self._pending),
+                "episodes_missing": self.ledger.missing, "episode_sources": self.ledger.sources,
+                "restored_episodes": self.restored_episodes, "restore_skipped": self.restore_skipped,
+                **self.snapshot_stats,
+                "snapshot_age_s": -1.0 if self.snapshot_taken is None else time.time() - self.snapshot_taken,
             }
             if store.frames:
                 values["frame_bytes_mean"] = store.frame_bytes_mean
             values.update({f"rate_{name}": value for name, value in self.limiter.values().items()})
-            return values
+        values.update(self.rejections.values())
+        return values
 
     def limiter_state(self) -> dict:
         with self._lock:
             return self.limiter.state_dict()
 
     def load_limiter_state(self, state: dict) -> None:
-        """Counters of this run's earlier replay; the store restarts empty."""
+        """Counters of this run's earlier replay, for the episodes the store holds now."""
         with self._lock:
-            self.limiter.load_state_dict(state)
+            self.limiter.load_state_dict(state, len(self.store))
             self.store.env_steps_total = self.limiter.env_steps
+
+    # --- the snapshot --------------------------------------------------------------------
+
+    def write_snapshot(self) -> bool:
+        """Writes the episodes new since the last snapshot and the counters; the lock is held only
+        to take the view. False (logged, counted) if the snapshot could not be written."""
+        with self._snapshot_lock:
+            paused = time.perf_counter()
+            with self._lock:
+                view = SnapshotView(self.store.episodes(), self.store.counters(), self.limiter.state_dict(),
+                                    self.ledger.state_dict())
+            pause_ms = (time.perf_counter() - paused) * 1000
+            try:
+                report = self.snapshotter.write(view)
+            except SnapshotError as error:
+                with self._lock:
+                    self.snapshot_stats["snapshot_failures"] += 1
+                self._warn_budget.warning("snapshot failed: %s", error)
+                return False
+            with self._lock:
+                self.snapshot_taken = view.taken
+                stats = self.snapshot_stats
+                stats.update(snapshots_written=stats["snapshots_written"] + 1, snapshot_episodes=report.episodes,
+                             snapshot_bytes=report.total_bytes, snapshot_written_bytes=report.written_bytes,
+                             snapshot_written_episodes=report.written_episodes, snapshot_seconds=report.seconds,
+                             snapshot_pause_ms=pause_ms,
+                             snapshot_pause_max_ms=max(stats["snapshot_pause_max_ms"], pause_ms))
+            return True
+
+    def restore(self, restored: Restored, counters: dict | None) -> str:
+        """Takes a snapshot's episodes and counters into the empty store. The rate limiter's counters
+        come from `counters` (rate_limiter.json, saved every stats period) when they are sound and at
+        least as far on as the snapshot's, else from the snapshot. Returns which were used; ValueError
+        (nothing changed) if the snapshot's counters are not sound."""
+        ledger = EpisodeLedger()
+        ledger.load_state_dict(restored.ledger)
+        options = []
+        for state, source in ((counters, "rate_limiter.json"), (restored.limiter, "the snapshot")):
+            try:
+                RateLimiter(self.limiter.limit).load_state_dict(state)
+            except (ValueError, TypeError, AttributeError):
+                continue
+            options.append(((state["env_steps"], state["served"]), source == "rate_limiter.json", state, source))
+        if not options:
+            raise ValueError("neither the snapshot's nor rate_limiter.json's counters are sound")
+        _, _, state, source = max(options, key=lambda option: option[:2])
+        with self._lock:
+            self.store.restore(restored.episodes, restored.store)
+            self.ledger = ledger
+            self.limiter.load_state_dict(state, len(self.store))
+            self.store.env_steps_total = self.limiter.env_steps
+            self.restored_episodes, self.restore_skipped = len(self.store), restored.skipped
+            self.snapshot_taken = restored.taken
+            self.snapshot_stats["snapshot_bytes"] = self.snapshotter.total_bytes
+            self.snapshot_stats["snapshot_episodes"] = len(restored.episodes)
+        return source
 
 
 def save_counters(path: Path, state: dict) -> None:
@@ -288,7 +423,7 @@ def physical_memory_bytes() -> int | None:
 
 
 def run_replay(config: Config, resume: bool = False) -> None:
-    """Serves until SIGINT/SIGTERM; with resume, continues the counters of the run's earlier replay."""
+    """Serves until SIGINT/SIGTERM; with resume, restores the run's snapshot and counters."""
     setup_logging("replay")
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -296,7 +431,11 @@ def run_replay(config: Config, resume: bool = False) -> None:
     service = ReplayService(config)
     path = counters_path(config)
     if resume:
-        _resume_counters(service, path)
+        _resume(service, path)
+    elif service.snapshotter.exists:
+        log.info("a fresh start: removing the run's earlier snapshot in %s (replay --resume restores it)",
+                 service.snapshotter.directory)
+        service.snapshotter.clear()
     _check_budget_at_start(service, config)
     keys = Keys(config.transport.namespace, config.run.name)
     max_bytes = int(config.replay.max_message_mb * MEGABYTE)
@@ -304,9 +443,10 @@ def run_replay(config: Config, resume: bool = False) -> None:
     threads: list[threading.Thread] = []
     try:
         liveliness = declare_liveliness(session, keys.liveliness("replay", "0"))
-        episodes = subscribe(session, keys.episodes, service.on_episode, max_bytes=max_bytes)
-        exploration = subscribe(session, keys.exploration, service.on_exploration, expected=ExplorationState)
-        queryable = serve_deferred(session, keys.replay_sample, service.on_sample_request, expected=TraceBatchRequest)
+        # no expected type: a message of another type reaches the service, which counts it
+        receivers = {"episodes": subscribe(session, keys.episodes, service.on_episode, max_bytes=max_bytes),
+                     "exploration": subscribe(session, keys.exploration, service.on_exploration),
+                     "requests": serve_deferred(session, keys.replay_sample, service.on_sample_request)}
         stats_out = publisher(session, keys.replay_stats)
         rate_out = publisher(session, keys.replay_rate)
 
@@ -315,42 +455,91 @@ def run_replay(config: Config, resume: bool = False) -> None:
 
         threads = [threading.Thread(target=service.serve_pending, args=(stop, announce if n == 0 else None),
                                     name=f"reply-{n}", daemon=True) for n in range(REPLY_THREADS)]
+        if config.replay.snapshot_period_s > 0:
+            threads.append(threading.Thread(target=_snapshot_every, args=(stop, service, config), name="snapshot",
+                                            daemon=True))
         for thread in threads:
             thread.start()
         log.info("serving run %r: capacity %d episodes, budget %.0f MB, traces of %d steps, "
-                 "1 update per %g env steps within %g updates", config.run.name, config.replay.capacity,
+                 "1 update per %g env steps within %g updates; %s", config.run.name, config.replay.capacity,
                  config.replay.memory_budget_mb, config.learner.trace_length, config.learner.env_steps_per_update,
-                 config.replay.error_buffer_updates)
-        _report_until(stop, service, episodes, stats_out, config, path)
+                 config.replay.error_buffer_updates,
+                 f"a snapshot every {config.replay.snapshot_period_s:g} s to {service.snapshotter.directory}"
+                 if config.replay.snapshot_period_s > 0 else "no snapshots")
+        _report_until(stop, service, receivers, stats_out, config, path)
         for thread in threads:
             thread.join(timeout=5.0)
         service.drop_pending()
-        for declared in (queryable, exploration, episodes, liveliness):
+        for declared in (*receivers.values(), liveliness):
             declared.undeclare()
     finally:
         stop.set()
         session.close()
+    if config.replay.snapshot_period_s > 0 and service.write_snapshot():
+        log.info("final snapshot: %d episodes, %d bytes", service.snapshot_stats["snapshot_episodes"],
+                 service.snapshot_stats["snapshot_bytes"])
     try:
         save_counters(path, service.limiter_state())
     except OSError as error:
         log.warning("cannot save the rate limiter's counters to %s: %s", path, error)
-    log.info("stopped; %s", service.snapshot())
+    log.info("stopped; %s", service.stats())
 
 
-def _resume_counters(service: ReplayService, path: Path) -> None:
+def _snapshot_every(stop: threading.Event, service: ReplayService, config: Config) -> None:
+    while not stop.wait(config.replay.snapshot_period_s):
+        try:
+            service.write_snapshot()
+        except Exception:  # a snapshot thread that died would stop snapshots for good
+            log.exception("the snapshot failed; the next one is tried in %g s", config.replay.snapshot_period_s)
+
+
+def _read_counters(path: Path) -> dict | None:
     try:
-        service.load_limiter_state(json.loads(path.read_text()))
+        state = json.loads(path.read_text())
     except FileNotFoundError:
-        log.warning("--resume: no counters at %s; counting this run's env steps and batches from zero", path)
-        return
+        return None
     except (OSError, ValueError) as error:
+        log.warning("--resume: cannot read the counters in %s (%s)", path, error)
+        return None
+    return state if isinstance(state, dict) else None
+
+
+def _resume(service: ReplayService, path: Path) -> None:
+    """The snapshot's episodes and counters, with the newest rate limiter counters of the two files."""
+    counters = _read_counters(path)
+    try:
+        restored = service.snapshotter.load(service.shape.frame_shape)
+    except SnapshotError as error:
+        log.warning("--resume: %s; the store starts empty", error)
+        restored = None
+    if restored is not None:
+        try:
+            source = service.restore(restored, counters)
+        except ValueError as error:
+            log.warning("--resume: cannot use the snapshot in %s (%s); the store starts empty",
+                        service.snapshotter.directory, error)
+        else:
+            limiter = service.limiter
+            log.info("restored %d episodes from the snapshot in %s, taken %.0f s ago (%d records skipped); rate "
+                     "limiter counters from %s: %d env steps, %d batches served, start mark %s; %d episodes "
+                     "missing so far", len(service.store), service.snapshotter.directory,
+                     time.time() - restored.taken, restored.skipped, source, limiter.env_steps, limiter.served,
+                     "none" if limiter.start_mark is None else f"{limiter.start_mark:.0f}", service.ledger.missing)
+            return
+    if counters is None:
+        log.warning("--resume: no snapshot and no counters at %s; counting this run's env steps and batches "
+                    "from zero", path)
+        return
+    try:
+        service.load_limiter_state(counters)
+    except ValueError as error:
         log.warning("--resume: cannot use the counters in %s (%s); counting from zero", path, error)
         return
     limiter = service.limiter
     log.info("resumed the rate limiter from %s: %d env steps, %d batches served, start mark %s%s", path,
              limiter.env_steps, limiter.served, "none" if limiter.start_mark is None else f"{limiter.start_mark:.0f}",
-             f"; the store is empty: batches wait until it holds {limiter.limit.start_episodes} episodes again "
-             "(the refill's steps are not owed)" if limiter.refilling else "")
+             f"; no snapshot, the store is empty: batches wait until it holds {limiter.limit.start_episodes} "
+             "episodes again (the refill's steps are not owed)" if limiter.refilling else "")
 
 
 def _check_budget_at_start(service: ReplayService, config: Config) -> None:
@@ -361,14 +550,16 @@ def _check_budget_at_start(service: ReplayService, config: Config) -> None:
                     "would not fit", config.replay.memory_budget_mb, memory / MEGABYTE)
 
 
-def _report_until(stop: threading.Event, service: ReplayService, episodes, stats_out, config: Config,
+def _report_until(stop: threading.Event, service: ReplayService, receivers: dict, stats_out, config: Config,
                   path: Path) -> None:
     meter = RateMeter()
     log_every = Every(config.replay.log_period_s)
     warn = RateLimitedLog()
     while not stop.wait(config.replay.stats_period_s):
-        values = service.snapshot()
-        values["rejected_messages"] = episodes.rejected
+        values = service.stats()
+        # messages that are not wire messages or whose fields are invalid, refused before the service saw them
+        values.update({f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()})
+        values["rejected_messages"] = receivers["episodes"].rejected
         values.update(meter.rates(values, ("inserted", "traces_served", "env_steps_total")))
         stats_out.put(Stats(source="replay", time=time.time(), values=values))
         try:
@@ -378,6 +569,7 @@ def _report_until(stop: threading.Event, service: ReplayService, episodes, stats
         if log_every.due():
             log.info("episodes %(episodes)d (%(bytes)d B), env steps %(env_steps_total)d, "
                      "inserted %(inserted)d, traces served %(traces_served)d, short %(short_dropped)d, "
-                     "rejected %(rejected_messages)d; updates due %(rate_updates_due).1f, batches served "
+                     "malformed %(rejected_messages)d, rejected %(rejected_total)d, missing %(episodes_missing)d; "
+                     "snapshot %(snapshot_episodes)s episodes %(snapshot_age_s).0f s ago; updates due %(rate_updates_due).1f, batches served "
                      "%(rate_batches_served)d, actors hold: %(rate_hold_reason)s",
-                     {**values, "rate_hold_reason": values["rate_hold_reason"] or "no"})
+                     {"snapshot_episodes": "no", **values, "rate_hold_reason": values["rate_hold_reason"] or "no"})

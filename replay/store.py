@@ -8,6 +8,7 @@ the budget forces below the count are counted apart, so a short buffer never goe
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from dataclasses import dataclass
 
@@ -34,6 +35,7 @@ class StoredEpisode:
     weights_version: np.ndarray  # int64 [L]
     terminated: bool  # the last step ended in a terminal state
     nbytes: int
+    seq: int = -1  # the store's insertion number: names the episode in snapshots
 
     @property
     def length(self) -> int:
@@ -41,9 +43,14 @@ class StoredEpisode:
 
     @classmethod
     def from_episode(cls, episode: Episode) -> "StoredEpisode":
-        arrays = (episode.actions, episode.rewards, episode.weights_version)
-        nbytes = episode.observations.nbytes + sum(array.nbytes for array in arrays)
-        return cls(episode.observations, *arrays, bool(episode.terminated), nbytes)
+        return cls.of(episode.observations, episode.actions, episode.rewards, episode.weights_version,
+                      bool(episode.terminated))
+
+    @classmethod
+    def of(cls, frames: FrameStack, actions: np.ndarray, rewards: np.ndarray, weights_version: np.ndarray,
+           terminated: bool, seq: int = -1) -> "StoredEpisode":
+        nbytes = frames.nbytes + actions.nbytes + rewards.nbytes + weights_version.nbytes
+        return cls(frames, actions, rewards, weights_version, terminated, nbytes, seq)
 
 
 class EpisodeStore:
@@ -72,16 +79,46 @@ class EpisodeStore:
         if len(episode.actions) < self.trace_length:
             self.short_dropped += 1
             return False
-        stored = StoredEpisode.from_episode(episode)
+        self._append(dataclasses.replace(StoredEpisode.from_episode(episode), seq=self.inserted))
+        self.inserted += 1
+        self._evict_to_fit()
+        return True
+
+    def _append(self, stored: StoredEpisode) -> None:
         self._episodes.append(stored)
         self.bytes += stored.nbytes
         self.frames += len(stored.frames)
-        self.inserted += 1
+
+    def _evict_to_fit(self) -> None:
         while len(self._episodes) > self.capacity or (self.bytes > self.budget_bytes and len(self._episodes) > 1):
             if len(self._episodes) <= self.capacity:
                 self.evicted_for_budget += 1
             self._evict_oldest()
-        return True
+
+    # --- snapshots --------------------------------------------------------------------------
+
+    COUNTERS = ("inserted", "evicted", "evicted_for_budget", "short_dropped", "env_steps_total")
+
+    def episodes(self) -> list[StoredEpisode]:
+        """The stored episodes, oldest first (immutable: safe to read outside the replay's lock)."""
+        return list(self._episodes)
+
+    def counters(self) -> dict[str, int]:
+        return {name: getattr(self, name) for name in self.COUNTERS}
+
+    def restore(self, episodes: list[StoredEpisode], counters: dict[str, int]) -> None:
+        """An empty store takes a snapshot's episodes (oldest first) and counters; the newest that fit
+        capacity and budget are kept."""
+        if self._episodes:
+            raise RuntimeError("restore into a store that holds episodes")
+        for name in self.COUNTERS:
+            setattr(self, name, int(counters.get(name, 0)))
+        for stored in episodes:
+            self._append(stored)
+        self.inserted = max(self.inserted, max((stored.seq + 1 for stored in episodes), default=0))
+        evicted = self.evicted
+        self._evict_to_fit()
+        self.evicted = evicted  # not evictions of this run: the config shrank
 
     @property
     def frame_bytes_mean(self) -> float:

@@ -20,13 +20,23 @@ def test_seeds_differ_per_actor_and_repeat_per_run():
     assert len({actor_seed(0, actor_id) for actor_id in range(8)} | {actor_seed(1, 0)}) == 9
 
 
-def test_mailbox_keeps_only_the_newest_weights():
+def test_mailbox_keeps_the_last_broadcast_whatever_its_version():
+    """A learner resumed from an older checkpoint broadcasts lower versions: the newest arrival wins."""
     mailbox = Mailbox()
     for version in (3, 5, 4):
         mailbox.offer_weights(Weights(version=version, tensors={}))
     weights, exploration = mailbox.take()
-    assert weights.version == 5 and exploration is None
+    assert weights.version == 4 and exploration is None
     assert mailbox.take() == (None, None)
+
+
+def test_the_start_up_answer_never_replaces_a_broadcast():
+    mailbox = Mailbox()
+    mailbox.offer_latest(Weights(version=2, tensors={}))
+    assert mailbox.take()[0].version == 2
+    mailbox.offer_weights(Weights(version=7, tensors={}))
+    mailbox.offer_latest(Weights(version=9, tensors={}))  # an answer that was on its way: older than v7
+    assert mailbox.take()[0].version == 7
 
 
 def test_actor_holds_only_while_the_replay_says_so():

@@ -61,7 +61,7 @@ def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
         for pid in started:
             assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
         text = (tmp_path / "stack.out").read_text()
-        assert "stopping processes" in text and "actor restarts: 1" in text
+        assert "stopping processes" in text and "restarts: actor-0 1;" in text
         assert (run_dir / "config.toml").exists() and (run_dir / "checkpoints" / "latest.pt").exists()
     finally:
         if stack.poll() is None:

@@ -34,7 +34,8 @@ def replay(tmp_path):
     process = start(
         ["-m", "replay.main", "--preset", "smoke", "--run.name", RUN, "--transport.mode", "router",
          "--transport.listen", endpoint, "--replay.capacity", "3", "--replay.max_message_mb", "1",
-         "--replay.stats_period_s", "0.2", "--run.runs_dir", str(tmp_path / "runs")], tmp_path / "replay.log")
+         "--replay.stats_period_s", "0.2", "--run.runs_dir", str(tmp_path / "runs"),
+         "--env.max_steps", "400"], tmp_path / "replay.log")  # episodes longer than env.max_steps are refused
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     stats: list[dict] = []
     subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats,
@@ -208,7 +209,7 @@ def test_budget_evictions_below_capacity_are_counted_and_warned(caplog):
     with caplog.at_level(logging.WARNING, logger="replay"):
         for index in range(3):
             service.on_episode(episode(12, index))
-    values = service.snapshot()
+    values = service.stats()
     assert values["episodes"] == 1 and values["evicted_for_budget"] == 2
     assert "MEMORY BUDGET IS EVICTING" in caplog.text
 
