@@ -22,10 +22,12 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 import zenoh
 
+from common.access import acl_config
 from common.config import TransportConfig
 from common.wire import Message, WireError, decode, encode
 
@@ -37,7 +39,8 @@ LOG_PERIOD_S = 10.0  # at most one warning of a kind per period per entity
 # --- session ---------------------------------------------------------------------------
 
 def zenoh_config(config: TransportConfig) -> zenoh.Config:
-    """The zenoh.Config for a TransportConfig: mode, endpoints and scouting, nothing implicit.
+    """The zenoh.Config for a TransportConfig: mode, endpoints, scouting, TLS and access
+    control, nothing implicit.
 
     An empty ``listen`` means no listener at all (an actor that only connects): in
     peer mode it still reaches every listening peer it learns of through gossip.
@@ -50,7 +53,37 @@ def zenoh_config(config: TransportConfig) -> zenoh.Config:
     if config.mode == "client":
         # A client fails at once by default when its router is not up yet; retry for a while instead.
         zconfig.insert_json5("connect/timeout_ms", json.dumps(round(config.connect_timeout_s * 1000)))
+    tls = tls_settings(config)
+    if tls:
+        zconfig.insert_json5("transport/link/tls", json.dumps(tls))
+    if config.acl:
+        zconfig.insert_json5("access_control", json.dumps(acl_config(config.namespace, {
+            "learner": config.acl_learners, "actor": config.acl_actors, "replay": config.acl_replays,
+            "observer": config.acl_observers})))
     return zconfig
+
+
+def tls_settings(config: TransportConfig) -> dict[str, Any]:
+    """Zenoh's transport/link/tls block (empty without TLS options); each named file must exist.
+
+    The certificate and key serve listening and, with mutual TLS, connecting too: Zenoh
+    presents a client certificate only when enable_mtls is set on the connecting side.
+    """
+    files = {"tls_ca": config.tls_ca, "tls_certificate": config.tls_certificate, "tls_key": config.tls_key}
+    if not any(files.values()) and not config.tls_mtls:
+        return {}
+    for key, path in files.items():
+        if path and not Path(path).is_file():
+            raise FileNotFoundError(f"transport.{key}: no file {path!r} (from {Path.cwd()})")
+    tls: dict[str, Any] = {"enable_mtls": config.tls_mtls, "verify_name_on_connect": config.tls_verify_name}
+    if config.tls_ca:
+        tls["root_ca_certificate"] = str(Path(config.tls_ca).resolve())
+    if config.tls_certificate:
+        certificate, key = str(Path(config.tls_certificate).resolve()), str(Path(config.tls_key).resolve())
+        tls.update(listen_certificate=certificate, listen_private_key=key)
+        if config.tls_mtls:
+            tls.update(connect_certificate=certificate, connect_private_key=key)
+    return tls
 
 
 def open_session(config: TransportConfig) -> zenoh.Session:

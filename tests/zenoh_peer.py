@@ -1,0 +1,166 @@
+"""Test peers run as their own processes (Zenoh sessions live only in fresh interpreters):
+
+    python -m tests.zenoh_peer watch  OUT.jsonl [config flags]   # what a run publishes, one JSON line each
+    python -m tests.zenoh_peer probe  [config flags]             # exit 0 if a session opens, 3 if not
+    python -m tests.zenoh_peer rogue  OUT.jsonl --weights-version N [config flags]
+
+`watch` writes a line per EpisodeRecord (actor, weights version), per episode on the episodes
+key (actor), per learner and replay Stats (a few values), and per sample anywhere in the
+run whose payload starts with the rogue's marker. `rogue` forges what only other roles
+may send: real weights of the run's network with version N on weights/broadcast (every 0.5 s),
+marker bytes on exploration, episodes, replay/stats and replay/rate, and queryables on
+replay/sample and weights/latest that count the queries reaching them; it writes its counts
+every 0.5 s. The config flags are the roles' own (--config FILE.toml, --transport.*, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from common.config import Config, add_config_arguments, parse_config_or_exit
+
+MARKER = b"ROGUE-D3RQN"
+
+
+class Lines:
+    """JSON lines to a file, flushed each, from any thread."""
+
+    def __init__(self, path: Path) -> None:
+        self._file = open(path, "a", buffering=1)
+        self._lock = threading.Lock()
+
+    def write(self, **fields) -> None:
+        with self._lock:
+            self._file.write(json.dumps(fields) + "\n")
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _stopper() -> threading.Event:
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
+
+
+def watch(config: Config, out: Lines, stop: threading.Event) -> None:
+    from common.transport import Keys, open_session, subscribe
+    from common.wire import Episode, EpisodeRecord, Stats
+
+    keys = Keys(config.transport.namespace, config.run.name)
+
+    def on_metric(message, key):
+        if isinstance(message, EpisodeRecord):
+            out.write(kind="record", actor=message.actor_id, weights_version=message.weights_version,
+                      epsilon=message.epsilon)
+        elif isinstance(message, Stats) and message.source == "learner":
+            out.write(kind="learner", updates=message.values.get("updates"))
+
+    def on_stats(message, key):
+        out.write(kind="replay", inserted=message.values.get("inserted"),
+                  env_steps=message.values.get("env_steps_total"))
+
+    def on_episode(message, key):
+        out.write(kind="episode", actor=message.actor_id, steps=len(message))
+
+    def on_any(sample):
+        if bytes(sample.payload.to_bytes()[:len(MARKER)]) == MARKER:
+            out.write(kind="marker", key=str(sample.key_expr))
+
+    with open_session(config.transport) as session:
+        declared = [subscribe(session, keys.metrics_all, on_metric),
+                    subscribe(session, keys.replay_stats, on_stats, expected=Stats),
+                    subscribe(session, keys.episodes, on_episode, expected=Episode),
+                    session.declare_subscriber(keys.all, on_any)]  # as the recorder does
+        out.write(kind="up")
+        stop.wait()
+        for entity in declared:
+            entity.undeclare()
+
+
+def probe(config: Config) -> int:
+    import zenoh
+
+    from common.transport import open_session
+    zenoh.init_log_from_env_or("warn")  # why a link failed: the TLS alert, on stderr (the probe's log)
+    try:
+        session = open_session(config.transport)
+    except zenoh.ZError as error:
+        print(f"no session: {error}", flush=True)
+        return 3
+    print("connected", flush=True)
+    session.close()
+    return 0
+
+
+def rogue(config: Config, out: Lines, stop: threading.Event, weights_version: int) -> None:
+    import zenoh
+
+    from common.network import D3RQN, weights_to_numpy
+    from common.transport import Keys, open_session
+    from common.wire import Weights, encode
+
+    keys = Keys(config.transport.namespace, config.run.name)
+    weights = encode(Weights(version=weights_version, tensors=weights_to_numpy(D3RQN(config.network)),
+                             created=time.time()))
+    counts = {"replay_sample_queries": 0, "weights_latest_queries": 0, "weights_sent": 0}
+    lock = threading.Lock()
+
+    def counting(name: str, answer: bytes | None):
+        def on_query(query):
+            with lock:
+                counts[name] += 1
+            with query:
+                if answer is not None:
+                    query.reply(query.key_expr, answer)
+        return on_query
+
+    with open_session(config.transport) as session:
+        block = zenoh.CongestionControl.BLOCK
+        weights_out = session.declare_publisher(keys.weights, congestion_control=block)
+        forged = [session.declare_publisher(key, congestion_control=block)
+                  for key in (keys.exploration, keys.episodes, keys.replay_stats, keys.replay_rate)]
+        queryables = [session.declare_queryable(keys.replay_sample, counting("replay_sample_queries", MARKER)),
+                      session.declare_queryable(keys.weights_latest, counting("weights_latest_queries", weights))]
+        out.write(kind="up")
+        while not stop.wait(0.5):
+            weights_out.put(weights)
+            for publisher in forged:
+                publisher.put(MARKER)
+            with lock:
+                counts["weights_sent"] += 1
+                out.write(kind="counts", **counts)
+        for entity in [weights_out, *forged, *queryables]:
+            entity.undeclare()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="zenoh_peer")
+    parser.add_argument("command", choices=("watch", "probe", "rogue"))
+    parser.add_argument("out", nargs="?", type=Path, help="JSON lines (watch, rogue)")
+    parser.add_argument("--weights-version", type=int, default=987_654, help="rogue: the forged weights' version")
+    add_config_arguments(parser)
+    args, config = parse_config_or_exit(parser, argv)
+    if args.command == "probe":
+        return probe(config)
+    out = Lines(args.out)
+    stop = _stopper()
+    try:
+        if args.command == "watch":
+            watch(config, out, stop)
+        else:
+            rogue(config, out, stop, args.weights_version)
+    finally:
+        out.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
