@@ -209,7 +209,7 @@ class NeighbourhoodEnv(AbstractEnv):
         self.stalled = False
         if self.traffic is not None:
             self.traffic.reset(self.np_random)
-            self._measure()
+            self._collided()
 
     def _build_road(self) -> None:
         config = self.env_config
@@ -245,7 +245,7 @@ class NeighbourhoodEnv(AbstractEnv):
             if self._collided():  # a frame's contact counts even if the car moves on
                 break
         self.vehicle.refresh_lane()
-        self._measure()
+        self._locate()
         self.steps += 1
         self.time += 1.0 / self.env_config.policy_frequency
         self.progress.update(self.segment, self.along)
@@ -265,11 +265,11 @@ class NeighbourhoodEnv(AbstractEnv):
         self.vehicle.position = np.array([x, y], dtype=np.float64)
         self.vehicle.heading = heading
         self.vehicle.refresh_lane()
-        self._measure()
-
-    def _measure(self) -> None:
-        """Reads the ego car's state and measures where it now is: centre-line, collision."""
         self._collided()
+        self._locate()
+
+    def _locate(self) -> None:
+        """The nearest centre-line of the pose ``_collided`` took last."""
         x, y, _ = self.pose
         self.segment, self.along, self.distance = self.hood.centre_lines.nearest(x, y)
         self.place_name = self.hood.centre_line_places[self.segment]

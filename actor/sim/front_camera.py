@@ -197,7 +197,7 @@ class _Pose:
 
 class PerspectiveCamera:
     def __init__(self, world: WorldImage, hood: Neighbourhood, height_m: float = 1.4,
-                 pitch_deg: float = 5.0, hfov_deg: float = 90.0, range_m: float = 50.0) -> None:
+                 pitch_deg: float = 5.0, hfov_deg: float = 90.0, range_m: float = 40.0) -> None:
         """``world``: the ground image (``ground_image``); ``hood``: what stands on it."""
         self.world = world
         self.height, self.pitch = height_m, math.radians(pitch_deg)
