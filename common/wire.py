@@ -151,15 +151,19 @@ class FrameStack:
             raise WireError(f"frame {position}: blob declares {declared} bytes, shape {self.frame_shape} needs {self.frame_bytes}")
 
     def _decompress(self, position: int) -> np.ndarray:
-        self._check_header(position)
+        try:
+            self._check_header(position)
+        except WireError as error:
+            raise WireError(str(error), "frames_corrupt") from None
         blob = self.blobs[position]
         expected = self.frame_bytes
         try:
             raw = _decompressor().decompress(blob, max_output_size=expected, allow_extra_data=False)
         except zstandard.ZstdError as error:
-            raise WireError(f"frame {position}: bad zstd blob ({error})") from None
+            raise WireError(f"frame {position}: bad zstd blob ({error})", "frames_corrupt") from None
         if len(raw) != expected:
-            raise WireError(f"frame {position}: decompressed to {len(raw)} bytes, expected {expected} for shape {self.frame_shape}")
+            raise WireError(f"frame {position}: decompressed to {len(raw)} bytes, expected {expected} for shape "
+                            f"{self.frame_shape}", "frames_corrupt")
         return np.frombuffer(raw, dtype=np.uint8)
 
 

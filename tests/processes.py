@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
@@ -51,3 +52,31 @@ def wait_for(condition, what: str, timeout_s: float, logs: list[Path] = ()) -> N
         time.sleep(0.1)
     tails = "\n".join(f"--- {path.name}\n{path.read_text(errors='replace')[-2000:]}" for path in logs if path.exists())
     raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}\n{tails}")
+
+
+def children(pid: int) -> dict[int, str]:
+    """Direct children of pid with their command lines (from /proc)."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            parent = int(stat.rsplit(")", 1)[1].split()[1])
+            if parent == pid:
+                found[int(entry.name)] = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError, IndexError):
+            continue
+    return found
+
+
+def kill_tree(process: subprocess.Popen) -> None:
+    """SIGKILL to a process that did not stop and to its children (a stack's roles)."""
+    leftovers = children(process.pid)
+    process.kill()
+    process.wait()
+    for pid in leftovers:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass

@@ -12,25 +12,9 @@ from pathlib import Path
 import pytest
 
 from common.config import PRESETS
-from tests.processes import wait_for
+from tests.processes import children, kill_tree, wait_for
 
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
-
-
-def children(pid: int) -> dict[int, str]:
-    """Direct children of pid with their command lines (from /proc)."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            parent = int(stat.rsplit(")", 1)[1].split()[1])
-            if parent == pid:
-                found[int(entry.name)] = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except (OSError, ValueError, IndexError):
-            continue
-    return found
 
 
 def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
@@ -65,14 +49,7 @@ def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
         assert (run_dir / "config.toml").exists() and (run_dir / "checkpoints" / "latest.pt").exists()
     finally:
         if stack.poll() is None:
-            leftovers = children(stack.pid)
-            stack.kill()
-            stack.wait()
-            for pid in leftovers:
-                try:
-                    os.kill(pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+            kill_tree(stack)
 
 
 def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):

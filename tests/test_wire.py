@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from common.wire import (
-    MESSAGE_TYPES, SCHEMA_VERSION, Episode, FrameStack, Heartbeat, Stats, TraceBatch, Weights, WireError,
+    MESSAGE_TYPES, SCHEMA_VERSION, Episode, FrameStack, Heartbeat, Stats, TraceBatch, TraceBatchRequest, Weights, WireError,
     decode, encode,
 )
 from wire_examples import (
@@ -325,3 +325,27 @@ def test_any_value_in_any_field_raises_only_wire_error(message, draw):
     name = draw.draw(st.sampled_from(field_names))
     value = draw.draw(MSGPACK_VALUES)
     decode_everything(tampered(message, set_field(name, value)))
+
+
+def test_a_field_with_a_default_may_be_absent_and_others_may_not():
+    """Senders older than a field (a recorded log, an older actor) still decode; the default stands."""
+    old_episode = tampered(EPISODE, lambda e: e["fields"].pop("incarnation"))
+    assert decode(old_episode).incarnation == 0
+    old_request = tampered(TraceBatchRequest(request_id=1, batch_size=2, trace_length=3),
+                           lambda e: e["fields"].pop("learner_updates"))
+    assert decode(old_request).learner_updates == -1
+    with pytest.raises(WireError, match=r"missing field\(s\) episode_index"):
+        decode(tampered(EPISODE, lambda e: e["fields"].pop("episode_index")))
+
+
+@pytest.mark.parametrize("data, kind", [
+    (b"\x00junk", "undecodable"), (msgpack.packb([1, 2]), "undecodable"),
+    (tampered(HEARTBEAT, lambda e: e.__setitem__("type", "Teleport")), "undecodable"),
+    (tampered(HEARTBEAT, set_field("seq", "8")), "invalid")])
+def test_a_wire_error_names_its_kind(data, kind):
+    with pytest.raises(WireError) as raised:
+        decode(data)
+    assert raised.value.kind == kind
+    with pytest.raises(WireError) as raised:
+        decode(encode(HEARTBEAT), Episode)
+    assert raised.value.kind == "wrong_type"

@@ -150,7 +150,10 @@ class ViewMaker:
             schema = SCHEMAS[type(message)]
             return [View(topic, schema["title"], schema, log_ns, message_view(message))]
         if isinstance(message, Episode) and self.images:
-            return self.episode_views(message, log_ns)
+            try:
+                return self.episode_views(message, log_ns)
+            except WireError:  # a frame that does not decompress: the episode has no views
+                return []
         return []
 
     def episode_views(self, episode: Episode, end_ns: int) -> list[View]:
