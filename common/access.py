@@ -49,7 +49,7 @@ GRANTS: dict[str, Grants] = {
         query=("replay/sample",),
         token=("alive/learner/**",)),
     "actor": Grants(
-        publish=("episodes", "metrics/actor/**", "heartbeat/actor/**"),
+        publish=("episodes", "metrics/actor/**", "metrics/actor_stats/**", "heartbeat/actor/**"),
         subscribe=("weights/broadcast", "exploration", "replay/rate"),
         query=("weights/latest",),
         token=("alive/actor/**",)),

@@ -9,9 +9,8 @@ watcher, the rogue and the connection probes).
 
 from __future__ import annotations
 
-import json
 import subprocess
-import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -21,25 +20,17 @@ from common.certs import main as certs_main
 from common.config import ConfigError, TransportConfig, load_config
 from common.transport import zenoh_config
 from tests.processes import free_port, start, stop, wait_for
+from tests.zenoh_peer import PATH as PEER
+from tests.zenoh_peer import read_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "deploy" / "configs"
-PEER = str(ROOT / "tests" / "zenoh_peer.py")
 SMOKE = ["--preset", "smoke", "--network.lstm_units", "16"]
+# What the roles publish (actor 0, the learner, the replay): under the access rules each must still reach a subscriber.
+PUBLISHED = ("episodes", "metrics/actor/0", "metrics/actor_stats/0", "metrics/learner/0", "weights/broadcast",
+             "exploration", "replay/stats", "replay/rate")
 FORGED_VERSION = 987_654  # the rogue's weights: no real learner gets near this version in a test
 CONTROL_VERSION = 900_000  # the same weights from a holder of the learner's certificate
-
-
-def read_lines(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    lines = []
-    for line in path.read_text().splitlines():
-        try:
-            lines.append(json.loads(line))
-        except json.JSONDecodeError:  # a line being written
-            pass
-    return lines
 
 
 def make_certs(directory: Path, *flags: str) -> None:
@@ -146,7 +137,7 @@ class Cluster:
     def start(self, name: str, module: str, config: str, *flags: str) -> subprocess.Popen:
         log = self.directory / f"{name}.log"
         self.logs.append(log)
-        args = [PEER] if module == "peer" else ["-m", module]  # tests/ is not installed: the peer by path
+        args = [str(PEER)] if module == "peer" else ["-m", module]  # tests/ is not installed: the peer by path
         if config:
             args += ["--config", str(CONFIGS / config)]
         process = start([*args, *flags], log, cwd=self.directory)
@@ -211,10 +202,20 @@ def test_a_locked_down_stack_trains_and_a_rogue_actor_cannot_feed_weights(cluste
         return updates >= 5 and len(acted) >= 3
 
     wait_for(trained, "5 updates and 3 episodes acted with the learner's weights", 75, cluster.logs)
+
+    def missing() -> set[str]:
+        seen = {line["key"].rsplit("cluster/", 1)[1] for line in read_lines(watch) if line["kind"] == "key"}
+        return set(PUBLISHED) - seen
+
+    deadline = time.monotonic() + 15
+    while missing() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not missing(), f"denied by the access rules or never published: {sorted(missing())}"
     lines = read_lines(watch)
     counts = [line for line in read_lines(rogue_out) if line["kind"] == "counts"][-1]
     assert counts["weights_sent"] >= 10  # it kept forging all along
-    assert not [line for line in lines if line["kind"] == "record" and line["weights_version"] == FORGED_VERSION]
+    acted_with = {version for line in lines if line["kind"] == "episode" for version in line["versions"]}
+    assert FORGED_VERSION not in acted_with and max(acted_with) >= 1, acted_with  # no step acted with the rogue's
     markers = {line["key"].rsplit("cluster/", 1)[1] for line in lines if line["kind"] == "marker"}
     assert markers == {"episodes"}, markers  # an actor's certificate may publish episodes, nothing else it forged
     assert counts["replay_sample_queries"] == 0 and counts["weights_latest_queries"] == 0, counts
@@ -222,7 +223,7 @@ def test_a_locked_down_stack_trains_and_a_rogue_actor_cannot_feed_weights(cluste
     control_out = cluster.directory / "control.jsonl"
     cluster.client("control", "peer", "secure-hub-learner.toml", "rogue", str(control_out),
                    "--weights-version", str(CONTROL_VERSION), *SMOKE)
-    wait_for(lambda: any(line["kind"] == "record" and line["weights_version"] == CONTROL_VERSION
+    wait_for(lambda: any(line["kind"] == "episode" and CONTROL_VERSION in line["versions"]
                          for line in read_lines(watch)),
              "the actor to load weights from the learner's certificate (the control)", 40, cluster.logs)
 

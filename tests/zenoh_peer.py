@@ -1,16 +1,18 @@
-"""Test peers run as their own processes (Zenoh sessions live only in fresh interpreters):
+"""Test peers run as their own processes (Zenoh sessions live only in fresh interpreters), by path
+(tests/ is not an installed package):
 
-    python -m tests.zenoh_peer watch  OUT.jsonl [config flags]   # what a run publishes, one JSON line each
-    python -m tests.zenoh_peer probe  [config flags]             # exit 0 if a session opens, 3 if not
-    python -m tests.zenoh_peer rogue  OUT.jsonl --weights-version N [config flags]
+    python tests/zenoh_peer.py watch OUT.jsonl [config flags]   # what a run publishes, one JSON line each
+    python tests/zenoh_peer.py probe [config flags]             # exit 0 if a session opens, 3 if not
+    python tests/zenoh_peer.py rogue OUT.jsonl --weights-version N [config flags]
 
 `watch` writes a line per EpisodeRecord (actor, weights version), per episode on the episodes
-key (actor), per learner and replay Stats (a few values), and per sample anywhere in the
-run whose payload starts with the rogue's marker. `rogue` forges what only other roles
-may send: real weights of the run's network with version N on weights/broadcast (every 0.5 s),
-marker bytes on exploration, episodes, replay/stats and replay/rate, and queryables on
-replay/sample and weights/latest that count the queries reaching them; it writes its counts
-every 0.5 s. The config flags are the roles' own (--config FILE.toml, --transport.*, ...).
+key (actor, the weights versions its steps were acted with), per learner and replay Stats (a
+few values), per sample of the run whose payload starts with the rogue's marker, and per key
+the first time anything else arrives on it. `rogue` forges what only other roles may send:
+real weights of the run's network with version N on weights/broadcast (every 0.5 s), marker
+bytes on exploration, episodes, replay/stats and replay/rate, and queryables on replay/sample
+and weights/latest that count the queries reaching them (writing the counts every 0.5 s).
+The config flags are the roles' own (--config FILE.toml, --transport.*, ...).
 """
 
 from __future__ import annotations
@@ -26,6 +28,20 @@ from pathlib import Path
 from common.config import Config, add_config_arguments, parse_config_or_exit
 
 MARKER = b"ROGUE-D3RQN"
+PATH = Path(__file__).resolve()  # run it by path: tests/ is not an installed package
+
+
+def read_lines(path: Path) -> list[dict]:
+    """The JSON lines written so far (for the tests that started a peer)."""
+    if not path.exists():
+        return []
+    lines = []
+    for line in path.read_text().splitlines():
+        try:
+            lines.append(json.loads(line))
+        except json.JSONDecodeError:  # a line being written
+            pass
+    return lines
 
 
 class Lines:
@@ -68,11 +84,18 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
                   env_steps=message.values.get("env_steps_total"))
 
     def on_episode(message, key):
-        out.write(kind="episode", actor=message.actor_id, steps=len(message))
+        out.write(kind="episode", actor=message.actor_id, steps=len(message),
+                  versions=sorted({int(version) for version in message.weights_version}))  # acted with
+
+    seen: set[str] = set()
 
     def on_any(sample):
+        key = str(sample.key_expr)
         if bytes(sample.payload.to_bytes()[:len(MARKER)]) == MARKER:
-            out.write(kind="marker", key=str(sample.key_expr))
+            out.write(kind="marker", key=key)
+        elif key not in seen:
+            seen.add(key)
+            out.write(kind="key", key=key)
 
     with open_session(config.transport) as session:
         declared = [subscribe(session, keys.metrics_all, on_metric),
