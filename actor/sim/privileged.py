@@ -5,9 +5,13 @@ learning agent gets). It plans a route junction by junction (a random turn
 from a seeded RNG at each junction, never a U-turn), lays a reference path
 along the centre-lines and corner curves, shifts that path sideways around
 parked cars that reach into the driving line, and follows it with pure
-pursuit. The continuous steering it wants is turned into the five discrete
-actions by error diffusion: the rounding error of each step is carried into
-the next, so the average steering is the wanted one.
+pursuit. Given the traffic cars' rectangles, it also moves over, by up to
+``TRAFFIC_SHIFT_M``, to keep ``TRAFFIC_CLEARANCE_M`` from those beside its way
+ahead: traffic keeps only 0.2 m from a car on the centre-line, and waits
+close to the corners this car may swing wide of. The continuous steering it
+wants is turned into the five discrete actions by error diffusion: the
+rounding error of each step is carried into the next, so the average
+steering is the wanted one.
 """
 
 from __future__ import annotations
@@ -29,6 +33,10 @@ CLEARANCE_M = 0.7  # kept between the car's side and a parked car
 SWERVE_RAMP_M = 10.0  # distance over which the path moves sideways and back
 SWERVE_EARLY_M = 5.0  # the path is fully aside this far before a parked car
 SEARCH_M = 20.0  # how far ahead of the last match the nearest path point is sought
+TRAFFIC_CLEARANCE_M = 0.6  # kept between the car's side and a traffic car beside its way
+TRAFFIC_SHIFT_M = 0.6  # the most the path moves over for traffic
+TRAFFIC_AHEAD_M = 20.0  # traffic this far along the path ahead is looked at
+TRAFFIC_RAMP_M = 6.0  # over which the move for traffic fades in and out
 
 
 class PrivilegedDriver:
@@ -54,14 +62,50 @@ class PrivilegedDriver:
         self._extend()
         self.index = self._nearest(pose, search_all=True)
 
-    def act(self, pose: tuple[float, float, float]) -> int:
-        """The action index for the car at ``pose``."""
+    def act(self, pose: tuple[float, float, float], traffic: np.ndarray | None = None) -> int:
+        """The action index for the car at ``pose``; ``traffic``: rows (x, y, heading, length, width)."""
         self.index = self._nearest(pose)
         while len(self.path) - self.index < PLAN_AHEAD_M / SPACING_M:
             self._extend()
-        target = self.path[min(self.index + int(LOOKAHEAD_M / SPACING_M), len(self.path) - 1)]
+        ahead = min(self.index + int(LOOKAHEAD_M / SPACING_M), len(self.path) - 1)
+        target = self.path[ahead]
+        if traffic is not None and len(traffic):
+            target = target + self._traffic_shift(pose, np.asarray(traffic), ahead)
         wanted = pure_pursuit_steering(pose, target, layout.CAR_LENGTH_M) / self.max_steering
         return self._quantise(float(np.clip(wanted, -1.0, 1.0)))
+
+    def _traffic_shift(self, pose, traffic: np.ndarray, ahead: int) -> np.ndarray:
+        """The sideways move of the path point ``ahead`` that keeps clear of the traffic beside the way.
+
+        Each traffic car's corners and side midpoints are placed on the path ahead (nearest point,
+        offset to its right); one on the left pushes the path right until the car's side clears it
+        by ``TRAFFIC_CLEARANCE_M``, one on the right pushes it left, over a car's length either side
+        of it and a ramp beyond.
+        """
+        stop = min(self.index + int(TRAFFIC_AHEAD_M / SPACING_M), len(self.path) - 1)
+        points = self.path[self.index:stop + 1]
+        if len(points) < 2 or np.min(np.hypot(*(traffic[:, :2] - pose[:2]).T)) > TRAFFIC_AHEAD_M + 5.0:
+            return np.zeros(2)
+        tangents = np.gradient(points, axis=0)
+        tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+        rights = np.stack([-tangents[:, 1], tangents[:, 0]], axis=1)
+        corners = rectangle_corners(traffic)
+        samples = np.concatenate([corners, (corners + np.roll(corners, 1, axis=1)) / 2], axis=1).reshape(-1, 2)
+        gaps = samples[:, None, :] - points[None, :, :]
+        nearest = np.argmin(np.einsum("ijk,ijk->ij", gaps, gaps), axis=1)
+        offsets = np.einsum("ij,ij->i", samples - points[nearest], rights[nearest])
+        keep_out = layout.CAR_WIDTH_M / 2 + TRAFFIC_CLEARANCE_M
+        beside = (nearest > 0) & (nearest < len(points) - 1) & (np.abs(offsets) < keep_out)
+        if not beside.any():
+            return np.zeros(2)
+        push = np.where(offsets[beside] < 0, offsets[beside] + keep_out, offsets[beside] - keep_out)
+        along = nearest[beside] * SPACING_M  # of each sample, from the car's path point
+        weight = _plateau(np.full(len(along), (ahead - self.index) * SPACING_M),
+                          along - layout.CAR_LENGTH_M, along + layout.CAR_LENGTH_M, TRAFFIC_RAMP_M)
+        right = float(np.max(np.maximum(push, 0.0) * weight, initial=0.0))
+        left = float(np.min(np.minimum(push, 0.0) * weight, initial=0.0))
+        shift = float(np.clip(right + left, -TRAFFIC_SHIFT_M, TRAFFIC_SHIFT_M))
+        return shift * rights[min(ahead - self.index, len(points) - 1)]
 
     def _quantise(self, wanted: float) -> int:
         with_carry = wanted + self.carry
