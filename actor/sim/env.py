@@ -289,7 +289,11 @@ class NeighbourhoodEnv(AbstractEnv):
         rectangles = self.traffic_rectangles()
         if rectangles is None or not len(rectangles):
             return False
-        return Obstacles(rectangles, NO_CIRCLES).hits(x, y, heading, layout.CAR_LENGTH_M, layout.CAR_WIDTH_M)
+        reach = np.hypot(rectangles[:, 3], rectangles[:, 4]) / 2 + math.hypot(layout.CAR_LENGTH_M, layout.CAR_WIDTH_M) / 2
+        near = (rectangles[:, 0] - x) ** 2 + (rectangles[:, 1] - y) ** 2 <= reach ** 2
+        if not near.any():
+            return False
+        return Obstacles(rectangles[near], NO_CIRCLES).hits(x, y, heading, layout.CAR_LENGTH_M, layout.CAR_WIDTH_M)
 
     def traffic_rectangles(self) -> np.ndarray | None:
         """The traffic vehicles as rows (x, y, heading, length, width), or None without traffic."""

@@ -32,6 +32,7 @@ class EgoVehicle(Vehicle):
 
     locator: LaneLocator | None = None
     place: LanePlace | None = None
+    route = None  # no planned route: highway-env's TimeToCollision asks
 
     @property
     def target_speeds(self) -> np.ndarray:

@@ -1,23 +1,24 @@
-"""Simulator steps per second on one core, observation included, ours against highway-env's.
+"""Simulator steps per second on one core, observation included: three renderers side by side.
 
-Rows, all on the same neighbourhood road (same RoadNetwork, same obstacles):
+Rows, all on the same neighbourhood road (same RoadNetwork, obstacles and
+highway-env motion model), measured one after the other in one run:
 
-* ours: ``NeighbourhoodEnv.step`` with the front camera (one warp of the
-  pre-drawn world), uniformly random actions, resets included (random
-  driving ends an episode every few dozen steps, as in the paper's 999
-  episodes of random play);
-* ours, privileged driver: the same env driven by ``actor.sim.privileged``
-  (long episodes; the driver's own time is included);
+* front camera (the default): ``NeighbourhoodEnv.step`` with the perspective
+  camera, uniformly random actions, resets included (random driving ends an
+  episode every few dozen steps, as in the paper's 999 episodes of random play);
+* top-down camera: the same, with the heading-up map crop;
 * highway-env GrayscaleObservation: the same env and dynamics, but the
   observation is highway-env's built-in pygame renderer (200 x 66, one frame);
-* highway-env Road.step only: the cost of highway-env's own simulation step
-  of the ego car on this road (``Vehicle.step`` with its closest-lane search,
-  then ``Road.step``'s collision checks against every object), without any
-  observation: the part our env replaces with its own kinematics and numpy
-  queries.
+* the front camera again with the privileged driver (long episodes through
+  junctions; the driver's own time is included);
+* highway-env Road.step only: highway-env's own simulation step of the ego car
+  on this road (``Vehicle.step`` with its closest-lane search, then
+  ``Road.step``'s collision checks against every object), without any
+  observation: the part our env replaces with vectorised queries.
 
-Also the per-step cost of each of our parts. The machine may be shared:
-figures are what was measured, on the CPU this process is pinned to.
+Then the ratios of the cameras to highway-env's renderer, and the per-call
+cost of each part of a step. The machine may be shared: figures are what was
+measured, on the CPU this process is pinned to.
 
     .venv/bin/python deploy/bench/env_speed.py [--steps 20000] [--highway-steps 1000]
 """
@@ -72,7 +73,7 @@ def privileged_rate(env: NeighbourhoodEnv, steps: int) -> float:
         driver.reset(env.pose)
         truncated = terminated = False
         while not (terminated or truncated) and done < steps:
-            _, _, terminated, truncated, _ = env.step(driver.act(env.pose))
+            _, _, terminated, truncated, _ = env.step(driver.act(env.pose, env.traffic_rectangles()))
             done += 1
     return steps / (time.perf_counter() - start)
 
@@ -93,7 +94,8 @@ def part_costs_us(env: NeighbourhoodEnv, repeats: int = 5000) -> dict[str, float
     """Microseconds per call of each part of one step, at a pose next to a parked car."""
     env.reset(options={"start_set": "train", "start_index": 0})
     x, y, heading = env.pose
-    hood, camera = env.hood, env.camera
+    hood, front, topdown = env.hood, env.cameras("front"), env.cameras("topdown")
+    locator = env.vehicle.locator
 
     def timed(function) -> float:
         start = time.perf_counter()
@@ -102,8 +104,11 @@ def part_costs_us(env: NeighbourhoodEnv, repeats: int = 5000) -> dict[str, float
         return (time.perf_counter() - start) / repeats * 1e6
 
     return {
-        "camera frame": timed(lambda: camera.frame(x, y, heading)),
-        "distance to centre-lines": timed(lambda: hood.centre_lines.distance(x, y)),
+        "front camera frame": timed(lambda: front.frame(x, y, heading)),
+        "top-down camera frame": timed(lambda: topdown.frame(x, y, heading)),
+        "highway-env Vehicle.step (one frame)": timed(lambda: env.vehicle.step(0.0)),
+        "lane lookup (LaneLocator)": timed(lambda: locator.locate(x, y, heading)),
+        "nearest centre-line": timed(lambda: hood.centre_lines.nearest(x, y)),
         "collision test, nothing near": timed(lambda: hood.obstacles.hits(x, y, heading, 4.5, 1.8)),
         "collision test, beside a parked car": timed(lambda: hood.obstacles.hits(21.0, 0.0, 0.0, 4.5, 1.8)),
     }
@@ -115,23 +120,28 @@ def main() -> None:
     parser.add_argument("--highway-steps", type=int, default=1_000, help="steps for highway-env's renderer")
     args = parser.parse_args()
     cpu = one_core()
-    config = EnvConfig()
-    ours = NeighbourhoodEnv(config)
+    front = NeighbourhoodEnv(EnvConfig(camera="front"))
+    topdown = NeighbourhoodEnv(EnvConfig(camera="topdown"))
+    config = front.env_config
     grayscale = NeighbourhoodEnv(config, observation=GRAYSCALE)
-    print(f"pinned to CPU {cpu}; cv2 threads {cv2.getNumThreads()}; "
-          f"speed {config.speed} m/s, {config.policy_frequency} Hz, camera {config.render_scale} px/m")
-    rows = [
-        ("ours: camera, random actions, resets included", random_actions_rate(ours, args.steps)),
-        ("ours: camera, privileged driver", privileged_rate(ours, args.steps)),
-        ("highway-env GrayscaleObservation (200x66), random actions",
-         random_actions_rate(grayscale, args.highway_steps)),
-        ("highway-env Road.step only, no observation",
-         highway_road_step_rate(NeighbourhoodEnv(config), args.highway_steps)),
-    ]
-    for name, rate in rows:
+    print(f"pinned to CPU {cpu}; cv2 threads {cv2.getNumThreads()}; speed {config.speed} m/s, "
+          f"{config.policy_frequency} Hz decisions, {config.simulation_frequency} Hz simulation")
+    rows = {
+        "front": ("front camera, random actions, resets included", random_actions_rate(front, args.steps)),
+        "topdown": ("top-down camera, random actions, resets included", random_actions_rate(topdown, args.steps)),
+        "highway": ("highway-env GrayscaleObservation (200x66), random actions",
+                    random_actions_rate(grayscale, args.highway_steps)),
+        "privileged": ("front camera, privileged driver", privileged_rate(front, args.steps)),
+        "road_step": ("highway-env Road.step only, no observation",
+                      highway_road_step_rate(NeighbourhoodEnv(config), args.highway_steps)),
+    }
+    for name, rate in rows.values():
         print(f"{name:<62} {rate:10,.0f} steps/s")
-    print(f"ours / highway-env GrayscaleObservation: {rows[0][1] / rows[2][1]:.1f}x")
-    for name, cost in part_costs_us(ours).items():
+    highway = rows["highway"][1]
+    print(f"front camera / highway-env GrayscaleObservation: {rows['front'][1] / highway:.1f}x")
+    print(f"top-down camera / highway-env GrayscaleObservation: {rows['topdown'][1] / highway:.1f}x")
+    print(f"front camera / top-down camera: {rows['front'][1] / rows['topdown'][1]:.2f}x")
+    for name, cost in part_costs_us(front).items():
         print(f"  {name:<40} {cost:8.1f} us")
 
 
