@@ -1,12 +1,18 @@
-"""Pictures of the simulator: the whole map with its start poses, and a strip of camera frames.
+"""Pictures of the simulator: the map with its start poses, and strips of camera frames.
 
     python -m actor.sim.pictures --out deploy/figures
 
-writes ``neighbourhood_map.png`` (roads, parked cars in red, trees, houses,
-training starts in blue and test starts in orange, numbered by
-``start_index``, each with an arrow along its heading) and
-``observation_strip.png`` (consecutive observations of the privileged driver,
-oldest first, read left to right then top to bottom).
+writes
+
+* ``neighbourhood_map.png``: roads, parked cars in red, trees, houses,
+  training starts in blue and test starts in orange, numbered by
+  ``start_index``, each with an arrow along its heading;
+* ``camera_strips.png``: one drive of the privileged driver approaching and
+  passing a parked car, a row per step (oldest at the top): what the front
+  camera saw (the observation, 66 x 200) beside what the top-down camera
+  would have seen at the same pose;
+* ``traffic_strip.png``: the same pairs on a drive with moving traffic, at the
+  steps where a traffic vehicle is in view.
 """
 
 from __future__ import annotations
@@ -18,17 +24,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from actor.sim import make_env, start_poses
+from actor.sim import start_poses
+from actor.sim.env import NeighbourhoodEnv
+from actor.sim.neighbourhood import neighbourhood
 from actor.sim.privileged import PrivilegedDriver
-from actor.sim.world_image import PARKED_CAR, world_image
+from actor.sim.world_image import world_image
 from common.config import EnvConfig
 
 MAP_SCALE = 3.0  # px per metre of the map picture
 START_COLOURS = {"train": (30, 110, 255), "test": (255, 140, 0)}  # RGB
-STRIP_FRAMES = 12
-STRIP_COLUMNS = 3
+STRIP_ROWS = 8
 STRIP_ZOOM = 2
-STRIP_START = ("train", 0)
+STRIP_START = ("train", 0)  # A1-B1 eastwards: two cars at the kerb, then one reaching into the lane
+PASSING_M = 14.0  # a parked car this close ahead of the car counts as being approached or passed
+TRAFFIC_VEHICLES = 12
 
 
 def map_picture(env_config: EnvConfig) -> np.ndarray:
@@ -49,40 +58,74 @@ def map_picture(env_config: EnvConfig) -> np.ndarray:
     return picture
 
 
-def drive_frames(env_config: EnvConfig, steps: int, start: tuple[str, int] = STRIP_START,
-                 seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Observations (n, 66, 200, 3) and headings (n,) of the privileged driver, n <= steps + 1."""
-    env = make_env(env_config, seed=seed)
-    observation, _ = env.reset(options={"start_set": start[0], "start_index": start[1]})
+def drive_pairs(env_config: EnvConfig, steps: int, start: tuple[str, int] = STRIP_START,
+                seed: int = 0) -> tuple[list[np.ndarray], list[np.ndarray], list[dict]]:
+    """Front and top-down frames at every step of a privileged drive, and the env's state then."""
+    env = NeighbourhoodEnv(env_config)
+    front, _ = env.reset(seed=seed, options={"start_set": start[0], "start_index": start[1]})
     driver = PrivilegedDriver(env_config, seed=seed)
-    driver.reset(env.unwrapped.pose)
-    frames, headings = [observation], [env.unwrapped.pose[2]]
+    driver.reset(env.pose)
+    fronts, topdowns, states = [], [], []
     for _ in range(steps):
-        observation, _, terminated, truncated, _ = env.step(driver.act(env.unwrapped.pose))
-        frames.append(observation)
-        headings.append(env.unwrapped.pose[2])
+        fronts.append(front)
+        topdowns.append(env.cameras("topdown").frame(*env.pose, env.traffic_rectangles()))
+        states.append({"pose": env.pose, "traffic": env.traffic_rectangles()})
+        front, _, terminated, truncated, _ = env.step(driver.act(env.pose, env.traffic_rectangles()))
         if terminated or truncated:
             break
     env.close()
-    return np.stack(frames), np.unwrap(np.array(headings))
+    return fronts, topdowns, states
 
 
-def observation_strip(frames: np.ndarray, headings: np.ndarray) -> np.ndarray:
-    """``STRIP_FRAMES`` consecutive frames, tiled and enlarged: of the runs in which every
-    frame shows a parked car, the one where the car turns most (a swerve or a corner)."""
-    shows_car = np.array([(frame == PARKED_CAR).all(axis=-1).sum() >= 20 for frame in frames])
-    turning = np.abs(np.diff(headings, prepend=headings[0]))
-    best, first = -1.0, 0
-    for start in range(len(frames) - STRIP_FRAMES + 1):
-        window = slice(start, start + STRIP_FRAMES)
-        if shows_car[window].all() and turning[window].sum() > best:
-            best, first = turning[window].sum(), start
-    tiles = [cv2.resize(frame, None, fx=STRIP_ZOOM, fy=STRIP_ZOOM, interpolation=cv2.INTER_NEAREST)
-             for frame in frames[first:first + STRIP_FRAMES]]
-    tiles = [cv2.copyMakeBorder(tile, 2, 2, 2, 2, cv2.BORDER_CONSTANT, value=(255, 255, 255))
-             for tile in tiles]
-    rows = [np.hstack(tiles[i:i + STRIP_COLUMNS]) for i in range(0, len(tiles), STRIP_COLUMNS)]
-    return np.vstack(rows)
+def parked_car_ahead(pose: tuple[float, float, float], cars: np.ndarray) -> bool:
+    """Whether a parked car's centre lies within PASSING_M ahead of the pose or just beside it."""
+    x, y, heading = pose
+    along = (cars[:, 0] - x) * math.cos(heading) + (cars[:, 1] - y) * math.sin(heading)
+    across = -(cars[:, 0] - x) * math.sin(heading) + (cars[:, 1] - y) * math.cos(heading)
+    return bool(np.any((along > -3.0) & (along < PASSING_M) & (np.abs(across) < 4.0)))
+
+
+def traffic_ahead(pose: tuple[float, float, float], traffic: np.ndarray | None) -> bool:
+    if traffic is None or not len(traffic):
+        return False
+    x, y, heading = pose
+    along = (traffic[:, 0] - x) * math.cos(heading) + (traffic[:, 1] - y) * math.sin(heading)
+    across = -(traffic[:, 0] - x) * math.sin(heading) + (traffic[:, 1] - y) * math.cos(heading)
+    return bool(np.any((along > 3.0) & (along < 35.0) & (np.abs(across) < along)))
+
+
+def strip(fronts: list[np.ndarray], topdowns: list[np.ndarray], rows: list[int]) -> np.ndarray:
+    """Rows of (front frame | top-down frame), enlarged, with a white rule between tiles."""
+    def tile(frame: np.ndarray) -> np.ndarray:
+        big = cv2.resize(frame, None, fx=STRIP_ZOOM, fy=STRIP_ZOOM, interpolation=cv2.INTER_NEAREST)
+        return cv2.copyMakeBorder(big, 2, 2, 2, 2, cv2.BORDER_CONSTANT, value=(255, 255, 255))
+    lines = [np.hstack([tile(fronts[i]), tile(topdowns[i])]) for i in rows]
+    header = np.full((24, lines[0].shape[1], 3), 255, dtype=np.uint8)
+    _label(header, "front camera (the observation)", (8, 17), (0, 0, 0))
+    _label(header, "top-down camera, same pose", (lines[0].shape[1] // 2 + 8, 17), (0, 0, 0))
+    return np.vstack([header, *lines])
+
+
+def chosen_rows(wanted: list[bool]) -> list[int]:
+    """STRIP_ROWS steps spread evenly over the first run of steps where ``wanted`` holds."""
+    steps = np.flatnonzero(wanted)
+    if len(steps) == 0:
+        raise RuntimeError("the drive never showed what the strip is for")
+    run_end = int(np.argmax(np.diff(steps, append=steps[-1] + 2) > 1))
+    first, last = int(steps[0]), int(steps[run_end])
+    return sorted({int(round(v)) for v in np.linspace(first, last, STRIP_ROWS)})
+
+
+def camera_strips(env_config: EnvConfig, steps: int) -> np.ndarray:
+    fronts, topdowns, states = drive_pairs(env_config, steps)
+    cars = np.array([car.rectangle for car in neighbourhood().parked_cars])
+    return strip(fronts, topdowns, chosen_rows([parked_car_ahead(s["pose"], cars) for s in states]))
+
+
+def traffic_strip(env_config: EnvConfig, steps: int, seed: int = 1) -> np.ndarray:
+    config = EnvConfig(**{**env_config.__dict__, "traffic_vehicles": TRAFFIC_VEHICLES})
+    fronts, topdowns, states = drive_pairs(config, steps, start=("test", 3), seed=seed)
+    return strip(fronts, topdowns, chosen_rows([traffic_ahead(s["pose"], s["traffic"]) for s in states]))
 
 
 def _point(xy) -> tuple[int, int]:
@@ -104,12 +147,13 @@ def _save(path: Path, rgb: np.ndarray) -> None:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m actor.sim.pictures", description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("deploy/figures"), help="output directory")
-    parser.add_argument("--steps", type=int, default=150, help="length of the drive the strip is cut from")
+    parser.add_argument("--steps", type=int, default=150, help="length of the drives the strips are cut from")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    config = EnvConfig()
+    config = EnvConfig(start_jitter_m=0.0, start_jitter_deg=0.0)
     _save(args.out / "neighbourhood_map.png", map_picture(config))
-    _save(args.out / "observation_strip.png", observation_strip(*drive_frames(config, args.steps)))
+    _save(args.out / "camera_strips.png", camera_strips(config, args.steps))
+    _save(args.out / "traffic_strip.png", traffic_strip(config, 3 * args.steps))
 
 
 if __name__ == "__main__":
