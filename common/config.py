@@ -287,7 +287,8 @@ class EnvConfig:
         _check(0 <= self.start_jitter_m < self.offroad_distance, "start_jitter_m", "must lie in [0, offroad_distance)")
         _check(0 <= self.start_jitter_deg < 45, "start_jitter_deg", "must lie in [0, 45)")
         _check(self.stall_min_progress_m >= 0, "stall_min_progress_m", "must be >= 0")
-        _check(0 <= self.traffic_vehicles <= 40, "traffic_vehicles", "must lie in [0, 40]")
+        # 20 cars always found room to start in tests (seeds 0-4); 30 did for only 2 seeds of 5.
+        _check(0 <= self.traffic_vehicles <= 20, "traffic_vehicles", "must lie in [0, 20]")
         _check(self.traffic_speed_min <= self.traffic_speed_max, "traffic_speed_max",
                "must be >= traffic_speed_min")
 
