@@ -11,7 +11,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="actor",
         description="Actor: steps the driving simulator with the learner's latest weights and exploration "
-                    "state, and publishes every finished episode to the replay. Give each actor its own "
+                    "state, and publishes every finished episode to the replay (finished episodes wait in a bounded "
+                    "outbox, actor.queue_episodes and actor.queue_mb, while no replay listens). Weights, exploration "
+                    "state and rate messages are checked before they are used. Give each actor its own "
                     "--actor.actor_id; its seed derives from --run.seed and the id.")
     parser.add_argument("--max-episodes", type=int, default=None,
                         help="stop after this many episodes (default: run until stopped)")
