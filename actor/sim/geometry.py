@@ -66,24 +66,23 @@ class Segments:
 
     def nearest(self, x: float, y: float) -> tuple[int, float, float]:
         """(index of the nearest segment, where along it from 0 to 1, distance to it)."""
-        rel_x = x - self.starts[:, 0]
-        rel_y = y - self.starts[:, 1]
-        t = (rel_x * self.deltas[:, 0] + rel_y * self.deltas[:, 1]) * self.inverse_lengths2
-        np.clip(t, 0.0, 1.0, out=t)
-        gap_x = rel_x - t * self.deltas[:, 0]
-        gap_y = rel_y - t * self.deltas[:, 1]
-        index = int(np.argmin(gap_x * gap_x + gap_y * gap_y))
-        return index, float(t[index]), math.hypot(gap_x[index], gap_y[index])
+        t, squared = self._projections(x, y)
+        index = int(np.argmin(squared))
+        return index, float(t[index]), math.sqrt(float(squared[index]))
 
     def squared_distances(self, x: float, y: float) -> np.ndarray:
         """Squared distance from (x, y) to each segment."""
+        return self._projections(x, y)[1]
+
+    def _projections(self, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per segment: where (x, y)'s nearest point lies along it (0 to 1), and the squared gap."""
         rel_x = x - self.starts[:, 0]
         rel_y = y - self.starts[:, 1]
         t = (rel_x * self.deltas[:, 0] + rel_y * self.deltas[:, 1]) * self.inverse_lengths2
         np.clip(t, 0.0, 1.0, out=t)
         gap_x = rel_x - t * self.deltas[:, 0]
         gap_y = rel_y - t * self.deltas[:, 1]
-        return gap_x * gap_x + gap_y * gap_y
+        return t, gap_x * gap_x + gap_y * gap_y
 
 
 class Obstacles:
