@@ -280,3 +280,19 @@ def test_privileged_driver_drives_full_episodes_with_traffic_from_every_start(st
             pass
         assert info["end"] == "cap" and info["step"] == TOPDOWN.max_steps, (start_set, index, info["end"])
         assert info["progress_m"] > 0.9 * TOPDOWN.max_steps * TOPDOWN.speed / TOPDOWN.policy_frequency
+
+
+def test_too_little_room_drives_with_the_cars_that_fit_instead_of_raising(caplog):
+    import dataclasses
+    from actor.sim.traffic import Traffic, TrafficVehicle
+    env = NeighbourhoodEnv(EnvConfig(camera="topdown", traffic_vehicles=1))
+    crowded = dataclasses.replace(env.env_config, traffic_vehicles=60)  # more than the streets hold
+    env.traffic = Traffic(env.road, crowded, env.vehicle)
+    placed = []
+    for seed in range(5):
+        env.reset(seed=seed, options={"start_index": 0})
+        on_road = [v for v in env.road.vehicles if isinstance(v, TrafficVehicle)]
+        assert on_road == env.traffic.vehicles and len(env.traffic_rectangles()) == len(on_road)
+        placed.append(len(on_road))
+    assert 0 < min(placed) < 60
+    assert "room for only" in caplog.text

@@ -59,6 +59,7 @@ it as an IDM leader when it is on the traffic car's own path.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -637,8 +638,10 @@ class Traffic:
         self.spawn_places = self._spawn_places()
         dt = 1.0 / config.simulation_frequency
         first = next(iter(self.shapes))
-        self.vehicles = [TrafficVehicle(road, self.shapes, first, dt, config.traffic_speed_min)
-                         for _ in range(config.traffic_vehicles)]
+        # Every car the config asks for; ``vehicles`` are those placed this episode.
+        self.fleet = [TrafficVehicle(road, self.shapes, first, dt, config.traffic_speed_min)
+                      for _ in range(config.traffic_vehicles)]
+        self.vehicles = list(self.fleet)
         road.vehicles.extend(self.vehicles)
         self.forecast: EgoForecast | None = None
 
@@ -679,19 +682,28 @@ class Traffic:
         self.forecast = EgoForecast(self.ego, self.road.network, self.distances, self.junction_reach)
         for places in self.spawn_places:  # clear places first; in stretches if there are too few
             for place in rng.permutation(len(places)):
-                if len(taken) == len(self.vehicles):
+                if len(taken) == len(self.fleet):
                     break
                 index, u = places[place]
                 point = self.shapes[index].lane.position(u, 0.0)
                 if np.linalg.norm(point - ego) < SPAWN_EGO_CLEARANCE_M \
                         or any(np.linalg.norm(point - other) < SPAWN_SPACING_M for other in taken):
                     continue
-                vehicle = self.vehicles[len(taken)]
+                vehicle = self.fleet[len(taken)]
                 vehicle.place(index, u, float(rng.uniform(*self.speed_range)))
                 if self._clear_to_start(vehicle):
                     taken.append(point)
-        if len(taken) < len(self.vehicles):
-            raise ValueError(f"traffic_vehicles: room for only {len(taken)} traffic cars")
+        self._field(len(taken))
+
+    def _field(self, placed: int) -> None:
+        """The episode drives with the first ``placed`` cars; too little room is logged, not
+        raised, so an unlucky draw cannot stop an actor or an evaluation."""
+        if placed < len(self.fleet):
+            logging.getLogger(__name__).warning(
+                "traffic: room for only %d of %d cars this episode", placed, len(self.fleet))
+        self.vehicles = self.fleet[:placed]
+        others = [v for v in self.road.vehicles if not isinstance(v, TrafficVehicle)]
+        self.road.vehicles[:] = others + self.vehicles
 
     def _clear_to_start(self, vehicle: TrafficVehicle) -> bool:
         """Whether a car may start where it is: the units it is in, and those too close after to
