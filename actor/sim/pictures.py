@@ -77,20 +77,24 @@ def drive_pairs(env_config: EnvConfig, steps: int, start: tuple[str, int] = STRI
     return fronts, topdowns, states
 
 
+def _relative(pose: tuple[float, float, float], things: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far ahead of the pose and to its right the centres of ``things`` (rows x, y, ...) lie."""
+    x, y, heading = pose
+    dx, dy = things[:, 0] - x, things[:, 1] - y
+    return dx * math.cos(heading) + dy * math.sin(heading), -dx * math.sin(heading) + dy * math.cos(heading)
+
+
 def parked_car_ahead(pose: tuple[float, float, float], cars: np.ndarray) -> bool:
     """Whether a parked car's centre lies within PASSING_M ahead of the pose or just beside it."""
-    x, y, heading = pose
-    along = (cars[:, 0] - x) * math.cos(heading) + (cars[:, 1] - y) * math.sin(heading)
-    across = -(cars[:, 0] - x) * math.sin(heading) + (cars[:, 1] - y) * math.cos(heading)
+    along, across = _relative(pose, cars)
     return bool(np.any((along > -3.0) & (along < PASSING_M) & (np.abs(across) < 4.0)))
 
 
 def traffic_ahead(pose: tuple[float, float, float], traffic: np.ndarray | None) -> bool:
+    """Whether a traffic car lies 3 to 35 m ahead, within 45 degrees of the heading."""
     if traffic is None or not len(traffic):
         return False
-    x, y, heading = pose
-    along = (traffic[:, 0] - x) * math.cos(heading) + (traffic[:, 1] - y) * math.sin(heading)
-    across = -(traffic[:, 0] - x) * math.sin(heading) + (traffic[:, 1] - y) * math.cos(heading)
+    along, across = _relative(pose, traffic)
     return bool(np.any((along > 3.0) & (along < 35.0) & (np.abs(across) < along)))
 
 
