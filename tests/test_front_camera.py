@@ -5,12 +5,14 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import cv2
 import numpy as np
 import pytest
 
 from actor.sim import start_poses
 from actor.sim.camera import FRAME_SHAPE
-from actor.sim.front_camera import AMBIENT, DIFFUSE, ROOF_RISE_M, SUN, PerspectiveCamera, front_strip
+from actor.sim.front_camera import (AMBIENT, DIFFUSE, ONE, ROOF_RISE_M, SUBPIXEL_BITS, SUN, PerspectiveCamera,
+                                   _fill_convex, _fill_disc, front_strip)
 from actor.sim.neighbourhood import ParkedCar, neighbourhood
 from actor.sim.world_image import ASPHALT, HOUSE_ROOF, HOUSE_WALL, ground_image
 from common.config import EnvConfig
@@ -165,3 +167,48 @@ def test_front_strip_stacks_the_frames_of_its_poses(camera):
     strip = front_strip(camera, poses, gap=2)
     assert strip.shape == (3 * FRAME_SHAPE[0] + 2 * 2, FRAME_SHAPE[1], 3)
     np.testing.assert_array_equal(strip[:FRAME_SHAPE[0]], camera.frame(*poses[0]))
+
+
+# --- the compiled fill against OpenCV's ------------------------------------------------------
+
+def _within_a_pixel_of_an_edge(differing: np.ndarray, mask: np.ndarray) -> bool:
+    """Whether every differing pixel has a neighbour (8-connected) on the other side of the edge."""
+    grown = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    shrunk = cv2.erode(mask, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return bool(((grown > shrunk) | ~differing).all())
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_filled_convex_polygon_matches_opencv_but_along_its_edges(seed):
+    rng = np.random.default_rng(seed)
+    angles = np.sort(rng.uniform(0.0, 2 * np.pi, size=rng.integers(3, 6)))
+    centre, radius = rng.uniform([20, 10], [180, 56]), rng.uniform(2.0, 30.0)
+    points = np.rint((centre + radius * np.column_stack([np.cos(angles), np.sin(angles)])) * ONE).astype(np.int64)
+    ours, theirs = np.zeros(FRAME_SHAPE, np.uint8), np.zeros(FRAME_SHAPE, np.uint8)
+    _fill_convex(ours, points[:, 0].copy(), points[:, 1].copy(), len(points), np.array([255, 255, 255]))
+    cv2.fillConvexPoly(theirs, points.astype(np.int32), (255, 255, 255), cv2.LINE_8, SUBPIXEL_BITS)
+    ours, theirs = ours[..., 0], theirs[..., 0]
+    assert _within_a_pixel_of_an_edge(ours != theirs, theirs)
+    assert abs(int(ours.astype(bool).sum()) - int(theirs.astype(bool).sum())) <= 0.25 * theirs.astype(bool).sum() + 10
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_filled_disc_matches_opencv_but_along_its_edge(seed):
+    rng = np.random.default_rng(seed)
+    cx, cy = (int(v) for v in np.rint(rng.uniform([0, 0], [200, 66]) * ONE))
+    radius = int(rng.uniform(1.0, 25.0) * ONE)
+    ours, theirs = np.zeros(FRAME_SHAPE, np.uint8), np.zeros(FRAME_SHAPE, np.uint8)
+    _fill_disc(ours, cx, cy, radius, np.array([255, 255, 255]))
+    cv2.circle(theirs, (cx, cy), radius, (255, 255, 255), cv2.FILLED, cv2.LINE_8, SUBPIXEL_BITS)
+    ours, theirs = ours[..., 0], theirs[..., 0]
+    assert _within_a_pixel_of_an_edge(ours != theirs, theirs)
+    assert abs(int(ours.astype(bool).sum()) - int(theirs.astype(bool).sum())) <= 0.25 * theirs.astype(bool).sum() + 10
+
+
+def test_fills_reaching_past_the_image_are_cut_at_its_border():
+    image = np.zeros(FRAME_SHAPE, np.uint8)
+    huge = np.array([-10 ** 9, 10 ** 9, 0], dtype=np.int64)
+    _fill_convex(image, huge, np.array([-10 ** 9, -10 ** 9, 10 ** 9], dtype=np.int64), 3, np.array([1, 2, 3]))
+    assert (image == (1, 2, 3)).all()
+    _fill_disc(image, -100 * ONE, -100 * ONE, 10 * ONE, np.array([9, 9, 9]))
+    assert (image == (1, 2, 3)).all()
