@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from highway_env.road.lane import AbstractLane, CircularLane, LineType, StraightLane
 from highway_env.road.road import LaneIndex, Road, RoadNetwork
@@ -206,16 +207,29 @@ class LaneLocator:
         """The best point facing ``heading`` among (indices, points, directions, lanes), or
         one of the lanes marked in ``keep`` within TIE_M of it."""
         indices, points, directions, lanes = candidates
-        gaps = points - (x, y)
-        facing = directions @ (math.cos(heading), math.sin(heading))
-        scores = np.sqrt(np.einsum("ij,ij->i", gaps, gaps)) + np.arccos(np.clip(facing, -1.0, 1.0))
-        scores[facing <= 0.0] = np.inf
-        best = int(np.argmin(scores))
-        if not np.isfinite(scores[best]):
+        best = _best_point(points, directions, lanes, x, y, math.cos(heading), math.sin(heading),
+                           self.continues[0] if keep is None else keep, keep is not None)
+        if best < 0:
             return None
-        if keep is not None:
-            kept = np.where(keep[lanes], scores, np.inf)
-            best_kept = int(np.argmin(kept))
-            if kept[best_kept] <= scores[best] + TIE_M:
-                best = best_kept
         return best if indices is None else int(indices[best])
+
+
+@numba.njit(cache=True)
+def _best_point(points, directions, lanes, x, y, cos_h, sin_h, keep, use_keep):
+    """Index of the point of least score (distance plus the angle between its direction and
+    the heading) among those facing the heading, or of the best point on a lane marked in
+    ``keep`` if that scores within TIE_M of it; -1 if no point faces the heading."""
+    best, best_score, kept, kept_score = -1, np.inf, -1, np.inf
+    for i in range(len(points)):
+        facing = directions[i, 0] * cos_h + directions[i, 1] * sin_h
+        if facing <= 0.0:
+            continue
+        gap_x, gap_y = points[i, 0] - x, points[i, 1] - y
+        score = math.sqrt(gap_x * gap_x + gap_y * gap_y) + math.acos(min(facing, 1.0))
+        if score < best_score:
+            best, best_score = i, score
+        if use_keep and keep[lanes[i]] and score < kept_score:
+            kept, kept_score = i, score
+    if kept >= 0 and kept_score <= best_score + TIE_M:
+        return kept
+    return best
