@@ -38,7 +38,7 @@ from actor.evaluation_intervals import Bootstrap
 from actor.evaluation_report import SUMMARY_MD, write_report
 from actor.evaluation_stats import EvaluationEpisode, SetSummary, summarise_all
 from actor.sim import START_SETS
-from common.config import Config, ConfigError, add_config_arguments, config_from_args, from_dict, to_toml
+from common.config import Config, ConfigError, add_config_arguments, config_from_args, from_dict, parse_flags, to_toml
 from common.network import D3RQN, load_numpy_weights
 from common.transport import Keys, open_session, request
 from common.wire import Weights
@@ -295,7 +295,7 @@ def parse_sets(text: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = build_parser().parse_args(argv)
+    args = parse_flags(build_parser(), argv)
     try:
         _main(args)
     except (EvaluationError, ConfigError, CheckpointError) as error:

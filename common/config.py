@@ -5,6 +5,11 @@ then command-line flags named after the dotted path of a field
 (``--learner.lr 3e-4``, ``--exploration.bmc.alpha0 25``). Every value is
 checked against its field's type and range; a bad one raises ``ConfigError``
 whose one-line message names the key.
+
+Each field is declared with ``option()``, whose one documentation string (with
+the unit and choices) is the flag's ``--help`` line; ``--preset NAME --help``
+shows that preset's defaults. Flags are never abbreviated: an unknown one is an
+error that suggests the nearest known flag.
 """
 
 from __future__ import annotations
@@ -12,13 +17,24 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import difflib
 import math
 import sys
+import textwrap
 import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+
+def option(default: Any, doc: str, unit: str = "", choices: tuple[str, ...] = ()) -> Any:
+    """A config field with its one documentation string, which `--help` shows: what the value
+    means, its unit (if it has one) and, for a closed set of words, its choices."""
+    metadata = {"doc": doc, "unit": unit, "choices": choices}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=metadata)
+    return field(default=default, metadata=metadata)
 
 
 class ConfigError(ValueError):
@@ -38,12 +54,16 @@ STRATEGIES = (
 
 @dataclass
 class NetworkConfig:
-    frame_height: int = 66
-    frame_width: int = 200
-    frame_channels: int = 3
-    lstm_units: int = 512
-    n_actions: int = 5
-    device: str = "auto"  # "auto" picks CUDA when available, else CPU
+    """The D3RQN: three convolutions, an LSTM and a dueling head (learner and actors alike)."""
+
+    frame_height: int = option(66, "height of the camera image the network takes", "px")
+    frame_width: int = option(200, "width of the camera image the network takes", "px")
+    frame_channels: int = option(3, "colour channels of the camera image (3: RGB)")
+    lstm_units: int = option(512, "LSTM units; the output is split in two halves, for the dueling value and "
+                                  "advantage streams")
+    n_actions: int = option(5, "discrete steering actions (the Q-values the network outputs)")
+    device: str = option("auto", "where the network runs: auto picks CUDA when available, else the CPU",
+                         choices=("auto", "cpu", "cuda[:N]"))
 
     def validate(self) -> None:
         _positive(self, "frame_height", "frame_width", "frame_channels", "n_actions")
@@ -56,32 +76,35 @@ class NetworkConfig:
 
 @dataclass
 class ReplayConfig:
-    capacity: int = 1000  # episodes; the paper studies 1,000 and 2,000
-    # Compressed frames plus metadata; a cap, not an allocation. 16 GB holds 2,000 episodes of
-    # env.max_steps = 2,000 steps at up to 4.1 KB a frame (measured on random drives: front
-    # camera 2.6 KB, top-down 3.5 KB). At start
-    # the replay logs how many full-length episodes fit, and warns loudly when fewer than
-    # `capacity` do; once episodes arrive it checks again with the measured frame size.
-    memory_budget_mb: float = 16384.0
-    frame_kb_estimate: float = 3.2  # one compressed frame, for the start-up check until measured
-    max_message_mb: float = 64.0  # larger episode messages are rejected
-    max_batch_size: int = 256  # largest trace batch one query may ask for
-    # The rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one
-    # update per learner.env_steps_per_update env steps: it holds trace batches while the learner
-    # is this many updates ahead, and holds the actors' next episode while it is this many behind.
-    # The whole run's ratio is off by at most this many updates. A buffer of at least the updates
-    # the budget pays for (1e9) holds nobody: the run is unpaced and ends at the budget.
-    error_buffer_updates: float = 50.0
-    stats_period_s: float = 1.0
-    log_period_s: float = 10.0
-    seed: int = 0
-    # An episode (or trace batch) with a reward of larger magnitude is refused as absurd; the
-    # env's rewards exp(-beta d) lie in [0, 1].
-    reward_limit: float = 100.0
-    # The replay writes its episodes and counters to <runs_dir>/<run>/replay/snapshot/ this often
-    # (and at exit); only episodes new since the last snapshot are written. `replay --resume`
-    # restores it. 0 turns snapshots off.
-    snapshot_period_s: float = 30.0
+    """The replay service: the episode store, its memory cap, the rate limiter, snapshots."""
+
+    capacity: int = option(1000, "episodes the replay holds; beyond it the oldest is dropped (the paper studies "
+                                 "1,000 and 2,000)", "episodes")
+    # 4.1 KB a frame at most, measured on random drives: front camera 2.6 KB, top-down 3.5 KB.
+    memory_budget_mb: float = option(
+        16384.0, "cap on the compressed frames plus metadata the replay holds, not an allocation; 16 GB holds 2,000 "
+                 "episodes of env.max_steps = 2,000 steps at up to 4.1 KB a frame. At start the replay logs how many "
+                 "full-length episodes fit and warns loudly when fewer than capacity do; once episodes arrive it "
+                 "checks again with the measured frame size", "MB")
+    frame_kb_estimate: float = option(3.2, "size of one compressed frame, for the start-up memory check until "
+                                           "frames are measured", "KB")
+    max_message_mb: float = option(64.0, "larger episode messages are rejected", "MB")
+    max_batch_size: int = option(256, "largest trace batch one query may ask for", "traces")
+    error_buffer_updates: float = option(
+        50.0, "the rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one update per "
+              "learner.env_steps_per_update env steps: it holds trace batches while the learner is this many updates "
+              "ahead, and the actors' next episode while it is this many behind. The whole run's ratio is off by at "
+              "most this many updates. A buffer of at least the updates the budget pays for (1e9) holds nobody: the "
+              "run is unpaced and ends at the budget", "updates")
+    stats_period_s: float = option(1.0, "how often the replay publishes its stats and checks the actors' hold", "s")
+    log_period_s: float = option(10.0, "how often the replay logs a status line", "s")
+    seed: int = option(0, "seed of the replay's trace sampling")
+    reward_limit: float = option(100.0, "an episode (or trace batch) with a reward of larger magnitude is refused as "
+                                        "absurd; the env's rewards exp(-beta d) lie in [0, 1]")
+    snapshot_period_s: float = option(
+        30.0, "how often the replay writes its episodes and counters to <runs_dir>/<run>/replay/snapshot/ (and at "
+              "exit); only episodes new since the last snapshot are written, `replay --resume` restores them; 0 turns "
+              "snapshots off", "s")
 
     def validate(self) -> None:
         _positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
@@ -96,32 +119,38 @@ UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
 
 @dataclass
 class LearnerConfig:
-    lr: float = 1e-4
-    gamma: float = 0.99
-    tau: float = 0.001  # soft target update before every gradient step
-    batch_size: int = 10  # traces per batch
-    trace_length: int = 10  # steps per trace (trace_length + 1 observations)
-    n_mask: int = 7  # leading errors of each trace that are masked out
-    # One update per this many env steps of the whole system, counted from the start of updates;
-    # the replay's rate limiter holds whichever side runs ahead (replay.error_buffer_updates).
-    env_steps_per_update: float = 4.0
-    start_episodes: int = 999  # updates start the moment the replay holds this many episodes
-    start_steps: int = 50_000  # used instead when the learner's strategy is decreasing epsilon
-    total_env_steps: int = 1_000_000  # the run ends here: actors hold, the learner pays the last steps
-    weights_every: int = 50  # broadcast weights every K updates
-    checkpoint_every: int = 5_000  # updates
-    prefetch: int = 2  # batch requests kept in flight
-    # 0 keeps torch's default (all cores): paced actors leave the learner most of the CPU.
-    # On a host shared with busy processes, fewer threads avoid oversubscription, which
-    # slows an update several times over.
-    torch_threads: int = 0
-    # How an update computes its passes (learner/update.py): "trace" (hand-written passes, CPU-tuned),
-    # "trace-split" (the same, the target pass on a helper thread with half the torch threads),
-    # "autograd" (nn.LSTM under autograd; cuDNN on CUDA), or "auto": each timed on the first batch
-    # (a second or two at the paper's sizes), the fastest kept for the process.
-    update_path: str = "auto"
-    log_period_s: float = 10.0
-    seed: int = 0
+    """Training: the double dueling recurrent Q-learning update, its pace, weights and checkpoints."""
+
+    lr: float = option(1e-4, "Adam's learning rate")
+    gamma: float = option(0.99, "discount factor of future rewards, in [0, 1]")
+    tau: float = option(0.001, "soft target update before every gradient step: target <- tau online + (1 - tau) "
+                               "target, in (0, 1]")
+    batch_size: int = option(10, "traces per batch", "traces")
+    trace_length: int = option(10, "steps per trace (trace_length + 1 observations)", "steps")
+    n_mask: int = option(7, "leading errors of each trace that are masked out of the loss (the LSTM's warm-up)",
+                         "steps")
+    env_steps_per_update: float = option(
+        4.0, "one update per this many env steps of the whole system, counted from the start of updates; the "
+             "replay's rate limiter holds whichever side runs ahead (replay.error_buffer_updates)", "env steps")
+    start_episodes: int = option(999, "updates start the moment the replay holds this many episodes", "episodes")
+    start_steps: int = option(50_000, "used instead of start_episodes when the learner's strategy is decreasing "
+                                      "epsilon", "env steps")
+    total_env_steps: int = option(1_000_000, "the run ends here: actors hold, the learner pays the last steps",
+                                  "env steps")
+    weights_every: int = option(50, "broadcast the weights to the actors every this many updates", "updates")
+    checkpoint_every: int = option(5_000, "write checkpoints/latest.pt every this many updates", "updates")
+    prefetch: int = option(2, "batch requests kept in flight to the replay", "batches")
+    torch_threads: int = option(
+        0, "torch's CPU threads; 0 keeps torch's default (all cores): paced actors leave the learner most of the "
+           "CPU. On a host shared with busy processes, fewer threads avoid oversubscription, which slows an update "
+           "several times over", "threads")
+    update_path: str = option(
+        "auto", "how an update computes its passes (learner/update.py): trace (hand-written passes, CPU-tuned), "
+                "trace-split (the same, the target pass on a helper thread with half the torch threads), autograd "
+                "(nn.LSTM under autograd; cuDNN on CUDA), or auto: each timed on the first batch (a second or two at "
+                "the paper's sizes), the fastest kept for the process", choices=UPDATE_PATHS)
+    log_period_s: float = option(10.0, "how often the learner logs and publishes its metrics", "s")
+    seed: int = option(0, "seed of the network's initial weights")
 
     def validate(self) -> None:
         _positive(self, "lr", "batch_size", "trace_length", "env_steps_per_update",
@@ -137,7 +166,9 @@ class LearnerConfig:
 
 @dataclass
 class ConstantEpsilonConfig:
-    epsilon: float = 0.05
+    """Constant epsilon-greedy."""
+
+    epsilon: float = option(0.05, "probability of a uniformly random action, in [0, 1]")
 
     def validate(self) -> None:
         _probability(self, "epsilon")
@@ -145,12 +176,15 @@ class ConstantEpsilonConfig:
 
 @dataclass
 class DecreasingEpsilonConfig:
-    eps_start: float = 1.0
-    eps_last: float = 0.1
-    eps_end: float = 0.01
-    n_start: int = 50_000
-    n_ann: int = 400_000
-    n_max: int = 1_000_000
+    """Decreasing epsilon-greedy: epsilon by env steps, two linear slopes (REFERENCE.md)."""
+
+    eps_start: float = option(1.0, "epsilon until n_start env steps, in [0, 1]")
+    eps_last: float = option(0.1, "epsilon reached at n_start + n_ann env steps, the end of the first slope, "
+                                  "in [0, 1]")
+    eps_end: float = option(0.01, "epsilon reached at n_max env steps and held after, in [0, 1]")
+    n_start: int = option(50_000, "env steps at eps_start before epsilon starts to fall", "env steps")
+    n_ann: int = option(400_000, "length of the first slope, from eps_start to eps_last", "env steps")
+    n_max: int = option(1_000_000, "end of the second slope, at eps_end; must exceed n_start + n_ann", "env steps")
 
     def validate(self) -> None:
         _probability(self, "eps_start", "eps_last", "eps_end")
@@ -161,9 +195,12 @@ class DecreasingEpsilonConfig:
 
 @dataclass
 class VdbeConfig:
-    lam: float = 0.2  # 1 / number of actions
-    nu: float = 1.0  # inverse sensitivity
-    eps0: float = 1.0
+    """VDBE: epsilon follows how much each update changes Q (also VDBE-Softmax's epsilon)."""
+
+    lam: float = option(0.2, "lambda, the weight of each update's f(Delta) in epsilon (1 / number of actions), "
+                             "in [0, 1]")
+    nu: float = option(1.0, "inverse sensitivity: f = (1 - e^(-|Delta|/nu)) / (1 + e^(-|Delta|/nu))")
+    eps0: float = option(1.0, "epsilon when updates start, in [0, 1]")
 
     def validate(self) -> None:
         _probability(self, "lam", "eps0")
@@ -175,16 +212,20 @@ BMC_OBSERVATIONS = ("per_step", "per_transition")
 
 @dataclass
 class BmcConfig:
-    alpha0: float = 25.0
-    beta0: float = 25.01  # the authors' code; the paper says 25
-    a0: float = 250.0
-    b0: float = 250.0
-    mu0: float = 0.0
-    tau0: float = 1.0
-    # Which transitions of each batch the posterior observes: "per_step" (the authors' rate:
-    # as many per update as env steps per update, the newest step of each trace first) or
-    # "per_transition" (every unmasked transition of the batch: 30 per update, 7.5 per env step).
-    observations: str = "per_step"
+    """epsilon-BMC: epsilon = alpha / (alpha + beta), a Beta posterior over a greedy and a uniform model."""
+
+    alpha0: float = option(25.0, "alpha of the Beta prior (the uniform model's weight)")
+    beta0: float = option(25.01, "beta of the Beta prior (the greedy model's weight); 25.01 is the authors' code, "
+                                 "the paper says 25")
+    a0: float = option(250.0, "shape a of the Normal-Gamma prior on the returns")
+    b0: float = option(250.0, "rate b of the Normal-Gamma prior on the returns")
+    mu0: float = option(0.0, "prior mean of the returns")
+    tau0: float = option(1.0, "prior precision scale of the returns' mean")
+    observations: str = option(
+        "per_step", "which transitions of each batch the posterior observes: per_step (the authors' rate: as many "
+                    "per update as env steps per update, the newest step of each trace first) or per_transition "
+                    "(every unmasked transition of the batch: 30 per update, 7.5 per env step)",
+        choices=BMC_OBSERVATIONS)
 
     def validate(self) -> None:
         _positive(self, "alpha0", "beta0", "a0", "b0", "tau0")
@@ -193,7 +234,9 @@ class BmcConfig:
 
 @dataclass
 class SoftmaxConfig:
-    kappa: float = 0.1  # temperature
+    """Softmax (Boltzmann) exploration: every action is sampled from softmax(Q / kappa)."""
+
+    kappa: float = option(0.1, "temperature of softmax(Q / kappa); also VDBE-Softmax's")
 
     def validate(self) -> None:
         _positive(self, "kappa")
@@ -201,8 +244,10 @@ class SoftmaxConfig:
 
 @dataclass
 class MaxBoltzmannConfig:
-    epsilon: float = 0.05
-    kappa: float = 0.1
+    """Max-Boltzmann: greedy, or with probability epsilon a softmax(Q / kappa) sample."""
+
+    epsilon: float = option(0.05, "probability of a softmax sample instead of the greedy action, in [0, 1]")
+    kappa: float = option(0.1, "temperature of the softmax sample")
 
     def validate(self) -> None:
         _probability(self, "epsilon")
@@ -211,7 +256,10 @@ class MaxBoltzmannConfig:
 
 @dataclass
 class ExplorationConfig:
-    strategy: str = "bmc"
+    """The exploration strategy the learner drives and the actors follow, and each one's parameters."""
+
+    strategy: str = option("bmc", "the exploration strategy (the paper's seven; common/exploration.py)",
+                           choices=STRATEGIES)
     constant: ConstantEpsilonConfig = field(default_factory=ConstantEpsilonConfig)
     decreasing: DecreasingEpsilonConfig = field(default_factory=DecreasingEpsilonConfig)
     vdbe: VdbeConfig = field(default_factory=VdbeConfig)
@@ -228,48 +276,48 @@ CAMERAS = ("front", "topdown")
 
 @dataclass
 class EnvConfig:
-    speed: float = 10.0  # m/s, held constant
-    max_steer_deg: float = 25.0  # highway-env's bicycle model then turns on a 9.9 m radius
-    # Decisions per second. At 10 Hz a step is 1 m of road: random steering then stays on the
-    # road for about 19 steps (median 15), enough for traces of 10; at 5 Hz only 7.6 (median 6).
-    policy_frequency: int = 10
-    # highway-env's motion model (forward Euler) is stepped this often; a multiple of policy_frequency.
-    simulation_frequency: int = 20
-    reward_beta: float = 0.8  # r = exp(-beta * d), d the distance to the street's centre-line
-    offroad_distance: float = 3.7  # m from the centre-line that ends an episode (the kerb)
-    max_steps: int = 2000  # a cut, not a terminal state
-    lane_offset_m: float = 2.0  # highway-env lanes run this far right of the centre-line, one per direction
+    """The simulated drive (actor/sim/): the car, the reward, the camera, episode ends, traffic."""
 
-    # What the car sees: "front" (a pinhole camera on the roof, the paper's set-up) or
-    # "topdown" (a heading-up map crop, nearly fully observed; for comparison).
-    camera: str = "front"
-    camera_height_m: float = 1.4  # front camera above the road
-    camera_pitch_deg: float = 5.0  # front camera tilted down from the horizontal
-    camera_hfov_deg: float = 90.0  # front camera's horizontal field of view
-    camera_range_m: float = 40.0  # front camera: nothing farther is drawn (haze); 40 m keeps the step fast
-    topdown_ahead_m: float = 30.0  # top-down camera: metres of road visible ahead of the car
-    topdown_behind_m: float = 2.0
-    topdown_width_m: float = 24.0
-    render_scale: float = 8.0  # pixels per metre of the pre-drawn world
-
-    # Each start pose is shifted sideways and turned by a uniform draw within these bounds
-    # (the env's RNG), so repeated trials from one start differ as AirSim's physics made them.
-    start_jitter_m: float = 0.3
-    start_jitter_deg: float = 3.0
-
-    # An episode that covers less than stall_min_progress_m of new road in stall_window_s ends
-    # as "stalled" (terminated, like leaving the road): circling on a junction is not driving.
-    # Road counts as new when not driven within progress_memory_s (shorter than a lap of the
-    # smallest block, about 27 s at 10 m/s, so going round a block keeps counting).
-    stall_window_s: float = 10.0
-    stall_min_progress_m: float = 25.0
-    progress_memory_s: float = 20.0
-
-    # Moving traffic (beyond the paper, which had none): highway-env IDM vehicles on routes of
-    # their own, at speeds drawn from [traffic_speed_min, traffic_speed_max] m/s.
-    traffic_vehicles: int = 0
-    traffic_speed_min: float = 6.0
-    traffic_speed_max: float = 9.0
+    speed: float = option(10.0, "the car's speed, held constant", "m/s")
+    max_steer_deg: float = option(25.0, "largest steering angle; highway-env's bicycle model then turns on a 9.9 m "
+                                        "radius", "degrees")
+    policy_frequency: int = option(10, "decisions per second. At 10 Hz a step is 1 m of road: random steering then "
+                                       "stays on the road for about 19 steps (median 15), enough for traces of 10; "
+                                       "at 5 Hz only 7.6 (median 6)", "Hz")
+    simulation_frequency: int = option(20, "how often highway-env's motion model (forward Euler) is stepped; a "
+                                           "multiple of policy_frequency", "Hz")
+    reward_beta: float = option(0.8, "beta of the reward r = exp(-beta * d), d the distance to the street's "
+                                     "centre-line", "1/m")
+    offroad_distance: float = option(3.7, "distance from the centre-line that ends an episode (the kerb)", "m")
+    max_steps: int = option(2000, "an episode is cut here (a cut, not a terminal state)", "steps")
+    lane_offset_m: float = option(2.0, "highway-env lanes run this far right of the centre-line, one per direction",
+                                  "m")
+    camera: str = option("front", "what the car sees: front (a pinhole camera on the roof, the paper's set-up) or "
+                                  "topdown (a heading-up map crop, nearly fully observed; for comparison)",
+                         choices=CAMERAS)
+    camera_height_m: float = option(1.4, "front camera's height above the road", "m")
+    camera_pitch_deg: float = option(5.0, "front camera's tilt down from the horizontal", "degrees")
+    camera_hfov_deg: float = option(90.0, "front camera's horizontal field of view", "degrees")
+    camera_range_m: float = option(40.0, "front camera: nothing farther is drawn (haze); 40 m keeps the step fast",
+                                   "m")
+    topdown_ahead_m: float = option(30.0, "top-down camera: road visible ahead of the car", "m")
+    topdown_behind_m: float = option(2.0, "top-down camera: road visible behind the car", "m")
+    topdown_width_m: float = option(24.0, "top-down camera: width of the road visible", "m")
+    render_scale: float = option(8.0, "resolution of the pre-drawn world", "px/m")
+    # Uniform draws from the env's RNG, so repeated trials from one start differ as AirSim's physics made them.
+    start_jitter_m: float = option(0.3, "each start pose is shifted sideways by a uniform draw within +-this", "m")
+    start_jitter_deg: float = option(3.0, "each start pose is turned by a uniform draw within +-this", "degrees")
+    # Circling on a junction is not driving.
+    stall_window_s: float = option(10.0, "an episode that covers less than stall_min_progress_m of new road in this "
+                                         "time ends as stalled (terminated, like leaving the road)", "s")
+    stall_min_progress_m: float = option(25.0, "new road an episode must cover in each stall_window_s", "m")
+    progress_memory_s: float = option(20.0, "road counts as new when not driven within this time (shorter than a "
+                                            "lap of the smallest block, about 27 s at 10 m/s, so going round a block "
+                                            "keeps counting)", "s")
+    traffic_vehicles: int = option(0, "moving traffic (beyond the paper, which had none): highway-env IDM vehicles "
+                                      "on routes of their own, at most 20", "vehicles")
+    traffic_speed_min: float = option(6.0, "slowest speed a traffic vehicle is given (drawn uniformly)", "m/s")
+    traffic_speed_max: float = option(9.0, "fastest speed a traffic vehicle is given (drawn uniformly)", "m/s")
 
     def validate(self) -> None:
         _positive(self, "speed", "max_steer_deg", "policy_frequency", "simulation_frequency",
@@ -295,13 +343,16 @@ class EnvConfig:
 
 @dataclass
 class ActorConfig:
-    num_actors: int = 0  # local stack: 0 means one per spare core
-    actor_id: int = 0
-    log_period_s: float = 10.0
-    # Finished episodes wait in a queue while no replay listens (a replay restart); the actor
-    # holds its next episode while the queue has this many episodes or this many MB.
-    queue_episodes: int = 32
-    queue_mb: float = 256.0
+    """An actor process: which one it is, how often it logs, and its queue while no replay listens."""
+
+    num_actors: int = option(0, "actors the local stack starts; 0 means one per spare core", "actors")
+    actor_id: int = option(0, "this actor's number: its keys and, with run.seed, its seed")
+    log_period_s: float = option(10.0, "how often the actor logs a status line", "s")
+    # Finished episodes wait in a queue while no replay listens (a replay restart).
+    queue_episodes: int = option(32, "the actor holds its next episode while this many finished episodes wait "
+                                     "for a replay", "episodes")
+    queue_mb: float = option(256.0, "the actor holds its next episode while this much of finished episodes waits "
+                                    "for a replay", "MB")
 
     def validate(self) -> None:
         _check(self.num_actors >= 0, "num_actors", "must be >= 0")
@@ -311,17 +362,21 @@ class ActorConfig:
 
 @dataclass
 class EvaluationConfig:
-    episodes_per_start: int = 30
-    max_steps: int = 2000
-    workers: int = 2
-    envs_per_worker: int = 4
-    reward_bins: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 0.75, 1.0])
-    seed: int = 0  # root of every trial's seed (env reset, random baseline, privileged driver's turns)
-    progress_period_s: float = 1.0  # how often the progress line on stderr is refreshed
-    live_timeout_s: float = 30.0  # --live: how long to wait for the learner's latest weights
-    # Intervals of the tables: stratified bootstrap over runs and trials (actor/evaluation_intervals.py).
-    bootstrap_replicates: int = 2000
-    confidence: float = 0.95
+    """`evaluate`: greedy episodes from every start pose, and the intervals of the tables."""
+
+    episodes_per_start: int = option(30, "episodes from each start pose of each start set", "episodes")
+    max_steps: int = option(2000, "an evaluation episode is cut here", "steps")
+    workers: int = option(2, "evaluation processes", "processes")
+    envs_per_worker: int = option(4, "simulators each worker steps in lockstep", "simulators")
+    reward_bins: list[float] = option([0.0, 0.25, 0.5, 0.75, 1.0], "edges of the bins the episodes' step rewards "
+                                                                   "are counted in; must cover [0, 1]")
+    seed: int = option(0, "root of every trial's seed (env reset, random baseline, privileged driver's turns) and "
+                          "of the bootstrap")
+    progress_period_s: float = option(1.0, "how often the progress line on stderr is refreshed", "s")
+    live_timeout_s: float = option(30.0, "--live: how long to wait for the learner's latest weights", "s")
+    bootstrap_replicates: int = option(2000, "replicates of the tables' intervals: a stratified bootstrap over "
+                                             "runs and trials (actor/evaluation_intervals.py)", "replicates")
+    confidence: float = option(0.95, "level of the tables' percentile intervals, in (0, 1)")
 
     def validate(self) -> None:
         _positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
@@ -332,31 +387,41 @@ class EvaluationConfig:
         _check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
 
 
+TRANSPORT_MODES = ("peer", "client", "router")
+
+
 @dataclass
 class TransportConfig:
-    mode: str = "peer"  # "peer", "client" or "router"
-    listen: list[str] = field(default_factory=list)
-    connect: list[str] = field(default_factory=list)
-    multicast_scouting: bool = False
-    namespace: str = "d3rqn"
-    connect_timeout_s: float = 10.0  # client mode: how long opening a session retries its connect endpoints
+    """The Zenoh session: mode, endpoints, key namespace, TLS and access control."""
+
+    mode: str = option("peer", "Zenoh session mode", choices=TRANSPORT_MODES)
+    listen: list[str] = option([], "endpoints to listen on, e.g. tcp/0.0.0.0:7447")
+    connect: list[str] = option([], "endpoints to connect to, e.g. tcp/127.0.0.1:7447")
+    multicast_scouting: bool = option(False, "find peers by UDP multicast on the local network")
+    namespace: str = option("d3rqn", "first chunk of every key: <namespace>/<run.name>/...")
+    connect_timeout_s: float = option(10.0, "client mode: how long opening a session retries its connect endpoints",
+                                      "s")
     # TLS on tls/<host>:<port> endpoints (README "Securing a cluster"; d3rqn-certs makes the files).
-    # PEM files; relative paths start from the working directory.
-    tls_ca: str = ""  # the run's CA: listeners' certificates (and with tls_mtls, peers') must be signed by it
-    tls_certificate: str = ""  # this host's certificate, shown when listening (and with tls_mtls, connecting)
-    tls_key: str = ""  # its private key
-    tls_mtls: bool = False  # mutual TLS: listeners admit only peers with a certificate signed by tls_ca
-    tls_verify_name: bool = True  # a connecting process checks the listener's certificate names the address dialled
-    # Access control on this session's links (the router's), by the common name of each peer's
-    # certificate (needs tls_mtls; common/access.py lists what each role may do). Deny by default.
-    acl: bool = False
-    acl_learners: list[str] = field(default_factory=lambda: ["learner"])
-    acl_actors: list[str] = field(default_factory=lambda: ["actor"])
-    acl_replays: list[str] = field(default_factory=lambda: ["replay"])  # a replay that is not the router
-    acl_observers: list[str] = field(default_factory=lambda: ["recorder"])  # read everything, write nothing
+    tls_ca: str = option("", "PEM file of the run's CA: listeners' certificates (and with tls_mtls, peers') must "
+                             "be signed by it; relative paths start from the working directory")
+    tls_certificate: str = option("", "PEM file of this host's certificate, shown when listening (and with "
+                                      "tls_mtls, connecting)")
+    tls_key: str = option("", "PEM file of this host's private key")
+    tls_mtls: bool = option(False, "mutual TLS: listeners admit only peers with a certificate signed by tls_ca")
+    tls_verify_name: bool = option(True, "a connecting process checks that the listener's certificate names the "
+                                         "address dialled")
+    # Deny by default; common/access.py lists what each role may do.
+    acl: bool = option(False, "access control on this session's links (the router's), by the common name of each "
+                              "peer's certificate; needs tls_mtls")
+    acl_learners: list[str] = option(["learner"], "certificate common names admitted as learners")
+    acl_actors: list[str] = option(["actor"], "certificate common names admitted as actors")
+    acl_replays: list[str] = option(["replay"], "certificate common names admitted as a replay that is not the "
+                                                "router")
+    acl_observers: list[str] = option(["recorder"], "certificate common names admitted as observers: they read "
+                                                    "everything and write nothing")
 
     def validate(self) -> None:
-        _check(self.mode in ("peer", "client", "router"), "mode", "must be 'peer', 'client' or 'router'")
+        _check(self.mode in TRANSPORT_MODES, "mode", "must be 'peer', 'client' or 'router'")
         _positive(self, "connect_timeout_s")
         for key in ("listen", "connect"):
             for endpoint in getattr(self, key):
@@ -386,35 +451,48 @@ class TransportConfig:
 
 @dataclass
 class RunConfig:
-    name: str = "default"
-    seed: int = 0
-    runs_dir: str = "runs"
+    """Which run a process belongs to and where its folder is."""
+
+    name: str = option("default", "the run's name: its folder <runs_dir>/<name>/ and its keys "
+                                  "<transport.namespace>/<name>/...")
+    seed: int = option(0, "root of the actors' seeds (each derived with its actor.actor_id)")
+    runs_dir: str = option("runs", "folder that holds the run folders")
 
     def validate(self) -> None:
         _check(_is_key_chunk(self.name), "name", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+
+
+IMAGE_FORMATS = ("png", "jpeg")
 
 
 @dataclass
 class RecorderConfig:
     """The flight recorder (replay/log): what it keeps of a run's traffic and how it writes the MCAP file."""
 
-    enabled: bool = True  # the local stack starts a recorder writing <runs_dir>/<run>/traffic.mcap
-    # A Weights message is 48 MB: keep one when its version is this far past the last kept one
-    # (the first and the last of a run are always kept); a paper run has ~250,000 versions.
-    weights_every_versions: int = 50_000
-    flush_period_s: float = 5.0  # closes the open chunk this often: a killed recorder loses at most this span
-    chunk_mb: float = 4.0  # a chunk also closes at this size
-    queue_messages: int = 10_000  # hand-off from Zenoh's threads to the writer; beyond it messages are
-    queue_mb: float = 512.0  # dropped and counted, never waited for
-    views: bool = True  # JSON copies of metrics, stats and exploration state that Foxglove reads without plugins
-    images: bool = False  # camera frames as foxglove.CompressedImage while recording (CPU, size); see `export --images`
-    image_format: str = "png"  # "png" (lossless) or "jpeg"
-    stats_period_s: float = 5.0  # the recorder's own counters on metrics/recorder/0
+    enabled: bool = option(True, "the local stack starts a recorder writing <runs_dir>/<run>/traffic.mcap")
+    # A paper run has ~250,000 weight versions of 48 MB each.
+    weights_every_versions: int = option(50_000, "keep a Weights message when its version is this far past the "
+                                                 "last kept one (the first and the last of a run are always kept)",
+                                         "versions")
+    flush_period_s: float = option(5.0, "closes the open chunk this often: a killed recorder loses at most this "
+                                        "span", "s")
+    chunk_mb: float = option(4.0, "a chunk also closes at this size", "MB")
+    queue_messages: int = option(10_000, "hand-off from Zenoh's threads to the writer; beyond it messages are "
+                                         "dropped and counted, never waited for", "messages")
+    queue_mb: float = option(512.0, "the same hand-off's cap in size; beyond it messages are dropped and counted",
+                             "MB")
+    views: bool = option(True, "also write JSON copies of metrics, stats and exploration state that Foxglove reads "
+                               "without plugins")
+    images: bool = option(False, "also write camera frames as foxglove.CompressedImage while recording (CPU, size); "
+                                 "see `d3rqn-log export --images`")
+    image_format: str = option("png", "format of those frames: png (lossless) or jpeg", choices=IMAGE_FORMATS)
+    stats_period_s: float = option(5.0, "how often the recorder publishes its own counters on metrics/recorder/0",
+                                   "s")
 
     def validate(self) -> None:
         _positive(self, "weights_every_versions", "flush_period_s", "chunk_mb", "queue_messages", "queue_mb",
                   "stats_period_s")
-        _check(self.image_format in ("png", "jpeg"), "image_format", "must be 'png' or 'jpeg'")
+        _check(self.image_format in IMAGE_FORMATS, "image_format", "must be 'png' or 'jpeg'")
 
 
 @dataclass
@@ -445,44 +523,50 @@ class Config:
 
 # --- presets -----------------------------------------------------------------
 
-PRESETS: dict[str, dict[str, Any]] = {
-    # The paper's values are the dataclass defaults.
-    "paper": {},
-    # The main job on a 2-core CPU machine (about 30 minutes): the paper's agent, buffer and
-    # ratio, with the run cut to 60,000 steps and the decreasing schedule scaled to that length.
-    "local": {
-        "learner.total_env_steps": 60_000,
-        "learner.start_steps": 10_000,
-        "learner.checkpoint_every": 1_000,
-        "exploration.decreasing.n_start": 10_000,
-        "exploration.decreasing.n_ann": 20_000,
-        "exploration.decreasing.n_max": 60_000,
-    },
-    # Seconds-long runs for tests: tiny buffer, short episodes, early updates.
-    "smoke": {
-        "replay.capacity": 50,
-        "replay.stats_period_s": 0.5,
-        "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
-        "learner.batch_size": 4,
-        "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
-        "learner.start_episodes": 2,
-        "learner.start_steps": 100,
-        "learner.total_env_steps": 20_000,
-        "learner.weights_every": 5,
-        "learner.checkpoint_every": 50,
-        "learner.log_period_s": 1.0,
-        "exploration.decreasing.n_start": 100,
-        "exploration.decreasing.n_ann": 800,
-        "exploration.decreasing.n_max": 2_000,
-        "env.max_steps": 60,
-        "actor.log_period_s": 1.0,
-        "evaluation.episodes_per_start": 1,
-        "evaluation.max_steps": 60,
-        "evaluation.workers": 1,
-        "evaluation.envs_per_worker": 2,
-    },
-}
+class Preset(dict):
+    """Values over the dataclass defaults, by dotted key, and what the preset is for (shown by --help)."""
 
+    def __init__(self, doc: str, values: dict[str, Any]) -> None:
+        super().__init__(values)
+        self.doc = doc
+
+
+PRESETS: dict[str, Preset] = {
+    "paper": Preset("the paper's values, which are the defaults", {}),
+    "local": Preset(
+        "the main job on a 2-core CPU machine (about 30 minutes): the paper's agent, buffer and ratio, with the run "
+        "cut to 60,000 steps and the decreasing schedule scaled to that length", {
+            "learner.total_env_steps": 60_000,
+            "learner.start_steps": 10_000,
+            "learner.checkpoint_every": 1_000,
+            "exploration.decreasing.n_start": 10_000,
+            "exploration.decreasing.n_ann": 20_000,
+            "exploration.decreasing.n_max": 60_000,
+        }),
+    "smoke": Preset(
+        "seconds-long runs for tests: tiny buffer, short episodes, early updates", {
+            "replay.capacity": 50,
+            "replay.stats_period_s": 0.5,
+            "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
+            "learner.batch_size": 4,
+            "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
+            "learner.start_episodes": 2,
+            "learner.start_steps": 100,
+            "learner.total_env_steps": 20_000,
+            "learner.weights_every": 5,
+            "learner.checkpoint_every": 50,
+            "learner.log_period_s": 1.0,
+            "exploration.decreasing.n_start": 100,
+            "exploration.decreasing.n_ann": 800,
+            "exploration.decreasing.n_max": 2_000,
+            "env.max_steps": 60,
+            "actor.log_period_s": 1.0,
+            "evaluation.episodes_per_start": 1,
+            "evaluation.max_steps": 60,
+            "evaluation.workers": 1,
+            "evaluation.envs_per_worker": 2,
+        }),
+}
 
 # --- building a config ---------------------------------------------------------
 
@@ -571,17 +655,43 @@ def to_dict(config: Config) -> dict[str, Any]:
 
 # --- command line ------------------------------------------------------------------
 
+def config_fields() -> dict[str, dataclasses.Field]:
+    """Every leaf field by dotted key; its metadata holds the doc, unit and choices of option()."""
+    fields: dict[str, dataclasses.Field] = {}
+    for path, section in _sections(Config()):
+        for f in dataclasses.fields(section):
+            if not dataclasses.is_dataclass(getattr(section, f.name)):
+                fields[f"{path}.{f.name}" if path else f.name] = f
+    return fields
+
+
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    """Adds --preset, --config, --dump-config and one flag per config field."""
-    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS), help="base values (default: paper)")
+    """Adds --preset, --config, --dump-config and one flag per config field, whose help is the
+    field's documentation with the defaults of the preset given before --help."""
+    parser.allow_abbrev = False  # a mistyped prefix (--run.nam) must not set another key
+    _shorten_usage(parser)
+    flags: dict[str, argparse.Action] = {}
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS), action=_PresetAction, flags=flags,
+                        help="base values, listed below (default: paper); `--preset NAME --help` shows its defaults")
     parser.add_argument("--config", metavar="FILE.toml", help="TOML file applied over the preset")
     parser.add_argument("--dump-config", action="store_true", help="print the resolved config as TOML and exit")
-    defaults = flat_items(Config())
+    for name, preset in PRESETS.items():
+        parser.add_argument_group(f"preset {name}", _preset_description(preset))
     group = parser.add_argument_group("configuration (dotted keys; applied over preset and file)")
-    for key, default in defaults.items():
-        shown = _toml_value(default)
-        group.add_argument(f"--{key}", dest=_dest(key), default=None, metavar=_metavar(default),
-                           help=f"default {shown}")
+    defaults = flat_items(Config())
+    for key, f in config_fields().items():
+        choices = f.metadata["choices"]
+        metavar = "{" + ",".join(choices) + "}" if choices else _metavar(defaults[key])
+        flags[key] = group.add_argument(f"--{key}", dest=_dest(key), default=None, metavar=metavar)
+    _show_defaults(flags, "paper")
+
+
+def parse_flags(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> argparse.Namespace:
+    """parser.parse_args(argv), but the error for an unknown flag suggests the nearest known one."""
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}{_suggestions(parser, unknown)}")
+    return args
 
 
 def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
@@ -597,7 +707,7 @@ def parse_config_or_exit(parser: argparse.ArgumentParser, argv: list[str] | None
 
     With --dump-config, prints the TOML and exits 0.
     """
-    args = parser.parse_args(argv)
+    args = parse_flags(parser, argv)
     try:
         config = config_from_args(args)
     except ConfigError as error:
@@ -613,6 +723,54 @@ def print_config(prog: str, config: Config) -> None:
     """The resolved config on stderr, so every process's log starts with what it ran with."""
     body = "\n".join(f"  {line}" for line in to_toml(config).splitlines() if line)
     print(f"{prog}: resolved config\n{body}", file=sys.stderr, flush=True)
+
+
+def _shorten_usage(parser: argparse.ArgumentParser) -> None:
+    """One placeholder for the config flags in the usage line: a hundred would bury an error message."""
+    if parser.usage is None:
+        own = parser.format_usage().removeprefix("usage: ").rstrip().replace("%", "%%")
+        indent = " " * len(f"usage: {parser.prog} ")
+        parser.usage = f"{own}\n{indent}[--preset NAME] [--config FILE.toml] [--dump-config] [--SECTION.KEY VALUE ...]"
+
+
+class _PresetAction(argparse.Action):
+    """Stores --preset and shows its defaults in the help of the config flags."""
+
+    def __init__(self, option_strings: list[str], dest: str, flags: dict[str, argparse.Action], **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.flags = flags
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        setattr(namespace, self.dest, values)
+        _show_defaults(self.flags, values)
+
+
+def _show_defaults(flags: dict[str, argparse.Action], preset: str) -> None:
+    defaults = flat_items(load_config(preset))
+    fields = config_fields()
+    for key, flag in flags.items():
+        f = fields[key]
+        unit = f" [{f.metadata['unit']}]" if f.metadata["unit"] else ""
+        source = f" of preset {preset}" if key in PRESETS[preset] else ""
+        text = f"{f.metadata['doc']}{unit} (default{source}: {_toml_value(defaults[key])})"
+        flag.help = text.replace("%", "%%")  # argparse expands %-formats in help
+
+
+def _preset_description(preset: Preset) -> str:
+    changes = ", ".join(f"{key} = {_toml_value(value)}" for key, value in preset.items())
+    text = f"{preset.doc}; sets {changes}" if changes else f"{preset.doc}"
+    return textwrap.fill(text, width=100)  # pre-wrapped for parsers with a raw description formatter
+
+
+def _suggestions(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+    # argparse lists a parser's own flags only in this attribute; the config flags may sit in a subparser
+    known = [f"--{key}" for key in config_fields()] + list(parser._option_string_actions)
+    hints = []
+    for token in unknown:
+        flag = token.split("=", 1)[0]
+        if flag.startswith("--"):
+            hints += [f"; {flag}: did you mean {match}?" for match in difflib.get_close_matches(flag, known, n=1)]
+    return "".join(hints)
 
 
 # --- helpers -------------------------------------------------------------------------

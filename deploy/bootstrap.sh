@@ -2,8 +2,10 @@
 # Creates the project's virtual environment on first use and reinstalls only
 # when pyproject.toml or this script changes, so later runs start at once.
 #
-# CPU machines get torch==2.13.0 (a CPU build). A GPU user installs their own
-# torch into .venv first (see README); a torch already present is left alone.
+# CPU machines get torch==2.13.0, a CPU build: from PyTorch's CPU index, not PyPI's
+# CUDA build, unless pip's configuration names local wheels (deploy/torch_index.py).
+# A GPU user installs their own torch into .venv first (see README); a torch
+# already present is left alone.
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 venv="$root/.venv"
@@ -24,8 +26,10 @@ echo "[bootstrap] setting up $venv with $($python --version 2>&1)" >&2
 [ -x "$venv/bin/python" ] || "$python" -m venv "$venv"
 pip=("$venv/bin/python" -m pip --disable-pip-version-check -q)
 if ! "$venv/bin/python" -c "import torch" >/dev/null 2>&1; then
-    echo "[bootstrap] installing torch==${D3RQN_TORCH_VERSION:-2.13.0} (CPU build)" >&2
-    "${pip[@]}" install "torch==${D3RQN_TORCH_VERSION:-2.13.0}"
+    torch_index=$("$venv/bin/python" "$root/deploy/torch_index.py")  # "--index-url URL", or empty
+    echo "[bootstrap] installing torch==${D3RQN_TORCH_VERSION:-2.13.0} (CPU build${torch_index:+ from ${torch_index#--index-url }})" >&2
+    # shellcheck disable=SC2086  # unquoted on purpose: no word or two
+    "${pip[@]}" install $torch_index "torch==${D3RQN_TORCH_VERSION:-2.13.0}"
 fi
 echo "[bootstrap] installing d3rqn and its dependencies" >&2
 "${pip[@]}" install -e "$root[test]"

@@ -43,7 +43,7 @@ from actor.evaluation_comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATE
 from actor.evaluation_intervals import Bootstrap
 from actor.evaluation_profile import plot_performance_profiles
 from actor.evaluation_report import SUMMARY_CSV, bin_labels, read_facts
-from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args
+from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args, parse_flags
 from learner.checkpoint import LATEST, CheckpointError, load_checkpoint
 from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences,
                                 plot_reward_bins, plot_reward_curves, read_run_curves)
@@ -180,7 +180,7 @@ def check_config_flags(specs: list[RunSpec], options: Options) -> None:
     parser = config_parser()
     for spec in specs:
         try:
-            config_from_args(parser.parse_args([*options.extra, *grid_flags(spec, options)]))
+            config_from_args(parse_flags(parser, [*options.extra, *grid_flags(spec, options)]))
         except ConfigError as error:
             raise ExperimentError(f"config error: {error}") from None
 
@@ -194,7 +194,7 @@ def config_parser() -> argparse.ArgumentParser:
 
 def report_bootstrap(options: Options) -> Bootstrap:
     """The intervals' settings (evaluation.bootstrap_replicates, .confidence, .seed) of the runs' config flags."""
-    return bootstrap_of(config_from_args(config_parser().parse_args(list(options.extra))))
+    return bootstrap_of(config_from_args(parse_flags(config_parser(), list(options.extra))))
 
 
 # --- child processes -------------------------------------------------------------------------------------------

@@ -1,13 +1,15 @@
 import argparse
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from common.config import (
-    Config, ConfigError, PRESETS, add_config_arguments, flat_items, load_config,
-    parse_config_or_exit, to_toml,
+    BMC_OBSERVATIONS, CAMERAS, STRATEGIES, UPDATE_PATHS, Config, ConfigError, PRESETS, add_config_arguments,
+    config_fields, flat_items, load_config, parse_config_or_exit, parse_flags, to_toml,
 )
+from common.config import _toml_value as to_toml_value
 
 
 def test_paper_preset_holds_the_reference_values():
@@ -132,3 +134,132 @@ def test_each_role_prints_its_resolved_config_at_start():
                             capture_output=True, text=True, timeout=120)
     assert result.stderr.startswith("actor: resolved config\n")
     assert "  lr = 0.125" in result.stderr and "  [exploration.bmc]" in result.stderr
+
+
+# --- the help text, taken from each field's option() documentation ---------------------------------
+
+# A name part that spells a unit; the field must declare that unit.
+UNIT_OF_NAME_PART = {"s": "s", "m": "m", "mb": "MB", "kb": "KB", "deg": "degrees", "frequency": "Hz", "speed": "m/s"}
+
+ENUMERATED = {
+    "exploration.strategy": STRATEGIES,
+    "env.camera": CAMERAS,
+    "network.device": ("auto", "cpu", "cuda[:N]"),
+    "learner.update_path": UPDATE_PATHS,
+    "exploration.bmc.observations": BMC_OBSERVATIONS,
+    "transport.mode": ("peer", "client", "router"),
+    "record.image_format": ("png", "jpeg"),
+}
+
+
+def help_entries(text: str) -> dict[str, str]:
+    """--help output as {flag: its whole entry, whitespace collapsed}."""
+    entries: dict[str, list[str]] = {}
+    current = None
+    for line in text.splitlines():
+        if line.startswith("  --"):
+            current = line.split()[0]
+            entries[current] = [line]
+        elif current is not None and line.startswith("    "):
+            entries[current].append(line)
+        else:
+            current = None
+    return {flag: " ".join(" ".join(lines).split()) for flag, lines in entries.items()}
+
+
+def config_help(capsys, *argv: str) -> str:
+    parser = argparse.ArgumentParser(prog="prog")
+    add_config_arguments(parser)
+    with pytest.raises(SystemExit) as stop:
+        parser.parse_args([*argv, "--help"])
+    assert stop.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_every_field_has_a_doc_and_the_unit_its_name_spells():
+    fields = config_fields()
+    assert set(fields) == set(flat_items(Config()))
+    for key, f in fields.items():
+        assert f.metadata["doc"].strip(), f"{key} has no documentation"
+        implied = {UNIT_OF_NAME_PART[part] for part in f.name.split("_") if part in UNIT_OF_NAME_PART}
+        assert implied <= {f.metadata["unit"]}, f"{key}: unit {f.metadata['unit']!r}, its name says {implied}"
+
+
+def test_enumerated_fields_list_exactly_the_values_validation_accepts():
+    fields = config_fields()
+    assert {key for key, f in fields.items() if f.metadata["choices"]} == set(ENUMERATED)
+    for key, choices in ENUMERATED.items():
+        assert fields[key].metadata["choices"] == choices
+        for choice in choices:
+            load_config("paper", overrides={key: choice.replace("[:N]", ":1")})
+        with pytest.raises(ConfigError, match=key):
+            load_config("paper", overrides={key: "none-of-these"})
+
+
+def test_help_shows_each_options_doc_unit_choices_and_default(capsys):
+    entries = help_entries(config_help(capsys))
+    defaults = flat_items(Config())
+    for key, f in config_fields().items():
+        entry = entries[f"--{key}"]
+        first_words = " ".join(f.metadata["doc"].split()[:3])
+        assert first_words in entry, (key, entry)
+        assert entry.endswith(f"(default: {to_toml_value(defaults[key])})"), (key, entry)
+        if f.metadata["unit"]:
+            assert f"[{f.metadata['unit']}]" in entry, (key, entry)
+    assert entries["--exploration.strategy"].startswith("--exploration.strategy {" + ",".join(STRATEGIES) + "}")
+    assert entries["--env.camera"].startswith("--env.camera {front,topdown}")
+
+
+def test_help_shows_the_defaults_of_the_chosen_preset(capsys):
+    paper = help_entries(config_help(capsys))
+    local = help_entries(config_help(capsys, "--preset", "local"))
+    assert paper["--learner.total_env_steps"].endswith("(default: 1000000)")
+    assert local["--learner.total_env_steps"].endswith("(default of preset local: 60000)")
+    assert local["--learner.lr"].endswith("(default: 0.0001)")  # local keeps the paper's
+
+
+def test_help_lists_the_presets_and_what_each_changes(capsys):
+    text = " ".join(config_help(capsys).split())
+    for name, preset in PRESETS.items():
+        assert f"preset {name}: {preset.doc}" in text
+        for key, value in preset.items():
+            assert f"{key} = {to_toml_value(value)}" in text
+
+
+def test_the_stack_help_follows_its_preset():
+    stack = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
+    result = subprocess.run([sys.executable, str(stack), "--preset", "local", "--help"],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0
+    assert help_entries(result.stdout)["--learner.total_env_steps"].endswith("(default of preset local: 60000)")
+
+
+@pytest.mark.parametrize("argv, typed, suggestion", [
+    (["--run.nam", "x"], "--run.nam x", "--run.name"),  # an abbreviation argparse would have taken
+    (["--learner.lrr=3e-4"], "--learner.lrr=3e-4", "--learner.lr"),
+    (["--exploraton.strategy", "vdbe"], "--exploraton.strategy vdbe", "--exploration.strategy"),
+    (["--dump-conf"], "--dump-conf", "--dump-config"),
+])
+def test_an_unknown_or_abbreviated_flag_is_refused_with_a_suggestion(capsys, argv, typed, suggestion):
+    parser = argparse.ArgumentParser(prog="prog")
+    add_config_arguments(parser)
+    with pytest.raises(SystemExit) as stop:
+        parse_config_or_exit(parser, argv)
+    assert stop.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    flag = typed.split()[0].split("=")[0]
+    assert last == f"prog: error: unrecognized arguments: {typed}; {flag}: did you mean {suggestion}?"
+
+
+def test_a_subcommands_unknown_flag_gets_the_suggestion_too(capsys):
+    from replay.log.cli import build_parser
+    with pytest.raises(SystemExit):
+        parse_flags(build_parser(), ["record", "--run.nam", "x"])
+    assert capsys.readouterr().err.strip().endswith("--run.nam: did you mean --run.name?")
+
+
+def test_full_flag_names_still_set_their_keys():
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    _, config = parse_config_or_exit(parser, ["--run.name=x", "--preset", "local", "--env.camera", "topdown"])
+    assert (config.run.name, config.env.camera, config.learner.total_env_steps) == ("x", "topdown", 60_000)

@@ -17,7 +17,7 @@ import datetime
 import sys
 from pathlib import Path
 
-from common.config import add_config_arguments, parse_config_or_exit
+from common.config import add_config_arguments, parse_config_or_exit, parse_flags
 
 PROG = "d3rqn-log"
 
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     from replay.log.reader import LogError  # imported here so `--help` stays fast
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse_flags(parser, argv)
     config = None
     if hasattr(args, "preset"):  # record and play talk to a run over Zenoh
         args, config = parse_config_or_exit(parser, argv)
