@@ -397,11 +397,15 @@ def _visible(tests, range_m, features, radius, half, first):
     values = np.empty(10)
     count = 0
     for i in range(n):
+        outside = False
         for t in range(10):
             values[t] = 0.0
             for f in range(9):
                 values[t] += tests[t, f] * features[i, f]
-        if values[:5].max() > radius[i]:
+            if t < 5 and values[t] > radius[i]:  # beyond a frustum plane: most objects stop here
+                outside = True
+                break
+        if outside:
             continue
         start = values[5] - abs(values[6]) * half[i, 0] - abs(values[7]) * half[i, 1]
         if start > range_m:
