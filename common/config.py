@@ -20,20 +20,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from common.strategies import STRATEGIES  # re-exported: the config's choices of exploration.strategy
+
 
 class ConfigError(ValueError):
     """A configuration value, file or flag is wrong; the message names the key."""
-
-
-STRATEGIES = (
-    "constant",
-    "decreasing",
-    "vdbe",
-    "bmc",
-    "softmax",
-    "max_boltzmann",
-    "vdbe_softmax",
-)
 
 
 @dataclass

@@ -39,6 +39,7 @@ from pathlib import Path
 from common.config import Config
 from common.exploration import strategy_from_state
 from common.logs import Every, setup_logging
+from common.strategies import starts_by_steps
 from common.transport import (
     Keys, PendingQuery, RateLimitedLog, declare_liveliness, open_session, publisher, serve_deferred, subscribe,
 )
@@ -195,7 +196,7 @@ class ReplayService:
             return
         with self._lock:
             self.learner_strategy = state.strategy
-            by_steps = state.strategy == "decreasing"
+            by_steps = starts_by_steps(state.strategy)
             changed = by_steps != self.limiter.limit.start_by_steps
             accepted = self.limiter.set_start_by_steps(by_steps)
         if changed and accepted:
