@@ -25,18 +25,9 @@ from typing import Sequence
 from actor.evaluation_intervals import Bootstrap, Cell
 from actor.evaluation_report import EPISODES_CSV, bin_labels, summary_columns, with_interval
 from actor.evaluation_stats import EvaluationEpisode, SetSummary, episode_cell, summarise
-from common.config import STRATEGIES
+from common.strategies import DISPLAY_NAMES, STRATEGIES
 
-STRATEGY_NAMES = {
-    "constant": "Constant ε-greedy",
-    "decreasing": "Decreasing ε-greedy",
-    "vdbe": "VDBE",
-    "bmc": "BMC",
-    "softmax": "Softmax",
-    "max_boltzmann": "MBE",
-    "vdbe_softmax": "VDBE-Softmax",
-    "random": "Random policy",
-}
+STRATEGY_NAMES = {**DISPLAY_NAMES, "random": "Random policy"}
 RANDOM = "random"
 BIN_PREFIX = "steps_"
 RESULTS_CSV = "results.csv"

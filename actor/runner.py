@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import secrets
-import signal
 import threading
 import time
 from collections import deque
@@ -44,10 +43,10 @@ import torch
 from actor.sim import make_env
 from common.config import Config
 from common.exploration import make_strategy, same_strategy, strategy_from_state
-from common.logs import Every, setup_logging
+from common.logs import Every
 from common.network import D3RQN, load_numpy_weights
-from common.transport import (Keys, declare_liveliness, open_session, publisher, request, subscribe,
-                              watch_liveliness)
+from common.service import Service
+from common.transport import Keys, publisher, request, subscribe, watch_liveliness
 from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights
 
 MEGABYTE = 1 << 20
@@ -345,26 +344,25 @@ class ReplayWatch:
 def run_actor(config: Config, max_episodes: int | None = None) -> None:
     """Runs episodes until stopped (SIGINT/SIGTERM) or after max_episodes (then waits until they are sent)."""
     actor_id = config.actor.actor_id
-    setup_logging(f"actor-{actor_id}")
+    service = Service("actor", config, actor_id)
+    stop = service.stop
     torch.set_num_threads(1)  # one core per actor; the learner owns the rest
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
     actor = Actor(config, actor_id)
     log.info("actor %d (seed %d, incarnation %x), strategy %s until the learner's exploration state says otherwise",
              actor_id, actor.seed, actor.incarnation, config.exploration.strategy)
-    keys = Keys(config.transport.namespace, config.run.name)
+    keys = service.keys
     outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE))
     replay = ReplayWatch()
-    session = open_session(config.transport)
     sending = threading.Event()  # the sender and the stats thread stop once driving is over
-    try:
-        liveliness = declare_liveliness(session, keys.liveliness("actor", str(actor_id)))
+    with service.session() as session:
+        service.on_close(sending.set)
         # no expected type: a message of another type reaches the mailbox, which counts it
         receivers = {"weights": subscribe(session, keys.weights, actor.mailbox.offer_weights),
                      "exploration": subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
                      "rate": subscribe(session, keys.replay_rate, actor.mailbox.offer_rate),
                      "liveliness": watch_liveliness(session, keys.liveliness("replay", "0"), replay.on_change)}
+        for receiver in receivers.values():
+            service.on_close(receiver.undeclare)
         episodes_out = publisher(session, keys.episodes)
         records_out = publisher(session, keys.metrics_source("actor", str(actor_id)))
         stats_out = publisher(session, keys.metrics_source("actor_stats", str(actor_id)))
@@ -385,11 +383,6 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
         if unsent:
             log.warning("stopping with %d finished episodes unsent: dropped", unsent)
         stats_out.put(_stats(actor, outbox, receivers))
-        for declared in (*receivers.values(), liveliness):
-            declared.undeclare()
-    finally:
-        sending.set()
-        session.close()
     log.info("actor %d stopped after %d episodes: %d sent, %d dropped", actor_id, actor.episode_index,
              outbox.sent, outbox.dropped)
 

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from common.strategies import STRATEGIES  # re-exported: the config's choices of exploration.strategy
+
 
 def option(default: Any, doc: str, unit: str = "", choices: tuple[str, ...] = ()) -> Any:
     """A config field with its one documentation string, which `--help` shows: what the value
@@ -39,17 +41,6 @@ def option(default: Any, doc: str, unit: str = "", choices: tuple[str, ...] = ()
 
 class ConfigError(ValueError):
     """A configuration value, file or flag is wrong; the message names the key."""
-
-
-STRATEGIES = (
-    "constant",
-    "decreasing",
-    "vdbe",
-    "bmc",
-    "softmax",
-    "max_boltzmann",
-    "vdbe_softmax",
-)
 
 
 @dataclass

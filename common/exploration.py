@@ -44,6 +44,7 @@ from common.config import (
     BmcConfig, ConstantEpsilonConfig, DecreasingEpsilonConfig, ExplorationConfig,
     MaxBoltzmannConfig, SoftmaxConfig, VdbeConfig,
 )
+from common.strategies import strategy_named
 from common.wire import ExplorationState
 
 NO_TEMPERATURE = 0.0  # kappa of a strategy that explores uniformly
@@ -371,11 +372,9 @@ class MaxBoltzmann(ExplorationStrategy):
         return self.config.kappa
 
 
-# The config sections each strategy's params() come from.
-STRATEGY_SECTIONS = {
-    "constant": ("constant",), "decreasing": ("decreasing",), "vdbe": ("vdbe",), "bmc": ("bmc",),
-    "softmax": ("softmax",), "max_boltzmann": ("max_boltzmann",), "vdbe_softmax": ("vdbe", "softmax"),
-}
+# One class per name of common.strategies, built from that name's config sections.
+STRATEGY_CLASSES = {cls.name: cls for cls in (ConstantEpsilonGreedy, DecreasingEpsilonGreedy, Vdbe, EpsilonBmc,
+                                              Softmax, MaxBoltzmann, VdbeSoftmax)}
 
 
 def same_strategy(strategy: ExplorationStrategy, state: dict) -> bool:
@@ -390,8 +389,8 @@ def strategy_from_state(state: dict, n_actions: int) -> ExplorationStrategy:
 
     try:
         name, params = state["strategy"], state["params"]
-        sections = STRATEGY_SECTIONS[name]
-    except (KeyError, TypeError):
+        sections = strategy_named(name).sections
+    except (KeyError, TypeError, ValueError):
         raise ValueError(f"exploration state names no known strategy ({str(state)[:200]})") from None
     if not isinstance(params, dict):
         raise ValueError(f"exploration params must be a map, got {params!r}")
@@ -433,19 +432,9 @@ def newest_transitions(g_greedy: np.ndarray, g_uniform: np.ndarray, count: int) 
 
 
 def make_strategy(config: ExplorationConfig, n_actions: int) -> ExplorationStrategy:
-    """The strategy named by config.strategy, with its section of the config."""
-    builders = {
-        "constant": lambda: ConstantEpsilonGreedy(n_actions, config.constant),
-        "decreasing": lambda: DecreasingEpsilonGreedy(n_actions, config.decreasing),
-        "vdbe": lambda: Vdbe(n_actions, config.vdbe),
-        "bmc": lambda: EpsilonBmc(n_actions, config.bmc),
-        "softmax": lambda: Softmax(n_actions, config.softmax),
-        "max_boltzmann": lambda: MaxBoltzmann(n_actions, config.max_boltzmann),
-        "vdbe_softmax": lambda: VdbeSoftmax(n_actions, config.vdbe, config.softmax),
-    }
-    if config.strategy not in builders:
-        raise ValueError(f"unknown exploration strategy {config.strategy!r}; choose one of {', '.join(builders)}")
-    return builders[config.strategy]()
+    """The strategy named by config.strategy, with its sections of the config."""
+    sections = strategy_named(config.strategy).sections
+    return STRATEGY_CLASSES[config.strategy](n_actions, *(getattr(config, section) for section in sections))
 
 
 def _positive(state: dict, key: str) -> float:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ from common.wire import Message, WireError, decode, encode
 log = logging.getLogger(__name__)
 
 LOG_PERIOD_S = 10.0  # at most one warning of a kind per period per entity
+LOOPBACK = "127.0.0.1"
 
 
 # --- session ---------------------------------------------------------------------------
@@ -89,6 +91,18 @@ def tls_settings(config: TransportConfig) -> dict[str, Any]:
 def open_session(config: TransportConfig) -> zenoh.Session:
     """Opens a session; use it as a context manager (``with open_session(cfg) as session``) or close it."""
     return zenoh.open(zenoh_config(config))
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback interface now (for a local run or a test; not reserved)."""
+    with socket.socket() as probe:
+        probe.bind((LOOPBACK, 0))
+        return probe.getsockname()[1]
+
+
+def loopback_endpoint(port: int | None = None) -> str:
+    """A Zenoh endpoint on the loopback interface: the given port, or a free one."""
+    return f"tcp/{LOOPBACK}:{port or free_port()}"
 
 
 # --- key names ----------------------------------------------------------------------------

@@ -24,7 +24,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -33,7 +32,7 @@ from collections import deque
 from pathlib import Path
 
 from common.config import Config, add_config_arguments, parse_config_or_exit, to_toml
-from common.transport import Keys, open_session, subscribe
+from common.transport import Keys, free_port, open_session, subscribe
 from common.wire import EpisodeRecord, Stats, stat_number
 
 STOP_GRACE_S = 20.0
@@ -43,12 +42,6 @@ STABLE_S = 60.0  # a process that lived this long before dying is restarted afte
 FINAL_METRICS_WAIT_S = 5.0
 SUMMARY = "summary.json"
 CHECKPOINT = Path("checkpoints") / "latest.pt"
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def default_actor_count() -> int:

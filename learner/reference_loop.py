@@ -51,6 +51,7 @@ from actor.runner import actor_seed
 from actor.sim import make_env
 from common.config import Config, add_config_arguments, parse_config_or_exit, print_config
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
+from common.strategies import starts_by_steps
 from common.wire import Episode, FrameStack
 from learner.update import DoubleQLearner, TraceBatch as Traces, UpdateResult
 from replay.store import EpisodeStore
@@ -86,7 +87,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     strategy = make_strategy(config.exploration, config.network.n_actions)
     store = EpisodeStore(config.replay.capacity, int(config.replay.memory_budget_mb * 2**20),
                          learner_config.trace_length, config.replay.seed)
-    start_by_steps = config.exploration.strategy == "decreasing"
+    start_by_steps = starts_by_steps(config.exploration.strategy)
     log_every = log_period_s if log_period_s is not None else learner_config.log_period_s
     if learner_config.torch_threads:
         torch.set_num_threads(learner_config.torch_threads)

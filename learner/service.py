@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import signal
 import threading
 import time
 from pathlib import Path
@@ -34,8 +33,9 @@ import torch
 
 from common.config import Config, to_dict
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
-from common.logs import Every, setup_logging
-from common.transport import Keys, declare_liveliness, open_session, publisher, request, serve, subscribe
+from common.logs import Every
+from common.service import Service
+from common.transport import Keys, publisher, request, serve, subscribe
 from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
                          WireError, check_trace_batch, stat_number)
 from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -279,12 +279,9 @@ class LearnerProcess:
 
 def run_learner(config: Config, resume: bool = False) -> None:
     """Trains until the step budget is spent or SIGINT/SIGTERM; checkpoints at exit."""
-    setup_logging("learner")
+    service = Service("learner", config)
     if config.learner.torch_threads:
         torch.set_num_threads(config.learner.torch_threads)
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
     process = LearnerProcess(config)
     if resume:
         try:
@@ -294,22 +291,17 @@ def run_learner(config: Config, resume: bool = False) -> None:
             raise SystemExit(1) from None
     log.info("device %s, strategy %s, %d torch threads", process.learner.device,
              config.exploration.strategy, torch.get_num_threads())
-    keys = Keys(config.transport.namespace, config.run.name)
-    session = open_session(config.transport)
-    try:
+    keys = service.keys
+    with service.session() as session:
         # no expected type: a message of another type reaches the process, which counts it
-        declared = [declare_liveliness(session, keys.liveliness("learner", "0")),
-                    subscribe(session, keys.replay_stats, process.on_replay_stats),
-                    subscribe(session, keys.replay_rate, process.on_replay_rate),
-                    serve(session, keys.weights_latest, process.serve_latest_weights)]
-        process.receivers = dict(zip(("stats", "rate", "weights_query"), declared[1:]))
+        process.receivers = {"stats": subscribe(session, keys.replay_stats, process.on_replay_stats),
+                             "rate": subscribe(session, keys.replay_rate, process.on_replay_rate),
+                             "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights)}
+        for receiver in process.receivers.values():
+            service.on_close(receiver.undeclare)
         outputs = Outputs(session, keys)
         outputs.weights(process.make_weights())
-        _train(process, outputs, stop, session, keys)
-        for item in declared:
-            item.undeclare()
-    finally:
-        session.close()
+        _train(process, outputs, service.stop, session, keys)
 
 
 class Outputs:

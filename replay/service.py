@@ -30,7 +30,6 @@ import json
 import logging
 import math
 import os
-import signal
 import threading
 import time
 from collections import deque
@@ -38,10 +37,10 @@ from pathlib import Path
 
 from common.config import Config
 from common.exploration import strategy_from_state
-from common.logs import Every, setup_logging
-from common.transport import (
-    Keys, PendingQuery, RateLimitedLog, declare_liveliness, open_session, publisher, serve_deferred, subscribe,
-)
+from common.logs import Every
+from common.service import Service
+from common.strategies import starts_by_steps
+from common.transport import PendingQuery, RateLimitedLog, publisher, serve_deferred, subscribe
 from common.wire import Episode, ExplorationState, Rejections, RunShape, Stats, TraceBatchRequest, WireError, \
     check_episode
 from replay.ledger import EpisodeLedger
@@ -195,7 +194,7 @@ class ReplayService:
             return
         with self._lock:
             self.learner_strategy = state.strategy
-            by_steps = state.strategy == "decreasing"
+            by_steps = starts_by_steps(state.strategy)
             changed = by_steps != self.limiter.limit.start_by_steps
             accepted = self.limiter.set_start_by_steps(by_steps)
         if changed and accepted:
@@ -424,10 +423,8 @@ def physical_memory_bytes() -> int | None:
 
 def run_replay(config: Config, resume: bool = False) -> None:
     """Serves until SIGINT/SIGTERM; with resume, restores the run's snapshot and counters."""
-    setup_logging("replay")
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    shell = Service("replay", config)
+    stop = shell.stop
     service = ReplayService(config)
     path = counters_path(config)
     if resume:
@@ -437,16 +434,15 @@ def run_replay(config: Config, resume: bool = False) -> None:
                  service.snapshotter.directory)
         service.snapshotter.clear()
     _check_budget_at_start(service, config)
-    keys = Keys(config.transport.namespace, config.run.name)
+    keys = shell.keys
     max_bytes = int(config.replay.max_message_mb * MEGABYTE)
-    session = open_session(config.transport)
-    threads: list[threading.Thread] = []
-    try:
-        liveliness = declare_liveliness(session, keys.liveliness("replay", "0"))
+    with shell.session() as session:
         # no expected type: a message of another type reaches the service, which counts it
         receivers = {"episodes": subscribe(session, keys.episodes, service.on_episode, max_bytes=max_bytes),
                      "exploration": subscribe(session, keys.exploration, service.on_exploration),
                      "requests": serve_deferred(session, keys.replay_sample, service.on_sample_request)}
+        for receiver in receivers.values():
+            shell.on_close(receiver.undeclare)
         stats_out = publisher(session, keys.replay_stats)
         rate_out = publisher(session, keys.replay_rate)
 
@@ -470,11 +466,6 @@ def run_replay(config: Config, resume: bool = False) -> None:
         for thread in threads:
             thread.join(timeout=5.0)
         service.drop_pending()
-        for declared in (*receivers.values(), liveliness):
-            declared.undeclare()
-    finally:
-        stop.set()
-        session.close()
     if config.replay.snapshot_period_s > 0 and service.write_snapshot():
         log.info("final snapshot: %d episodes, %d bytes", service.snapshot_stats["snapshot_episodes"],
                  service.snapshot_stats["snapshot_bytes"])

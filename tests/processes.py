@@ -4,23 +4,14 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from common.transport import free_port, loopback_endpoint  # re-exported: the tests take ports from here
+
 STOP_TIMEOUT_S = 30.0
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def loopback_endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def start(args: list[str], log_path: Path, cwd: Path | None = None) -> subprocess.Popen:

@@ -3,7 +3,6 @@
 import csv
 import json
 import math
-import socket
 
 import numpy as np
 import pytest
@@ -19,6 +18,7 @@ from actor.evaluation_stats import (END_REASONS, EvaluationEpisode, digest_of_ac
 from actor.sim import make_env
 from common.config import TransportConfig, load_config, to_dict
 from common.transport import Keys, open_session, serve
+from tests.processes import loopback_endpoint
 from common.wire import Weights
 from learner.checkpoint import save_checkpoint
 from learner.update import DoubleQLearner
@@ -268,19 +268,13 @@ def test_a_missing_checkpoint_is_a_clear_error(tmp_path, capsys):
 
 # --- live weights ------------------------------------------------------------------------------------
 
-def free_port():
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def live_config(endpoint, timeout_s):
     return load_config("smoke", overrides={"run.name": "live", "transport.connect": [endpoint],
                                            "evaluation.live_timeout_s": timeout_s})
 
 
 def test_live_weights_are_the_learners_latest(small_config):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     config = live_config(endpoint, 10.0)
     served = Weights(version=7, tensors={"only": np.arange(3, dtype=np.float32)})
     with open_session(TransportConfig(listen=[endpoint])) as learner:
@@ -295,4 +289,4 @@ def test_live_weights_are_the_learners_latest(small_config):
 
 def test_no_live_learner_is_a_clear_error():
     with pytest.raises(EvaluationError, match="no learner answered"):
-        live_source(live_config(f"tcp/127.0.0.1:{free_port()}", 0.5))
+        live_source(live_config(loopback_endpoint(), 0.5))

@@ -2,7 +2,6 @@ import itertools
 import json
 import logging
 import queue
-import socket
 import threading
 import time
 
@@ -16,16 +15,11 @@ from common.transport import (
     watch_liveliness, zenoh_config,
 )
 from common.wire import Heartbeat, Stats, TraceBatchRequest, Weights, encode
+from tests.processes import loopback_endpoint
 from wire_examples import assert_messages_equal, example_messages
 
 WAIT_S = 5.0  # bound of every wait for discovery or delivery
 BIG_WEIGHTS_BYTES = 50_000_000
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def wait_until(predicate, timeout_s: float = WAIT_S) -> bool:
@@ -50,7 +44,7 @@ def big_weights() -> Weights:
 @pytest.fixture(scope="module")
 def sessions():
     """Two peers on loopback: one listens on a free port, the other only connects."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     listener = open_session(TransportConfig(listen=[endpoint]))
     try:
         connector = open_session(TransportConfig(connect=[endpoint]))
@@ -309,7 +303,7 @@ def test_a_liveliness_token_is_seen_by_the_other_session_until_undeclared(sessio
 # --- opening sessions ---------------------------------------------------------------------------------
 
 def test_a_client_waits_for_a_router_that_starts_late():
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     routers = []
     starter = threading.Timer(0.3, lambda: routers.append(open_session(TransportConfig(mode="router", listen=[endpoint]))))
     starter.start()

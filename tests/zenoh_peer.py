@@ -2,6 +2,7 @@
 (tests/ is not an installed package):
 
     python tests/zenoh_peer.py watch OUT.jsonl [config flags]   # what a run publishes, one JSON line each
+    python tests/zenoh_peer.py alive OUT.jsonl [config flags]   # the run's liveliness tokens as they come and go
     python tests/zenoh_peer.py probe [config flags]             # exit 0 if a session opens, 3 if not
     python tests/zenoh_peer.py rogue OUT.jsonl --weights-version N [config flags]
 
@@ -19,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import threading
 import time
@@ -57,13 +57,6 @@ class Lines:
 
     def close(self) -> None:
         self._file.close()
-
-
-def _stopper() -> threading.Event:
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    return stop
 
 
 def watch(config: Config, out: Lines, stop: threading.Event) -> None:
@@ -106,6 +99,16 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
         stop.wait()
         for entity in declared:
             entity.undeclare()
+
+
+def alive(config: Config, out: Lines, stop: threading.Event) -> None:
+    from common.transport import Keys, open_session, watch_liveliness
+
+    keys = Keys(config.transport.namespace, config.run.name)
+    with open_session(config.transport) as session:
+        with watch_liveliness(session, keys.liveliness_all, lambda key, up: out.write(kind="alive", key=key, up=up)):
+            out.write(kind="up")
+            stop.wait()
 
 
 def probe(config: Config) -> int:
@@ -166,18 +169,22 @@ def rogue(config: Config, out: Lines, stop: threading.Event, weights_version: in
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="zenoh_peer")
-    parser.add_argument("command", choices=("watch", "probe", "rogue"))
-    parser.add_argument("out", nargs="?", type=Path, help="JSON lines (watch, rogue)")
+    parser.add_argument("command", choices=("watch", "alive", "probe", "rogue"))
+    parser.add_argument("out", nargs="?", type=Path, help="JSON lines (watch, alive, rogue)")
     parser.add_argument("--weights-version", type=int, default=987_654, help="rogue: the forged weights' version")
     add_config_arguments(parser)
     args, config = parse_config_or_exit(parser, argv)
     if args.command == "probe":
         return probe(config)
+    from common.service import stop_on_signals
+
     out = Lines(args.out)
-    stop = _stopper()
+    stop = stop_on_signals()
     try:
         if args.command == "watch":
             watch(config, out, stop)
+        elif args.command == "alive":
+            alive(config, out, stop)
         else:
             rogue(config, out, stop, args.weights_version)
     finally:

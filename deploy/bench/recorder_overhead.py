@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -26,19 +25,13 @@ import threading
 from pathlib import Path
 
 from common.config import TransportConfig
-from common.transport import Keys, open_session, subscribe
+from common.transport import Keys, free_port, loopback_endpoint, open_session, subscribe
 from common.wire import EpisodeRecord, Stats, decode
 from replay.log.reader import LogFile
 
 ROOT = Path(__file__).resolve().parents[2]
 RUN_TIMEOUT_S = 900.0
 NEVER = 10**12  # a learner budget the runs never reach: the bench decides when a run ends
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def rate(samples: list[tuple[float, int]], low: int, high: int) -> float:
@@ -82,7 +75,7 @@ def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[s
     watch = Watch(steps)
     stack = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     keys = Keys("d3rqn", name)
-    config = TransportConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"], connect_timeout_s=30)
+    config = TransportConfig(mode="client", connect=[loopback_endpoint(port)], connect_timeout_s=30)
     with open_session(config) as session:
         subscriptions = [subscribe(session, keys.replay_stats, watch.on_replay, expected=Stats),
                          subscribe(session, keys.metrics_all, watch.on_metric)]

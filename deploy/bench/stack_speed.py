@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -30,18 +29,12 @@ import torch
 
 from actor.runner import Actor
 from common.config import Config, TransportConfig, add_config_arguments, parse_config_or_exit, to_toml
-from common.transport import Keys, open_session, publisher, request, subscribe
+from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
 from common.wire import Stats, TraceBatch, TraceBatchRequest
 from learner.reference_loop import train
 from learner.update import DoubleQLearner, TraceBatch as Traces
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def reference_loop(config: Config, seconds: float) -> tuple[float, float]:
@@ -73,7 +66,7 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
         (Path(runs) / "bench.toml").write_text(to_toml(config))
         stack = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "stack.py"), *flags],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        session = open_session(TransportConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+        session = open_session(TransportConfig(mode="client", connect=[loopback_endpoint(port)]))
         seen: dict[str, float] = {}  # the replay's latest stats
         keys = Keys(config.transport.namespace, "bench")
         subscription = subscribe(session, keys.replay_stats, lambda message, key: seen.update(message.values),
@@ -104,7 +97,7 @@ def caught_up(replay: dict) -> bool:
 
 def replay_flat_out(config: Config, seconds: float, clients: int) -> tuple[float, float]:
     """Fills a replay process with real episodes and queries it from `clients` threads."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     # The rate limiter let loose: updates start at the first episode, and 1e9 updates of error buffer never hold.
     replay = subprocess.Popen([sys.executable, "-m", "replay.main", "--run.name", "flat", "--transport.mode", "router",
                                "--transport.listen", endpoint, "--learner.start_episodes", "1",

@@ -10,24 +10,17 @@ from __future__ import annotations
 
 import argparse
 import queue
-import socket
 import statistics
 import time
 
 import numpy as np
 
 from common.config import NetworkConfig, TransportConfig
-from common.transport import Keys, open_session, publisher, request, serve, subscribe
+from common.transport import Keys, loopback_endpoint, open_session, publisher, request, serve, subscribe
 from common.wire import Weights, decode, encode
 from wire_sizes import d3rqn_tensors
 
 TIMEOUT_S = 30.0
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def wait_until(predicate, timeout_s: float = 5.0) -> None:
@@ -55,7 +48,7 @@ def main() -> None:
     data = encode(weights)
     decode_s = [timed(lambda: decode(data, Weights)) for _ in range(args.repeats)]
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     keys = Keys("d3rqn-bench", "weights")
     with open_session(TransportConfig(listen=[endpoint])) as learner, \
             open_session(TransportConfig(connect=[endpoint])) as actor:

@@ -27,17 +27,13 @@ from typing import Sequence
 
 import numpy as np
 
-from common.config import STRATEGIES
+from common.strategies import STRATEGIES, epsilon_groups
 from common.wire import EpisodeRecord, Stats
 from replay.log.plot import RETURN_WINDOW, finite_series, trailing_mean
 from replay.log.reader import LogError, LogFile
 
 LOSS_WINDOW = 10  # learner reports (each the mean over learner.log_period_s) per point of the smoothed curve
-EPSILON_PANELS = (
-    ("deterministic epsilon-greedy", ("constant", "decreasing")),
-    ("adaptive epsilon-greedy", ("vdbe", "bmc")),
-    ("Max-Boltzmann", ("max_boltzmann", "vdbe_softmax")),
-)
+EPSILON_PANELS = tuple(epsilon_groups().items())  # (title, strategies) of each panel
 EPSILON_STRATEGIES = tuple(strategy for _, members in EPSILON_PANELS for strategy in members)
 RANDOM_COLOUR = "0.6"
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import signal
 import threading
 import time
 from collections import Counter, deque
@@ -29,8 +28,8 @@ from typing import Iterator
 import zenoh
 
 from common.config import Config, RecorderConfig
-from common.logs import setup_logging
-from common.transport import Declared, Keys, RateLimitedLog, declare_liveliness, open_session, publisher
+from common.service import Service
+from common.transport import Declared, RateLimitedLog, publisher
 from common.wire import Stats, Weights
 from replay.log.traffic import Arrival, Peek, peek
 from replay.log.views import ViewMaker
@@ -238,34 +237,27 @@ def default_log_path(config: Config) -> Path:
 
 def run_recorder(config: Config, output: Path | None = None) -> int:
     """Records until SIGINT/SIGTERM; returns the exit code (1 if the writer failed)."""
-    setup_logging("recorder")
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    keys = Keys(config.transport.namespace, config.run.name)
+    service = Service("recorder", config)
+    keys = service.keys
     path = next_free_path(output or default_log_path(config))
     path.parent.mkdir(parents=True, exist_ok=True)
     views = None
     if config.record.views:
         views = ViewMaker(keys.root, 1.0 / config.env.policy_frequency, config.record.images,
                           config.record.image_format)
-    recorder = Recorder(LogWriter(path, config, views), config.record)
-    recorder.start()
-    session = open_session(config.transport)
-    try:
+    with service.session() as session:
+        recorder = Recorder(LogWriter(path, config, views), config.record)
+        recorder.start()
+        service.on_close(recorder.stop)  # once nothing more arrives: after the subscription's undeclare
         subscription = Declared(keys.all).attach(session.declare_subscriber(keys.all, recorder.on_sample))
-        liveliness = declare_liveliness(session, keys.liveliness("recorder", "0"))
         stats_out = publisher(session, keys.metrics_source("recorder", "0"), reliable=False)
+        service.on_close(subscription.undeclare)
+        service.on_close(stats_out.undeclare)
         log.info("recording %s into %s", keys.all, path)
-        while recorder.alive and not stop.wait(config.record.stats_period_s):
+        while recorder.alive and not service.stop.wait(config.record.stats_period_s):
             values = recorder.snapshot()
             stats_out.put(Stats(source="recorder", time=time.time(), values=values))
             log.info("received %(received)d, written %(written)d, dropped %(dropped)d, "
                      "queue %(queue_messages)d (%(queue_mb).1f MB)", values)
-        for declared in (subscription, liveliness, stats_out):
-            declared.undeclare()
-    finally:
-        recorder.stop()
-        session.close()
     log.info("stopped; %s: %s", path, recorder.snapshot())
     return 1 if recorder.error is not None else 0

@@ -1,0 +1,104 @@
+"""The shell of every process of a run that holds a Zenoh session: actor, learner, replay, recorder.
+
+Each of them starts the same way and ends the same way; only the middle is its own:
+
+    service = Service("replay", config)      # log lines, stop on SIGINT/SIGTERM, the run's keys
+    ...                                      # the role's own set-up, which may take a while
+    with service.session() as session:       # the session, and the token <run>/alive/replay/0
+        episodes = subscribe(session, service.keys.episodes, on_episode)
+        service.on_close(episodes.undeclare)
+        while not service.stop.wait(1.0):
+            ...
+    # however the block was left: stop set, on_close callbacks run, the token undeclared, session closed
+
+The token is declared only once the role is set up, so that its peers, which watch it, see
+the role alive when it is ready. A session that cannot open (a bad endpoint, a port in use,
+no router, a missing TLS file) is one line in the log and exit code 1, not a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import re
+import signal
+import threading
+from typing import Callable, Iterator
+
+import zenoh
+
+from common.config import Config, add_config_arguments, parse_config_or_exit, print_config
+from common.logs import setup_logging
+from common.transport import Keys, declare_liveliness, open_session
+
+log = logging.getLogger(__name__)
+
+_RUST_SOURCE = re.compile(r" at \S+\.rs:\d+\.?")  # where in Zenoh's code an error arose: noise to a user
+
+
+def parse_service_args(parser: argparse.ArgumentParser, argv: list[str] | None = None
+                       ) -> tuple[argparse.Namespace, Config]:
+    """A role's command line: its own flags (on parser) and the config's; the resolved config goes
+    to stderr first, so that every log starts with what the process ran with."""
+    add_config_arguments(parser)
+    args, config = parse_config_or_exit(parser, argv)
+    print_config(parser.prog, config)
+    return args, config
+
+
+def stop_on_signals() -> threading.Event:
+    """An event that SIGINT and SIGTERM set: the process finishes what it does and stops cleanly."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
+
+
+class Service:
+    """One process of a run: its log, its stop event, its keys and, within session(), its session.
+
+    The process's log lines say `role` (`role-<process_id>` when an id is given, as actors have);
+    its liveliness token is <run>/alive/<role>/<process_id or 0>.
+    """
+
+    def __init__(self, role: str, config: Config, process_id: int | str | None = None) -> None:
+        self.role = role
+        self.config = config
+        self.process_id = "0" if process_id is None else str(process_id)
+        setup_logging(role if process_id is None else f"{role}-{process_id}")
+        self.stop = stop_on_signals()
+        self.keys = Keys(config.transport.namespace, config.run.name)
+        self._closing: contextlib.ExitStack | None = None
+
+    @contextlib.contextmanager
+    def session(self) -> Iterator[zenoh.Session]:
+        """The open session with the process's liveliness token; on leaving, by any path, sets
+        stop, runs the on_close callbacks, undeclares the token and closes the session."""
+        with contextlib.ExitStack() as closing:
+            session = self._open()
+            closing.callback(session.close)
+            closing.callback(declare_liveliness(session, self.keys.liveliness(self.role, self.process_id)).undeclare)
+            self._closing = closing
+            try:
+                yield session
+            finally:
+                self._closing = None
+                self.stop.set()  # first: the role's threads stop using the session before it closes
+
+    def on_close(self, callback: Callable[[], object]) -> None:
+        """Has the session's end call callback (an undeclare, or telling threads to finish), before
+        the token goes and the session closes; the latest given runs first."""
+        if self._closing is None:
+            raise RuntimeError("on_close() belongs inside `with service.session()`")
+        self._closing.callback(callback)
+
+    def _open(self) -> zenoh.Session:
+        transport = self.config.transport
+        try:
+            return open_session(transport)
+        except (zenoh.ZError, FileNotFoundError) as error:  # a bad endpoint, a port in use, no router; a TLS file
+            log.error("cannot open the Zenoh session (mode %s, listen %s, connect %s): %s", transport.mode,
+                      ", ".join(transport.listen) or "none", ", ".join(transport.connect) or "none",
+                      _RUST_SOURCE.sub("", str(error)))
+            raise SystemExit(1) from None

@@ -1,0 +1,56 @@
+"""The seven exploration strategies by name: what each is called and where its settings live.
+
+Every module that names a strategy takes the name from here: the config's choices, the
+learner's exploration state, the replay's start rule, the grid's runs, the tables' and
+figures' labels. The classes are in common/exploration.py, one per name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Strategy:
+    name: str  # exploration.strategy, and the strategy an ExplorationState names
+    display_name: str  # the paper's name, in tables and figures
+    sections: tuple[str, ...]  # the exploration.<section> configs of its params, in its class's argument order
+    epsilon_group: str | None  # the panel of the epsilon figure that draws it; None: it has no epsilon
+    starts_by_steps: bool = False  # updates start at learner.start_steps env steps, not learner.start_episodes
+
+
+REGISTRY = (
+    Strategy("constant", "Constant ε-greedy", ("constant",), "deterministic epsilon-greedy"),
+    Strategy("decreasing", "Decreasing ε-greedy", ("decreasing",), "deterministic epsilon-greedy",
+             starts_by_steps=True),
+    Strategy("vdbe", "VDBE", ("vdbe",), "adaptive epsilon-greedy"),
+    Strategy("bmc", "BMC", ("bmc",), "adaptive epsilon-greedy"),
+    Strategy("softmax", "Softmax", ("softmax",), None),
+    Strategy("max_boltzmann", "MBE", ("max_boltzmann",), "Max-Boltzmann"),
+    Strategy("vdbe_softmax", "VDBE-Softmax", ("vdbe", "softmax"), "Max-Boltzmann"),
+)
+STRATEGIES = tuple(strategy.name for strategy in REGISTRY)
+DISPLAY_NAMES = {strategy.name: strategy.display_name for strategy in REGISTRY}
+_BY_NAME = {strategy.name: strategy for strategy in REGISTRY}
+
+
+def strategy_named(name: str) -> Strategy:
+    """The registry's entry; ValueError listing the choices for an unknown name."""
+    try:
+        return _BY_NAME[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown exploration strategy {name!r}; choose one of {', '.join(STRATEGIES)}") from None
+
+
+def starts_by_steps(name: str) -> bool:
+    """Whether a run of this strategy starts updates by env steps (decreasing epsilon) rather than episodes."""
+    return strategy_named(name).starts_by_steps
+
+
+def epsilon_groups() -> dict[str, tuple[str, ...]]:
+    """The strategies that have an epsilon, by group (the paper's families), in the registry's order."""
+    groups: dict[str, tuple[str, ...]] = {}
+    for strategy in REGISTRY:
+        if strategy.epsilon_group is not None:
+            groups[strategy.epsilon_group] = (*groups.get(strategy.epsilon_group, ()), strategy.name)
+    return groups

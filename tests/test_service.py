@@ -1,0 +1,83 @@
+"""The service shell (common/service.py): a role stops cleanly on SIGTERM with its liveliness
+token gone, a session that cannot open is one clear line and exit code 1, and leaving the
+session by an error still closes everything, in order. Every session lives in its own process."""
+
+import multiprocessing
+import signal
+
+import pytest
+
+from common.config import load_config
+from common.service import Service
+from tests.processes import loopback_endpoint, start, stop, wait_for
+from tests.zenoh_peer import PATH as PEER, read_lines
+
+RUN = "shell"
+ROLES = {"replay": ["-m", "replay.main"], "recorder": ["-m", "replay.log.cli", "record"]}
+
+
+def run_flags(tmp_path, *transport: str) -> list[str]:
+    return ["--preset", "smoke", "--run.name", RUN, "--run.runs_dir", str(tmp_path / "runs"), *transport]
+
+
+@pytest.mark.parametrize("role", sorted(ROLES))
+def test_a_role_stops_on_sigterm_and_its_token_goes(tmp_path, role):
+    endpoint = loopback_endpoint()
+    tokens, role_log = tmp_path / "alive.jsonl", tmp_path / f"{role}.log"
+    observer = start([str(PEER), "alive", str(tokens), *run_flags(tmp_path, "--transport.listen", endpoint)],
+                     tmp_path / "observer.log")
+    process = None
+    try:
+        wait_for(lambda: read_lines(tokens), "the observer's session", 30, [tmp_path / "observer.log"])
+        process = start([*ROLES[role], *run_flags(tmp_path, "--transport.connect", endpoint)], role_log)
+        token = f"d3rqn/{RUN}/alive/{role}/0"
+        changes = lambda: [(line["key"], line["up"]) for line in read_lines(tokens) if line["kind"] == "alive"]
+        wait_for(lambda: (token, True) in changes(), f"the {role}'s token", 30, [role_log])
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(30) == 0
+        wait_for(lambda: changes()[-1:] == [(token, False)], f"the {role}'s token to go", 10, [role_log])
+    finally:
+        stop(*[p for p in (process, observer) if p is not None])
+    text = role_log.read_text()
+    assert "stopped" in text.splitlines()[-1] and "Traceback" not in text
+
+
+def test_a_bad_endpoint_is_one_line_and_exit_code_1(tmp_path):
+    log = tmp_path / "replay.log"
+    process = start(["-m", "replay.main", *run_flags(tmp_path, "--transport.listen", "tcp/no-such-host.invalid:7447")],
+                    log)
+    try:
+        assert process.wait(30) == 1
+    finally:
+        stop(process)
+    errors = [line for line in log.read_text().splitlines() if " ERROR " in line]
+    assert len(errors) == 1 and "Traceback" not in log.read_text()
+    assert " replay ERROR " in errors[0] and ".rs:" not in errors[0]
+    assert "cannot open the Zenoh session (mode peer, listen tcp/no-such-host.invalid:7447, connect none)" in errors[0]
+
+
+def leave_by_raising(endpoint: str, events) -> None:
+    """In a spawned process: two on_close callbacks, then the role fails inside the session."""
+    service = Service("probe", load_config("smoke", overrides={"run.name": RUN, "transport.listen": [endpoint]}))
+    try:
+        with service.session() as session:
+            service.on_close(lambda: events.put(("first", service.stop.is_set(), session.is_closed())))
+            service.on_close(lambda: events.put(("second", service.stop.is_set(), session.is_closed())))
+            raise RuntimeError("the role failed")
+    except RuntimeError:
+        events.put(("after", service.stop.is_set(), session.is_closed()))
+
+
+def test_leaving_by_an_error_sets_stop_runs_the_callbacks_newest_first_then_closes():
+    context = multiprocessing.get_context("spawn")
+    events = context.Queue()
+    child = context.Process(target=leave_by_raising, args=(loopback_endpoint(), events))
+    child.start()
+    try:
+        seen = [events.get(timeout=30) for _ in range(3)]
+    finally:
+        child.join(30)
+        if child.is_alive():
+            child.kill()
+    assert seen == [("second", True, False), ("first", True, False), ("after", True, True)]
+    assert child.exitcode == 0

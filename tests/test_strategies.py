@@ -1,0 +1,49 @@
+"""The registry of strategy names (common/strategies.py) agrees with the config, the classes and
+the tables that use it."""
+
+import dataclasses
+
+import pytest
+
+from actor.evaluation_comparison import STRATEGY_NAMES
+from common.config import ConfigError, ExplorationConfig, load_config
+from common.exploration import STRATEGY_CLASSES, make_strategy
+from common.strategies import REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named
+from replay.log.figures import EPSILON_STRATEGIES
+
+SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}
+
+
+def test_the_seven_strategies_have_one_entry_each_with_a_display_name():
+    assert len(STRATEGIES) == len(set(STRATEGIES)) == 7
+    assert all(strategy.display_name and strategy.display_name != strategy.name for strategy in REGISTRY)
+    assert len({strategy.display_name for strategy in REGISTRY}) == 7
+    assert set(STRATEGY_NAMES) == {*STRATEGIES, "random"}
+
+
+def test_every_strategy_has_config_sections_and_every_section_a_strategy():
+    assert all(strategy.sections and set(strategy.sections) <= SECTIONS for strategy in REGISTRY)
+    assert {section for strategy in REGISTRY for section in strategy.sections} == SECTIONS
+
+
+@pytest.mark.parametrize("name", STRATEGIES)
+def test_each_name_builds_its_class_with_the_params_of_its_sections(name):
+    config = ExplorationConfig(strategy=name)
+    policy = make_strategy(config, 5)
+    assert type(policy) is STRATEGY_CLASSES[name] and policy.name == name
+    expected = {key: value for section in strategy_named(name).sections
+                for key, value in dataclasses.asdict(getattr(config, section)).items()}
+    assert policy.params() == expected
+
+
+def test_only_softmax_has_no_epsilon_and_only_decreasing_starts_by_steps():
+    assert set(EPSILON_STRATEGIES) == set(STRATEGIES) - {"softmax"}
+    assert sum(epsilon_groups().values(), ()) == EPSILON_STRATEGIES
+    assert [name for name in STRATEGIES if starts_by_steps(name)] == ["decreasing"]
+
+
+def test_an_unknown_strategy_is_refused_with_the_choices():
+    with pytest.raises(ConfigError, match="exploration.strategy: must be one of " + ", ".join(STRATEGIES)):
+        load_config("smoke", overrides={"exploration.strategy": "greedy"})
+    with pytest.raises(ValueError, match="unknown exploration strategy 'greedy'; choose one of constant, "):
+        strategy_named("greedy")
