@@ -209,9 +209,15 @@ def test_info_plot_and_export_read_a_log_that_is_still_being_written(tmp_path, c
         assert log.finished and same.finished and log.message_counts == same.message_counts
 
 
-def test_an_unfinished_log_reads_like_the_finished_one(tmp_path):
-    messages = run_messages() * 3
-    writer = LogWriter(tmp_path / "log.mcap", CONFIG, None)
+# 250-byte chunks: some fill up with the channel record of a message that goes into the next chunk, one
+# that names no other new channel (so the reader must look beyond the chunks with new channels)
+@pytest.mark.parametrize("chunk_bytes", [4 << 20, 250])
+def test_an_unfinished_log_reads_like_the_finished_one(tmp_path, chunk_bytes):
+    messages = [message for n in range(1, 13) for message in (
+        (KEYS.metrics_source("actor", 0), stats("actor", episodes=n)),
+        (KEYS.metrics_source("actor", n), stats("actor", episodes=n)))] + run_messages() * 3
+    config = load_config("smoke", overrides={"record.chunk_mb": chunk_bytes / 2**20})
+    writer = LogWriter(tmp_path / "log.mcap", config, None)
     for number, (key, message) in enumerate(messages, start=1):
         data = encode(message)
         writer.write(Arrival(key, data, number * SECOND, None, number), peek(data))

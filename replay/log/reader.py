@@ -230,8 +230,9 @@ class LogFile:
         return summary
 
     def _add_channels(self, summary: Summary, counts: dict[int, int]) -> None:
-        """Schemas and channels from the chunks that carry messages of channels not seen before
-        (a channel is defined in the chunk of its first message), or from every chunk if that misses one."""
+        """Schemas and channels from the chunks whose message indexes name a channel not seen before: a
+        channel is defined in the chunk of its first message, or in the one before if that filled up just
+        then; the other chunks are decompressed only when a channel is still missing."""
         def read(chunk_index: ChunkIndex) -> None:
             self._handle.seek(chunk_index.chunk_start_offset + RECORD_PREFIX.size)
             for record in breakup_chunk(Chunk.read(ReadDataStream(self._handle)), validate_crc=True):
@@ -248,7 +249,7 @@ class LogFile:
                 read(chunk_index)
         if not counts.keys() <= summary.channels.keys():
             raise LogError(f"{self.path}: messages of channels {sorted(counts.keys() - summary.channels.keys())} "
-                           f"that no whole record defines")
+                           f"that no whole chunk defines")
 
     def _guard(self, read):
         try:
