@@ -79,9 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--output", type=Path, default=None, help="PNG file (default: <log folder>/training.png)")
     plot.add_argument("--title", default=None, help="figure title (default: run name, strategy, replay capacity)")
     plot.add_argument("--x", choices=AXES, default=None,
-                      help="draw every panel against env steps or episodes, with the start of updates marked "
-                           "(default: the paper's axes: return against episodes, epsilon against env steps, "
-                           "loss against updates)")
+                      help="draw every panel against env steps or episodes (default: the paper's axes: return "
+                           "against episodes, epsilon against env steps, loss against updates); a dashed line "
+                           "marks the start of updates")
     plot.set_defaults(handler=_plot)
 
     recover = commands.add_parser("recover", help="rewrite a cut-short log into a complete, indexed one")
