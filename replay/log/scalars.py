@@ -9,7 +9,7 @@ named by tags, the names TensorBoard shows:
 * ``<key>/<value>`` for every finite number of a Stats, the key taken below the
   run without ``metrics/``: ``learner/0/loss``, ``learner/0/loss_abs_diff``,
   ``learner/0/updates_per_s``, ``learner/0/epsilon``, ``replay/stats/episodes``,
-  ``replay/rate/hold_actors``, ``actor/0/episodes_sent``, ``recorder/0/dropped``...;
+  ``replay/rate/hold_actors``, ``actor_stats/0/episodes_sent``, ``recorder/0/dropped``...;
 * ``exploration/epsilon``, ``exploration/kappa``, ``exploration/started`` and
   ``exploration/counters/<name>`` of the learner's exploration state.
 
