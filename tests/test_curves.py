@@ -4,13 +4,15 @@ recorder, read back with TensorBoard's own reader), and info, plot and export on
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from common.config import load_config
-from common.transport import Keys
+from common.config import TransportConfig, load_config
+from common.transport import Keys, open_session, publisher
 from common.wire import EpisodeRecord, ExplorationState, Message, Stats, encode
 from deploy.stack import main as stack_main
 from replay.log.cli import main as log_main
@@ -21,6 +23,7 @@ from replay.log.scalars import RETURN_MEAN, read_series
 from replay.log.tensorboard_events import EventsWriter
 from replay.log.traffic import Arrival, peek
 from replay.log.writer import LogWriter
+from tests.processes import loopback_endpoint, start, stop, wait_for
 
 CONFIG = load_config("smoke", overrides={"record.flush_period_s": 0.05})
 KEYS = Keys("d3rqn", CONFIG.run.name)
@@ -207,6 +210,46 @@ def test_info_plot_and_export_read_a_log_that_is_still_being_written(tmp_path, c
     writer.close()
     with LogFile(path) as log, LogFile(path, unfinished_ok=True) as same:
         assert log.finished and same.finished and log.message_counts == same.message_counts
+
+
+def test_a_running_recorder_s_log_and_curves_can_be_read_while_it_records(tmp_path):
+    endpoint = loopback_endpoint()
+    session = open_session(TransportConfig(mode="peer", listen=[endpoint]))
+    path, board, recorder_log = tmp_path / "traffic.mcap", tmp_path / "board", tmp_path / "recorder.log"
+    recorder = start(["-m", "replay.log.cli", "record", "--preset", "smoke", "--transport.connect", endpoint,
+                      "--record.flush_period_s", "0.2", "--output", str(path), "--tensorboard", str(board)],
+                     recorder_log)
+    try:
+        publishers = {key: publisher(session, key) for key in {key for key, _ in run_messages()}}
+        for key, output in publishers.items():
+            wait_for(lambda: output.matched, f"the recorder's subscription of {key}", 30, [recorder_log])
+        for key, message in run_messages():
+            publishers[key].put(message)
+
+        def episodes_on_disk() -> int:
+            try:
+                with LogFile(path, unfinished_ok=True) as log:
+                    return sum(1 for _ in log.messages(EpisodeRecord))
+            except LogError:  # not there yet, or (rarely) caught in the middle of a write
+                return 0
+
+        wait_for(lambda: episodes_on_disk() == 3, "the episodes on disk", 30, [recorder_log])
+        outputs = [subprocess.run([sys.executable, "-m", "replay.log.cli", *command], capture_output=True,
+                                  text=True, timeout=60).stdout
+                   for command in (["info", str(path)], ["plot", str(path), "--x", "episodes", "--output",
+                                                         str(tmp_path / "p.png")])]
+        assert "unfinished" in outputs[0] and " 3 records" in outputs[0]
+        assert (tmp_path / "p.png").read_bytes()[:8] == PNG_MAGIC
+        wait_for(lambda: len(read_events(board).get("learner/0/loss", [])) == 1, "the live loss curve", 30,
+                 [recorder_log])
+        assert recorder.poll() is None  # all of it while the recorder runs
+    finally:
+        stop(recorder)
+        session.close()
+    assert recorder.returncode == 0
+    with LogFile(path) as log:  # now finished
+        assert sum(1 for _ in log.messages(EpisodeRecord)) == 3
+    assert [step for step, _, _ in read_events(board)["episode/return"]] == [10, 30, 60]
 
 
 # 250-byte chunks: some fill up with the channel record of a message that goes into the next chunk, one
