@@ -40,10 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from common.config import (
-    BmcConfig, ConstantEpsilonConfig, DecreasingEpsilonConfig, ExplorationConfig,
-    MaxBoltzmannConfig, SoftmaxConfig, VdbeConfig,
-)
+from common.config import BmcConfig, DecreasingEpsilonConfig, ExplorationConfig, SoftmaxConfig, VdbeConfig
 from common.strategies import strategy_named
 from common.wire import ExplorationState
 

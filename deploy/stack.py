@@ -42,6 +42,7 @@ STABLE_S = 60.0  # a process that lived this long before dying is restarted afte
 FINAL_METRICS_WAIT_S = 5.0
 SUMMARY = "summary.json"
 CHECKPOINT = Path("checkpoints") / "latest.pt"
+TENSORBOARD = "tensorboard"  # the recorder's live event files, in the run folder (--tensorboard)
 
 
 def default_actor_count() -> int:
@@ -144,7 +145,7 @@ class Stack:
     """Starts, watches, restarts and stops the processes of one local run."""
 
     def __init__(self, config: Config, config_path: Path, run_dir: Path, endpoint: str,
-                 actors: int, resume: bool) -> None:
+                 actors: int, resume: bool, tensorboard: Path | None = None) -> None:
         self.config = config
         self.run_dir = run_dir
         self.logs = run_dir / "logs"
@@ -156,7 +157,8 @@ class Stack:
         self.roles: dict[str, Role] = {"replay": Role("replay", "replay.main", [
             "--transport.mode", "router", "--transport.listen", endpoint])}
         if config.record.enabled:  # the flight recorder writes <run dir>/traffic.mcap
-            self.roles["recorder"] = Role("recorder", "replay.log.cli record", client)
+            curves = [] if tensorboard is None else ["--tensorboard", str(tensorboard)]
+            self.roles["recorder"] = Role("recorder", "replay.log.cli record", client + curves)
         self.roles["learner"] = Role("learner", "learner.main", client)
         for actor_id in range(actors):
             self.roles[f"actor-{actor_id}"] = Role(f"actor-{actor_id}", "actor.main",
@@ -245,12 +247,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resume", action="store_true",
                         help="continue the run: the learner from its latest checkpoint, the replay from its "
                              "snapshot and counters")
+    parser.add_argument("--tensorboard", action="store_true",
+                        help=f"the recorder also writes the run's curves as TensorBoard event files into <run "
+                             f"folder>/{TENSORBOARD}/ while it trains (`tensorboard --logdir <run.runs_dir>`); "
+                             f"needs record.enabled")
     add_config_arguments(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args, config = parse_config_or_exit(build_parser(), argv)
+    if args.tensorboard and not config.record.enabled:
+        print("deploy/run.sh: --tensorboard needs the recorder, but record.enabled is false", file=sys.stderr)
+        return 2
     run_dir = Path(config.run.runs_dir) / config.run.name
     run_dir.mkdir(parents=True, exist_ok=True)
     config_path = run_dir / "config.toml"
@@ -260,7 +269,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"run {config.run.name!r}: strategy {config.exploration.strategy}, {actors} actor(s), "
           f"router {endpoint}, files in {run_dir}/", flush=True)
 
-    stack = Stack(config, config_path, run_dir, endpoint, actors, args.resume)
+    stack = Stack(config, config_path, run_dir, endpoint, actors, args.resume,
+                  run_dir / TENSORBOARD if args.tensorboard else None)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

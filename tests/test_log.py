@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from common.config import Config, TransportConfig, flat_items, load_config
 from common.transport import Keys, open_session, publisher, request, subscribe
@@ -234,7 +235,7 @@ def recorded_run(tmp_path_factory):
     log = base / "stack.log"
     process = start(["deploy/stack.py", "--preset", "smoke", "--actors", "1", "--run.name", RUN,
                      "--run.runs_dir", str(base / "runs"), "--learner.total_env_steps", str(STACK_ENV_STEPS),
-                     "--record.flush_period_s", "0.5",
+                     "--record.flush_period_s", "0.5", "--tensorboard",
                      "--replay.error_buffer_updates", "1e9"],  # neither the actor nor the learner waits for the other
                     log, cwd=ROOT)
     try:
@@ -397,6 +398,23 @@ def test_export_plot_and_viewing_file(recorded_run, tmp_path, capsys):
         assert images.message_type == IMAGE_SCHEMA_NAME
         png = base64.b64decode(json.loads(images.data)["data"])
         assert cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).shape == (66, 200, 3)
+
+
+def test_the_stack_writes_the_curves_live_as_the_export_does(recorded_run, tmp_path):
+    live = recorded_run / "tensorboard"
+    assert log_main(["export", str(recorded_run / "traffic.mcap"), "--tensorboard", str(tmp_path / "board")]) == 0
+    assert read_events(live) == read_events(tmp_path / "board")
+    with LogFile(recorded_run / "traffic.mcap") as log:
+        records = [message for _, message in log.messages(EpisodeRecord)]
+    returns = read_events(live)["episode/return"]
+    assert [value for _, value in returns] == pytest.approx([record.episode_return for record in records])
+    assert [step for step, _ in returns] == np.cumsum([record.length for record in records]).tolist()
+
+
+def read_events(directory: Path) -> dict[str, list[tuple[int, float]]]:
+    events = EventAccumulator(str(directory), size_guidance={"scalars": 0})
+    events.Reload()
+    return {tag: [(event.step, event.value) for event in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
 
 
 def test_a_truncated_log_is_one_line_and_no_traceback(recorded_run, tmp_path):

@@ -4,10 +4,13 @@
     d3rqn-log info runs/R/traffic.mcap
     d3rqn-log play runs/R/traffic.mcap --keys episodes --to-run offline --speed 0 --transport.connect ...
     d3rqn-log export runs/R/traffic.mcap --csv runs/R/export --images runs/R/view.mcap
-    d3rqn-log plot runs/R/traffic.mcap --output runs/R/training.png
+    d3rqn-log export runs/R/traffic.mcap --tensorboard runs/R/tensorboard-export
+    d3rqn-log plot runs/R/traffic.mcap --output runs/R/training.png --x env_steps
     d3rqn-log recover runs/R/traffic.mcap runs/R/traffic-recovered.mcap
 
-A bad or unwritable file gives one line on stderr and exit code 1; a bad config value, exit code 2.
+info, export and plot also read the log of a run still in progress (or of a killed recorder)
+up to the recorder's last flush. A bad or unwritable file gives one line on stderr and exit
+code 1; a bad config value, exit code 2.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pathlib import Path
 from common.config import add_config_arguments, parse_config_or_exit, parse_flags
 
 PROG = "d3rqn-log"
+AXES = ("env_steps", "episodes")  # plot --x: the fields of replay.log.scalars.Point
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--output", type=Path, default=None,
                         help="log file (default: <run.runs_dir>/<run.name>/traffic.mcap; an existing file is never "
                              "overwritten: -2, -3, ... is added to the name)")
+    record.add_argument("--tensorboard", type=Path, default=None, metavar="DIR",
+                        help="also write the run's curves as TensorBoard event files into DIR while recording "
+                             "(a new file beside any there: TensorBoard shows them as one run)")
     add_config_arguments(record)
     record.set_defaults(handler=_record)
 
@@ -53,19 +60,28 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_arguments(play)
     play.set_defaults(handler=_play)
 
-    export = commands.add_parser("export", help="metrics and episode records to CSV; camera frames for Foxglove")
+    export = commands.add_parser("export", help="metrics and episode records to CSV; camera frames for Foxglove; "
+                                                "curves for TensorBoard")
     export.add_argument("log", type=Path)
     export.add_argument("--csv", type=Path, default=None, metavar="DIR",
-                        help="directory for the CSV tables (default: <log folder>/export unless --images is given)")
+                        help="directory for the CSV tables (default: <log folder>/export unless --images or "
+                             "--tensorboard is given)")
     export.add_argument("--images", type=Path, default=None, metavar="FILE.mcap",
                         help="write a Foxglove viewing file: camera frames, steps and metrics as JSON")
     export.add_argument("--image-format", choices=("png", "jpeg"), default="png")
+    export.add_argument("--tensorboard", type=Path, default=None, metavar="DIR",
+                        help="write the curves as TensorBoard event files into DIR, which must hold none yet "
+                             "(`tensorboard --logdir DIR`)")
     export.set_defaults(handler=_export)
 
     plot = commands.add_parser("plot", help="training curves to a PNG")
     plot.add_argument("log", type=Path)
     plot.add_argument("--output", type=Path, default=None, help="PNG file (default: <log folder>/training.png)")
     plot.add_argument("--title", default=None, help="figure title (default: run name, strategy, replay capacity)")
+    plot.add_argument("--x", choices=AXES, default=None,
+                      help="draw every panel against env steps or episodes (default: the paper's axes: return "
+                           "against episodes, epsilon against env steps, loss against updates); a dashed line "
+                           "marks the start of updates")
     plot.set_defaults(handler=_plot)
 
     recover = commands.add_parser("recover", help="rewrite a cut-short log into a complete, indexed one")
@@ -92,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _record(args, config) -> int:
     from replay.log.recorder import run_recorder
-    return run_recorder(config, args.output)
+    return run_recorder(config, args.output, args.tensorboard)
 
 
 def _info(args, config) -> None:
@@ -100,7 +116,7 @@ def _info(args, config) -> None:
     from replay.log.reader import LogFile
     from replay.log.traffic import peek
 
-    with LogFile(args.log) as log:
+    with LogFile(args.log, unfinished_ok=True) as log:
         keys = log.keys()
         start, end = log.time_span_ns
         counts = log.message_counts
@@ -110,7 +126,9 @@ def _info(args, config) -> None:
         steps = sum(record.length for record in records)
         mean_return = sum(record.episode_return for record in records) / len(records) if records else float("nan")
         chunks = len(log.summary.chunk_indexes)
-        print(f"file       {log.path}: {log.size_bytes / 2**20:.2f} MB ({log.size_bytes:,d} bytes), {chunks} chunks")
+        print(f"file       {log.path}: {log.size_bytes / 2**20:.2f} MB ({log.size_bytes:,d} bytes), {chunks} chunks"
+              + ("" if log.finished else "; unfinished (still recording, or the recorder was killed): read up "
+                                         "to its last flush"))
         print(f"run        {keys.root}")
         print(f"time span  {_clock(start)} to {_clock(end)} UTC ({(end - start) / 1e9:.1f} s)")
         print(f"messages   {sum(counts.values()):,d} in {len(counts)} channels")
@@ -152,27 +170,31 @@ def _play(args, config) -> None:
 def _export(args, config) -> None:
     from replay.log.export import export_csv, export_images
     from replay.log.reader import LogFile
+    from replay.log.tensorboard_events import export_tensorboard
 
-    with LogFile(args.log) as log:
-        if args.csv is not None or args.images is None:
+    with LogFile(args.log, unfinished_ok=True) as log:
+        if args.csv is not None or args.images is None and args.tensorboard is None:
             for path in export_csv(log, args.csv or args.log.parent / "export"):
                 print(f"wrote {path}")
         if args.images is not None:
             count = export_images(log, args.images, args.image_format)
             print(f"wrote {args.images}: {count:,d} view messages")
+        if args.tensorboard is not None:
+            count = export_tensorboard(log, args.tensorboard)
+            print(f"wrote {args.tensorboard}: {count:,d} scalar points (tensorboard --logdir {args.tensorboard})")
 
 
 def _plot(args, config) -> None:
-    from replay.log.export import collect
-    from replay.log.plot import plot_training
+    from replay.log.plot import PLOTTED, plot_training
     from replay.log.reader import LogFile
+    from replay.log.scalars import read_series
 
     output = args.output or args.log.parent / "training.png"
-    with LogFile(args.log) as log:
+    with LogFile(args.log, unfinished_ok=True) as log:
         config = log.config()
         title = args.title or (f"run {config.run.name}: {config.exploration.strategy}, "
                                f"replay capacity {config.replay.capacity}")
-        plot_training(collect(log), output, title)
+        plot_training(read_series(log, PLOTTED), output, title, args.x)
     print(f"wrote {output}")
 
 

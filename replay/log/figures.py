@@ -29,8 +29,9 @@ import numpy as np
 
 from common.strategies import STRATEGIES, epsilon_groups
 from common.wire import EpisodeRecord, Stats
-from replay.log.plot import RETURN_WINDOW, finite_series, trailing_mean
+from replay.log.plot import finite_series, trailing_mean
 from replay.log.reader import LogError, LogFile
+from replay.log.scalars import RETURN_WINDOW
 
 LOSS_WINDOW = 10  # learner reports (each the mean over learner.log_period_s) per point of the smoothed curve
 EPSILON_PANELS = tuple(epsilon_groups().items())  # (title, strategies) of each panel

@@ -1,24 +1,32 @@
-"""Training curves of a log, as the paper draws them, into one PNG (matplotlib, Agg backend).
+"""Training curves of a log into one PNG (matplotlib, Agg backend), from the series of ``scalars.py``.
 
-Four panels: the mean episode return over the last 100 episodes against the
-episode count; the epsilon each episode was acted with against the environment
-steps of all episodes so far (both from the actors' EpisodeRecords, in the order
-the recorder received them); the learner's loss and the mean |loss_k - loss_k-1|
-of consecutive updates against updates (both averaged over each of the learner's
-report periods).
+Four panels: the mean episode return over the last 100 episodes and the epsilon each
+episode was acted with (both from the actors' EpisodeRecords, in the order the
+recorder received them); the learner's loss and the mean |loss_k - loss_k-1| of
+consecutive updates (both averaged over each of the learner's report periods). By
+default each is drawn as the paper draws it: return against episodes, epsilon against
+env steps, both losses against updates; with x = "env_steps" or "episodes" every panel
+is drawn against that axis. A dashed line marks where updates started: the env steps at
+which the replay served the first batch, or the episodes recorded by then.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from pathlib import Path
 
 import numpy as np
 
-from replay.log.export import Tables
+from replay.log.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, RETURN_MEAN, RETURN_WINDOW, UPDATES_START, Series
 
-RETURN_WINDOW = 100  # episodes, the paper's "average reward per 100 episodes"
-LEARNER_METRICS = "metrics/learner/0"  # the learner's Stats key below the run
+PANELS = (  # tag, title, y label, colour, the paper's x axis
+    (RETURN_MEAN, f"mean return of the last {RETURN_WINDOW} episodes", "return", "tab:blue", "episodes"),
+    (EPSILON, "epsilon the actors used", "epsilon", "tab:orange", "env_steps"),
+    (LOSS, "loss", "loss", "tab:green", "updates"),
+    (LOSS_ABS_DIFF, "|Δloss|", "|Δloss|", "tab:red", "updates"),
+)
+PLOTTED = frozenset(tag for tag, *_ in PANELS) | {UPDATES_START}
 
 
 def trailing_mean(values: list[float], window: int) -> np.ndarray:
@@ -40,30 +48,40 @@ def _finite(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def plot_training(tables: Tables, path: Path, title: str) -> None:
+def updates_start(series: Series) -> dict[str, float] | None:
+    """Where updates started, in env steps and in episodes recorded by then; None before they start."""
+    marks = series.get(UPDATES_START)
+    if not marks:
+        return None
+    env_steps = marks[0].value
+    episode_steps = [point.env_steps for point in series.get(RETURN_MEAN, [])]
+    return {"env_steps": env_steps, "episodes": bisect.bisect_right(episode_steps, env_steps)}
+
+
+def plot_training(series: Series, path: Path, title: str, x: str | None = None) -> None:
+    """x: "env_steps" or "episodes" for every panel; None for the paper's axis of each."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    learner = tables.stats.get(LEARNER_METRICS, [])
+    start = updates_start(series)
     figure, axes = plt.subplots(2, 2, figsize=(10, 6.5), dpi=90)
-    returns = [row["episode_return"] for row in tables.episodes]
-    ax = axes[0, 0]
-    ax.plot(np.arange(1, len(returns) + 1), trailing_mean(returns, RETURN_WINDOW), color="tab:blue")
-    ax.set(title=f"mean return of the last {RETURN_WINDOW} episodes", xlabel="episodes", ylabel="return")
-    ax = axes[0, 1]
-    steps = np.cumsum([row["length"] for row in tables.episodes])
-    ax.step(steps, [row["epsilon"] for row in tables.episodes], where="post", color="tab:orange")
-    ax.set(title="epsilon the actors used against env steps", xlabel="env steps", ylabel="epsilon")
-    for ax, (x_name, y_name, y_label, colour) in zip(
-            (axes[1, 0], axes[1, 1]),
-            (("updates", "loss", "loss", "tab:green"), ("updates", "loss_abs_diff", "|Δloss|", "tab:red"))):
-        xs, ys = finite_series(learner, x_name, y_name)
-        ax.plot(xs, ys, color=colour, marker="." if len(xs) < 50 else None)
-        ax.set(title=f"{y_label} against {x_name.replace('_', ' ')}", xlabel=x_name.replace("_", " "), ylabel=y_label)
-        if y_name == "loss_abs_diff" and ys and min(ys) > 0:
+    for ax, (tag, name, y_label, colour, paper_axis) in zip(axes.flat, PANELS):
+        axis = x or paper_axis
+        points = series.get(tag, [])
+        xs, ys = [getattr(point, axis) for point in points], [point.value for point in points]
+        if tag == EPSILON:
+            ax.step(xs, ys, where="post", color=colour)
+        else:
+            ax.plot(xs, ys, color=colour, marker="." if tag != RETURN_MEAN and len(xs) < 50 else None)
+        label = axis.replace("_", " ")
+        ax.set(title=name if tag == RETURN_MEAN and x is None else f"{name} against {label}", xlabel=label,
+               ylabel=y_label)
+        if tag == LOSS_ABS_DIFF and ys and min(ys) > 0:
             ax.set_yscale("log")
-    for ax in axes.flat:
+        if start is not None and axis != "updates":
+            ax.axvline(start[axis], color="0.4", linestyle="--", linewidth=1, label="updates start")
+            ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
     figure.suptitle(title)
     figure.tight_layout()

@@ -13,6 +13,10 @@ chunk, so a recorder killed with SIGKILL leaves a file readable up to that flush
 Weights (48 MB each) are kept sparsely: the first, one per
 ``record.weights_every_versions`` versions, and the newest one when recording stops.
 Queries (trace batches, latest weights) are not publications and are not recorded.
+
+With a TensorBoard folder, the writer thread also turns what it writes into the run's
+curves (``tensorboard_events.py``), flushed with the log; if that writer fails, it is
+logged and dropped and the recording goes on.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from common.config import Config, RecorderConfig
 from common.service import Service
 from common.transport import Declared, RateLimitedLog, publisher
 from common.wire import Stats, Weights
+from replay.log.tensorboard_events import EventsWriter
 from replay.log.traffic import Arrival, Peek, peek
 from replay.log.views import ViewMaker
 from replay.log.writer import MEGABYTE, LogWriter
@@ -126,8 +131,9 @@ class WeightsSampler:
 class Recorder:
     """Samples in through `offer`, file out through a writer thread."""
 
-    def __init__(self, writer: LogWriter, config: RecorderConfig) -> None:
+    def __init__(self, writer: LogWriter, config: RecorderConfig, board: EventsWriter | None = None) -> None:
         self.writer = writer
+        self.board = board
         self.flush_period_s = config.flush_period_s
         self.handoff = HandOff(config.queue_messages, int(config.queue_mb * MEGABYTE))
         self.sampler = WeightsSampler(config.weights_every_versions)
@@ -178,6 +184,7 @@ class Recorder:
             if held is not None:
                 self.writer.write(*held)
             self.writer.close({key: str(value) for key, value in self.snapshot().items()})
+        self._to_board(lambda board: board.close())
 
     def _write_all(self) -> None:
         next_flush = time.monotonic() + self.flush_period_s
@@ -188,6 +195,7 @@ class Recorder:
                     self._write(arrival)
                 if time.monotonic() >= next_flush:
                     self.writer.flush()
+                    self._to_board(lambda board: board.flush())
                     next_flush = time.monotonic() + self.flush_period_s
         except Exception as error:  # disk full, closed file...: stop writing; the file stays recoverable
             self.error = error
@@ -198,6 +206,18 @@ class Recorder:
         if seen.message_type == Weights.__name__ and not self.sampler.keep(arrival, seen):
             return
         self.writer.write(arrival, seen)
+        self._to_board(lambda board: board.add_wire(arrival.key, arrival.data, arrival.received_ns,
+                                                    seen.message_type))
+
+    def _to_board(self, action) -> None:
+        """action(the TensorBoard writer), if there is one; one that fails is dropped, the log goes on."""
+        if self.board is None:
+            return
+        try:
+            action(self.board)
+        except Exception:  # disk full, a folder removed...: the curves are a copy, the log is what counts
+            log.exception("the TensorBoard writer failed; recording goes on without it")
+            self.board = None
 
     def snapshot(self) -> dict[str, int | float]:
         depth, queued_bytes = self.handoff.depth()
@@ -235,8 +255,9 @@ def default_log_path(config: Config) -> Path:
     return Path(config.run.runs_dir) / config.run.name / LOG_FILE_NAME
 
 
-def run_recorder(config: Config, output: Path | None = None) -> int:
-    """Records until SIGINT/SIGTERM; returns the exit code (1 if the writer failed)."""
+def run_recorder(config: Config, output: Path | None = None, tensorboard: Path | None = None) -> int:
+    """Records until SIGINT/SIGTERM, with TensorBoard event files in `tensorboard` if given; returns the
+    exit code (1 if the writer failed)."""
     service = Service("recorder", config)
     keys = service.keys
     path = next_free_path(output or default_log_path(config))
@@ -245,15 +266,16 @@ def run_recorder(config: Config, output: Path | None = None) -> int:
     if config.record.views:
         views = ViewMaker(keys.root, 1.0 / config.env.policy_frequency, config.record.images,
                           config.record.image_format)
+    board = None if tensorboard is None else EventsWriter(tensorboard, keys.root)
     with service.session() as session:
-        recorder = Recorder(LogWriter(path, config, views), config.record)
+        recorder = Recorder(LogWriter(path, config, views), config.record, board)
         recorder.start()
         service.on_close(recorder.stop)  # once nothing more arrives: after the subscription's undeclare
         subscription = Declared(keys.all).attach(session.declare_subscriber(keys.all, recorder.on_sample))
         stats_out = publisher(session, keys.metrics_source("recorder", "0"), reliable=False)
         service.on_close(subscription.undeclare)
         service.on_close(stats_out.undeclare)
-        log.info("recording %s into %s", keys.all, path)
+        log.info("recording %s into %s%s", keys.all, path, "" if board is None else f", curves into {tensorboard}")
         while recorder.alive and not service.stop.wait(config.record.stats_period_s):
             values = recorder.snapshot()
             stats_out.put(Stats(source="recorder", time=time.time(), values=values))

@@ -10,7 +10,6 @@ has a summary, indexes and a footer.
 from __future__ import annotations
 
 import os
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,9 +18,7 @@ from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Me
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 from mcap.writer import Writer
 
-from replay.log.reader import DAMAGED, MCAP_MAGIC, LogError
-
-RECORD_PREFIX = struct.Struct("<BQ")  # opcode, length
+from replay.log.reader import DAMAGED, MCAP_MAGIC, LogError, whole_records_end
 
 
 @dataclass
@@ -46,18 +43,6 @@ class _Prefix:
     def read(self, size: int) -> bytes:
         size = min(size, self._end - self._handle.tell())
         return self._handle.read(size) if size > 0 else b""
-
-
-def whole_records_end(handle, size: int) -> int:
-    """The offset just past the last record that lies entirely in the file (records follow the magic)."""
-    position = MAGIC_SIZE
-    while position + RECORD_PREFIX.size <= size:
-        handle.seek(position)
-        _, length = RECORD_PREFIX.unpack(handle.read(RECORD_PREFIX.size))
-        if position + RECORD_PREFIX.size + length > size:
-            break
-        position += RECORD_PREFIX.size + length
-    return position
 
 
 def recover(source: str | Path, target: str | Path) -> Recovery:

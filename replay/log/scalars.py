@@ -1,0 +1,139 @@
+"""A run's curves as named scalar series: the one mapping from messages that TensorBoard and `plot` share.
+
+Each recorded EpisodeRecord, Stats and ExplorationState becomes points of series
+named by tags, the names TensorBoard shows:
+
+* ``episode/return``, ``episode/return_mean_100`` (the mean over the last 100
+  episodes, the paper's curve), ``episode/length``, ``episode/epsilon`` (what the
+  episode was acted with), ``episode/collided``: one point per EpisodeRecord;
+* ``<key>/<value>`` for every finite number of a Stats, the key taken below the
+  run without ``metrics/``: ``learner/0/loss``, ``learner/0/loss_abs_diff``,
+  ``learner/0/updates_per_s``, ``learner/0/epsilon``, ``replay/stats/episodes``,
+  ``replay/rate/hold_actors``, ``actor_stats/0/episodes_sent``, ``recorder/0/dropped``...;
+* ``exploration/epsilon``, ``exploration/kappa``, ``exploration/started`` and
+  ``exploration/counters/<name>`` of the learner's exploration state.
+
+Every point carries where the run was when its message was recorded: env steps,
+episodes recorded, learner updates, and the log time. A Stats that counts env steps
+itself (the learner's ``env_steps``, the replay's ``env_steps_total``) is placed at
+its own count. Episodes are placed at the env steps of the episodes recorded before
+them and their own, lifted by how far the run's first env-step count in the log
+(that of the first such Stats) was ahead of them, so that a log begun mid-run (a
+restarted recorder, a resumed run's later segment) continues the run's axis; points
+that need that lift wait for it (or for the end of the log).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Collection, NamedTuple
+
+from common.wire import EpisodeRecord, ExplorationState, Message, Stats, stat_number
+from replay.log.reader import LogFile
+from replay.log.traffic import relative_key
+
+CURVE_TYPES = (EpisodeRecord, Stats, ExplorationState)
+CURVE_TYPE_NAMES = frozenset(cls.__name__ for cls in CURVE_TYPES)
+RETURN_WINDOW = 100  # episodes, the paper's "average reward per 100 episodes"
+ENV_STEP_VALUES = ("env_steps", "env_steps_total")  # Stats values that count the run's env steps
+METRICS_PREFIX = "metrics/"
+LEARNER_KEY = "metrics/learner/0"  # the learner's Stats, below the run
+
+RETURN_MEAN_NAME = f"return_mean_{RETURN_WINDOW}"
+RETURN_MEAN = f"episode/{RETURN_MEAN_NAME}"
+EPSILON = "episode/epsilon"
+LOSS = "learner/0/loss"
+LOSS_ABS_DIFF = "learner/0/loss_abs_diff"
+UPDATES_START = "learner/0/start_env_steps"  # the env steps at which the replay served the first batch
+
+
+class Point(NamedTuple):
+    value: float
+    env_steps: int
+    episodes: int  # episodes recorded so far, this one included
+    updates: int  # the learner's updates so far
+    wall_s: float  # log time, seconds since the Unix epoch
+
+
+class Curves:
+    """Turns messages, in the order they were recorded, into (tag, point) pairs."""
+
+    def __init__(self, run_root: str) -> None:
+        self.run_root = run_root
+        self.episodes = 0
+        self.episode_steps = 0  # of the episodes recorded so far
+        self.lift: int | None = None  # added to episode_steps once the run's env-step count is known
+        self.updates = 0
+        self._returns: deque[float] = deque(maxlen=RETURN_WINDOW)
+        self._waiting: list[tuple[str, Point]] = []  # points that need the lift, not yet lifted
+
+    def add(self, key: str, message: Message, log_ns: int) -> list[tuple[str, Point]]:
+        """The points of one message (none for other types), and any that were waiting for the lift."""
+        wall_s = log_ns / 1e9
+        if isinstance(message, EpisodeRecord):
+            return self._episode(message, wall_s)
+        if isinstance(message, Stats):
+            return self._stats(relative_key(self.run_root, key), message.values, wall_s)
+        if isinstance(message, ExplorationState):
+            values = {"epsilon": message.epsilon, "kappa": message.kappa, "started": float(message.started),
+                      **{f"counters/{name}": value for name, value in message.counters.items()}}
+            return self._place("exploration", values, wall_s)
+        return []
+
+    def finish(self) -> list[tuple[str, Point]]:
+        """The points still waiting at the end of the log, unlifted: no message counted the run's env steps."""
+        if self.lift is None:
+            self.lift = 0
+        return self._release()
+
+    def _episode(self, record: EpisodeRecord, wall_s: float) -> list[tuple[str, Point]]:
+        self.episodes += 1
+        self.episode_steps += record.length
+        self._returns.append(record.episode_return)
+        values = {"return": record.episode_return, RETURN_MEAN_NAME: sum(self._returns) / len(self._returns),
+                  "length": record.length, "epsilon": record.epsilon, "collided": float(record.collided)}
+        return self._place("episode", values, wall_s)
+
+    def _stats(self, source: str, values: dict, wall_s: float) -> list[tuple[str, Point]]:
+        own_steps = next((int(values[name]) for name in ENV_STEP_VALUES if stat_number(values, name) is not None),
+                         None)
+        if source == LEARNER_KEY and stat_number(values, "updates") is not None:
+            self.updates = int(values["updates"])
+        released = []
+        if own_steps is not None and self.lift is None:
+            self.lift = max(0, own_steps - self.episode_steps)
+            released = self._release()
+        return released + self._place(source.removeprefix(METRICS_PREFIX), values, wall_s, own_steps)
+
+    def _place(self, prefix: str, values: dict, wall_s: float, env_steps: int | None = None) -> list[tuple[str, Point]]:
+        """Points of the finite numbers among values: at env_steps, or when None at the lifted episode steps."""
+        steps = self.episode_steps if env_steps is None else env_steps
+        points = [(f"{prefix}/{name}", Point(float(value), steps, self.episodes, self.updates, wall_s))
+                  for name, value in values.items() if stat_number(values, name) is not None]
+        if env_steps is not None:
+            return points
+        self._waiting.extend(points)
+        return [] if self.lift is None else self._release()
+
+    def _release(self) -> list[tuple[str, Point]]:
+        waiting, self._waiting = self._waiting, []
+        return [(tag, point._replace(env_steps=point.env_steps + self.lift)) for tag, point in waiting]
+
+
+Series = dict[str, list[Point]]
+
+
+def read_series(log: LogFile, tags: Collection[str] | None = None) -> Series:
+    """The series of a log (only the given tags, if any), in log-time order."""
+    curves = Curves(log.keys().root)
+    series: Series = {}
+
+    def keep(points: list[tuple[str, Point]]) -> None:
+        for tag, point in points:
+            if tags is None or tag in tags:
+                series.setdefault(tag, []).append(point)
+
+    for record, message in log.messages(*CURVE_TYPES):
+        keep(curves.add(record.topic, message, record.log_ns))
+    keep(curves.finish())
+    return series
