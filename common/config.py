@@ -319,7 +319,7 @@ class EvaluationConfig:
     seed: int = 0  # root of every trial's seed (env reset, random baseline, privileged driver's turns)
     progress_period_s: float = 1.0  # how often the progress line on stderr is refreshed
     live_timeout_s: float = 30.0  # --live: how long to wait for the learner's latest weights
-    # Intervals of the tables: stratified bootstrap over runs and trials (actor/evaluation_intervals.py).
+    # Intervals of the tables: stratified bootstrap over runs and trials (actor/evaluation/intervals.py).
     bootstrap_replicates: int = 2000
     confidence: float = 0.95
 

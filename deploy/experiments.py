@@ -7,7 +7,7 @@ into <run>/evaluation/). Runs go one after the other, or --parallel K at once.
 At the end, <runs-dir>/results/ receives the tables of the paper's tables 3-6
 with bootstrap confidence intervals over the seeds (results.md, results.csv:
 pooled rows and one row per seed, with every run's updates), the figures of
-replay/log/figures.py and the performance profiles of actor/evaluation_profile.py.
+replay/log/figures.py and the performance profiles of deploy/performance_profile.py.
 
 Stopping and running the same command again resumes: a run with an evaluation
 and a checkpoint at the step budget is done; a run whose checkpoint is short of
@@ -37,13 +37,15 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from actor.evaluate import CHECKPOINTS_DIR, OUTPUT_DIR as EVALUATION_DIR, bootstrap_of
-from actor.evaluation_comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, EvaluatedRun, comparison_markdown, comparison_rows,
-                                         write_comparison_csv)
-from actor.evaluation_intervals import Bootstrap
-from actor.evaluation_profile import plot_performance_profiles
-from actor.evaluation_report import SUMMARY_CSV, bin_labels, read_facts
+from actor.evaluate import OUTPUT_DIR as EVALUATION_DIR
+from actor.evaluation.intervals import Bootstrap
+from actor.evaluation.protocol import bootstrap_of
+from actor.evaluation.report import SUMMARY_CSV, bin_labels, read_facts
+from actor.evaluation.sources import CHECKPOINTS_DIR
 from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args
+from deploy.comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, EvaluatedRun,
+                               comparison_markdown, comparison_rows, write_comparison_csv)
+from deploy.performance_profile import plot_performance_profiles
 from learner.checkpoint import LATEST, CheckpointError, load_checkpoint
 from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences,
                                 plot_reward_bins, plot_reward_curves, read_run_curves)
@@ -474,7 +476,7 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
                   f"(uniform actions) is the same in every table. ({RANDOM!r} in results.csv.) "
                   f"Brackets hold {level} percentile intervals of {bootstrap.replicates} bootstrap replicates: "
                   "the runs (seeds) of a row drawn again whole, then each run's trials within each start "
-                  "(actor/evaluation_intervals.py). With one seed an interval shows only the spread of the "
+                  "(actor/evaluation/intervals.py). With one seed an interval shows only the spread of the "
                   "trials; with a few seeds, read it as a guide. Updates lists every run's learner updates, "
                   "in seed order. results.csv has the pooled rows (seed \"all\") and one row per seed.", ""]
     lines += [comparison_markdown(rows, edges, bootstrap.confidence) if rows else "No run has been evaluated yet.", ""]

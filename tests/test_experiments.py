@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from actor.evaluation_comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
-                                         read_episodes_csv, write_comparison_csv)
-from actor.evaluation_intervals import Bootstrap
-from actor.evaluation_profile import plot_performance_profiles
-from actor.evaluation_report import EPISODES_CSV, write_report
-from actor.evaluation_stats import EvaluationEpisode, summarise_all
+from actor.evaluation.intervals import Bootstrap
+from actor.evaluation.report import EPISODES_CSV, write_report
+from actor.evaluation.stats import EvaluationEpisode, summarise_all
 from common.config import load_config
+from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
+                               read_episodes_csv, write_comparison_csv)
+from deploy.performance_profile import plot_performance_profiles
 from common.transport import Keys
 from common.wire import EpisodeRecord, Stats, encode
 from learner.checkpoint import save_checkpoint
