@@ -8,14 +8,14 @@ Episodes are spread over ``evaluation.workers`` processes (multiprocessing,
 'spawn'), each stepping ``evaluation.envs_per_worker`` simulators in lockstep
 with one batched forward pass per step (actor/evaluation/episodes.py). A
 uniformly random policy, and on request the privileged map-reading driver,
-run the same starts for comparison. Results go to ``--out`` (default
-``<run dir>/evaluation/``): episodes.csv, summary.csv, summary.md, facts.json,
+run the same starts for comparison. Results go to ``--out`` (default: the
+run folder's evaluation folder, common/run_dir.py): episodes.csv, summary.csv, summary.md, facts.json,
 config.toml. Mean and IQM length, CFR, progress and reward per step come with
 confidence intervals (actor/evaluation/intervals.py); from one checkpoint they
 show the spread of the trials only, not that of other training runs.
 
-    evaluate --checkpoint runs/bmc                 # the run's checkpoints/latest.pt
-    evaluate --checkpoint runs/bmc/checkpoints/latest.pt --evaluation.workers 2
+    evaluate --checkpoint runs/bmc                 # the run's latest checkpoint
+    evaluate --checkpoint backup/bmc-early.pt --evaluation.workers 2
     evaluate --live --run.name bmc --transport.mode client --transport.connect tcp/127.0.0.1:7447
 """
 
@@ -33,10 +33,8 @@ from actor.evaluation.report import SUMMARY_MD, write_report
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
 from actor.evaluation.workers import torch_threads_per_worker
 from actor.sim import START_SETS
+from common.checkpoint import CheckpointError
 from common.config import ConfigError, add_config_arguments, config_from_args, to_toml
-from learner.checkpoint import CheckpointError
-
-OUTPUT_DIR = "evaluation"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "changed only by --config FILE and the flags given (--preset is ignored).")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", type=Path, metavar="PATH",
-                        help="a checkpoint file, or a run directory (uses its checkpoints/latest.pt)")
+                        help="a checkpoint file, or a run folder (uses its latest checkpoint)")
     source.add_argument("--live", action="store_true",
                         help="ask the running learner of run.name for its latest weights (transport.* settings)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="output directory (default: <run dir>/evaluation)")
@@ -97,7 +95,7 @@ def _main(args: argparse.Namespace) -> None:
     started = time.monotonic()
     episodes, summaries = evaluate(config, source.weights, policies, sets)
     wall_s = time.monotonic() - started
-    out_dir = args.out if args.out is not None else source.run_dir / OUTPUT_DIR
+    out_dir = args.out if args.out is not None else source.run_dir.evaluation
     evaluation = config.evaluation
     workers = min(evaluation.workers, len(episodes))
     facts = {**source.facts,

@@ -20,10 +20,10 @@ from actor.evaluation.report import bin_labels, markdown_table
 from actor.evaluation.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts,
                                     summarise, summarise_all)
 from actor.sim import make_env
+from common.checkpoint import save_checkpoint
 from common.config import TransportConfig, load_config, to_dict
 from common.transport import Keys, open_session, serve
 from common.wire import Weights
-from learner.checkpoint import save_checkpoint
 from learner.update import DoubleQLearner
 
 EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]

@@ -15,9 +15,9 @@ from common.config import Config, config_from_args, from_dict
 from common.network import D3RQN, load_numpy_weights
 from common.transport import Keys, open_session, request
 from common.wire import Weights
-from learner.checkpoint import LATEST, load_checkpoint
+from common.checkpoint import Checkpoint
+from common.run_dir import RunDir
 
-CHECKPOINTS_DIR = "checkpoints"  # learner/service.py writes <runs_dir>/<run>/checkpoints/latest.pt
 LIVE_RETRY_S = 0.2
 
 
@@ -27,34 +27,22 @@ class PolicySource:
 
     weights: dict[str, np.ndarray]
     config: Config
-    run_dir: Path
+    run_dir: RunDir
     facts: dict[str, str]
 
 
-def locate_checkpoint(path: Path) -> tuple[Path, Path]:
-    """(checkpoint file, run directory) for a checkpoint file, a checkpoints directory or a run directory."""
-    if path.is_file():
-        return path, path.parent.parent if path.parent.name == CHECKPOINTS_DIR else path.parent
-    if (path / CHECKPOINTS_DIR / LATEST).is_file():
-        return path / CHECKPOINTS_DIR / LATEST, path
-    if (path / LATEST).is_file():
-        return path / LATEST, path.parent if path.name == CHECKPOINTS_DIR else path
-    raise EvaluationError(f"no checkpoint at {path}: expected a checkpoint file, a run directory with "
-                          f"{CHECKPOINTS_DIR}/{LATEST}, or a directory with {LATEST}")
-
-
 def checkpoint_source(path: Path, args: argparse.Namespace) -> PolicySource:
-    file, run_dir = locate_checkpoint(path)
-    payload = load_checkpoint(file, ("learner", "config"))
-    learner = payload["learner"]
-    if not isinstance(learner, dict) or "online" not in learner:
-        raise EvaluationError(f"checkpoint {file} has no online network in its learner section")
-    config = checkpoint_config(payload["config"], args)
-    weights = {name: tensor.detach().cpu().numpy() for name, tensor in learner["online"].items()}
-    env_steps = payload.get("clock", {}).get("env_steps", "unknown")
-    facts = {"source": f"checkpoint {file}", "updates": str(learner.get("updates", "unknown")),
-             "env steps": str(env_steps), "strategy": config.exploration.strategy}
-    return PolicySource(weights, config, run_dir, facts)
+    """A checkpoint file, a run folder or its checkpoints folder."""
+    checkpoint = Checkpoint.load(path)
+    weights = checkpoint.policy_weights()
+    config = checkpoint_config(checkpoint.config, args)
+    facts = {"source": f"checkpoint {checkpoint.path}", "updates": _known(checkpoint.updates),
+             "env steps": _known(checkpoint.env_steps), "strategy": config.exploration.strategy}
+    return PolicySource(weights, config, RunDir.of_checkpoint(checkpoint.path), facts)
+
+
+def _known(count: int | None) -> str:
+    return "unknown" if count is None else str(count)
 
 
 def checkpoint_config(saved: Any, args: argparse.Namespace) -> Config:
@@ -74,7 +62,7 @@ def live_source(config: Config) -> PolicySource:
                               f"{config.evaluation.live_timeout_s:g} s")
     facts = {"source": f"live learner on {keys.weights_latest}", "weights version": str(reply.version),
              "strategy": config.exploration.strategy}
-    return PolicySource(dict(reply.tensors), config, Path(config.run.runs_dir) / config.run.name, facts)
+    return PolicySource(dict(reply.tensors), config, RunDir.of(config), facts)
 
 
 def _latest_weights(session, key: str, timeout_s: float) -> Weights | None:
