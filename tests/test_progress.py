@@ -1,11 +1,13 @@
 """Progress you can plan by: the stack's budget, percentage and ETA, its status file, the grid's runs done
-and ETA."""
+and ETA, and an actor's held episodes counted once per period."""
 
+import logging
 import time
 
 import pytest
 
 import deploy.experiments as experiments
+from actor.runner import HoldLog
 from common.checkpoint import save_checkpoint
 from common.config import load_config
 from common.eta import Eta, clock_time
@@ -105,6 +107,28 @@ def test_the_grid_line_counts_runs_done_and_the_steps_trained(tmp_path):
     finished.thread = type("Ended", (), {"is_alive": lambda self: False})()
     line = experiments.GridProgress([finished, waiting], 1000).line()
     assert line.startswith("grid: 1/2 runs done, 62.5% of the env steps trained, elapsed 0:00, ETA ")
+
+
+def test_held_episodes_are_logged_once_per_period_with_their_count(caplog):
+    clock = FakeClock()
+    holds = HoldLog(10.0, clock)
+    with caplog.at_level(logging.INFO, logger="actor"):
+        holds.begin()
+        clock.now = 5.0
+        holds.tick("behind")  # within the period: silent
+        clock.now = 6.0
+        holds.end()
+        clock.now = 7.0
+        holds.begin()
+        clock.now = 10.0
+        holds.tick("behind")
+        clock.now = 15.0
+        holds.tick("budget")
+        clock.now = 20.0
+        holds.tick("budget")  # the same hold, still going
+    assert [record.getMessage() for record in caplog.records] == [
+        "held 2 episode(s) for 9s of the last 10s: the learner is behind",
+        "held 1 episode(s) for 10s of the last 10s: the run's step budget is spent"]
 
 
 def test_what_a_run_has_trained_comes_from_its_checkpoint(tmp_path):
