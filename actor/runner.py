@@ -56,6 +56,7 @@ log = logging.getLogger("actor")
 
 LATEST_WEIGHTS_TIMEOUT_S = 30.0
 REPLAY_WAIT_LOG_S = 10.0
+HOLD_LOG_S = 10.0  # a paced run holds nearly every episode briefly: one line per period counts them
 
 
 def actor_seed(run_seed: int, actor_id: int) -> int:
@@ -411,10 +412,11 @@ def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox) -> None:
 
 def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, records_out) -> None:
     report = Every(actor.config.actor.log_period_s)
+    holds = HoldLog(HOLD_LOG_S)
     steps = 0
     returns: list[float] = []
     while not stop.is_set() and (max_episodes is None or actor.episode_index < max_episodes):
-        if not _replay_allows_next_episode(actor, stop):
+        if not _replay_allows_next_episode(actor, stop, holds):
             break
         episode, record = actor.run_episode(stop)
         if stop.is_set() and not (episode.terminated or episode.truncated):
@@ -431,14 +433,48 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox
             returns.clear()
 
 
-def _replay_allows_next_episode(actor: Actor, stop: threading.Event) -> bool:
+def _replay_allows_next_episode(actor: Actor, stop: threading.Event, holds: HoldLog) -> bool:
     """Waits at an episode boundary while the replay's rate limiter says hold; False if stopped."""
-    waiting = Every(actor.config.actor.log_period_s)
-    started = time.monotonic()
+    held = False
     while reason := actor.mailbox.must_hold():
+        if not held:
+            holds.begin()
+            held = True
         if stop.wait(0.01):
             return False
-        if waiting.due():
-            why = "the run's step budget is spent" if reason == "budget" else "the learner is behind"
-            log.info("holding the next episode: %s (%.0fs so far)", why, time.monotonic() - started)
+        holds.tick(reason)
+    if held:
+        holds.end()
     return True
+
+
+class HoldLog:
+    """The rate limiter's holds, logged once per period with their count and time, not once per hold."""
+
+    def __init__(self, period_s: float, clock=time.monotonic) -> None:
+        self.period_s = period_s
+        self._clock = clock
+        self._line_at = clock()
+        self._held = 0  # holds begun since the last line (an ongoing one counts again in the next)
+        self._held_s = 0.0  # time held since the last line, but for the ongoing hold
+        self._since: float | None = None  # start of the ongoing hold, or of its part since the last line
+
+    def begin(self) -> None:
+        self._held += 1
+        self._since = self._clock()
+
+    def end(self) -> None:
+        self._held_s += self._clock() - self._since
+        self._since = None
+
+    def tick(self, reason: str) -> None:
+        now = self._clock()
+        if now - self._line_at < self.period_s:
+            return
+        ongoing = self._since is not None
+        held_s = self._held_s + (now - self._since if ongoing else 0.0)
+        why = "the run's step budget is spent" if reason == "budget" else "the learner is behind"
+        log.info("held %d episode(s) for %.0fs of the last %.0fs: %s", self._held, held_s, now - self._line_at, why)
+        self._line_at, self._held, self._held_s = now, int(ongoing), 0.0
+        if ongoing:
+            self._since = now

@@ -1,13 +1,16 @@
 """The paper's comparison: train and evaluate a grid of strategies x replay capacities x seeds, then tabulate.
 
 Each run of the grid goes through the real distributed stack (deploy/stack.py, a
-subprocess) under <runs-dir>/<strategy>-b<capacity>-s<seed>/, then through
-`evaluate` (its greedy policy and the random baseline, train and test starts,
-into <run>/evaluation/). Runs go one after the other, or --parallel K at once.
+subprocess) in the run folder <runs-dir>/<strategy>-b<capacity>-s<seed>/
+(common/run_dir.py), then through `evaluate` (its greedy policy and the random
+baseline, train and test starts, into the run's evaluation folder). Runs go one
+after the other, or --parallel K at once. A line per period shows each running
+run (from the stack's status file, or evaluate's progress line) and the grid:
+runs done of all, and an ETA from the env steps trained so far in this session.
 At the end, <runs-dir>/results/ receives the tables of the paper's tables 3-6
 with bootstrap confidence intervals over the seeds (results.md, results.csv:
 pooled rows and one row per seed, with every run's updates), the figures of
-replay/log/figures.py and the performance profiles of actor/evaluation_profile.py.
+replay/log/figures.py and the performance profiles of deploy/performance_profile.py.
 
 Stopping and running the same command again resumes: a run with an evaluation
 and a checkpoint at the step budget is done; a run whose checkpoint is short of
@@ -36,25 +39,25 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
-from actor.evaluate import CHECKPOINTS_DIR, OUTPUT_DIR as EVALUATION_DIR, bootstrap_of
-from actor.evaluation_comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, EvaluatedRun, comparison_markdown, comparison_rows,
-                                         write_comparison_csv)
-from actor.evaluation_intervals import Bootstrap
-from actor.evaluation_profile import plot_performance_profiles
-from actor.evaluation_report import SUMMARY_CSV, bin_labels, read_facts
+from actor.evaluation.intervals import Bootstrap
+from actor.evaluation.progress import is_progress_line
+from actor.evaluation.protocol import bootstrap_of
+from actor.evaluation.report import SUMMARY_CSV, bin_labels, read_facts
+from common.checkpoint import Checkpoint, CheckpointError
 from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args, parse_flags
-from learner.checkpoint import LATEST, CheckpointError, load_checkpoint
+from common.eta import Eta, clock_time
+from common.run_dir import RunDir, RunStatus, StatusError
+from deploy.comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, EvaluatedRun,
+                               comparison_markdown, comparison_rows, write_comparison_csv)
+from deploy.performance_profile import plot_performance_profiles
 from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences,
                                 plot_reward_bins, plot_reward_curves, read_run_curves)
 from replay.log.reader import LogError
-from replay.log.recorder import LOG_FILE_NAME, log_segments
 
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
 RESULTS_DIR = "results"
-ABANDONED_DIR = "abandoned"  # what an earlier attempt without a checkpoint left behind
-STACK_PROGRESS = re.compile(r"^\[\s*\d+s\] env steps")  # deploy/stack.py's live line
-EVALUATE_PROGRESS = re.compile(r"^evaluate: \d+/\d+ episodes")
 # Keys the grid sets for each run; giving them as config flags would contradict it.
 GRID_KEYS = {"run.name": "the run names", "run.seed": "--seeds", "run.runs_dir": "--runs-dir",
              "exploration.strategy": "--strategies", "replay.capacity": "--buffers",
@@ -96,6 +99,9 @@ class Options:
     def run_dir(self, spec: RunSpec) -> Path:
         return self.runs_dir / spec.name
 
+    def run(self, spec: RunSpec) -> RunDir:
+        return RunDir(self.run_dir(spec))
+
 
 def grid(strategies: list[str], capacities: list[int], seeds: list[int]) -> list[RunSpec]:
     """Capacity, then seed, then strategy: the runs of one table come before those of the next."""
@@ -106,32 +112,48 @@ def grid(strategies: list[str], capacities: list[int], seeds: list[int]) -> list
 
 def run_updates(run_dir: Path) -> int | None:
     """The updates of the weights a run's evaluation used: from its facts.json, else from its checkpoint."""
-    facts = read_facts(run_dir / EVALUATION_DIR)
+    run = RunDir(run_dir)
+    facts = read_facts(run.evaluation)
     if str(facts.get("updates", "")).isdigit():
         return int(facts["updates"])
     try:
-        return int(load_checkpoint(run_dir / CHECKPOINTS_DIR / LATEST, ("learner",))["learner"]["updates"])
-    except (CheckpointError, KeyError, TypeError, ValueError):
+        return Checkpoint.load(run.checkpoint).updates
+    except CheckpointError:
         return None
 
 
 def checkpoint_env_steps(path: Path) -> int:
     """The learner's clock in a checkpoint: the env steps of the whole system when it was saved."""
     try:
-        return int(load_checkpoint(path, ("clock",))["clock"]["env_steps"])
-    except (CheckpointError, KeyError, TypeError, ValueError) as error:
+        env_steps = Checkpoint.load(path).env_steps
+    except CheckpointError as error:
         raise ExperimentError(f"cannot read the step count of {path}: {error}") from None
+    if env_steps is None:
+        raise ExperimentError(f"cannot read the step count of {path}: its clock has none")
+    return env_steps
 
 
 def next_step(run_dir: Path, budget: int) -> str:
     """TRAIN, RESUME, EVALUATE or DONE for the run in run_dir, from what it holds on disk."""
-    checkpoint = run_dir / CHECKPOINTS_DIR / LATEST
-    evaluated = (run_dir / EVALUATION_DIR / SUMMARY_CSV).is_file()
-    if not checkpoint.is_file():
+    run = RunDir(run_dir)
+    evaluated = (run.evaluation / SUMMARY_CSV).is_file()
+    if not run.checkpoint.is_file():
         return DONE if evaluated else TRAIN
-    if checkpoint_env_steps(checkpoint) < budget:
+    if checkpoint_env_steps(run.checkpoint) < budget:
         return RESUME  # also a run evaluated earlier with a smaller budget
     return DONE if evaluated else EVALUATE
+
+
+def trained_env_steps(run_dir: Path, budget: int) -> int:
+    """How much of the budget a run has trained: all of it once it is done, else what its checkpoint
+    holds (0 without a readable one)."""
+    try:
+        step = next_step(run_dir, budget)
+        if step in (TRAIN, DONE):
+            return budget if step == DONE else 0
+        return min(checkpoint_env_steps(RunDir(run_dir).checkpoint), budget)
+    except ExperimentError:
+        return 0
 
 
 def set_aside_stale_files(run_dir: Path) -> Path | None:
@@ -140,10 +162,11 @@ def set_aside_stale_files(run_dir: Path) -> Path | None:
     Otherwise the new recorder would write traffic-2.mcap next to the old file and the
     figures would read both as one run.
     """
-    stale = log_segments(run_dir / LOG_FILE_NAME) + [path for path in [run_dir / "logs"] if path.is_dir()]
+    run = RunDir(run_dir)
+    stale = run.traffic_segments() + [path for path in [run.logs] if path.is_dir()]
     if not stale:
         return None
-    target = run_dir / ABANDONED_DIR / datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    target = run.abandoned(datetime.datetime.now().strftime("%Y%m%d-%H%M%S"))
     target.mkdir(parents=True)
     for path in stale:
         shutil.move(path, target / path.name)
@@ -159,9 +182,9 @@ def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
 
 
 def evaluate_command(spec: RunSpec, options: Options) -> list[str]:
-    run_dir = options.run_dir(spec)
-    command = [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run_dir),
-               "--out", str(run_dir / EVALUATION_DIR), *options.extra]
+    run = options.run(spec)
+    command = [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.root),
+               "--out", str(run.evaluation), *options.extra]
     return command + (["--evaluation.episodes_per_start", str(options.trials)] if options.trials else [])
 
 
@@ -200,14 +223,16 @@ def report_bootstrap(options: Options) -> Bootstrap:
 # --- child processes -------------------------------------------------------------------------------------------
 
 class Child:
-    """A subprocess whose output goes to a log file; keeps its latest progress line and echoes the others.
+    """A subprocess whose output goes to a log file; keeps its latest progress line (those `is_progress`
+    accepts) and echoes the others.
 
     It runs in a session of its own, so a Ctrl-C in the terminal reaches it once, forwarded by the runner.
     """
 
-    def __init__(self, command: list[str], log_path: Path, progress: re.Pattern, echo_prefix: str | None) -> None:
+    def __init__(self, command: list[str], log_path: Path, is_progress: Callable[[str], bool] | None,
+                 echo_prefix: str | None) -> None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
-        self.progress = progress
+        self.is_progress = is_progress
         self.echo_prefix = echo_prefix  # None: other lines stay in the log
         self.latest = ""
         self.tail: deque[str] = deque(maxlen=8)  # for the error message when it fails
@@ -229,7 +254,7 @@ class Child:
             self._take(pending.strip())
 
     def _take(self, line: str) -> None:
-        if self.progress.match(line):
+        if self.is_progress is not None and self.is_progress(line):
             self.latest = line
             return
         self.tail.append(line)
@@ -263,11 +288,13 @@ class RunJob:
     child: Child | None = None
     error: str | None = None
     headline: str = ""
+    trained_at_start: int = 0  # env steps of its checkpoint when the grid started
     started: float = field(default_factory=time.monotonic)
+    started_at: float = field(default_factory=time.time)  # wall clock, to tell this stack's status from older ones
     thread: threading.Thread | None = None
 
     def start(self) -> None:
-        self.started = time.monotonic()
+        self.started, self.started_at = time.monotonic(), time.time()
         self.thread = threading.Thread(target=self._run, name=self.spec.name, daemon=True)
         self.thread.start()
 
@@ -281,9 +308,9 @@ class RunJob:
         self.child = None
 
     def _steps(self) -> None:
-        run_dir = self.options.run_dir(self.spec)
+        run_dir, run = self.options.run_dir(self.spec), self.options.run(self.spec)
         step = next_step(run_dir, self.options.steps)
-        summary = run_dir / EVALUATION_DIR / SUMMARY_CSV
+        summary = run.evaluation / SUMMARY_CSV
         if step == DONE:
             self.phase, self.headline = "already done", evaluation_headline(summary)
             return
@@ -294,20 +321,21 @@ class RunJob:
                 print(f"{self.tag}: an earlier attempt left no checkpoint; its logs moved to {moved}", flush=True)
         if step in (TRAIN, RESUME):
             self.phase = "resuming" if step == RESUME else "training"
-            self._child(stack_command(self.spec, self.options, resume=step == RESUME), run_dir / "logs" / "stack.log",
-                        STACK_PROGRESS, "the stack", echo=True)
-            reached = checkpoint_env_steps(run_dir / CHECKPOINTS_DIR / LATEST)
+            self._child(stack_command(self.spec, self.options, resume=step == RESUME), run.log("stack"),
+                        None, "the stack", echo=True)  # its progress is in the status file
+            reached = checkpoint_env_steps(run.checkpoint)
             if reached < self.options.steps:
                 raise ExperimentError(f"the stack stopped at {reached:,d} of {self.options.steps:,d} env steps")
         self.phase = "evaluating"
-        self._child(evaluate_command(self.spec, self.options), run_dir / "logs" / "evaluate.log",
-                    EVALUATE_PROGRESS, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
+        self._child(evaluate_command(self.spec, self.options), run.log("evaluate"),
+                    is_progress_line, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
         self.phase, self.headline = "done", evaluation_headline(summary)
 
-    def _child(self, command: list[str], log_path: Path, progress: re.Pattern, what: str, echo: bool) -> None:
+    def _child(self, command: list[str], log_path: Path, is_progress: Callable[[str], bool] | None, what: str,
+               echo: bool) -> None:
         if self.stopping.is_set():
             raise ExperimentError("interrupted")
-        self.child = Child(command, log_path, progress, self.tag if echo else None)
+        self.child = Child(command, log_path, is_progress, self.tag if echo else None)
         if self.stopping.is_set():  # the interruption came while the child was starting
             self.child.interrupt()
         code = self.child.wait()
@@ -317,6 +345,29 @@ class RunJob:
             tail = "\n    ".join(self.child.tail)
             raise ExperimentError(f"{what} exited with code {code} (log: {log_path}); its last lines:\n    {tail}")
 
+    def status(self) -> RunStatus | None:
+        """The status file of this job's stack; None before it wrote one (an older one does not count)."""
+        try:
+            status = RunStatus.read(self.options.run(self.spec).status)
+        except StatusError:
+            return None
+        return status if status.time >= self.started_at else None
+
+    def progress_line(self) -> str:
+        """The stack's figures while training, evaluate's progress line while evaluating."""
+        if self.phase in ("training", "resuming"):
+            status = self.status()
+            return status_line(status) if status is not None else ""
+        return self.child.latest if self.child is not None else ""
+
+    def trained(self) -> int:
+        """Env steps of the budget trained so far."""
+        budget = self.options.steps
+        if self.phase in ("evaluating", "done", "already done"):
+            return budget
+        status = self.status() if self.phase in ("training", "resuming") else None
+        return self.trained_at_start if status is None else max(self.trained_at_start, min(status.env_steps, budget))
+
     @property
     def tag(self) -> str:
         return f"[{self.number}/{self.total}] {self.spec.name}"
@@ -324,6 +375,16 @@ class RunJob:
     @property
     def finished(self) -> bool:
         return self.thread is not None and not self.thread.is_alive()
+
+
+def status_line(status: RunStatus) -> str:
+    """'env steps 12,000/60,000 (20.0%), updates 600, return(100) 3.21, restarts 0, ETA 40:00' of a stack."""
+    budget = max(status.total_env_steps, 1)
+    mean_return = "–" if status.mean_return is None else f"{status.mean_return:.2f}"
+    eta = "?" if status.eta_s is None else clock_time(status.eta_s)
+    return (f"env steps {status.env_steps:,d}/{status.total_env_steps:,d} ({100 * status.env_steps / budget:.1f}%), "
+            f"updates {status.updates:,d}, return(100) {mean_return}, restarts {sum(status.restarts.values())}, "
+            f"ETA {eta}")
 
 
 def evaluation_headline(summary_csv: Path) -> str:
@@ -343,13 +404,39 @@ def evaluation_headline(summary_csv: Path) -> str:
 
 # --- the grid ----------------------------------------------------------------------------------------------------------
 
+class GridProgress:
+    """Runs done of all, and an ETA: the env steps still to train at the rate the grid has trained them
+    in this session (which includes the evaluations that finished meanwhile)."""
+
+    def __init__(self, jobs: list[RunJob], budget: int) -> None:
+        self.jobs = jobs
+        self.total = len(jobs) * budget
+        self.started = time.monotonic()
+        self.eta = Eta(self.total)
+        self.eta.update(self._trained())
+
+    def _trained(self) -> int:
+        return sum(job.trained() for job in self.jobs)
+
+    def line(self) -> str:
+        trained = self._trained()
+        self.eta.update(trained)
+        done = sum(job.finished and job.error is None for job in self.jobs)
+        failed = sum(job.finished and job.error is not None for job in self.jobs)
+        return (f"grid: {done}/{len(self.jobs)} runs done" + (f", {failed} failed" if failed else "")
+                + f", {100 * trained / max(self.total, 1):.1f}% of the env steps trained, "
+                  f"elapsed {clock_time(time.monotonic() - self.started)}, ETA {self.eta.text()}")
+
+
 def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
     """Runs every spec; returns the number of runs that failed (an interruption raises KeyboardInterrupt)."""
     stopping = threading.Event()
-    jobs = [RunJob(number, len(specs), spec, options, stopping) for number, spec in enumerate(specs, 1)]
+    jobs = [RunJob(number, len(specs), spec, options, stopping,
+                   trained_at_start=trained_env_steps(options.run_dir(spec), options.steps))
+            for number, spec in enumerate(specs, 1)]
     pending, active = deque(jobs), []
     failed = 0
-    grid_started = time.monotonic()
+    grid = GridProgress(jobs, options.steps)
     last_progress = time.monotonic()
 
     def interrupt(*_) -> None:
@@ -371,28 +458,23 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
             if time.monotonic() - last_progress >= options.progress_s:
                 last_progress = time.monotonic()
                 for job in active:
-                    if job.child is not None and job.child.latest:
-                        print(f"{job.tag} {job.phase} {_clock(time.monotonic() - job.started)} "
-                              f"(grid {_clock(time.monotonic() - grid_started)}) | {job.child.latest}", flush=True)
+                    if line := job.progress_line():
+                        print(f"{job.tag} {job.phase} {clock_time(time.monotonic() - job.started)} | {line}",
+                              flush=True)
+                print(grid.line(), flush=True)
             for job in [job for job in active if job.finished]:
                 active.remove(job)
                 failed += job.error is not None
-                took = _clock(time.monotonic() - job.started)
+                took = clock_time(time.monotonic() - job.started)
                 outcome = f"FAILED after {took}: {job.error}" if job.error else f"{job.phase} in {took}"
-                print(f"{job.tag}: {outcome} (grid {_clock(time.monotonic() - grid_started)})"
-                      + (f" | {job.headline}" if job.headline else ""), flush=True)
+                print(f"{job.tag}: {outcome}" + (f" | {job.headline}" if job.headline else ""), flush=True)
+                print(grid.line(), flush=True)
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if stopping.is_set():
         raise KeyboardInterrupt
     return failed
-
-
-def _clock(seconds: float) -> str:
-    minutes, second = divmod(int(seconds), 60)
-    hours, minute = divmod(minutes, 60)
-    return f"{hours}:{minute:02d}:{second:02d}"
 
 
 # --- the results ------------------------------------------------------------------------------------------------------
@@ -402,9 +484,9 @@ def write_results(specs: list[RunSpec], options: Options, facts: dict[str, str])
     results = options.runs_dir / RESULTS_DIR
     results.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    evaluated = [EvaluatedRun(spec.strategy, spec.capacity, options.run_dir(spec) / EVALUATION_DIR, spec.seed,
+    evaluated = [EvaluatedRun(spec.strategy, spec.capacity, options.run(spec).evaluation, spec.seed,
                               run_updates(options.run_dir(spec)))
-                 for spec in specs if (options.run_dir(spec) / EVALUATION_DIR / SUMMARY_CSV).is_file()]
+                 for spec in specs if (options.run(spec).evaluation / SUMMARY_CSV).is_file()]
     rows: list[ComparisonRow] = []
     edges: list[float] = []
     bootstrap = report_bootstrap(options)
@@ -422,7 +504,7 @@ def write_results(specs: list[RunSpec], options: Options, facts: dict[str, str])
 def read_curves(specs: list[RunSpec], options: Options) -> list[RunCurves]:
     curves = []
     for spec in specs:
-        segments = log_segments(options.run_dir(spec) / LOG_FILE_NAME)
+        segments = options.run(spec).traffic_segments()
         if not segments:
             continue
         try:
@@ -474,7 +556,7 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
                   f"(uniform actions) is the same in every table. ({RANDOM!r} in results.csv.) "
                   f"Brackets hold {level} percentile intervals of {bootstrap.replicates} bootstrap replicates: "
                   "the runs (seeds) of a row drawn again whole, then each run's trials within each start "
-                  "(actor/evaluation_intervals.py). With one seed an interval shows only the spread of the "
+                  "(actor/evaluation/intervals.py). With one seed an interval shows only the spread of the "
                   "trials; with a few seeds, read it as a guide. Updates lists every run's learner updates, "
                   "in seed order. results.csv has the pooled rows (seed \"all\") and one row per seed.", ""]
     lines += [comparison_markdown(rows, edges, bootstrap.confidence) if rows else "No run has been evaluated yet.", ""]
@@ -555,7 +637,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as error:  # ComparisonError, or data a figure cannot draw
         print(f"deploy/experiments.py: cannot write the results: {error}", file=sys.stderr)
         return 1
-    print(f"grid finished in {_clock(time.monotonic() - started)}; {failed} failed; results: "
+    print(f"grid finished in {clock_time(time.monotonic() - started)}; {failed} failed; results: "
           + ", ".join(str(path) for path in paths), flush=True)
     return 1 if failed else 0
 

@@ -2,19 +2,22 @@
 
 Each role runs as its own process (a fresh interpreter, never a fork holding a
 Zenoh session). The replay opens its session as the router that the others
-connect to. This launcher shows one live progress line, writes everything for
-the run under <runs_dir>/<run>/, and stops every process on Ctrl-C or when the
-learner reaches its step budget (it exits with code 0).
+connect to. This launcher writes everything for the run into its run folder
+(common/run_dir.py), and stops every process on Ctrl-C or when the learner
+reaches its step budget (it exits with code 0). Every second it rewrites the
+run's status file (phase, env steps of the budget, updates, mean return, ETA,
+restarts, pids; RunStatus) and, on a terminal, one live progress line with the
+same figures.
 
 Any process that dies otherwise is started again after a backoff (RESTART_BACKOFF_S,
 doubled for each death in a row up to RESTART_BACKOFF_MAX_S; a process that lived
 STABLE_S starts from the first step again): the replay with --resume (its snapshot
 and counters), the learner with --resume once it has a checkpoint, the recorder
-(into a new traffic-<n>.mcap) and actors as they were. The others ride it out: they
+(into a new numbered log) and actors as they were. The others ride it out: they
 reconnect to a restarted replay on their own. The progress line counts restarts,
-and at the end <runs_dir>/<run>/summary.json gives env steps, updates and the
-achieved env steps per update of the whole run, from the learner's last metrics,
-and the restarts of each process.
+and at the end the run's summary file gives env steps, updates and the achieved
+env steps per update of the whole run, from the learner's last metrics, and the
+restarts of each process.
 """
 
 from __future__ import annotations
@@ -29,9 +32,10 @@ import sys
 import threading
 import time
 from collections import deque
-from pathlib import Path
 
 from common.config import Config, add_config_arguments, parse_config_or_exit, to_toml
+from common.eta import Eta
+from common.run_dir import RunDir, RunStatus
 from common.transport import Keys, free_port, open_session, subscribe
 from common.wire import EpisodeRecord, Stats, stat_number
 
@@ -40,9 +44,8 @@ RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubl
 RESTART_BACKOFF_MAX_S = 30.0
 STABLE_S = 60.0  # a process that lived this long before dying is restarted after RESTART_BACKOFF_S again
 FINAL_METRICS_WAIT_S = 5.0
-SUMMARY = "summary.json"
-CHECKPOINT = Path("checkpoints") / "latest.pt"
-TENSORBOARD = "tensorboard"  # the recorder's live event files, in the run folder (--tensorboard)
+STATUS_PERIOD_S = 1.0  # the status file and the live line
+ETA_WINDOW_S = 300.0  # the ETA follows the env-step rate of the last five minutes (the random phase is faster)
 
 
 def default_actor_count() -> int:
@@ -51,16 +54,19 @@ def default_actor_count() -> int:
 
 
 class Progress:
-    """Collects the system's metrics from Zenoh and renders the live progress line."""
+    """Collects the system's metrics from Zenoh and renders the live progress line and the status."""
 
-    def __init__(self) -> None:
+    def __init__(self, total_env_steps: int = 0, clock=time.monotonic) -> None:
         self._lock = threading.Lock()
         self.returns: deque[float] = deque(maxlen=100)
         self.episodes = 0
         self.replay: dict = {}
         self.learner: dict = {}
         self.learner_final = threading.Event()  # the learner's last metrics, sent as it stops
-        self._started = time.monotonic()
+        self.total_env_steps = total_env_steps  # the budget; 0: not shown
+        self.eta = Eta(total_env_steps, ETA_WINDOW_S, clock)
+        self._clock = clock
+        self._started = clock()
 
     def on_metric(self, message, key: str) -> None:
         """Episode records and the learner's metrics; anything else on metrics/** is not for the line.
@@ -78,21 +84,38 @@ class Progress:
         if isinstance(message, Stats) and message.source == "replay":
             with self._lock:
                 self.replay = dict(message.values)
+                env_steps = stat_number(self.replay, "env_steps_total", integer=True, minimum=0)
+                if env_steps is not None:
+                    self.eta.update(env_steps)
 
     def line(self, restarts: int = 0) -> str:
         with self._lock:
-            mean_return = sum(self.returns) / len(self.returns) if self.returns else float("nan")
+            mean_return = self._mean_return()
             learner, replay = self.learner, self.replay
-            elapsed = time.monotonic() - self._started
-            return (f"[{elapsed:7.0f}s] env steps {_count(replay, 'env_steps_total'):>9,d} | "
+            elapsed = self._clock() - self._started
+            env_steps = _count(replay, "env_steps_total")
+            budget = (f"/{self.total_env_steps:,d} ({100 * env_steps / self.total_env_steps:5.1f}%, "
+                      f"ETA {self.eta.text()})" if self.total_env_steps else "")
+            return (f"[{elapsed:7.0f}s] env steps {env_steps:>9,d}{budget} | "
                     f"episodes {self.episodes:>6,d} | "
                     f"updates {_count(learner, 'updates'):>7,d} | "
                     f"eps {_number(learner, 'epsilon', 1.0):.3f} | "
-                    f"return(100) {mean_return:8.2f} | "
+                    f"return(100) {math.nan if mean_return is None else mean_return:8.2f} | "
                     f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
                     f"steps/s {_number(replay, 'env_steps_total_per_s', 0.0):6.1f} | "
                     f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
                     f"restarts {restarts}")
+
+    def status(self, phase: str, restarts: dict[str, int], pids: dict[str, int]) -> RunStatus:
+        with self._lock:
+            return RunStatus(phase=phase, env_steps=_count(self.replay, "env_steps_total"),
+                             total_env_steps=self.total_env_steps, updates=_count(self.learner, "updates"),
+                             episodes=self.episodes, mean_return=self._mean_return(),
+                             eta_s=self.eta.remaining_s(), elapsed_s=self._clock() - self._started,
+                             restarts=dict(restarts), pids=dict(pids), time=time.time())
+
+    def _mean_return(self) -> float | None:
+        return sum(self.returns) / len(self.returns) if self.returns else None
 
     def summary(self, config: Config, restarts: dict[str, int] | None = None) -> dict:
         """The run's figures from the learner's last metrics (and the replay's last stats)."""
@@ -144,22 +167,23 @@ class Role:
 class Stack:
     """Starts, watches, restarts and stops the processes of one local run."""
 
-    def __init__(self, config: Config, config_path: Path, run_dir: Path, endpoint: str,
-                 actors: int, resume: bool, tensorboard: Path | None = None) -> None:
+    def __init__(self, config: Config, run: RunDir, endpoint: str, actors: int, resume: bool,
+                 tensorboard: bool = False) -> None:
         self.config = config
-        self.run_dir = run_dir
-        self.logs = run_dir / "logs"
-        self.logs.mkdir(parents=True, exist_ok=True)
-        self.base = ["--config", str(config_path)]
+        self.run = run
+        run.logs.mkdir(parents=True, exist_ok=True)
+        self.base = ["--config", str(run.config)]
         self.endpoint = endpoint
         self.resume = resume  # the first start: the replay's snapshot and counters, the learner's checkpoint
         client = ["--transport.mode", "client", "--transport.connect", endpoint]
         self.roles: dict[str, Role] = {"replay": Role("replay", "replay.main", [
             "--transport.mode", "router", "--transport.listen", endpoint])}
-        if config.record.enabled:  # the flight recorder writes <run dir>/traffic.mcap
-            curves = [] if tensorboard is None else ["--tensorboard", str(tensorboard)]
+        if config.record.enabled:  # the flight recorder writes the run's traffic log
+            curves = ["--tensorboard", str(run.tensorboard)] if tensorboard else []
             self.roles["recorder"] = Role("recorder", "replay.log.cli record", client + curves)
         self.roles["learner"] = Role("learner", "learner.main", client)
+        self.learner_finished = False  # the learner exited by itself: the budget is paid for
+        self.status_failed = False
         for actor_id in range(actors):
             self.roles[f"actor-{actor_id}"] = Role(f"actor-{actor_id}", "actor.main",
                                                    client + ["--actor.actor_id", str(actor_id)])
@@ -172,18 +196,35 @@ class Stack:
     def restarts(self) -> dict[str, int]:
         return {name: role.restarts for name, role in self.roles.items()}
 
+    @property
+    def pids(self) -> dict[str, int]:
+        return {name: process.pid for name, process in self.processes.items() if process.poll() is None}
+
+    def report(self, progress: Progress, phase: str, live_line: bool = False) -> None:
+        """Rewrites the status file (a failure is said once; the run goes on); on a terminal, the live line too."""
+        try:
+            progress.status(phase, self.restarts, self.pids).write(self.run.status)
+        except OSError as error:
+            if not self.status_failed:
+                print(f"\ncannot write the status file: {error}", file=sys.stderr, flush=True)
+            self.status_failed = True
+        if live_line:
+            print("\r" + progress.line(sum(self.restarts.values())), end="", flush=True)
+
     def start_all(self) -> None:
         for role in self.roles.values():
             self._start(role, first=True)
 
     def watch(self, stop: threading.Event, progress: Progress) -> int:
         """Returns 0 once the learner has finished (exit code 0); restarts what dies meanwhile."""
-        last_line = 0.0
+        last_report = 0.0
+        live_line = sys.stdout.isatty()  # elsewhere the status file tells how far the run is
         while not stop.is_set():
             now = time.monotonic()
             for role in self.roles.values():
                 code = role.process.poll() if role.restart_at is None else None
                 if code == 0 and role.name == "learner":
+                    self.learner_finished = True
                     return 0  # the budget is paid for: the run is over
                 if code is not None:
                     self._died(role, code, now)
@@ -191,9 +232,9 @@ class Stack:
                     role.restart_at = None
                     role.restarts += 1
                     self._start(role)
-            if now - last_line >= 1.0:
-                print("\r" + progress.line(sum(self.restarts.values())), end="", flush=True)
-                last_line = now
+            if now - last_report >= STATUS_PERIOD_S:
+                self.report(progress, "training", live_line)
+                last_report = now
             stop.wait(0.2)
         return 0
 
@@ -201,7 +242,7 @@ class Stack:
         role.deaths_in_a_row = 1 if now - role.started >= STABLE_S else role.deaths_in_a_row + 1
         role.restart_at = now + role.backoff_s()
         print(f"\n{role.name} exited with code {code}; restarting it in {role.backoff_s():.0f}s "
-              f"(see logs/{role.name}.log)", file=sys.stderr, flush=True)
+              f"(see {self.run.log(role.name)})", file=sys.stderr, flush=True)
 
     def stop_all(self) -> None:
         """Learner first (it checkpoints), then actors, the recorder (it has seen their last messages), replay last."""
@@ -222,12 +263,12 @@ class Stack:
     def _resume_flags(self, role: Role, first: bool) -> list[str]:
         if role.name == "replay":
             return ["--resume"] if self.resume or not first else []
-        if role.name == "learner" and (self.resume or not first) and (self.run_dir / CHECKPOINT).exists():
+        if role.name == "learner" and (self.resume or not first) and self.run.checkpoint.exists():
             return ["--resume"]
         return []
 
     def _start(self, role: Role, first: bool = False) -> None:
-        log = open(self.logs / f"{role.name}.log", "ab")
+        log = open(self.run.log(role.name), "ab")
         command = [sys.executable, "-m", *role.module.split(), *self.base, *role.flags,
                    *self._resume_flags(role, first)]  # module, then any subcommand
         role.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
@@ -240,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="deploy/run.sh",
         description="Run the whole system locally: replay + learner + actors over loopback Zenoh. "
-                    "Everything for the run goes to <run.runs_dir>/<run.name>/.")
+                    "Everything for the run goes to its run folder, <run.runs_dir>/<run.name>/.")
     parser.add_argument("--actors", type=int, default=None,
                         help="number of actors (default: actor.num_actors, or one per spare core)")
     parser.add_argument("--port", type=int, default=0, help="loopback port of the replay's router (default: a free one)")
@@ -248,9 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="continue the run: the learner from its latest checkpoint, the replay from its "
                              "snapshot and counters")
     parser.add_argument("--tensorboard", action="store_true",
-                        help=f"the recorder also writes the run's curves as TensorBoard event files into <run "
-                             f"folder>/{TENSORBOARD}/ while it trains (`tensorboard --logdir <run.runs_dir>`); "
-                             f"needs record.enabled")
+                        help="the recorder also writes the run's curves as TensorBoard event files into <run "
+                             "folder>/tensorboard/ while it trains (`tensorboard --logdir <run.runs_dir>`); "
+                             "needs record.enabled")
     add_config_arguments(parser)
     return parser
 
@@ -260,21 +301,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.tensorboard and not config.record.enabled:
         print("deploy/run.sh: --tensorboard needs the recorder, but record.enabled is false", file=sys.stderr)
         return 2
-    run_dir = Path(config.run.runs_dir) / config.run.name
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config_path = run_dir / "config.toml"
-    config_path.write_text(to_toml(config))
+    run = RunDir.of(config)
+    run.root.mkdir(parents=True, exist_ok=True)
+    run.config.write_text(to_toml(config))
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
     actors = args.actors or config.actor.num_actors or default_actor_count()
     print(f"run {config.run.name!r}: strategy {config.exploration.strategy}, {actors} actor(s), "
-          f"router {endpoint}, files in {run_dir}/", flush=True)
+          f"router {endpoint}, files in {run.root}/", flush=True)
 
-    stack = Stack(config, config_path, run_dir, endpoint, actors, args.resume,
-                  run_dir / TENSORBOARD if args.tensorboard else None)
+    stack = Stack(config, run, endpoint, actors, args.resume, args.tensorboard)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    progress = Progress()
+    progress = Progress(config.learner.total_env_steps)
     stack.start_all()
     watcher_config = config.transport
     watcher_config.mode, watcher_config.connect, watcher_config.listen = "client", [endpoint], []
@@ -289,18 +328,20 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         print("\n" + progress.line(sum(stack.restarts.values())), flush=True)
         print("stopping processes ...", flush=True)
+        stack.report(progress, "stopping")
         stack.stop_all()
         for subscription in subscriptions:
             subscription.undeclare()
         session.close()
+    stack.report(progress, "finished" if stack.learner_finished else "stopped")
     summary = progress.summary(config, stack.restarts)
-    (run_dir / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+    run.summary.write_text(json.dumps(summary, indent=2) + "\n")
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
     print(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps per "
-          f"update (configured {config.learner.env_steps_per_update:g}); {run_dir / SUMMARY}", flush=True)
+          f"update (configured {config.learner.env_steps_per_update:g}); {run.summary}", flush=True)
     restarted = ", ".join(f"{name} {count}" for name, count in stack.restarts.items() if count) or "none"
-    print(f"stopped; restarts: {restarted}; logs in {stack.logs}/", flush=True)
+    print(f"stopped; restarts: {restarted}; logs in {run.logs}/", flush=True)
     return code
 
 

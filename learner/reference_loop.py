@@ -6,7 +6,7 @@ the learner updates and feeds the exploration strategy (learner/service.py).
 Here it is one loop over env steps built from the same parts, with no copy of
 them: the env of ``actor.sim.make_env``, the D3RQN of common/network.py, the
 episode store of replay/store.py, the learner step of learner/update.py, the
-strategies of common/exploration.py and the evaluation of actor/evaluate.py.
+strategies of common/exploration.py and the evaluation of actor/evaluation/.
 Read it to follow the method, run it to check the stack against, and
 benchmark the stack with it (deploy/bench/stack_speed.py).
 
@@ -68,7 +68,7 @@ class LoopResult:
     mean_return: float  # of the last 100 episodes
     epsilon: float
     loss: float  # of the last update
-    summaries: list | None = None  # the evaluation's rows (actor.evaluation_stats.SetSummary), if evaluated
+    summaries: list | None = None  # the evaluation's rows (actor.evaluation.stats.SetSummary), if evaluated
 
     @property
     def env_steps_per_update(self) -> float:
@@ -182,7 +182,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
         mean_return=float(np.mean(returns)) if returns else math.nan, epsilon=float(strategy.epsilon),
         loss=result.loss if result is not None else math.nan)
     if evaluate_at_end:
-        from actor.evaluate import evaluate  # spawns the evaluation's worker processes
+        from actor.evaluation.protocol import evaluate  # spawns the evaluation's worker processes
         outcome.summaries = evaluate(config, learner.online_weights(), policies=("greedy",), show_progress=False)[1]
     return outcome
 
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> None:
           f"{result.start_env_steps} env steps); random phase {result.seconds_to_start:.1f} s, updating "
           f"{result.seconds_updating:.1f} s; mean return of the last 100 episodes {result.mean_return:.2f}")
     if result.summaries:
-        from actor.evaluation_report import markdown_table
+        from actor.evaluation.report import markdown_table
         print(markdown_table(result.summaries, config.evaluation.reward_bins, config.evaluation.confidence))
 
 

@@ -31,14 +31,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common.checkpoint import Checkpoint, CheckpointError
 from common.config import Config, to_dict
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.logs import Every
+from common.run_dir import RunDir
 from common.service import Service
 from common.transport import Keys, publisher, request, serve, subscribe
 from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
                          WireError, check_trace_batch, stat_number)
-from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from learner.prefetch import Prefetcher
 from learner.update import DoubleQLearner, TraceBatch as Traces
 
@@ -50,7 +51,6 @@ WAIT_LOG_S = 10.0
 # Once the budget is paid for, the learner waits this long for episodes still in flight (an actor
 # that started one before it heard the budget was spent) and pays for them too before it stops.
 FINISH_GRACE_S = 2.0
-CHECKPOINT_SECTIONS = ("learner", "exploration", "clock", "config")
 MAX_FAILED_IN_A_ROW = 20  # updates that raise on consecutive batches: the learner itself is at fault; it stops
 
 
@@ -98,7 +98,7 @@ class RunClock:
         return updates >= due or updates >= self.finish_line
 
     def state_dict(self) -> dict:
-        # "env_steps" is what deploy/experiments.py and evaluate read off a checkpoint.
+        # Checkpoint.env_steps reads "env_steps": the grid runner and evaluate ask it how far a run got.
         return {"env_steps": self.env_steps, "start_env_steps": self.start_env_steps}
 
     def load_state_dict(self, state: dict) -> None:
@@ -120,7 +120,7 @@ class LearnerProcess:
         self._resumed_env_steps: int | None = None
         self._lock = threading.Lock()
         self.latest_weights: Weights | None = None
-        self.checkpoint_dir = Path(config.run.runs_dir) / config.run.name / "checkpoints"
+        self.checkpoint_dir = RunDir.of(config).checkpoints
         self.shape = RunShape.of(config)
         self.rejections = Rejections(log)
         self.failed_updates = 0
@@ -261,18 +261,14 @@ class LearnerProcess:
     def checkpoint(self) -> Path:
         with self._lock:
             clock = self.clock.state_dict()
-        return save_checkpoint(self.checkpoint_dir, {
-            "learner": self.learner.state_dict(),
-            "exploration": self.strategy.state_dict(),
-            "clock": clock,
-            "config": to_dict(self.config),
-        })
+        return Checkpoint(learner=self.learner.state_dict(), exploration=self.strategy.state_dict(), clock=clock,
+                          config=to_dict(self.config)).save(self.checkpoint_dir)
 
     def resume(self) -> None:
-        payload = load_checkpoint(self.checkpoint_dir, CHECKPOINT_SECTIONS)
-        self.learner.load_state_dict(payload["learner"])
-        self.strategy.load_state_dict(payload["exploration"])
-        self.clock.load_state_dict(payload["clock"])
+        checkpoint = Checkpoint.load(self.checkpoint_dir, complete=True)
+        self.learner.load_state_dict(checkpoint.learner)
+        self.strategy.load_state_dict(checkpoint.exploration)
+        self.clock.load_state_dict(checkpoint.clock)
         self._resumed_env_steps = self.clock.env_steps
         log.info("resumed from %s: %d updates, %d env steps", self.checkpoint_dir, self.updates, self.clock.env_steps)
 

@@ -38,6 +38,7 @@ from pathlib import Path
 from common.config import Config
 from common.exploration import strategy_from_state
 from common.logs import Every
+from common.run_dir import RunDir
 from common.service import Service
 from common.strategies import starts_by_steps
 from common.transport import PendingQuery, RateLimitedLog, publisher, serve_deferred, subscribe
@@ -56,20 +57,18 @@ HOLD_MAX_S = 10.0  # a held request is dropped after this (the learner asks agai
 REPLY_THREADS = 2
 WAKE_S = 0.1  # reply threads look at expiries and the rate message at least this often
 MEASURE_AFTER_FRAMES = 1_000  # the budget check is repeated once with the measured frame size
-COUNTERS_FILE = "rate_limiter.json"
-SNAPSHOT_DIR = "snapshot"
 RATE_SOURCE = "rate_limiter"  # the Stats source of replay/rate messages (replay/stats: "replay")
 MAX_PENDING = 32  # held trace-batch requests; beyond, a request is refused at once (the learner keeps 2)
 
 
 def counters_path(config: Config) -> Path:
-    """Where the replay keeps its rate limiter's counters: <runs_dir>/<run>/replay/rate_limiter.json."""
-    return Path(config.run.runs_dir) / config.run.name / "replay" / COUNTERS_FILE
+    """Where the replay keeps its rate limiter's counters, in the run folder."""
+    return RunDir.of(config).replay_counters
 
 
 def snapshot_path(config: Config) -> Path:
-    """Where the replay keeps its snapshot: <runs_dir>/<run>/replay/snapshot/."""
-    return Path(config.run.runs_dir) / config.run.name / "replay" / SNAPSHOT_DIR
+    """Where the replay keeps its snapshot, in the run folder."""
+    return RunDir.of(config).replay_snapshot
 
 
 class ReplayService:

@@ -8,19 +8,22 @@ import numpy as np
 import pytest
 import torch
 
-from actor.evaluate import (EvaluationError, Progress, build_parser, check_weights, checkpoint_config, live_source,
-                            main, progress_line, run_jobs)
-from actor.evaluation_episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
+from actor.evaluate import build_parser, main
+from actor.evaluation import EvaluationError
+from actor.evaluation.progress import Progress, progress_line
+from actor.evaluation.sources import check_weights, checkpoint_config, live_source
+from actor.evaluation.workers import run_jobs
+from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
                                        evaluation_env_config, progress_of, run_lockstep)
-from actor.evaluation_report import bin_labels, markdown_table
-from actor.evaluation_stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts,
+from actor.evaluation.report import bin_labels, markdown_table
+from actor.evaluation.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts,
                                     summarise, summarise_all)
 from actor.sim import make_env
+from common.checkpoint import save_checkpoint
 from common.config import TransportConfig, load_config, to_dict
 from common.transport import Keys, open_session, serve
 from tests.processes import loopback_endpoint
 from common.wire import Weights
-from learner.checkpoint import save_checkpoint
 from learner.update import DoubleQLearner
 
 EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]

@@ -15,20 +15,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from actor.evaluation_comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
-                                         read_episodes_csv, write_comparison_csv)
-from actor.evaluation_intervals import Bootstrap
-from actor.evaluation_profile import plot_performance_profiles
-from actor.evaluation_report import EPISODES_CSV, write_report
-from actor.evaluation_stats import EvaluationEpisode, summarise_all
+from actor.evaluation.intervals import Bootstrap
+from actor.evaluation.report import EPISODES_CSV, write_report
+from actor.evaluation.stats import EvaluationEpisode, summarise_all
+from common.checkpoint import save_checkpoint
 from common.config import load_config
+from common.run_dir import log_segments
+from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
+                               read_episodes_csv, write_comparison_csv)
+from deploy.performance_profile import plot_performance_profiles
 from common.transport import Keys
 from common.wire import EpisodeRecord, Stats, encode
-from learner.checkpoint import save_checkpoint
 from replay.log.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
                                 plot_reward_curves, read_run_curves)
 from replay.log.reader import LogError
-from replay.log.recorder import log_segments
 from replay.log.traffic import Arrival, peek
 from replay.log.writer import LogWriter
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
+from common.checkpoint import SECTIONS as CHECKPOINT_SECTIONS, CheckpointError, load_checkpoint
 from common.config import load_config
 from common.wire import FrameStack, Stats, TraceBatch
-from learner.checkpoint import CheckpointError, load_checkpoint
-from learner.service import CHECKPOINT_SECTIONS, LearnerProcess
+from learner.service import LearnerProcess
 
 SIZE, STEPS, TRACES = 36, 4, 3
 

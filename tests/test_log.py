@@ -18,6 +18,7 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from common.config import Config, TransportConfig, flat_items, load_config
+from common.run_dir import next_free_path
 from common.transport import Keys, open_session, publisher, request, subscribe
 from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, Stats, TraceBatch,
                          TraceBatchRequest, Weights, decode, encode)
@@ -25,7 +26,7 @@ from replay.log.cli import main as log_main
 from replay.log.export import collect
 from replay.log.plot import trailing_mean
 from replay.log.reader import LogError, LogFile
-from replay.log.recorder import HandOff, Recorder, WeightsSampler, next_free_path
+from replay.log.recorder import HandOff, Recorder, WeightsSampler
 from replay.log.recover import recover
 from replay.log.traffic import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.log.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns

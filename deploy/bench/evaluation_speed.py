@@ -29,7 +29,7 @@ import time
 import numpy as np
 import torch
 
-from actor.evaluation_episodes import (GreedyPolicy, PrivilegedPolicy, episode_jobs, evaluation_env_config,
+from actor.evaluation.episodes import (GreedyPolicy, PrivilegedPolicy, episode_jobs, evaluation_env_config,
                                        run_lockstep)
 from actor.sim import START_SETS, make_env, start_poses
 from common.config import Config

@@ -25,6 +25,7 @@ import threading
 from pathlib import Path
 
 from common.config import TransportConfig
+from common.run_dir import RunDir
 from common.transport import Keys, free_port, loopback_endpoint, open_session, subscribe
 from common.wire import EpisodeRecord, Stats, decode
 from replay.log.reader import LogFile
@@ -86,14 +87,14 @@ def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[s
     code = stack.wait(RUN_TIMEOUT_S)
     if not finished or code != 0:
         raise SystemExit(f"the run did not reach {steps} network-driven steps or the stack failed (exit {code}); "
-                         f"see {runs_dir / name / 'logs'}")
+                         f"see {RunDir(runs_dir / name).logs}")
     with watch.lock:
         samples = sorted(watch.samples)
         result = {"steady": rate(samples, watch.network_from, watch.network_from + steps),
                   "random": rate(samples, 1, watch.network_from) if watch.network_from > 0 else float("nan"),
                   "updates_per_s": statistics.mean(watch.updates_per_s) if watch.updates_per_s else float("nan")}
     if record:
-        result.update(log_sizes(runs_dir / name / "traffic.mcap", name))
+        result.update(log_sizes(RunDir(runs_dir / name).traffic, name))
     return result
 
 

@@ -21,17 +21,16 @@ logged and dropped and the recording goes on.
 
 from __future__ import annotations
 
-import itertools
 import logging
 import threading
 import time
 from collections import Counter, deque
 from pathlib import Path
-from typing import Iterator
 
 import zenoh
 
 from common.config import Config, RecorderConfig
+from common.run_dir import RunDir, next_free_path
 from common.service import Service
 from common.transport import Declared, RateLimitedLog, publisher
 from common.wire import Stats, Weights
@@ -41,8 +40,6 @@ from replay.log.views import ViewMaker
 from replay.log.writer import MEGABYTE, LogWriter
 
 log = logging.getLogger("recorder")
-
-LOG_FILE_NAME = "traffic.mcap"
 
 
 class HandOff:
@@ -234,25 +231,9 @@ class Recorder:
         return values
 
 
-def numbered_paths(path: Path) -> Iterator[Path]:
-    """path, then path with -2, -3, ... before its suffix."""
-    yield path
-    for number in itertools.count(2):
-        yield path.with_name(f"{path.stem}-{number}{path.suffix}")
-
-
-def next_free_path(path: Path) -> Path:
-    """The first of numbered_paths(path) that does not exist: a recorder never overwrites a log."""
-    return next(candidate for candidate in numbered_paths(path) if not candidate.exists())
-
-
-def log_segments(path: Path) -> list[Path]:
-    """The logs next_free_path gave the recorders of one run (a resumed run has several), in recording order."""
-    return list(itertools.takewhile(Path.exists, numbered_paths(path)))
-
-
 def default_log_path(config: Config) -> Path:
-    return Path(config.run.runs_dir) / config.run.name / LOG_FILE_NAME
+    """The run's traffic log; a recorder never overwrites one (next_free_path numbers the next)."""
+    return RunDir.of(config).traffic
 
 
 def run_recorder(config: Config, output: Path | None = None, tensorboard: Path | None = None) -> int:

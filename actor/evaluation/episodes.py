@@ -26,7 +26,7 @@ from typing import Callable, Iterable, Iterator, Protocol
 import numpy as np
 import torch
 
-from actor.evaluation_stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
+from actor.evaluation.stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
 from actor.sim import START_SETS, make_env, start_poses
 from actor.sim.privileged import PrivilegedDriver
 from common.config import Config, EnvConfig

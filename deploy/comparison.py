@@ -3,9 +3,9 @@
 Each run's ``episodes.csv`` (written by ``evaluate``) is read back into
 EvaluationEpisode records, and the greedy episodes of all runs that share a
 strategy and a replay capacity (the seeds of one grid cell) are pooled into one
-row by ``evaluation_stats.summarise``, so a row weighs every episode once; its
+row by ``actor.evaluation.stats.summarise``, so a row weighs every episode once; its
 intervals resample the runs whole, then each run's trials within each start
-(actor/evaluation_intervals.py). Each run also gets a row of its own. One
+(actor/evaluation/intervals.py). Each run also gets a row of its own. One
 table per start set and capacity: Strategy | Seeds | Updates (of every run) |
 Episodes | Average | IQM | Standard Deviation | Min | CFR | Stalled | Progress
 | Reward/step | the last reward bin's share; then the per-run rows.
@@ -22,9 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from actor.evaluation_intervals import Bootstrap, Cell
-from actor.evaluation_report import EPISODES_CSV, bin_labels, summary_columns, with_interval
-from actor.evaluation_stats import EvaluationEpisode, SetSummary, episode_cell, summarise
+from actor.evaluation.intervals import Bootstrap, Cell
+from actor.evaluation.report import EPISODES_CSV, bin_labels, summary_columns, with_interval
+from actor.evaluation.stats import EvaluationEpisode, SetSummary, episode_cell, summarise
 from common.strategies import DISPLAY_NAMES, STRATEGIES
 
 STRATEGY_NAMES = {**DISPLAY_NAMES, "random": "Random policy"}

@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from actor.evaluation_stats import EvaluationEpisode, SetSummary
+from actor.evaluation.stats import EvaluationEpisode, SetSummary
 
 EPISODES_CSV = "episodes.csv"
 SUMMARY_CSV = "summary.csv"
@@ -17,7 +17,7 @@ SUMMARY_MD = "summary.md"
 CONFIG_TOML = "config.toml"
 FACTS_JSON = "facts.json"  # where the weights came from (updates, env steps, strategy, ...), read by the comparison
 
-# The SetSummary field of each statistic that has an interval (evaluation_intervals.STATISTICS).
+# The SetSummary field of each statistic that has an interval (intervals.STATISTICS).
 INTERVAL_FIELDS = {"mean_length": "mean_length", "iqm_length": "iqm_length", "cfr": "cfr",
                    "progress_m": "mean_progress_m", "reward_per_step": "mean_reward_per_step"}
 
@@ -33,7 +33,7 @@ COLUMN_LEGEND = (
                  "(– where the simulator does not report it)"),
     ("Reward/step", "mean step reward exp(-beta d), pooled over all steps of the set"),
     ("[low, high]", "confidence interval by stratified bootstrap: training runs resampled whole, then each "
-                    "run's trials within each start (actor/evaluation_intervals.py); with one run it shows "
+                    "run's trials within each start (actor/evaluation/intervals.py); with one run it shows "
                     "only the spread of the trials"),
     ("r in [a, b)", "share of all steps whose reward fell in the bin; the last bin holds the near-optimal steps"),
     ("Distinct/start", "different trajectories among the trials of one start, averaged over starts"),

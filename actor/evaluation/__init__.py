@@ -1,0 +1,13 @@
+"""The paper's evaluation protocol for one policy, in the modules named for each part.
+
+episodes (which episodes, the policies, lockstep stepping inside a worker),
+workers (the worker processes), progress (the status line), protocol (policies
+x start sets -> episodes and table rows), sources (the weights: a checkpoint or
+the live learner), stats and intervals (the tables' figures), report (the
+files written). The command line is actor/evaluate.py; the comparison across
+runs is deploy/comparison.py.
+"""
+
+
+class EvaluationError(RuntimeError):
+    """The evaluation cannot run: no weights, unusable settings, or a worker failed."""

@@ -1,0 +1,76 @@
+"""Runs evaluation jobs on spawned worker processes and collects their episodes in job order."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import queue
+from typing import Sequence
+
+import numpy as np
+
+from actor.evaluation import EvaluationError
+from actor.evaluation.episodes import EpisodeJob, WorkerDone, WorkerFailed, evaluation_worker
+from actor.evaluation.progress import Progress
+from actor.evaluation.stats import EvaluationEpisode
+from common.config import Config
+
+WORKER_EXIT_TIMEOUT_S = 10.0
+
+
+def torch_threads_per_worker(workers: int) -> int:
+    return max(1, len(os.sched_getaffinity(0)) // workers)
+
+
+def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequence[EpisodeJob],
+             progress: Progress) -> list[EvaluationEpisode]:
+    """Runs the jobs on min(workers, jobs) spawned processes; the episodes come back in job order."""
+    context = multiprocessing.get_context("spawn")
+    job_queue, result_queue = context.Queue(), context.Queue()
+    n_workers = min(config.evaluation.workers, len(jobs))
+    for job in jobs:
+        job_queue.put(job)
+    for _ in range(n_workers):
+        job_queue.put(None)  # one end marker per worker
+    threads = torch_threads_per_worker(n_workers)
+    workers = [context.Process(target=evaluation_worker, name=f"evaluate-{number}", daemon=True,
+                               args=(number, config, weights, threads, job_queue, result_queue))
+               for number in range(n_workers)]
+    for worker in workers:
+        worker.start()
+    try:
+        episodes = _collect(result_queue, workers, progress)
+    finally:
+        for worker in workers:
+            worker.join(WORKER_EXIT_TIMEOUT_S)
+            if worker.is_alive():
+                worker.terminate()
+                worker.join()
+    order = {(job.policy, job.start_set, job.start_index, job.trial): rank for rank, job in enumerate(jobs)}
+    episodes.sort(key=lambda e: order[(e.policy, e.start_set, e.start_index, e.trial)])
+    if len(episodes) != len(jobs):
+        raise EvaluationError(f"expected {len(jobs)} episodes, the workers returned {len(episodes)}")
+    return episodes
+
+
+def _collect(result_queue, workers: list, progress: Progress) -> list[EvaluationEpisode]:
+    episodes: list[EvaluationEpisode] = []
+    finished: set[int] = set()
+    while len(finished) < len(workers):
+        try:
+            item = result_queue.get(timeout=progress.period_s)
+        except queue.Empty:
+            crashed = [worker.name for worker in workers if worker.exitcode not in (None, 0)]
+            if crashed:
+                raise EvaluationError(f"worker(s) {', '.join(crashed)} died without a report") from None
+            progress.tick()
+            continue
+        if isinstance(item, EvaluationEpisode):
+            episodes.append(item)
+            progress.add(item)
+        elif isinstance(item, WorkerDone):
+            finished.add(item.worker_id)
+        elif isinstance(item, WorkerFailed):
+            raise EvaluationError(f"worker {item.worker_id} failed:\n{item.error}")
+    progress.show(final=True)
+    return episodes

@@ -1,0 +1,43 @@
+"""Time left for a count to reach its total, from the count's rate, and times shown as [h:]mm:ss."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+
+
+class Eta:
+    """The rate of a growing count over the last `window_s` seconds (the whole time by default), and
+    the time it needs at that rate to reach `total`."""
+
+    def __init__(self, total: float, window_s: float = math.inf, clock=time.monotonic) -> None:
+        self.total = total
+        self.window_s = window_s
+        self._clock = clock
+        self._samples: deque[tuple[float, float]] = deque()
+
+    def update(self, done: float) -> None:
+        now = self._clock()
+        self._samples.append((now, done))
+        while len(self._samples) > 2 and now - self._samples[1][0] >= self.window_s:
+            self._samples.popleft()
+
+    def remaining_s(self) -> float | None:
+        """Seconds to the total; None until the count has grown."""
+        if len(self._samples) < 2:
+            return None
+        (first_time, first), (last_time, last) = self._samples[0], self._samples[-1]
+        if last <= first or last_time <= first_time:
+            return None
+        return max(self.total - last, 0.0) / ((last - first) / (last_time - first_time))
+
+    def text(self) -> str:
+        remaining = self.remaining_s()
+        return "?" if remaining is None else clock_time(remaining)
+
+
+def clock_time(seconds: float) -> str:
+    minutes, second = divmod(int(round(seconds)), 60)
+    hours, minute = divmod(minutes, 60)
+    return f"{hours}:{minute:02d}:{second:02d}" if hours else f"{minute}:{second:02d}"

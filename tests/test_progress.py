@@ -1,0 +1,151 @@
+"""Progress you can plan by: the stack's budget, percentage and ETA, its status file, the grid's runs done
+and ETA, and an actor's held episodes counted once per period."""
+
+import logging
+import time
+
+import pytest
+
+import deploy.experiments as experiments
+from actor.runner import HoldLog
+from common.checkpoint import save_checkpoint
+from common.config import load_config
+from common.eta import Eta, clock_time
+from common.run_dir import RunDir, RunStatus
+from common.wire import EpisodeRecord, Stats
+from deploy.stack import Progress, Stack
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_eta_follows_the_rate_of_its_window():
+    clock = FakeClock()
+    eta = Eta(2000, window_s=10.0, clock=clock)
+    assert eta.remaining_s() is None and eta.text() == "?"
+    eta.update(0)
+    clock.now = 10.0
+    eta.update(100)  # 10 per second
+    assert eta.remaining_s() == pytest.approx(190.0)
+    for done in (350, 600, 850, 1100):  # then 50 per second, and the first samples leave the window
+        clock.now += 5.0
+        eta.update(done)
+    assert eta.remaining_s() == pytest.approx(900 / 50)
+    eta.update(2500)
+    assert eta.remaining_s() == 0.0
+    assert clock_time(59.6) == "1:00" and clock_time(3725) == "1:02:05"
+
+
+def test_the_eta_is_unknown_while_the_count_stands_still():
+    clock = FakeClock()
+    eta = Eta(10, clock=clock)
+    eta.update(3)
+    clock.now = 5.0
+    eta.update(3)
+    assert eta.remaining_s() is None
+
+
+def replay_stats(env_steps: int) -> Stats:
+    return Stats(source="replay", time=0.0, values={"env_steps_total": env_steps})
+
+
+def test_the_stacks_line_and_status_show_the_budget_its_share_and_the_eta():
+    clock = FakeClock()
+    progress = Progress(20_000, clock=clock)
+    progress.on_replay_stats(replay_stats(1_000), "k")
+    clock.now = 10.0
+    progress.on_replay_stats(replay_stats(2_000), "k")  # 100 steps/s: 18,000 steps in 3 minutes
+    progress.on_metric(EpisodeRecord(actor_id=0, episode_index=0, length=5, episode_return=4.5, collided=True,
+                                     start_set="train", start_index=0, epsilon=1.0, weights_version=0,
+                                     wall_time=0.1, time=1.0), "d3rqn/r/metrics/actor/0")
+    line = progress.line(restarts=1)
+    assert "env steps     2,000/20,000 ( 10.0%, ETA 3:00) |" in line and line.endswith("restarts 1")
+    status = progress.status("training", {"actor-0": 1}, {"learner": 7})
+    assert (status.env_steps, status.total_env_steps, status.episodes, status.mean_return) == (2_000, 20_000, 1, 4.5)
+    assert status.eta_s == pytest.approx(180.0) and status.pids == {"learner": 7}
+
+
+def test_the_stack_writes_its_status_into_the_run_folder(tmp_path):
+    config = load_config("smoke", overrides={"run.runs_dir": str(tmp_path), "run.name": "s"})
+    run = RunDir.of(config)
+    stack = Stack(config, run, "tcp/127.0.0.1:1", actors=1, resume=False)  # nothing started
+    stack.report(Progress(config.learner.total_env_steps), "training")
+    status = RunStatus.read(run.status)
+    assert (status.phase, status.total_env_steps, status.pids) == ("training", 20_000, {})
+    assert status.restarts == {"replay": 0, "recorder": 0, "learner": 0, "actor-0": 0}
+
+
+def job(tmp_path, phase: str, trained_at_start: int = 0) -> "experiments.RunJob":
+    options = experiments.Options(tmp_path, 1000, trials=1, actors=None, extra=(), progress_s=30.0)
+    spec = experiments.RunSpec("bmc", 50, 0)
+    run_job = experiments.RunJob(1, 2, spec, options, stopping=None, phase=phase, trained_at_start=trained_at_start)
+    options.run_dir(spec).mkdir(parents=True, exist_ok=True)
+    return run_job
+
+
+def test_a_training_run_is_followed_by_its_stacks_status_not_an_older_one(tmp_path):
+    training = job(tmp_path, "training", trained_at_start=200)
+    path = training.options.run(training.spec).status
+    RunStatus(phase="stopped", env_steps=900, total_env_steps=1000, time=training.started_at - 60).write(path)
+    assert training.progress_line() == "" and training.trained() == 200  # an earlier stack's
+    RunStatus(phase="training", env_steps=400, total_env_steps=1000, updates=20, mean_return=1.5, eta_s=95,
+              restarts={"actor-0": 1}, time=time.time()).write(path)
+    assert training.progress_line() == ("env steps 400/1,000 (40.0%), updates 20, return(100) 1.50, restarts 1, "
+                                        "ETA 1:35")
+    assert training.trained() == 400
+    path.write_text("{")  # a damaged file is no status
+    assert training.progress_line() == "" and training.trained() == 200
+
+
+def test_the_grid_line_counts_runs_done_and_the_steps_trained(tmp_path):
+    finished, waiting = job(tmp_path, "done"), job(tmp_path / "other", "waiting", trained_at_start=250)
+    finished.thread = type("Ended", (), {"is_alive": lambda self: False})()
+    line = experiments.GridProgress([finished, waiting], 1000).line()
+    assert line.startswith("grid: 1/2 runs done, 62.5% of the env steps trained, elapsed 0:00, ETA ")
+
+
+def test_held_episodes_are_logged_once_per_period_with_their_count(caplog):
+    clock = FakeClock()
+    holds = HoldLog(10.0, clock)
+    with caplog.at_level(logging.INFO, logger="actor"):
+        holds.begin()
+        clock.now = 5.0
+        holds.tick("behind")  # within the period: silent
+        clock.now = 6.0
+        holds.end()
+        clock.now = 7.0
+        holds.begin()
+        clock.now = 10.0
+        holds.tick("behind")
+        clock.now = 15.0
+        holds.tick("budget")
+        clock.now = 20.0
+        holds.tick("budget")  # the same hold, still going
+    assert [record.getMessage() for record in caplog.records] == [
+        "held 2 episode(s) for 9s of the last 10s: the learner is behind",
+        "held 1 episode(s) for 10s of the last 10s: the run's step budget is spent"]
+
+
+def test_what_a_run_has_trained_comes_from_its_checkpoint(tmp_path):
+    short, fresh = RunDir(tmp_path / "short"), RunDir(tmp_path / "fresh")
+    save_checkpoint(short.checkpoints, {"clock": {"env_steps": 400}})
+    fresh.root.mkdir()
+    assert experiments.trained_env_steps(short.root, 1000) == 400
+    assert experiments.trained_env_steps(short.root, 300) == 300  # trained, waiting for its evaluation
+    assert experiments.trained_env_steps(fresh.root, 1000) == 0
+    short.checkpoint.write_bytes(b"damaged")
+    assert experiments.trained_env_steps(short.root, 1000) == 0
+
+
+def test_a_status_file_that_cannot_be_written_is_said_once_and_the_stack_goes_on(tmp_path, capsys):
+    config = load_config("smoke", overrides={"run.runs_dir": str(tmp_path), "run.name": "s"})
+    stack = Stack(config, RunDir.of(config), "tcp/127.0.0.1:1", actors=1, resume=False)
+    RunDir.of(config).status.mkdir()  # a folder where the file should be
+    for _ in range(3):
+        stack.report(Progress(), "training")
+    assert capsys.readouterr().err.count("cannot write the status file") == 1
