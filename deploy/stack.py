@@ -45,6 +45,7 @@ RESTART_BACKOFF_MAX_S = 30.0
 STABLE_S = 60.0  # a process that lived this long before dying is restarted after RESTART_BACKOFF_S again
 FINAL_METRICS_WAIT_S = 5.0
 STATUS_PERIOD_S = 1.0  # the status file and the live line
+LOGGED_LINE_PERIOD_S = 30.0  # the progress line when stdout is not a terminal
 ETA_WINDOW_S = 300.0  # the ETA follows the env-step rate of the last five minutes (the random phase is faster)
 
 
@@ -200,16 +201,18 @@ class Stack:
     def pids(self) -> dict[str, int]:
         return {name: process.pid for name, process in self.processes.items() if process.poll() is None}
 
-    def report(self, progress: Progress, phase: str, live_line: bool = False) -> None:
-        """Rewrites the status file (a failure is said once; the run goes on); on a terminal, the live line too."""
+    def report(self, progress: Progress, phase: str, line: str = "") -> None:
+        """Rewrites the status file (a failure is said once; the run goes on) and prints the progress line:
+        ``line`` "live" rewrites it in place, "logged" prints it on a line of its own, "" not at all."""
         try:
             progress.status(phase, self.restarts, self.pids).write(self.run.status)
         except OSError as error:
             if not self.status_failed:
                 print(f"\ncannot write the status file: {error}", file=sys.stderr, flush=True)
             self.status_failed = True
-        if live_line:
-            print("\r" + progress.line(sum(self.restarts.values())), end="", flush=True)
+        if line:
+            print("\r" if line == "live" else "", progress.line(sum(self.restarts.values())),
+                  sep="", end="" if line == "live" else "\n", flush=True)
 
     def start_all(self) -> None:
         for role in self.roles.values():
@@ -217,8 +220,8 @@ class Stack:
 
     def watch(self, stop: threading.Event, progress: Progress) -> int:
         """Returns 0 once the learner has finished (exit code 0); restarts what dies meanwhile."""
-        last_report = 0.0
-        live_line = sys.stdout.isatty()  # elsewhere the status file tells how far the run is
+        last_report = last_line = 0.0
+        terminal = sys.stdout.isatty()
         while not stop.is_set():
             now = time.monotonic()
             for role in self.roles.values():
@@ -233,8 +236,10 @@ class Stack:
                     role.restarts += 1
                     self._start(role)
             if now - last_report >= STATUS_PERIOD_S:
-                self.report(progress, "training", live_line)
-                last_report = now
+                # A terminal gets the line rewritten in place; a pipe or file one line per period.
+                line_due = terminal or now - last_line >= LOGGED_LINE_PERIOD_S
+                self.report(progress, "training", "live" if terminal else "logged" if line_due else "")
+                last_report, last_line = now, now if line_due else last_line
             stop.wait(0.2)
         return 0
 
