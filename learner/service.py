@@ -41,7 +41,7 @@ from common.transport import Keys, publisher, request, serve, subscribe
 from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
                          WireError, check_trace_batch, stat_number)
 from learner.prefetch import Prefetcher
-from learner.update import DoubleQLearner, TraceBatch as Traces
+from learner.update import DoubleQLearner, TraceBatch as Traces, TraceTensors
 
 log = logging.getLogger("learner")
 
@@ -107,12 +107,24 @@ class RunClock:
         self.start_env_steps = None if mark is None else float(mark)
 
 
+@dataclasses.dataclass(frozen=True)
+class Admitted:
+    """A reply to a trace-batch request once checked: its traces (on the learner's device), or why
+    it is refused."""
+    batch: object
+    traces: Traces | TraceTensors | None
+    error: WireError | None
+
+
 class LearnerProcess:
     """The learner's state and its loop; transport objects are handed in."""
 
     def __init__(self, config: Config) -> None:
         self.config = config
         self.learner = DoubleQLearner(config.network, config.learner)
+        # On a GPU, batches are copied to the device by the prefetch threads while the previous
+        # update runs (pinned buffers, a side stream); on a CPU the arrays are used where they lie.
+        self.stager = self.learner.stager() if self.learner.device.type == "cuda" else None
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
         self.clock = RunClock(config.learner.env_steps_per_update, config.replay.error_buffer_updates)
         self.episodes_stored = 0
@@ -207,9 +219,9 @@ class LearnerProcess:
     def start_updates(self) -> None:
         self.strategy.start()
 
-    def train_on(self, batch: TraceBatch) -> float | None:
-        """One update on one batch; feeds the strategy what it needs; returns the loss, or None when
-        the batch was refused or the update failed (counted)."""
+    def admit(self, batch: TraceBatch) -> Admitted:
+        """Checks a reply to a trace-batch request against the run and decodes its frames (in a
+        prefetch thread, off the update's critical path); on a GPU, stages it on the device."""
         config = self.config.learner
         try:
             if not isinstance(batch, TraceBatch):
@@ -220,10 +232,24 @@ class LearnerProcess:
                                 "values")
             observations = batch.observations_array()
         except WireError as error:
-            self.rejections.reject(f"batch_{error.kind}", str(error))
-            return None
-        self._observe(batch.env_steps_total)
+            return Admitted(batch, None, error)
         traces = Traces(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated))
+        if self.stager is None:
+            return Admitted(batch, traces, None)
+        try:
+            return Admitted(batch, self.stager.stage(traces), None)
+        except ValueError as error:  # the sizes the network needs (learner.update.checked_arrays)
+            return Admitted(batch, None, WireError(str(error), "shape"))
+
+    def train_on(self, batch: TraceBatch | Admitted) -> float | None:
+        """One update on one batch (admitted already, or admitted here); feeds the strategy what it
+        needs; returns the loss, or None when the batch was refused or the update failed (counted)."""
+        admitted = batch if isinstance(batch, Admitted) else self.admit(batch)
+        if admitted.error is not None:
+            self.rejections.reject(f"batch_{admitted.error.kind}", str(admitted.error))
+            return None
+        self._observe(admitted.batch.env_steps_total)
+        traces = admitted.traces
         try:
             result = self.learner.update(traces, with_q_after=self.strategy.needs_q_after)
         except Exception:
@@ -332,7 +358,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
             message = dataclasses.replace(message, learner_updates=started_from)
         return request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S)
 
-    prefetcher = Prefetcher(fetch, config.batch_size, config.trace_length, config.prefetch)
+    prefetcher = Prefetcher(fetch, config.batch_size, config.trace_length, config.prefetch, prepare=process.admit)
     batch = _first_batch(process, outputs, prefetcher, stop)
     if batch is None:
         prefetcher.close()
@@ -343,8 +369,8 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
     with process._lock:
         mark = process.clock.start_env_steps
     log.info("updates start: the replay's first batch, at %s env steps (start mark %s) with %s episodes stored",
-             getattr(batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
-             getattr(batch, "episodes_stored", "?"))  # not yet checked: train_on does that
+             getattr(batch.batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
+             getattr(batch.batch, "episodes_stored", "?"))  # perhaps refused: train_on counts that
     _warn_if_bmc_starves(process)
     report = Report(process, prefetcher)
     try:
@@ -370,7 +396,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                  config.env_steps_per_update, path)
 
 
-def _next_batch(process: LearnerProcess, prefetcher: Prefetcher, stop: threading.Event, idle) -> TraceBatch | None:
+def _next_batch(process: LearnerProcess, prefetcher: Prefetcher, stop: threading.Event, idle) -> Admitted | None:
     """The next batch, or None when stopped or when the budget is paid for and stays so for
     FINISH_GRACE_S; idle() runs while waiting."""
     paid_since = None
@@ -391,7 +417,7 @@ def _next_batch(process: LearnerProcess, prefetcher: Prefetcher, stop: threading
 
 
 def _first_batch(process: LearnerProcess, outputs: Outputs, prefetcher: Prefetcher,
-                 stop: threading.Event) -> TraceBatch | None:
+                 stop: threading.Event) -> Admitted | None:
     """Waits for the replay's first batch: it comes the moment the replay's rate limiter starts updates."""
     config = process.config.learner
     waiting = Every(WAIT_LOG_S)

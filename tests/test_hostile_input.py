@@ -17,6 +17,7 @@ from common.network import D3RQN, weights_to_numpy
 from common.wire import (Episode, ExplorationState, FrameStack, Rejections, RunShape, Stats, TraceBatch,
                          TraceBatchRequest, Weights, WireError, check_episode, stat_number)
 from deploy.stack import Progress
+from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerProcess
 from replay.service import MAX_PENDING, ReplayService
 
@@ -220,6 +221,27 @@ def test_the_learner_drops_batches_that_do_not_fit_and_goes_on(tmp_path):
     assert process.train_on(good) is not None and process.updates == 1
     counts = process.rejections.values()
     assert {kind: counts.get(f"rejected_{kind}") for kind in bad} == dict.fromkeys(bad, 1)
+
+
+def test_batches_are_checked_in_the_prefetch_thread_and_refusals_counted_by_the_loop(tmp_path):
+    config = small_config(tmp_path)
+    process = LearnerProcess(config)
+    process.start_updates()
+    good = trace_batch(config)
+    replies = iter([Stats(source="replay", time=0.0, values={}), good])
+    prefetcher = Prefetcher(lambda request: next(replies, None), config.learner.batch_size,
+                            config.learner.trace_length, depth=1, prepare=process.admit)
+    try:
+        stop = threading.Event()
+        refused, admitted = prefetcher.next(stop, timeout_s=10.0), prefetcher.next(stop, timeout_s=10.0)
+    finally:
+        prefetcher.close()
+    assert process.stager is None  # on a CPU the decoded arrays are used where they lie
+    assert refused.error is not None and refused.traces is None
+    assert admitted.error is None and admitted.traces.observations.shape[0] == config.learner.batch_size
+    assert process.rejections.values().get("rejected_batch_wrong_type") is None  # not counted twice
+    assert process.train_on(refused) is None and process.train_on(admitted) is not None
+    assert process.rejections.values()["rejected_batch_wrong_type"] == 1 and process.updates == 1
 
 
 def test_a_failing_update_is_dropped_counted_and_the_learner_goes_on_unless_it_always_fails(tmp_path):
