@@ -53,7 +53,8 @@ class NetworkConfig:
     lstm_units: int = option(512, "LSTM units; the output is split in two halves, for the dueling value and "
                                   "advantage streams")
     n_actions: int = option(5, "discrete steering actions (the Q-values the network outputs)")
-    device: str = option("auto", "where the network runs: auto picks CUDA when available, else the CPU",
+    device: str = option("auto", "where the learner's networks run (actors and evaluation use the CPU): auto picks "
+                         "CUDA when available, else the CPU",
                          choices=("auto", "cpu", "cuda[:N]"))
 
     def validate(self) -> None:
