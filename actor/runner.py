@@ -10,11 +10,12 @@ or other params than this actor's config replaces the actor's strategy (one log
 line). Between episodes the actor obeys the replay's rate limiter: it holds its
 next episode while the replay says the learner is behind (``replay/rate``).
 
-Nothing that arrives is taken on trust: weights must name the network's tensors
-with their shapes (and finite values, checked again when loaded), an exploration
-state must describe a strategy completely, a rate message must say "", "behind"
-or "budget". What is refused is counted by kind and logged at a bounded rate; the
-counts go out on ``metrics/actor_stats/<id>``. The newest acceptable weights win,
+Nothing that arrives is taken on trust: weights must be in an encoding this build
+reads (float32, or compact float16 or bfloat16, widened to float32 on arrival) and
+name the network's tensors with their shapes (and finite values, checked again
+when loaded), an exploration state must describe a strategy completely, a rate
+message must say "", "behind" or "budget". What is refused is counted by kind and
+logged at a bounded rate; the counts go out on ``metrics/actor_stats/<id>``. The newest acceptable weights win,
 whatever their version: a learner resumed from an older checkpoint counts its
 versions from there.
 
@@ -47,7 +48,7 @@ from common.logs import Every
 from common.network import D3RQN, load_numpy_weights
 from common.service import Service
 from common.transport import Keys, publisher, request, subscribe, watch_liveliness
-from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights
+from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights, WireError
 
 MEGABYTE = 1 << 20
 HOLD_REASONS = ("", "behind", "budget")
@@ -81,29 +82,38 @@ class Mailbox:
 
     def offer_weights(self, message: Weights, key: str = "") -> None:
         """A broadcast: the newest that fits the network replaces what is held."""
-        if self._fits(message):
+        usable = self._usable(message)
+        if usable is not None:
             with self._lock:
-                self._weights, self._heard_weights = message, True
+                self._weights, self._heard_weights = usable, True
 
     def offer_latest(self, message: Weights) -> None:
         """The learner's answer to the start-up ask: kept unless a broadcast came first."""
-        if self._fits(message):
+        usable = self._usable(message)
+        if usable is not None:
             with self._lock:
                 if not self._heard_weights:
-                    self._weights = message
+                    self._weights = usable
 
-    def _fits(self, message) -> bool:
+    def _usable(self, message) -> Weights | None:
+        """The message with its tensors as float32 if it fits the network, else None (counted). Compact
+        weights are widened here, on Zenoh's thread, so the driving loop only loads them."""
         if not isinstance(message, Weights):
             self.rejections.reject("weights_wrong_type", f"a {type(message).__name__} where weights belong")
-            return False
+            return None
+        try:
+            tensors = message.to_float32()
+        except WireError as error:
+            self.rejections.reject(error.kind, f"weights version {message.version}: {error}")
+            return None
         if self.shapes is not None:
-            shapes = {name: np.shape(array) for name, array in message.tensors.items()}
+            shapes = {name: np.shape(array) for name, array in tensors.items()}
             if shapes != self.shapes:
                 wrong = sorted(set(shapes.items()) ^ set(self.shapes.items()))[:4]
                 self.rejections.reject("weights_network", f"weights version {message.version} are for another "
                                                           f"network (names or shapes differ: {wrong} ...)")
-                return False
-        return True
+                return None
+        return dataclasses.replace(message, tensors=tensors, encoding="float32")
 
     def offer_exploration(self, message: ExplorationState, key: str = "") -> None:
         if not isinstance(message, ExplorationState):

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from common.strategies import STRATEGIES  # re-exported: the config's choices of exploration.strategy
+from common.wire import WEIGHTS_ENCODINGS
 
 
 def option(default: Any, doc: str, unit: str = "", choices: tuple[str, ...] = ()) -> Any:
@@ -130,6 +131,14 @@ class LearnerConfig:
     total_env_steps: int = option(1_000_000, "the run ends here: actors hold, the learner pays the last steps",
                                   "env steps")
     weights_every: int = option(50, "broadcast the weights to the actors every this many updates", "updates")
+    weights_period_s: float = option(
+        0.0, "also broadcast the weights once this long has passed since the last broadcast (after an update), "
+             "whichever of this and weights_every comes first: a fast learner broadcasts by time, a slow one by "
+             "updates; 0: by updates only", "s")
+    weights_encoding: str = option(
+        "float32", "how weights travel to the actors (broadcasts and the latest-weights answer): float32 (whole; "
+                   "48.6 MB at the paper's sizes), or half the size as float16 or bfloat16, whose greedy actions "
+                   "differ from float32's within the tolerance the README states", choices=tuple(WEIGHTS_ENCODINGS))
     checkpoint_every: int = option(5_000, "write checkpoints/latest.pt every this many updates", "updates")
     prefetch: int = option(2, "batch requests kept in flight to the replay", "batches")
     torch_threads: int = option(
@@ -154,6 +163,9 @@ class LearnerConfig:
         _check(self.start_steps >= 0, "start_steps", "must be >= 0")
         _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
         _check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
+        _check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
+        _check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
+               f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
 
 
 @dataclass
@@ -390,6 +402,11 @@ class TransportConfig:
     listen: list[str] = option([], "endpoints to listen on, e.g. tcp/0.0.0.0:7447")
     connect: list[str] = option([], "endpoints to connect to, e.g. tcp/127.0.0.1:7447")
     multicast_scouting: bool = option(False, "find peers by UDP multicast on the local network")
+    shared_memory: bool = option(
+        True, "Zenoh shared memory between the processes of one host (transport/shared_memory/enabled): the learner "
+              "puts its weights broadcasts from a shared-memory buffer that local subscribers map instead of each "
+              "receiving a copy over a socket (remote ones get them over the network as before). Where Zenoh has "
+              "none, the weights go over the network, with one log line; false: everything does")
     namespace: str = option("d3rqn", "first chunk of every key: <namespace>/<run.name>/...")
     connect_timeout_s: float = option(10.0, "client mode: how long opening a session retries its connect endpoints",
                                       "s")

@@ -7,7 +7,9 @@ a service.
 
 Callbacks run on Zenoh's threads: keep them short, and guard shared state with a lock.
 Large messages (a ~50 MB Weights) are sent with blocking congestion control, so they are
-never dropped under load; Zenoh fragments them over the link.
+never dropped under load; Zenoh fragments them over the link. A publisher given a
+``SharedMemory`` puts them from Zenoh shared memory instead (``transport.shared_memory``):
+subscribers on the same host map the buffer, the others get it over the network as before.
 
     with open_session(config.transport) as session:
         keys = Keys(config.transport.namespace, config.run.name)
@@ -52,6 +54,7 @@ def zenoh_config(config: TransportConfig) -> zenoh.Config:
     zconfig.insert_json5("listen/endpoints", json.dumps(list(config.listen)))
     zconfig.insert_json5("connect/endpoints", json.dumps(list(config.connect)))
     zconfig.insert_json5("scouting/multicast/enabled", json.dumps(config.multicast_scouting))
+    zconfig.insert_json5("transport/shared_memory/enabled", json.dumps(config.shared_memory))
     if config.mode == "client":
         # A client fails at once by default when its router is not up yet; retry for a while instead.
         zconfig.insert_json5("connect/timeout_ms", json.dumps(round(config.connect_timeout_s * 1000)))
@@ -239,12 +242,16 @@ class Declared:
 # --- publish / subscribe ----------------------------------------------------------------------
 
 class Publisher(Declared):
-    """Puts wire messages on one key."""
+    """Puts wire messages on one key, from shared memory when given one."""
+
+    def __init__(self, key: str, shared_memory: SharedMemory | None = None) -> None:
+        super().__init__(key)
+        self.shared_memory = shared_memory
 
     def put(self, message: Message) -> int:
         """Encodes and sends the message; returns the encoded size in bytes."""
         data = encode(message)
-        self._entity.put(data)
+        self._entity.put(data if self.shared_memory is None else self.shared_memory.payload(data))
         return len(data)
 
     @property
@@ -253,22 +260,73 @@ class Publisher(Declared):
         return self._entity.matching_status.matching  # a MatchingStatus object, whatever the stubs say
 
 
-def publisher(session: zenoh.Session, key: str, *, reliable: bool = True, express: bool = False) -> Publisher:
+def publisher(session: zenoh.Session, key: str, *, reliable: bool = True, express: bool = False,
+              shared_memory: SharedMemory | None = None) -> Publisher:
     """A publisher on key. reliable: block when the link is congested instead of dropping
-    (use False for frequent, replaceable data); express: send at once without batching."""
+    (use False for frequent, replaceable data); express: send at once without batching;
+    shared_memory: put every message from it (large, infrequent ones: weights)."""
     congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-    return Publisher(key).attach(session.declare_publisher(key, congestion_control=congestion, express=express))
+    entity = session.declare_publisher(key, congestion_control=congestion, express=express)
+    return Publisher(key, shared_memory).attach(entity)
+
+
+SHARED_MEMORY_MESSAGES = 3  # the pool holds this many: one being written while subscribers still read older ones
+
+
+class SharedMemory:
+    """A pool of Zenoh shared memory that payloads are put from (zenoh.shm, unstable in zenoh-python 1.x).
+
+    Sized on first use for SHARED_MEMORY_MESSAGES payloads of that size. Where Zenoh has no shared
+    memory (a build without it, no room in /dev/shm) or an allocation fails (subscribers still hold
+    the whole pool), the payload goes over the network instead, and the first time says so in one
+    log line. ``shared`` and ``fallbacks`` count the payloads of each path."""
+
+    def __init__(self) -> None:
+        self._provider: Any = None
+        self._pool_bytes = 0
+        self._warned = False
+        self.shared = 0
+        self.fallbacks = 0
+
+    @classmethod
+    def of(cls, config: TransportConfig) -> SharedMemory | None:
+        """A pool when the transport uses shared memory, else None."""
+        return cls() if config.shared_memory else None
+
+    def payload(self, data: bytes) -> zenoh.ZBytes | bytes:
+        """data copied into a shared-memory buffer, or data itself when there is none to have."""
+        try:
+            buffer = self._allocate(len(data))
+            buffer[:] = data
+        except Exception as error:  # no zenoh.shm, no room, a pool in use: the network path
+            self.fallbacks += 1
+            if not self._warned:
+                self._warned = True
+                log.warning("shared memory unavailable (%s: %s): messages of %.1f MB go over the network",
+                            type(error).__name__, error, len(data) / 1e6)
+            return data
+        self.shared += 1
+        return zenoh.ZBytes(buffer)
+
+    def _allocate(self, size: int):
+        from zenoh import shm  # ModuleNotFoundError when zenoh is built without shared memory
+
+        if size * SHARED_MEMORY_MESSAGES > self._pool_bytes:  # first use, or larger messages than before
+            self._pool_bytes = size * SHARED_MEMORY_MESSAGES
+            self._provider = shm.ShmProvider.default_backend(self._pool_bytes)
+        return self._provider.alloc(size, shm.GarbageCollect())  # frees buffers no one reads any more, then retries
 
 
 class Receiver(Declared):
     """A subscriber or queryable with counters: received (handed to the callback), rejected
-    (malformed input), failed (the callback raised)."""
+    (malformed input), failed (the callback raised), shared (samples that came in shared memory)."""
 
     def __init__(self, key: str) -> None:
         super().__init__(key)
         self.received = 0
         self.rejected = 0
         self.failed = 0
+        self.shared = 0
 
 
 def subscribe(session: zenoh.Session, key: str, callback: Callable[[Message, str], Any], *,
@@ -283,6 +341,7 @@ def subscribe(session: zenoh.Session, key: str, callback: Callable[[Message, str
 
     def on_sample(sample: zenoh.Sample) -> None:
         sample_key = str(sample.key_expr)
+        subscription.shared += _in_shared_memory(sample.payload)
         message = _decode_sample(sample, expected, max_bytes)
         if isinstance(message, str):
             subscription.rejected += 1
@@ -296,6 +355,13 @@ def subscribe(session: zenoh.Session, key: str, callback: Callable[[Message, str
             warn.warning("callback for %s failed on a %s", sample_key, type(message).__name__, exc_info=True)
 
     return subscription.attach(session.declare_subscriber(key, on_sample))
+
+
+def _in_shared_memory(payload: zenoh.ZBytes) -> bool:
+    try:
+        return payload.as_shm() is not None
+    except Exception:  # a zenoh built without shared memory
+        return False
 
 
 def _decode_sample(sample: zenoh.Sample, expected: type[Message] | None, max_bytes: int | None) -> Message | str:

@@ -22,6 +22,12 @@ must fit, ``check_episode`` and ``check_trace_batch`` check it (every frame of a
 episode is decompressed), and ``stat_number`` reads one value of a Stats message
 without trusting it. Each WireError has a ``kind`` (a short name for counting), and
 ``Rejections`` counts refused input by kind and logs it at a bounded rate.
+
+Weights travel whole (``encoding`` "float32") or compact, at half the size: "float16", or
+"bfloat16" (float32's upper half, float32's range; numpy has no bfloat16, so its bit patterns
+travel as uint16). ``Weights.from_float32`` makes either, ``Weights.to_float32`` reads any. A
+known encoding whose tensors are of another dtype does not decode; an unknown one (a newer
+sender's) does, and ``to_float32`` refuses it (kind "weights_encoding") for the reader to count.
 """
 
 from __future__ import annotations
@@ -42,6 +48,9 @@ import zstandard
 SCHEMA_VERSION = 1
 
 DTYPES = ("uint8", "bool", "int32", "int64", "float32", "float64")
+# encoding -> the dtype its tensors travel in; float32 messages keep any of DTYPES, as before encodings
+WEIGHTS_ENCODINGS = {"float32": None, "float16": "float16", "bfloat16": "uint16"}
+WEIGHTS_DTYPES = DTYPES + ("float16", "uint16")
 ZSTD_LEVEL = 1  # frames are flat-shaded renderings; higher levels buy little and cost time
 MAX_FRAME_BYTES = 16 * 2**20  # a declared frame larger than this is refused before decompressing
 MAX_ARRAY_NDIM = 32
@@ -268,6 +277,7 @@ class Array(Codec):
     dtype: str | None = None
     ndim: int | None = None
     finite: bool = False  # reject NaN and inf in float arrays
+    dtypes: tuple[str, ...] = DTYPES  # the dtypes it may hold when dtype is None
 
     def pack(self, value, where):
         try:
@@ -278,8 +288,8 @@ class Array(Codec):
             if not np.can_cast(array.dtype, self.dtype, "same_kind"):
                 raise _fail(where, f"expected dtype {self.dtype}, got {array.dtype} (no same-kind cast)")
             array = array.astype(self.dtype)
-        if array.dtype.name not in DTYPES:
-            raise _fail(where, f"dtype {array.dtype} is not one of {', '.join(DTYPES)}")
+        if array.dtype.name not in self.dtypes:
+            raise _fail(where, f"dtype {array.dtype} is not one of {', '.join(self.dtypes)}")
         self._check_values(array, where)
         array = array.astype(array.dtype.newbyteorder("<"), order="C", copy=False)
         # A byte view avoids copying large tensors before msgpack copies them once.
@@ -290,8 +300,8 @@ class Array(Codec):
         if not isinstance(raw, dict) or set(raw) != {"dtype", "shape", "data"}:
             raise _fail(where, "expected an array map with keys dtype, shape, data")
         dtype, shape, data = raw["dtype"], raw["shape"], raw["data"]
-        if dtype not in DTYPES:
-            raise _fail(where, f"dtype {dtype!r} is not one of {', '.join(DTYPES)}")
+        if dtype not in self.dtypes:
+            raise _fail(where, f"dtype {dtype!r} is not one of {', '.join(self.dtypes)}")
         if self.dtype is not None and dtype != self.dtype:
             raise _fail(where, f"expected dtype {self.dtype}, got {dtype}")
         if not isinstance(shape, list) or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape):
@@ -428,7 +438,7 @@ class TensorDict(Codec):
         return value.items()
 
 
-_TENSOR = Array(finite=True)
+_TENSOR = Array(finite=True, dtypes=WEIGHTS_DTYPES)
 
 
 def wired(codec: Codec, **kwargs: Any) -> Any:
@@ -536,8 +546,78 @@ class TraceBatch(Message):
 @dataclass(eq=False)
 class Weights(Message):
     version: int = wired(Integer())
-    tensors: dict[str, np.ndarray] = wired(TensorDict())
+    tensors: dict[str, np.ndarray] = wired(TensorDict())  # in the encoding's dtype
     created: float | None = wired(Nullable(Real()), default=None)  # time.time() at the learner
+    encoding: str = wired(Text(), default="float32")  # one of WEIGHTS_ENCODINGS; absent: an older sender's float32
+
+    @classmethod
+    def from_float32(cls, version: int, tensors: dict[str, np.ndarray], encoding: str = "float32",
+                     created: float | None = None) -> Weights:
+        """The message of float32 tensors in the given encoding; WireError (kind "weights_encoding") for an
+        unknown encoding or a value the encoding cannot hold (float16 beyond +-65504)."""
+        if encoding not in WEIGHTS_ENCODINGS:
+            raise WireError(f"Weights: unknown encoding {encoding!r}; known: {', '.join(WEIGHTS_ENCODINGS)}",
+                            "weights_encoding")
+        encoded = {name: _encode_tensor(np.asarray(array, dtype=np.float32), encoding, name)
+                   for name, array in tensors.items()}
+        return cls(version=version, tensors=encoded, created=created, encoding=encoding)
+
+    def to_float32(self) -> dict[str, np.ndarray]:
+        """The tensors widened to float32 (a float32 message's own arrays as they came, read-only); WireError
+        (kind "weights_encoding") for an encoding this build does not know or tensors not in its dtype."""
+        self._check_encoding()
+        if self.encoding == "float32":
+            return dict(self.tensors)
+        return {name: _decode_tensor(np.asarray(array), self.encoding) for name, array in self.tensors.items()}
+
+    def check(self) -> None:
+        if self.encoding in WEIGHTS_ENCODINGS:
+            self._check_encoding()
+
+    def _check_encoding(self) -> None:
+        if self.encoding not in WEIGHTS_ENCODINGS:
+            raise WireError(f"Weights version {self.version}: unknown encoding {self.encoding!r}; this build reads "
+                            f"{', '.join(WEIGHTS_ENCODINGS)}", "weights_encoding")
+        dtype = WEIGHTS_ENCODINGS[self.encoding]
+        allowed = DTYPES if dtype is None else (dtype,)
+        for name, array in self.tensors.items():
+            if np.asarray(array).dtype.name not in allowed:
+                raise WireError(f"Weights.tensors.{name}: dtype {np.asarray(array).dtype} is not one of "
+                                f"{', '.join(allowed)} (encoding {self.encoding})", "weights_encoding")
+
+
+FLOAT16_MAX = float(np.finfo(np.float16).max)
+
+
+def _encode_tensor(array: np.ndarray, encoding: str, name: str) -> np.ndarray:
+    if encoding == "float32":
+        return array
+    if encoding == "float16":
+        with np.errstate(over="ignore"):  # beyond +-65504 rounds to infinity, refused here
+            half = array.astype(np.float16)
+        if not np.isfinite(half).all():
+            raise WireError(f"Weights.tensors.{name}: a value of magnitude {float(np.abs(array).max()):.3g} is "
+                            f"beyond float16's {FLOAT16_MAX:g}", "weights_encoding")
+        return half
+    # bfloat16: the upper 16 bits of each float32, rounded to nearest, ties to even
+    if not np.isfinite(array).all():  # a NaN's bits could wrap round in the rounding below
+        raise WireError(f"Weights.tensors.{name}: holds NaN or infinite values")
+    bits = np.ascontiguousarray(array).view(np.uint32)
+    rounded = bits >> np.uint32(16)
+    rounded &= np.uint32(1)
+    rounded += np.uint32(0x7FFF)
+    rounded += bits
+    rounded >>= np.uint32(16)
+    upper = rounded.astype(np.uint16)
+    if ((upper & np.uint16(0x7F80)) == np.uint16(0x7F80)).any():  # rounded up to infinity
+        raise WireError(f"Weights.tensors.{name}: a value beyond bfloat16's range", "weights_encoding")
+    return upper
+
+
+def _decode_tensor(array: np.ndarray, encoding: str) -> np.ndarray:
+    if encoding == "float16":
+        return array.astype(np.float32)
+    return (array.astype(np.uint32) << np.uint32(16)).view(np.float32)
 
 
 @dataclass(eq=False)

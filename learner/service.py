@@ -37,7 +37,7 @@ from common.exploration import bmc_observation_count, make_strategy, newest_tran
 from common.logs import Every
 from common.run_dir import RunDir
 from common.service import Service
-from common.transport import Keys, publisher, request, serve, subscribe
+from common.transport import Keys, SharedMemory, publisher, request, serve, subscribe
 from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
                          WireError, check_trace_batch, stat_number)
 from learner.prefetch import Prefetcher
@@ -114,6 +114,25 @@ class Admitted:
     batch: object
     traces: Traces | TraceTensors | None
     error: WireError | None
+
+
+class BroadcastSchedule:
+    """When the weights go out: after every `every`-th update, and (period_s > 0) after the first update
+    once period_s has passed since the last broadcast, whichever comes first."""
+
+    def __init__(self, every: int, period_s: float, clock=time.monotonic) -> None:
+        self.every = every
+        self.period_s = period_s
+        self._clock = clock
+        self._last = clock()
+
+    def due(self, updates: int) -> bool:
+        """Whether the weights after this update go out; a broadcast restarts the period."""
+        now = self._clock()
+        if updates % self.every == 0 or (self.period_s > 0 and now - self._last >= self.period_s):
+            self._last = now
+            return True
+        return False
 
 
 class LearnerProcess:
@@ -280,9 +299,18 @@ class LearnerProcess:
         return newest_transitions(g_greedy, g_uniform, count)
 
     def make_weights(self) -> Weights:
-        self.latest_weights = Weights(version=self.updates, tensors=self.learner.online_weights(),
-                                      created=time.time())
-        return self.latest_weights
+        """The online network's weights as broadcast and served, in learner.weights_encoding; whole
+        (float32, logged) when a value is beyond that encoding's range."""
+        tensors, encoding = self.learner.online_weights(), self.config.learner.weights_encoding
+        try:
+            weights = Weights.from_float32(self.updates, tensors, encoding, created=time.time())
+        except WireError as error:
+            if error.kind != "weights_encoding":
+                raise
+            log.warning("weights version %d go out as float32: %s", self.updates, error)
+            weights = Weights.from_float32(self.updates, tensors, created=time.time())
+        self.latest_weights = weights
+        return weights
 
     def checkpoint(self) -> Path:
         with self._lock:
@@ -321,16 +349,16 @@ def run_learner(config: Config, resume: bool = False) -> None:
                              "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights)}
         for receiver in process.receivers.values():
             service.on_close(receiver.undeclare)
-        outputs = Outputs(session, keys)
+        outputs = Outputs(session, keys, SharedMemory.of(config.transport))
         outputs.weights(process.make_weights())
         _train(process, outputs, service.stop, session, keys)
 
 
 class Outputs:
-    """Everything the learner publishes."""
+    """Everything the learner publishes; weights from shared memory when given some."""
 
-    def __init__(self, session, keys: Keys) -> None:
-        self._weights = publisher(session, keys.weights)
+    def __init__(self, session, keys: Keys, shared_memory: SharedMemory | None = None) -> None:
+        self._weights = publisher(session, keys.weights, shared_memory=shared_memory)
         self._exploration = publisher(session, keys.exploration)
         self._metrics = publisher(session, keys.metrics_source("learner", "0"))
         self._last_exploration: dict | None = None
@@ -351,6 +379,7 @@ class Outputs:
 def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, session, keys: Keys) -> None:
     config = process.config.learner
     heartbeat = Every(config.log_period_s)
+    broadcasts = BroadcastSchedule(config.weights_every, config.weights_period_s)
     started_from = process.updates
 
     def fetch(message: TraceBatchRequest):
@@ -379,7 +408,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
             if loss is not None:  # None: the batch was refused or its update failed (counted)
                 report.loss(loss)
                 outputs.exploration(process.strategy)
-                if process.updates % config.weights_every == 0:
+                if broadcasts.due(process.updates):
                     outputs.weights(process.make_weights())
                 if process.updates % config.checkpoint_every == 0:
                     process.checkpoint()

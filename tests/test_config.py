@@ -149,6 +149,7 @@ ENUMERATED = {
     "exploration.bmc.observations": BMC_OBSERVATIONS,
     "transport.mode": ("peer", "client", "router"),
     "record.image_format": ("png", "jpeg"),
+    "learner.weights_encoding": ("float32", "float16", "bfloat16"),
 }
 
 

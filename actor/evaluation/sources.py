@@ -14,7 +14,7 @@ from actor.evaluation import EvaluationError
 from common.config import Config, config_from_args, from_dict
 from common.network import D3RQN, load_numpy_weights
 from common.transport import Keys, open_session, request
-from common.wire import Weights
+from common.wire import Weights, WireError
 from common.checkpoint import Checkpoint
 from common.run_dir import RunDir
 
@@ -60,9 +60,13 @@ def live_source(config: Config) -> PolicySource:
     if reply is None:
         raise EvaluationError(f"no learner answered on {keys.weights_latest} within "
                               f"{config.evaluation.live_timeout_s:g} s")
+    try:
+        weights = reply.to_float32()  # the learner may send them compact (learner.weights_encoding)
+    except WireError as error:
+        raise EvaluationError(f"the live learner's weights: {error}") from None
     facts = {"source": f"live learner on {keys.weights_latest}", "weights version": str(reply.version),
              "strategy": config.exploration.strategy}
-    return PolicySource(dict(reply.tensors), config, RunDir.of(config), facts)
+    return PolicySource(weights, config, RunDir.of(config), facts)
 
 
 def _latest_weights(session, key: str, timeout_s: float) -> Weights | None:
