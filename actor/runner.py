@@ -1,14 +1,17 @@
 """The actor loop: drive the simulator with the newest policy and publish whole episodes.
 
-The network is stepped one frame at a time; its LSTM state lives for one
-episode. Weights and exploration state arrive on Zenoh callbacks, which only
-park the newest message in a mailbox; the stepping loop picks it up between
-steps, so a slow or absent learner never blocks driving.
+An actor steps actor.envs_per_actor simulators in lockstep: one batched forward
+pass of the network per step (actor/batched_q.py, shared with the evaluation),
+each simulator with its own seed, LSTM state (zeroed when its episode starts),
+exploration draws and episodes. Weights and exploration state arrive on Zenoh
+callbacks, which only park the newest message in a mailbox; the stepping loop
+picks it up between steps, so a slow or absent learner never blocks driving.
 
 The learner is the authority on exploration: a state naming another strategy
 or other params than this actor's config replaces the actor's strategy (one log
-line). Between episodes the actor obeys the replay's rate limiter: it holds its
-next episode while the replay says the learner is behind (``replay/rate``).
+line). Between episodes the actor obeys the replay's rate limiter: a simulator
+whose episode has ended starts no other while the replay says the learner is
+behind (``replay/rate``); see EpisodeGate.
 
 Nothing that arrives is taken on trust: weights must be in an encoding this build
 reads (float32, or compact float16 or bfloat16, widened to float32 on arrival) and
@@ -22,7 +25,7 @@ versions from there.
 Finished episodes go to an outbox that one thread sends from, in order, while a
 replay is alive (its liveliness token) and subscribed. While none is (a replay
 restart) they wait there; when it holds actor.queue_episodes episodes or
-actor.queue_mb MB, the actor holds its next episode. Episodes still waiting when
+actor.queue_mb MB, all of the actor's simulators wait for room. Episodes still waiting when
 the actor stops are counted as dropped. Each episode carries this process's
 random incarnation, so the replay never stores one twice and counts the ones that
 never arrived.
@@ -37,10 +40,12 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 import torch
 
+from actor.batched_q import BatchedQ
 from actor.sim import make_env
 from common.config import Config
 from common.exploration import make_strategy, same_strategy, strategy_from_state
@@ -63,6 +68,14 @@ HOLD_LOG_S = 10.0  # a paced run holds nearly every episode briefly: one line pe
 def actor_seed(run_seed: int, actor_id: int) -> int:
     """Independent, reproducible streams per actor, derived from the run seed."""
     return int(np.random.SeedSequence([run_seed, actor_id]).generate_state(1)[0])
+
+
+def env_seed(actor_seed: int, env_index: int) -> int:
+    """The seed of an actor's env_index-th simulator and its exploration draws: env 0 keeps the actor's own,
+    so that one env per actor is the single-env actor; the others derive theirs from it and their index."""
+    if env_index == 0:
+        return actor_seed
+    return int(np.random.SeedSequence([actor_seed, env_index]).generate_state(1)[0])
 
 
 class Mailbox:
@@ -153,21 +166,38 @@ class EpisodeBuffer:
     actions: list[int] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
     versions: list[int] = field(default_factory=list)
+    collided: bool = False
+    started: float = field(default_factory=time.monotonic)
+
+
+@dataclass
+class EnvSlot:
+    """One of an actor's simulators: its seed, its own exploration draws, and its episode (None: idle)."""
+
+    index: int
+    env: Any
+    seed: int
+    rng: np.random.Generator
+    episode: EpisodeBuffer | None = None
 
 
 class Actor:
-    """One simulator, one network, one exploration strategy."""
+    """actor.envs_per_actor simulators, one network, one exploration strategy."""
 
     def __init__(self, config: Config, actor_id: int) -> None:
         self.config = config
         self.actor_id = actor_id
         self.seed = actor_seed(config.run.seed, actor_id)
-        self.rng = np.random.default_rng(self.seed)
-        self.env = make_env(config.env, seed=self.seed)
+        seeds = [env_seed(self.seed, index) for index in range(config.actor.envs_per_actor)]
+        self.slots = [EnvSlot(index, make_env(config.env, seed=seed), seed, np.random.default_rng(seed))
+                      for index, seed in enumerate(seeds)]
         self.network = D3RQN(config.network).eval()
+        self.batched_q = BatchedQ(self.network, len(self.slots))
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
         self.weights_version = -1  # no weights yet: act uniformly at random
-        self.episode_index = 0
+        self.episode_index = 0  # episodes ended so far, the number of the next to end
+        self.episodes_started = 0
+        self._ended: deque[tuple[Episode, EpisodeRecord]] = deque()  # run_episode's, not yet returned
         self.incarnation = secrets.randbits(62) | 1  # names this process's episodes (never 0: unnamed)
         self.rejections = Rejections(log)
         shapes = {name: tuple(tensor.shape) for name, tensor in self.network.state_dict().items()}
@@ -202,35 +232,59 @@ class Actor:
     def uses_network(self) -> bool:
         return self.weights_version >= 0 and self.strategy.started
 
-    def run_episode(self, stop: threading.Event) -> tuple[Episode, EpisodeRecord]:
+    @property
+    def running(self) -> list[EnvSlot]:
+        return [slot for slot in self.slots if slot.episode is not None]
+
+    def step(self, may_start: Callable[[], bool] = lambda: True) -> list[tuple[Episode, EpisodeRecord]]:
+        """One lockstep step: each idle simulator begins an episode if may_start() says so, then every
+        running one takes one action. Returns the episodes that ended, in simulator order."""
+        self.apply_mail()
+        for slot in self.slots:
+            if slot.episode is None and may_start():
+                self._begin(slot)
+        running = self.running
+        ended = []
+        for slot, action in zip(running, self._actions(running)):
+            observation, reward, terminated, truncated, info = slot.env.step(action)
+            episode = slot.episode
+            episode.collided = episode.collided or bool(info.get("collision", False))
+            episode.frames.append(observation)
+            episode.actions.append(action)
+            episode.rewards.append(float(reward))
+            episode.versions.append(self.weights_version)
+            if terminated or truncated:
+                ended.append(self._finish(slot, terminated, truncated, info))
+        return ended
+
+    def run_episode(self, stop: threading.Event) -> tuple[Episode, EpisodeRecord] | None:
+        """The next episode to end, every idle simulator starting its next at once (no rate limiter):
+        with one simulator, one whole episode. None if stopped first."""
+        while not self._ended:
+            if stop.is_set():
+                return None
+            self._ended.extend(self.step())
+        return self._ended.popleft()
+
+    def _begin(self, slot: EnvSlot) -> None:
         started = time.monotonic()
-        observation, info = self.env.reset(options={"start_set": "train"})
-        state = self.network.initial_state(1)
-        buffer = EpisodeBuffer(frames=[observation])
-        terminated = truncated = collided = False
-        while not (terminated or truncated or stop.is_set()):
-            self.apply_mail()
-            if self.uses_network():
-                q_values, state = self.q_values(observation, state)
-                action = self.strategy.act(q_values, self.rng)
-            else:
-                action = int(self.rng.integers(self.config.network.n_actions))
-            observation, reward, terminated, truncated, info = self.env.step(action)
-            collided = collided or bool(info.get("collision", False))
-            buffer.frames.append(observation)
-            buffer.actions.append(action)
-            buffer.rewards.append(float(reward))
-            buffer.versions.append(self.weights_version)
-        return self._finish(buffer, terminated, truncated, collided, info, time.monotonic() - started)
+        observation, _ = slot.env.reset(options={"start_set": "train"})
+        self.batched_q.reset(slot.index)
+        slot.episode = EpisodeBuffer(frames=[observation], started=started)
+        self.episodes_started += 1
 
-    @torch.inference_mode()
-    def q_values(self, observation: np.ndarray, state):
-        frame = torch.from_numpy(observation).view(1, 1, *observation.shape)
-        q_values, state = self.network(frame, state)
-        return q_values[0, 0].numpy(), state
+    def _actions(self, running: list[EnvSlot]) -> list[int]:
+        """One action per running simulator, each drawn from its own generator (and its Q-values' row)."""
+        if not running:
+            return []
+        if not self.uses_network():
+            return [int(slot.rng.integers(self.config.network.n_actions)) for slot in running]
+        q_values = self.batched_q.q_values([slot.index for slot in running],
+                                           [slot.episode.frames[-1] for slot in running]).numpy()
+        return [self.strategy.act(row, slot.rng) for row, slot in zip(q_values, running)]
 
-    def _finish(self, buffer: EpisodeBuffer, terminated: bool, truncated: bool, collided: bool,
-                info: dict, wall_time: float) -> tuple[Episode, EpisodeRecord]:
+    def _finish(self, slot: EnvSlot, terminated: bool, truncated: bool, info: dict) -> tuple[Episode, EpisodeRecord]:
+        buffer, slot.episode = slot.episode, None
         epsilon = float(self.strategy.epsilon) if self.uses_network() else 1.0
         episode = Episode(
             observations=FrameStack.from_array(np.stack(buffer.frames)),
@@ -243,15 +297,15 @@ class Actor:
             start_index=int(info.get("start_index", -1)),
             weights_version=np.asarray(buffer.versions, dtype=np.int64),
             epsilon=epsilon,
-            seed=self.seed,
+            seed=slot.seed,
             episode_index=self.episode_index,
             incarnation=self.incarnation,
         )
         record = EpisodeRecord(
             actor_id=self.actor_id, episode_index=self.episode_index, length=len(buffer.actions),
-            episode_return=float(sum(buffer.rewards)), collided=collided,
+            episode_return=float(sum(buffer.rewards)), collided=buffer.collided,
             start_set=episode.start_set, start_index=episode.start_index, epsilon=epsilon,
-            weights_version=self.weights_version, wall_time=wall_time, time=time.time())
+            weights_version=self.weights_version, wall_time=time.monotonic() - buffer.started, time=time.time())
         self.episode_index += 1
         return episode, record
 
@@ -359,8 +413,9 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
     stop = service.stop
     torch.set_num_threads(1)  # one core per actor; the learner owns the rest
     actor = Actor(config, actor_id)
-    log.info("actor %d (seed %d, incarnation %x), strategy %s until the learner's exploration state says otherwise",
-             actor_id, actor.seed, actor.incarnation, config.exploration.strategy)
+    log.info("actor %d (seed %d, incarnation %x), %d simulator(s), strategy %s until the learner's exploration "
+             "state says otherwise", actor_id, actor.seed, actor.incarnation, len(actor.slots),
+             config.exploration.strategy)
     keys = service.keys
     outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE))
     replay = ReplayWatch()
@@ -422,40 +477,61 @@ def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox) -> None:
 
 def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, records_out) -> None:
     report = Every(actor.config.actor.log_period_s)
-    holds = HoldLog(HOLD_LOG_S)
+    may_start = EpisodeGate(actor.mailbox, HoldLog(HOLD_LOG_S),
+                            lambda: max_episodes is None or actor.episodes_started < max_episodes)
     steps = 0
     returns: list[float] = []
     while not stop.is_set() and (max_episodes is None or actor.episode_index < max_episodes):
-        if not _replay_allows_next_episode(actor, stop, holds):
-            break
-        episode, record = actor.run_episode(stop)
-        if stop.is_set() and not (episode.terminated or episode.truncated):
-            break  # an interrupted episode is not a real one
-        if not outbox.offer(episode, stop):
-            break
-        records_out.put(record)
-        steps += record.length
-        returns.append(record.episode_return)
-        if report.due():
-            log.info("episodes %d, steps %d, mean return %.2f, weights v%d, epsilon %.3f; %d sent, %d waiting, "
-                     "%d rejected messages", actor.episode_index, steps, float(np.mean(returns)),
-                     actor.weights_version, record.epsilon, outbox.sent, len(outbox), actor.rejections.total)
-            returns.clear()
+        ended = actor.step(may_start)
+        if not ended and not actor.running:
+            stop.wait(0.01)  # every simulator is held
+        for episode, record in ended:
+            # A full outbox holds every simulator here: the replay is gone, not just behind.
+            if not outbox.offer(episode, stop):
+                return
+            records_out.put(record)
+            steps += record.length
+            returns.append(record.episode_return)
+            if report.due():
+                log.info("episodes %d, steps %d, mean return %.2f, weights v%d, epsilon %.3f; %d sent, %d waiting, "
+                         "%d rejected messages", actor.episode_index, steps, float(np.mean(returns)),
+                         actor.weights_version, record.epsilon, outbox.sent, len(outbox), actor.rejections.total)
+                returns.clear()
 
 
-def _replay_allows_next_episode(actor: Actor, stop: threading.Event, holds: HoldLog) -> bool:
-    """Waits at an episode boundary while the replay's rate limiter says hold; False if stopped."""
-    held = False
-    while reason := actor.mailbox.must_hold():
-        if not held:
-            holds.begin()
-            held = True
-        if stop.wait(0.01):
+class EpisodeGate:
+    """Whether an idle simulator may begin its next episode: while `more` says the actor wants more
+    episodes and the replay's rate limiter does not say hold. Logs the holds.
+
+    A held simulator waits while the actor's others go on with their episodes. The limiter counts an
+    episode's steps when it arrives and bounds the learner's lag by its buffer plus the episodes in
+    flight; a running episode is in flight whether its simulator pauses or not, as on envs_per_actor
+    separate actors, so pausing it would only delay steps that are owed anyway. What keeps the ratio
+    exact is that no simulator begins an episode while the replay says hold.
+
+    A hold, for the log, lasts from the first refused start until the replay lets the next one go: the
+    replay's word holds all of the actor's idle simulators at once."""
+
+    def __init__(self, mailbox: Mailbox, holds: HoldLog, more: Callable[[], bool]) -> None:
+        self.mailbox = mailbox
+        self.holds = holds
+        self.more = more
+        self.held = False
+
+    def __call__(self) -> bool:
+        if not self.more():
             return False
-        holds.tick(reason)
-    if held:
-        holds.end()
-    return True
+        reason = self.mailbox.must_hold()
+        if reason:
+            if not self.held:
+                self.holds.begin()
+                self.held = True
+            self.holds.tick(reason)
+            return False
+        if self.held:
+            self.holds.end()
+            self.held = False
+        return True
 
 
 class HoldLog:

@@ -347,11 +347,15 @@ class EnvConfig:
 
 @dataclass
 class ActorConfig:
-    """An actor process: which one it is, how often it logs, and its queue while no replay listens."""
+    """An actor process: which one it is, how many simulators it steps, how often it logs, and its queue while
+    no replay listens."""
 
     num_actors: int = option(0, "actors the local stack starts; 0 means one per spare core", "actors")
     actor_id: int = option(0, "this actor's number: its keys and, with run.seed, its seed")
     log_period_s: float = option(10.0, "how often the actor logs a status line", "s")
+    envs_per_actor: int = option(1, "simulators one actor steps in lockstep, with one batched forward pass of the "
+                                    "network per step; each has its own seed, LSTM state, exploration draws and "
+                                    "episodes", "simulators")
     # Finished episodes wait in a queue while no replay listens (a replay restart).
     queue_episodes: int = option(32, "the actor holds its next episode while this many finished episodes wait "
                                      "for a replay", "episodes")
@@ -361,7 +365,7 @@ class ActorConfig:
     def validate(self) -> None:
         _check(self.num_actors >= 0, "num_actors", "must be >= 0")
         _check(self.actor_id >= 0, "actor_id", "must be >= 0")
-        _positive(self, "log_period_s", "queue_episodes", "queue_mb")
+        _positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb")
 
 
 @dataclass

@@ -26,6 +26,7 @@ from typing import Callable, Iterable, Iterator, Protocol
 import numpy as np
 import torch
 
+from actor.batched_q import BatchedQ
 from actor.evaluation.stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
 from actor.sim import START_SETS, make_env, start_poses
 from actor.sim.privileged import PrivilegedDriver
@@ -76,26 +77,14 @@ class Policy(Protocol):
         """One action per slot."""
 
 
-class GreedyPolicy:
+class GreedyPolicy(BatchedQ):
     """argmax Q, one batched forward pass per step, one LSTM state per slot."""
 
-    def __init__(self, network: D3RQN, n_slots: int) -> None:
-        self.network = network.eval()
-        self.hidden, self.cell = network.initial_state(n_slots)
-
-    @torch.no_grad()
     def begin(self, slot: int, job: EpisodeJob, pose: Pose) -> None:
-        self.hidden[:, slot] = 0.0
-        self.cell[:, slot] = 0.0
+        self.reset(slot)
 
-    @torch.no_grad()
     def act(self, slots: list[int], observations: list[np.ndarray], poses: list[Pose]) -> list[int]:
-        index = torch.tensor(slots)
-        frames = torch.from_numpy(np.stack(observations)).unsqueeze(1)  # (batch, time = 1, H, W, C)
-        q_values, (hidden, cell) = self.network(frames, (self.hidden[:, index], self.cell[:, index]))
-        self.hidden[:, index] = hidden
-        self.cell[:, index] = cell
-        return q_values[:, 0].argmax(dim=-1).tolist()
+        return self.q_values(slots, observations).argmax(dim=-1).tolist()
 
 
 class RandomPolicy:
