@@ -5,7 +5,7 @@ import dataclasses
 
 import pytest
 
-from actor.evaluation_comparison import STRATEGY_NAMES
+from deploy.comparison import STRATEGY_NAMES
 from common.config import ConfigError, ExplorationConfig, load_config
 from common.exploration import STRATEGY_CLASSES, make_strategy
 from common.strategies import REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named
