@@ -407,10 +407,11 @@ class TransportConfig:
     connect: list[str] = option([], "endpoints to connect to, e.g. tcp/127.0.0.1:7447")
     multicast_scouting: bool = option(False, "find peers by UDP multicast on the local network")
     shared_memory: bool = option(
-        True, "Zenoh shared memory between the processes of one host (transport/shared_memory/enabled): the learner "
+        False, "Zenoh shared memory between the processes of one host (transport/shared_memory/enabled): the learner "
               "puts its weights broadcasts from a shared-memory buffer that local subscribers map instead of each "
               "receiving a copy over a socket (remote ones get them over the network as before). Where Zenoh has "
-              "none, the weights go over the network, with one log line; false: everything does")
+              "none, the weights go over the network, with one log line. Off by default: with it on, what a process "
+              "publishes just before it exits can be lost (d3rqn-log play lost every episode it played)")
     namespace: str = option("d3rqn", "first chunk of every key: <namespace>/<run.name>/...")
     connect_timeout_s: float = option(10.0, "client mode: how long opening a session retries its connect endpoints",
                                       "s")

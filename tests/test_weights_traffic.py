@@ -72,7 +72,7 @@ def test_a_slow_learner_broadcasts_after_every_update_once_the_period_has_passed
 def test_the_period_and_the_encoding_are_checked_options():
     config = load_config("paper")
     assert (config.learner.weights_period_s, config.learner.weights_encoding) == (0.0, "float32")
-    assert config.transport.shared_memory
+    assert not config.transport.shared_memory  # opt-in: see its help
     with pytest.raises(ConfigError, match="learner.weights_period_s"):
         load_config("paper", overrides={"learner.weights_period_s": -1.0})
     with pytest.raises(ConfigError, match="learner.weights_encoding"):
@@ -136,7 +136,8 @@ def test_an_actor_acts_with_compact_weights_as_with_whole_ones(tmp_path):
         actor.mailbox.offer_weights(decode(encode(Weights.from_float32(version, tensors, encoding)), Weights))
         actor.apply_mail()
         assert actor.weights_version == version and actor.rejections.total == 0
-        q_values[encoding] = actor.q_values(frame, actor.network.initial_state(1))[0]
+        actor.batched_q.reset(0)
+        q_values[encoding] = actor.batched_q.q_values([0], [frame])[0].numpy()
     for encoding in COMPACT:
         assert np.allclose(q_values[encoding], q_values["float32"], atol=1e-2)
 
