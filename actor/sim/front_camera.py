@@ -371,8 +371,10 @@ def _paint(image, tests, position, projection, min_size, range_m, fog_start, haz
     """Culls the objects of both sets (static, movers) and paints the parts of those in view
     far to near (by the distance to their footprint; a stable sort keeps equally far ones in
     set order), each part faded into the haze by how far ahead its object starts."""
-    statics, nearest_s, ahead_s = _visible(tests, range_m, *sets[:4])
-    movers, nearest_m, ahead_m = _visible(tests, range_m, *sets[8:12])
+    # Each set is the 8 arrays of _Set.arrays: three for culling, the parts' first rows, then
+    # four for drawing (literal slices: numba types a tuple's slice only by constants).
+    statics, nearest_s, ahead_s = _visible(tests, range_m, *sets[:3])
+    movers, nearest_m, ahead_m = _visible(tests, range_m, *sets[8:11])
     order = np.argsort(-np.concatenate((nearest_s, nearest_m)), kind="mergesort")
     fog = np.minimum(np.maximum((np.concatenate((ahead_s, ahead_m)) - fog_start) / (range_m - fog_start), 0.0), 1.0)
     scratch = np.empty((OUTLINE, 3)), np.empty(2 * OUTLINE, np.int64), np.empty(2 * OUTLINE, np.int64)
@@ -388,7 +390,7 @@ def _paint(image, tests, position, projection, min_size, range_m, fog_start, haz
 
 
 @numba.njit(cache=True)
-def _visible(tests, range_m, features, radius, half, first):
+def _visible(tests, range_m, features, radius, half):
     """Objects whose bounding sphere meets the frustum and whose footprint starts within the
     range: their index (ascending), the distance from the camera to the nearest point of
     their footprint, and how far ahead that footprint starts."""
