@@ -45,12 +45,12 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from actor.batched_q import BatchedQ
+from actor.batched_q import BatchedQ, choose_precision
 from actor.sim import make_env
 from common.config import Config
 from common.exploration import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
-from common.network import D3RQN, load_numpy_weights
+from common.network import D3RQN
 from common.service import Service
 from common.transport import Keys, publisher, request, subscribe, watch_liveliness
 from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights, WireError
@@ -192,7 +192,8 @@ class Actor:
         self.slots = [EnvSlot(index, make_env(config.env, seed=seed), seed, np.random.default_rng(seed))
                       for index, seed in enumerate(seeds)]
         self.network = D3RQN(config.network).eval()
-        self.batched_q = BatchedQ(self.network, len(self.slots))
+        self.batched_q = BatchedQ(self.network, len(self.slots),
+                                  choose_precision(self.network, len(self.slots), config.actor.inference))
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
         self.weights_version = -1  # no weights yet: act uniformly at random
         self.episode_index = 0  # episodes ended so far, the number of the next to end
@@ -207,7 +208,7 @@ class Actor:
         weights, exploration = self.mailbox.take()
         if weights is not None:
             try:
-                load_numpy_weights(self.network, weights.tensors)
+                self.batched_q.load_weights(weights.tensors)
                 self.weights_version = weights.version
             except ValueError as error:
                 self.rejections.reject("weights_values", f"weights version {weights.version}: {error}")

@@ -122,13 +122,13 @@ class D3RQN(nn.Module):
 
     def trace_features(self, pixels: torch.Tensor, batch: int, grad_steps: int) -> torch.Tensor:
         """trace_q_values' first part: the convolutions, (frames, n_features)."""
-        fused = _fused_relu_convolution_available(pixels.device)
+        fused = fused_relu_convolution_available(pixels.device)
         weights = [module.weight for module in self.conv if isinstance(module, nn.Conv2d)]
         if torch.is_grad_enabled():
             return _ConvStack.apply(pixels, grad_steps * batch, fused, *weights)
         features = pixels
         for weight, (_, _, stride) in zip(weights, CONV_LAYERS):
-            features = _conv_relu(features, weight, stride, fused)
+            features = conv_relu(features, weight, stride, fused)
         return features.flatten(1)
 
     def trace_head(self, features: torch.Tensor, batch: int, grad_steps: int) -> torch.Tensor:
@@ -218,12 +218,12 @@ def scale_frames(frames: torch.Tensor, size: tuple[int, int] | None = None,
     return out.permute(0, 3, 1, 2)
 
 
-def _fused_relu_convolution_available(device: torch.device) -> bool:
+def fused_relu_convolution_available(device: torch.device) -> bool:
     return (device.type == "cpu" and torch.backends.mkldnn.is_available()
             and hasattr(torch.ops.mkldnn, "_convolution_pointwise"))
 
 
-def _conv_relu(pixels: torch.Tensor, weight: torch.Tensor, stride: int, fused: bool) -> torch.Tensor:
+def conv_relu(pixels: torch.Tensor, weight: torch.Tensor, stride: int, fused: bool) -> torch.Tensor:
     if fused:
         return torch.ops.mkldnn._convolution_pointwise(pixels, weight, None, [0, 0], [stride, stride], [1, 1], 1,
                                                        "relu", [], "")
@@ -241,7 +241,7 @@ class _ConvStack(torch.autograd.Function):
     def forward(ctx, pixels, grad_rows, fused, *weights):
         activations = [pixels]
         for weight, (_, _, stride) in zip(weights, CONV_LAYERS):
-            activations.append(_conv_relu(activations[-1], weight, stride, fused))
+            activations.append(conv_relu(activations[-1], weight, stride, fused))
         ctx.save_for_backward(*activations, *weights)
         ctx.grad_rows = grad_rows
         return activations[-1].flatten(1)

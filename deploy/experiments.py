@@ -4,8 +4,10 @@ Each run of the grid goes through the real distributed stack (deploy/stack.py, a
 subprocess) in the run folder <runs-dir>/<strategy>-b<capacity>-s<seed>/
 (common/run_dir.py), then through `evaluate` (its greedy policy and the random
 baseline, train and test starts, into the run's evaluation folder). Runs go one
-after the other, or --parallel K at once. A line per period shows each running
-run (from the stack's status file, or evaluate's progress line) and the grid:
+after the other, or --parallel K at once (each learner then takes its share of
+the cores, learner.torch_threads, unless the flags set it). A line per period
+shows each running run (from the stack's status file, or evaluate's progress
+line) and the grid:
 runs done of all, and an ETA from the env steps trained so far in this session.
 At the end, <runs-dir>/results/ receives the tables of the paper's tables 3-6
 with bootstrap confidence intervals over the seeds (results.md, results.csv:
@@ -29,6 +31,7 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
+import os
 import re
 import shutil
 import signal
@@ -596,6 +599,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def learner_threads_flags(extra: list[str], parallel: int, cores: int) -> list[str]:
+    """With several runs at once, each learner gets its share of the cores unless the flags say otherwise:
+    learners of torch's default (all cores each) oversubscribe the CPU, which slows an update several times."""
+    if parallel == 1 or any(flag.split("=")[0] == "--learner.torch_threads" for flag in extra):
+        return []
+    return ["--learner.torch_threads", str(max(1, cores // parallel))]
+
+
 def parse_arguments(argv: list[str] | None) -> tuple[list[RunSpec], Options, int, bool]:
     args, extra = build_parser().parse_known_args(argv)
     unknown_strategies = [name for name in parse_list(args.strategies, str, "strategies") if name not in STRATEGIES]
@@ -607,6 +618,7 @@ def parse_arguments(argv: list[str] | None) -> tuple[list[RunSpec], Options, int
             raise ExperimentError(f"--{name.replace('_', '-')}: must be > 0, got {value}")
     specs = grid(parse_list(args.strategies, str, "strategies"), parse_list(args.buffers, int, "buffers"),
                  parse_list(args.seeds, int, "seeds"))
+    extra = [*extra, *learner_threads_flags(extra, args.parallel, os.cpu_count() or 1)]
     options = Options(args.runs_dir, args.steps, args.trials, args.actors, tuple(extra), args.progress_s)
     check_config_flags(specs, options)
     return specs, options, args.parallel, args.report_only

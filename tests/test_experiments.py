@@ -344,6 +344,15 @@ def test_the_grid_names_runs_and_passes_each_its_flags(tmp_path):
     assert evaluate[-2:] == ["--evaluation.episodes_per_start", "3"]
 
 
+def test_runs_at_once_share_the_cores_between_their_learners_unless_told():
+    assert experiments.learner_threads_flags([], parallel=1, cores=2) == []
+    assert experiments.learner_threads_flags([], parallel=2, cores=2) == ["--learner.torch_threads", "1"]
+    assert experiments.learner_threads_flags([], parallel=2, cores=8) == ["--learner.torch_threads", "4"]
+    assert experiments.learner_threads_flags([], parallel=3, cores=2) == ["--learner.torch_threads", "1"]
+    for given in (["--learner.torch_threads", "2"], ["--learner.torch_threads=2"]):
+        assert experiments.learner_threads_flags(given, parallel=2, cores=2) == []
+
+
 @pytest.mark.parametrize("extra, message", [
     (("--replay.capacity", "5"), "set by the grid"),
     (("--run.seed=4",), "set by the grid"),

@@ -219,7 +219,7 @@ def test_the_convolutions_read_only_the_top_left_60x196_of_a_paper_frame():
 @pytest.mark.parametrize("config", [TINY, NetworkConfig(frame_height=44, frame_width=50, lstm_units=12)],
                          ids=["tiny", "cropped"])
 def test_trace_q_values_equal_forward(config, fused, monkeypatch):
-    monkeypatch.setattr(network_module, "_fused_relu_convolution_available", lambda device: fused)
+    monkeypatch.setattr(network_module, "fused_relu_convolution_available", lambda device: fused)
     net = lively_net(config)
     frames = random_frames(config, batch=4, time=6, seed=10)
     with torch.no_grad():
@@ -233,7 +233,7 @@ def test_trace_q_values_equal_forward(config, fused, monkeypatch):
 
 @pytest.mark.parametrize("fused", [True, False], ids=["fused-relu", "plain-conv"])
 def test_trace_gradients_equal_autograd_through_forward(fused, monkeypatch):
-    monkeypatch.setattr(network_module, "_fused_relu_convolution_available", lambda device: fused)
+    monkeypatch.setattr(network_module, "fused_relu_convolution_available", lambda device: fused)
     net = lively_net()
     frames = random_frames(TINY, batch=4, time=6, seed=11)
     weights = torch.randn(4, 5, 5, generator=torch.Generator().manual_seed(12))  # a loss on steps 0..4 only

@@ -1,8 +1,9 @@
-"""Actor env steps per second by actor.envs_per_actor, on one core with the paper's network.
+"""Actor env steps per second by actor.envs_per_actor and actor.inference, on one core with the paper's network.
 
 One process pinned to one core with one torch thread, as one actor of the
-stack runs. For each envs_per_actor, taking turns within each round so that
-noise from other processes hits all alike:
+stack runs. For each envs_per_actor and inference precision (float32, and
+bfloat16 for the convolutions and the LSTM input projection: actor/batched_q.py),
+taking turns within each round so that noise from other processes hits all alike:
 
 * actor: ``Actor.step`` exactly as the actor's loop runs it (simulators,
   cameras, one batched forward pass, the exploration strategy's draws, episode
@@ -15,12 +16,13 @@ noise from other processes hits all alike:
 
 The actor's rates are env steps per second of wall time and per second of
 this process's CPU time (steadier on a shared machine: "per actor core"). Then the network's
-FLOPs per env step (learner/flops.py), the one-core fp32 peak of a square GEMM
-measured in the same run, and the ceiling they set: the steps/s an actor would
-reach if its network ran at that peak, with the rest of a step as measured.
+FLOPs per env step (learner/flops.py), the one-core peak of a square GEMM in
+each precision, measured in the same run, and the ceiling they set: the steps/s
+an actor would reach if its network ran at that peak, with the rest of a step
+as measured.
 Medians over the rounds.
 
-    .venv/bin/python deploy/bench/actor_speed.py [--envs 1,4,8,16] [--rounds 3] [--seconds 4]
+    .venv/bin/python deploy/bench/actor_speed.py [--envs 1,4,8,16] [--inference float32,bfloat16] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -47,9 +49,10 @@ SQUARE_GEMM = 2048
 PEAK_TRIES = 5
 
 
-def acting_actor(config: Config, envs: int) -> Actor:
+def acting_actor(config: Config, envs: int, inference: str = "float32") -> Actor:
     """An actor of envs simulators that acts with (untrained) weights and a started strategy."""
-    actor = Actor(dataclasses.replace(config, actor=dataclasses.replace(config.actor, envs_per_actor=envs)), 0)
+    actor_config = dataclasses.replace(config.actor, envs_per_actor=envs, inference=inference)
+    actor = Actor(dataclasses.replace(config, actor=actor_config), 0)
     strategy = make_strategy(config.exploration, config.network.n_actions)
     strategy.start()
     actor.mailbox.offer_weights(Weights(version=0, tensors=weights_to_numpy(actor.network)))
@@ -70,7 +73,7 @@ def actor_rates(actor: Actor, seconds: float) -> tuple[float, float]:
 
 
 def peak_gflops(gemms: Gemms) -> float:
-    """The best of a few square fp32 GEMMs on this one thread, by CPU time."""
+    """The best of a few square GEMMs on this one thread, by CPU time."""
     seconds = min(gemms.square_seconds(Clock("cpu", torch.device("cpu"))) for _ in range(PEAK_TRIES))
     return 2.0 * gemms.square ** 3 / seconds / 1e9
 
@@ -78,6 +81,7 @@ def peak_gflops(gemms: Gemms) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--envs", default="1,4,8,16", help="envs_per_actor values to measure")
+    parser.add_argument("--inference", default="float32,bfloat16", help="actor.inference values to measure")
     parser.add_argument("--rounds", type=int, default=3, help="rounds; every measurement once per round")
     parser.add_argument("--seconds", type=float, default=4.0, help="time per measurement")
     args = parser.parse_args()
@@ -87,34 +91,40 @@ def main() -> None:
           f"network ({config.network.frame_height}x{config.network.frame_width}x{config.network.frame_channels}, "
           f"LSTM {config.network.lstm_units}), strategy {config.exploration.strategy}, env.max_steps "
           f"{config.env.max_steps}", flush=True)
-    sizes = [int(part) for part in args.envs.split(",")]
-    actors = {envs: acting_actor(config, envs) for envs in sizes}
-    networks = {envs: GreedyPolicy(actor.network, envs) for envs, actor in actors.items()}
-    measured: dict[int, list[tuple[float, float, float]]] = {envs: [] for envs in sizes}
-    gemms, peaks = Gemms(config, torch.device("cpu"), SQUARE_GEMM), []
+    cases = [(int(envs), inference) for envs in args.envs.split(",") for inference in args.inference.split(",")]
+    actors = {case: acting_actor(config, *case) for case in cases}
+    networks = {case: GreedyPolicy(actor.network, case[0], actor.batched_q.precision)
+                for case, actor in actors.items()}
+    measured: dict[tuple[int, str], list[tuple[float, float, float]]] = {case: [] for case in cases}
+    precisions = sorted({inference for _, inference in cases})
+    gemms = {precision: Gemms(config, torch.device("cpu"), SQUARE_GEMM, getattr(torch, precision))
+             for precision in precisions}
+    peaks: dict[str, list[float]] = {precision: [] for precision in precisions}
     for round_number in range(args.rounds):
-        peaks.append(peak_gflops(gemms))
-        for envs, actor in actors.items():
-            network = inference_rate(networks[envs], envs, args.seconds, actor.network.frame_shape,
+        for precision in precisions:
+            peaks[precision].append(peak_gflops(gemms[precision]))
+        for case, actor in actors.items():
+            network = inference_rate(networks[case], case[0], args.seconds, actor.network.frame_shape,
                                      clock=time.process_time)
-            measured[envs].append((*actor_rates(actor, args.seconds), network))
+            measured[case].append((*actor_rates(actor, args.seconds), network))
         print(f"round {round_number + 1}/{args.rounds} done", flush=True)
 
-    peak = statistics.median(peaks)
+    peak = {precision: statistics.median(found) for precision, found in peaks.items()}
     flop_per_step = sum(forward_flops(config.network, traces=1, steps=1).values())
-    print(f"\nnetwork: {flop_per_step / 1e6:.1f} MFLOP per env step (learner/flops.py); one-core fp32 peak, square "
-          f"GEMM {SQUARE_GEMM}: {peak:.1f} GFLOP/s (median of rounds); medians of {args.rounds} rounds of "
-          f"{args.seconds:g} s")
-    print(f"{'envs/actor':>10} {'actor steps/s':>14} {'per CPU-s':>10} {'network alone, per CPU-s':>25} "
-          f"{'net % peak':>11} {'rest ms/step':>13} {'ceiling steps/s':>16}")
-    for envs in sizes:
-        wall, cpu_rate, network = (statistics.median(column) for column in zip(*measured[envs]))
+    print(f"\nnetwork: {flop_per_step / 1e6:.1f} MFLOP per env step (learner/flops.py); one-core peak, square GEMM "
+          f"{SQUARE_GEMM}: " + ", ".join(f"{name} {value:.1f} GFLOP/s" for name, value in peak.items())
+          + f" (medians of rounds); medians of {args.rounds} rounds of {args.seconds:g} s")
+    print(f"{'envs/actor':>10} {'inference':>9} {'actor steps/s':>14} {'per CPU-s':>10} "
+          f"{'network alone, per CPU-s':>25} {'net % peak':>11} {'rest ms/step':>13} {'ceiling steps/s':>16}")
+    for (envs, inference), rows in measured.items():
+        wall, cpu_rate, network = (statistics.median(column) for column in zip(*rows))
         rest_s = 1.0 / cpu_rate - 1.0 / network
-        ceiling = 1.0 / (flop_per_step / (peak * 1e9) + rest_s)
-        print(f"{envs:>10} {wall:>14,.0f} {cpu_rate:>10,.0f} {network:>25,.0f} "
-              f"{100 * flop_per_step * network / (peak * 1e9):>10.0f}% {1e3 * rest_s:>13.3f} {ceiling:>16,.0f}")
+        ceiling = 1.0 / (flop_per_step / (peak[inference] * 1e9) + rest_s)
+        share = flop_per_step * network / (peak[inference] * 1e9)
+        print(f"{envs:>10} {inference:>9} {wall:>14,.0f} {cpu_rate:>10,.0f} {network:>25,.0f} "
+              f"{100 * share:>10.0f}% {1e3 * rest_s:>13.3f} {ceiling:>16,.0f}")
     print("rest: everything of a step but the forward pass (simulator, camera, exploration, episode ends); "
-          "ceiling: the actor's steps/s with its network at the measured peak")
+          "ceiling: the actor's steps/s with its network at the measured peak of its precision")
 
 
 if __name__ == "__main__":

@@ -192,18 +192,19 @@ def shape_flops(config: Config) -> dict[str, float]:
 
 
 class Gemms:
-    """Plain fp32 matrix products on the device: the square one and the update's shapes."""
+    """Plain matrix products on the device (fp32 unless told): the square one and the update's shapes."""
 
-    def __init__(self, config: Config, device: torch.device, square: int) -> None:
+    def __init__(self, config: Config, device: torch.device, square: int, dtype: torch.dtype = torch.float32) -> None:
         self.square = square
         generator = torch.Generator().manual_seed(0)
-        self.a = torch.randn(square, square, generator=generator).to(device)
-        self.b = torch.randn(square, square, generator=generator).to(device)
+        self.a = torch.randn(square, square, generator=generator).to(device, dtype)
+        self.b = torch.randn(square, square, generator=generator).to(device, dtype)
         self.shapes = gemm_shapes(config)
         self.operands = {}
         for name, (m, k, n, calls, layout) in self.shapes.items():
             a = torch.randn(*((k, m) if layout[0] == "t" else (m, k)), generator=generator).to(device)
             b = torch.randn(*((n, k) if layout[1] == "t" else (k, n)), generator=generator).to(device)
+            a, b = a.to(dtype), b.to(dtype)
             self.operands[name] = (a.t() if layout[0] == "t" else a, b.t() if layout[1] == "t" else b, calls)
 
     def square_seconds(self, clock: Clock) -> float:

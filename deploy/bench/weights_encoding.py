@@ -1,10 +1,12 @@
-"""How far compact weights (learner.weights_encoding) move the greedy policy, on real frames.
+"""How far compact weights (learner.weights_encoding) and the bfloat16 actor pass (actor.inference) move the
+greedy policy, on real frames.
 
 Frames come from the simulator: drives of the privileged driver from the training starts, with a
 random action instead at a quarter of the steps (so the car also drifts), each cut at
 --drive-steps. Every network runs over each drive from a zero state, as an actor steps it, once
 with its float32 weights and once with the same weights sent in each compact encoding (encoded,
-decoded and widened as an actor loads them). Reported per network and encoding: the share of steps
+decoded and widened as an actor loads them), and once with float32 weights through the actor's bfloat16
+pass (actor/batched_q.py). Reported per network and variant: the share of steps
 whose greedy action changes, the largest |Q difference| and, for scale, the largest |Q|.
 Networks: seeded random inits (--seeds) and the online network of each --checkpoint.
 
@@ -20,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from actor.batched_q import BatchedQ
 from actor.sim import make_env
 from actor.sim.privileged import PrivilegedDriver
 from common.checkpoint import Checkpoint
@@ -27,7 +30,8 @@ from common.config import Config, EnvConfig, NetworkConfig, from_dict
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
 from common.wire import WEIGHTS_ENCODINGS, Weights, decode, encode
 
-COMPACT = tuple(encoding for encoding in WEIGHTS_ENCODINGS if encoding != "float32")
+BFLOAT16_PASS = "bf16 pass"  # float32 weights, the actor's bfloat16 forward pass
+VARIANTS = tuple(encoding for encoding in WEIGHTS_ENCODINGS if encoding != "float32") + (BFLOAT16_PASS,)
 RANDOM_ACTION_SHARE = 0.25
 
 
@@ -80,11 +84,27 @@ def q_values(network: D3RQN, observations: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([network(torch.from_numpy(drive)[None])[0][0].numpy() for drive in observations])
 
 
-def compare(network_config: NetworkConfig, tensors: dict[str, np.ndarray], encoding: str,
+def stepped_q_values(network: D3RQN, observations: list[np.ndarray], precision: str) -> np.ndarray:
+    """The same, one frame at a time through the actor's pass in `precision`."""
+    batched = BatchedQ(network, 1, precision)
+    rows = []
+    for drive in observations:
+        batched.reset(0)
+        rows += [batched.q_values([0], [frame])[0].numpy() for frame in drive]
+    return np.stack(rows)
+
+
+def variant_q_values(network_config: NetworkConfig, tensors: dict[str, np.ndarray], variant: str,
+                     observations: list[np.ndarray]) -> np.ndarray:
+    if variant == BFLOAT16_PASS:
+        return stepped_q_values(as_sent(network_config, tensors, "float32"), observations, "bfloat16")
+    return q_values(as_sent(network_config, tensors, variant), observations)
+
+
+def compare(network_config: NetworkConfig, tensors: dict[str, np.ndarray], variant: str,
             observations: list[np.ndarray]) -> Difference:
-    reference = as_sent(network_config, tensors, "float32")
-    compact = as_sent(network_config, tensors, encoding)
-    q_reference, q_compact = q_values(reference, observations), q_values(compact, observations)
+    q_reference = q_values(as_sent(network_config, tensors, "float32"), observations)
+    q_compact = variant_q_values(network_config, tensors, variant, observations)
     changed = q_reference.argmax(axis=1) != q_compact.argmax(axis=1)
     return Difference(len(q_reference), float(changed.mean()), float(np.abs(q_reference - q_compact).max()),
                       float(np.abs(q_reference).max()))
@@ -116,11 +136,11 @@ def main() -> None:
     observations = drives(config.env, args.frames, args.drive_steps)
     print(f"{sum(map(len, observations))} frames in {len(observations)} drives (privileged driver, "
           f"{RANDOM_ACTION_SHARE:.0%} random actions)")
-    print(f"{'network':58s} {'encoding':9s} {'greedy changed':>14s} {'max |dQ|':>10s} {'max |Q|':>9s}")
+    print(f"{'network':58s} {'variant':9s} {'greedy changed':>14s} {'max |dQ|':>10s} {'max |Q|':>9s}")
     for name, tensors in networks(config, args.seeds, args.checkpoint).items():
-        for encoding in COMPACT:
-            difference = compare(config.network, tensors, encoding, observations)
-            print(f"{name[-58:]:58s} {encoding:9s} {difference.greedy_changed:14.2%} "
+        for variant in VARIANTS:
+            difference = compare(config.network, tensors, variant, observations)
+            print(f"{name[-58:]:58s} {variant:9s} {difference.greedy_changed:14.2%} "
                   f"{difference.max_abs_q_difference:10.2e} {difference.max_abs_q:9.3g}")
 
 
