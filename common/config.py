@@ -108,6 +108,7 @@ class ReplayConfig:
 
 
 UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
+START_RULES = ("strategy", "episodes", "steps")  # learner.start_by
 
 
 @dataclass
@@ -127,7 +128,12 @@ class LearnerConfig:
              "replay's rate limiter holds whichever side runs ahead (replay.error_buffer_updates)", "env steps")
     start_episodes: int = option(999, "updates start the moment the replay holds this many episodes", "episodes")
     start_steps: int = option(50_000, "used instead of start_episodes when the learner's strategy is decreasing "
-                                      "epsilon", "env steps")
+                                      "epsilon, or for every strategy with start_by = steps", "env steps")
+    start_by: str = option(
+        "strategy", "what starts the updates: strategy (the paper's rule: decreasing epsilon at start_steps env "
+                    "steps, the others at start_episodes episodes), episodes (every strategy at start_episodes) or "
+                    "steps (every strategy at start_steps: the same point for all, as a comparison wants)",
+        choices=START_RULES)
     total_env_steps: int = option(1_000_000, "the run ends here: actors hold, the learner pays the last steps",
                                   "env steps")
     weights_every: int = option(50, "broadcast the weights to the actors every this many updates", "updates")
@@ -161,6 +167,7 @@ class LearnerConfig:
         _check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
         _check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
         _check(self.start_steps >= 0, "start_steps", "must be >= 0")
+        _check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")
         _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
         _check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
         _check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")

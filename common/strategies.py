@@ -42,9 +42,12 @@ def strategy_named(name: str) -> Strategy:
         raise ValueError(f"unknown exploration strategy {name!r}; choose one of {', '.join(STRATEGIES)}") from None
 
 
-def starts_by_steps(name: str) -> bool:
-    """Whether a run of this strategy starts updates by env steps (decreasing epsilon) rather than episodes."""
-    return strategy_named(name).starts_by_steps
+def starts_by_steps(name: str, start_by: str = "strategy") -> bool:
+    """Whether a run of this strategy starts updates by env steps rather than episodes, by learner.start_by:
+    "strategy" is the paper's rule (decreasing epsilon by steps), "steps" and "episodes" hold for every strategy."""
+    if start_by == "strategy":
+        return strategy_named(name).starts_by_steps
+    return start_by == "steps"
 
 
 def epsilon_groups() -> dict[str, tuple[str, ...]]:

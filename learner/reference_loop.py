@@ -87,7 +87,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     strategy = make_strategy(config.exploration, config.network.n_actions)
     store = EpisodeStore(config.replay.capacity, int(config.replay.memory_budget_mb * 2**20),
                          learner_config.trace_length, config.replay.seed)
-    start_by_steps = starts_by_steps(config.exploration.strategy)
+    start_by_steps = starts_by_steps(config.exploration.strategy, learner_config.start_by)
     log_every = log_period_s if log_period_s is not None else learner_config.log_period_s
     if learner_config.torch_threads:
         torch.set_num_threads(learner_config.torch_threads)

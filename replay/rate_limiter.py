@@ -75,7 +75,7 @@ def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
         start_steps=learner.start_steps,
         error_buffer=config.replay.error_buffer_updates,
         total_env_steps=learner.total_env_steps,
-        start_by_steps=starts_by_steps(strategy or config.exploration.strategy),
+        start_by_steps=starts_by_steps(strategy or config.exploration.strategy, learner.start_by),
     )
 
 

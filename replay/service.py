@@ -193,7 +193,7 @@ class ReplayService:
             return
         with self._lock:
             self.learner_strategy = state.strategy
-            by_steps = starts_by_steps(state.strategy)
+            by_steps = starts_by_steps(state.strategy, self.config.learner.start_by)
             changed = by_steps != self.limiter.limit.start_by_steps
             accepted = self.limiter.set_start_by_steps(by_steps)
         if changed and accepted:

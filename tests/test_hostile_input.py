@@ -171,6 +171,16 @@ def test_the_replay_takes_only_a_complete_exploration_state(tmp_path):
     assert service.learner_strategy == "decreasing" and service.limiter.limit.start_by_steps
 
 
+@pytest.mark.parametrize("start_by, by_steps", [("episodes", False), ("steps", True)])
+def test_a_start_rule_for_every_strategy_holds_whatever_the_learners_strategy(tmp_path, start_by, by_steps):
+    service = ReplayService(small_config(tmp_path, **{"learner.start_by": start_by}))
+    assert service.limiter.limit.start_by_steps == by_steps
+    for strategy in ("decreasing", "bmc"):
+        service.on_exploration(exploration_message(make_strategy(load_config("smoke", overrides={
+            "exploration.strategy": strategy}).exploration, 5)))
+        assert service.learner_strategy == strategy and service.limiter.limit.start_by_steps == by_steps
+
+
 def test_a_learner_that_starts_again_is_owed_the_batches_its_predecessor_lost(tmp_path):
     service = ReplayService(small_config(tmp_path))
     for index in range(2):

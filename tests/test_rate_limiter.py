@@ -161,5 +161,9 @@ def test_settings_come_from_the_config():
         (4.0, 999, 50_000, 1_000_000)
     assert limit.error_buffer == config.replay.error_buffer_updates and not limit.start_by_steps
     assert rate_limit_from_config(config, strategy="decreasing").start_by_steps
+    same_start = load_config("paper", overrides={"learner.start_by": "steps"})
+    assert rate_limit_from_config(same_start, strategy="bmc").start_by_steps
+    by_episodes = load_config("paper", overrides={"learner.start_by": "episodes"})
+    assert not rate_limit_from_config(by_episodes, strategy="decreasing").start_by_steps
     with pytest.raises(ValueError, match="error_buffer"):
         RateLimit(4.0, 1, 0, 0.5)

@@ -40,6 +40,12 @@ def test_only_softmax_has_no_epsilon_and_only_decreasing_starts_by_steps():
     assert set(EPSILON_STRATEGIES) == set(STRATEGIES) - {"softmax"}
     assert sum(epsilon_groups().values(), ()) == EPSILON_STRATEGIES
     assert [name for name in STRATEGIES if starts_by_steps(name)] == ["decreasing"]
+    assert [name for name in STRATEGIES if starts_by_steps(name, "strategy")] == ["decreasing"]
+
+
+def test_a_start_rule_other_than_the_strategys_holds_for_every_strategy():
+    assert all(starts_by_steps(name, "steps") for name in STRATEGIES)
+    assert not any(starts_by_steps(name, "episodes") for name in STRATEGIES)
 
 
 def test_an_unknown_strategy_is_refused_with_the_choices():
