@@ -8,8 +8,8 @@ back after it, so a slot's state depends only on its own frames since it was
 last reset. A batch of one is exactly the single-env forward pass.
 
 A training actor may run its pass in bfloat16 (actor.inference): the
-convolutions and the LSTM's input projection, nine tenths of the pass's FLOPs
-and nearly all of the weights it reads, take bfloat16 inputs and weights; the
+convolutions and the LSTM's input projection, 95% of the pass's FLOPs and 91%
+of the weights it reads, take bfloat16 inputs and weights; the
 recurrent product, the LSTM's state and the dueling head stay float32. On a CPU
 with AMX the pass is 2.5-3x faster; on one without bfloat16 units it is slower,
 which "auto" finds by timing both at start. The evaluation always acts in

@@ -84,7 +84,9 @@ def test_a_killed_learner_resumes_from_its_checkpoint_and_is_owed_what_it_lost(t
     log = (run.run_dir / "logs" / "learner.log").read_text()
     assert "resumed from" in log
     resumed_at = int(log.split("resumed from", 1)[1].split(": ", 1)[1].split(" updates", 1)[0])
-    assert resumed_at % 20 == 0 and updates_at_kill - 20 - 5 <= resumed_at <= updates_at_kill
+    # updates_at_kill is the last count the watch saw; the learner may have passed one more checkpoint before
+    # the kill landed (its reports come once a second in the smoke preset), not two.
+    assert resumed_at % 20 == 0 and updates_at_kill - 20 - 5 <= resumed_at <= updates_at_kill + 20
     assert owed["rate_lost_updates"] >= served_at_kill - resumed_at - 2  # served then, minus the checkpoint's
     ratio = summary["env_steps_per_update"]
     assert ratio is not None and abs(ratio / 20.0 - 1) < 0.25, summary
