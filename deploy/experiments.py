@@ -9,10 +9,15 @@ the cores, learner.torch_threads, unless the flags set it). A line per period
 shows each running run (from the stack's status file, or evaluate's progress
 line) and the grid:
 runs done of all, and an ETA from the env steps trained so far in this session.
-At the end, <runs-dir>/results/ receives the tables of the paper's tables 3-6
-with bootstrap confidence intervals over the seeds (results.md, results.csv:
-pooled rows and one row per seed, with every run's updates), the figures of
-replay/log/figures.py and the performance profiles of deploy/performance_profile.py.
+Each run, once evaluated, is exported (deploy/run_results.py) to --export,
+<runs-dir>/results/runs/ unless told: its evaluation, config, run summary and
+training curves, small enough to commit. At the end, <runs-dir>/results/
+receives the report on the exported runs and those of any --merge folder
+(deploy/report.py, which also rebuilds it from committed runs alone): the
+tables of the paper's tables 3-6 with bootstrap confidence intervals over the
+seeds (results.md, results.csv: pooled rows and one row per seed, with every
+run's updates), the figures of replay/log/figures.py and the performance
+profiles of deploy/performance_profile.py.
 
 Stopping and running the same command again resumes: a run with an evaluation
 and a checkpoint at the step budget is done; a run whose checkpoint is short of
@@ -47,30 +52,21 @@ from typing import Callable
 from actor.evaluation.intervals import Bootstrap
 from actor.evaluation.progress import is_progress_line
 from actor.evaluation.protocol import bootstrap_of
-from actor.evaluation.report import SUMMARY_CSV, bin_labels, read_facts
+from actor.evaluation.report import SUMMARY_CSV
 from common.checkpoint import Checkpoint, CheckpointError
 from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args, parse_flags
 from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus, StatusError
-from deploy.comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, EvaluatedRun,
-                               comparison_markdown, comparison_rows, write_comparison_csv)
-from deploy.performance_profile import plot_performance_profiles
-from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences,
-                                plot_reward_bins, plot_reward_curves, read_run_curves)
-from replay.log.reader import LogError
+from deploy.report import write_report
+from deploy.run_results import collect, export_run, run_name
 
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
 RESULTS_DIR = "results"
+EXPORTED_RUNS = "runs"
 # Keys the grid sets for each run; giving them as config flags would contradict it.
 GRID_KEYS = {"run.name": "the run names", "run.seed": "--seeds", "run.runs_dir": "--runs-dir",
              "exploration.strategy": "--strategies", "replay.capacity": "--buffers",
              "learner.total_env_steps": "--steps", "evaluation.episodes_per_start": "--trials"}
-FIGURES = {"reward_curves.png": "mean return of the last 100 training episodes",
-           "epsilon.png": "epsilon against env steps (epsilon-based strategies)",
-           "loss_differences.png": "|Δloss| of consecutive updates, smoothed, against updates",
-           "reward_bins.png": "share of step rewards per bin, greedy policy, test starts",
-           "performance_profile.png": "share of greedy episodes longer than x steps, with bootstrap bands"}
-
 POLL_S = 0.5
 TRAIN, RESUME, EVALUATE, DONE = "train", "resume", "evaluate", "done"
 
@@ -87,7 +83,7 @@ class RunSpec:
 
     @property
     def name(self) -> str:
-        return f"{self.strategy}-b{self.capacity}-s{self.seed}"
+        return run_name(self.strategy, self.capacity, self.seed)
 
 
 @dataclass(frozen=True)
@@ -98,9 +94,15 @@ class Options:
     actors: int | None
     extra: tuple[str, ...]  # config flags for every stack and evaluation
     progress_s: float
+    export: Path | None = None  # where finished runs go (deploy/run_results.py); None: <runs-dir>/results/runs
+    merge: tuple[Path, ...] = ()  # more folders of exported runs for the report (another machine's)
 
     def run_dir(self, spec: RunSpec) -> Path:
         return self.runs_dir / spec.name
+
+    @property
+    def export_dir(self) -> Path:
+        return self.export if self.export is not None else self.runs_dir / RESULTS_DIR / EXPORTED_RUNS
 
     def run(self, spec: RunSpec) -> RunDir:
         return RunDir(self.run_dir(spec))
@@ -112,18 +114,6 @@ def grid(strategies: list[str], capacities: list[int], seeds: list[int]) -> list
 
 
 # --- what a run still needs -----------------------------------------------------------------------------------
-
-def run_updates(run_dir: Path) -> int | None:
-    """The updates of the weights a run's evaluation used: from its facts.json, else from its checkpoint."""
-    run = RunDir(run_dir)
-    facts = read_facts(run.evaluation)
-    if str(facts.get("updates", "")).isdigit():
-        return int(facts["updates"])
-    try:
-        return Checkpoint.load(run.checkpoint).updates
-    except CheckpointError:
-        return None
-
 
 def checkpoint_env_steps(path: Path) -> int:
     """The learner's clock in a checkpoint: the env steps of the whole system when it was saved."""
@@ -333,6 +323,8 @@ class RunJob:
         self._child(evaluate_command(self.spec, self.options), run.log("evaluate"),
                     is_progress_line, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
         self.phase, self.headline = "done", evaluation_headline(summary)
+        folder = export_run(run, self.options.export_dir)
+        print(f"{self.tag}: exported to {folder}", flush=True)
 
     def _child(self, command: list[str], log_path: Path, is_progress: Callable[[str], bool] | None, what: str,
                echo: bool) -> None:
@@ -483,88 +475,16 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
 # --- the results ------------------------------------------------------------------------------------------------------
 
 def write_results(specs: list[RunSpec], options: Options, facts: dict[str, str]) -> list[Path]:
-    """The comparison table and figures of every run that has an evaluation or a log; returns the files written."""
-    results = options.runs_dir / RESULTS_DIR
-    results.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
-    evaluated = [EvaluatedRun(spec.strategy, spec.capacity, options.run(spec).evaluation, spec.seed,
-                              run_updates(options.run_dir(spec)))
-                 for spec in specs if (options.run(spec).evaluation / SUMMARY_CSV).is_file()]
-    rows: list[ComparisonRow] = []
-    edges: list[float] = []
-    bootstrap = report_bootstrap(options)
-    if evaluated:
-        rows, edges = comparison_rows(evaluated, bootstrap)
-        write_comparison_csv(rows, edges, results / RESULTS_CSV)
-        written.append(results / RESULTS_CSV)
-    curves = read_curves(specs, options)
-    written += write_figures(curves, rows, edges, results, bootstrap)
-    figures = [path.name for path in written if path.suffix == ".png"]
-    (results / RESULTS_MD).write_text(results_markdown(rows, edges, facts, figures, bootstrap))
-    return [results / RESULTS_MD, *written]
-
-
-def read_curves(specs: list[RunSpec], options: Options) -> list[RunCurves]:
-    curves = []
+    """Exports every evaluated run of the grid, then reports on the exported runs (with those of --merge);
+    returns the files written."""
     for spec in specs:
-        segments = options.run(spec).traffic_segments()
-        if not segments:
-            continue
-        try:
-            curves.append(read_run_curves(segments, spec.name))
-        except LogError as error:
-            print(f"{spec.name}: left out of the figures: {error}", file=sys.stderr)
-    return curves
+        if (options.run(spec).evaluation / SUMMARY_CSV).is_file():
+            export_run(options.run(spec), options.export_dir)
+    def warn(line: str) -> None:
+        print(line, file=sys.stderr)
 
-
-def write_figures(curves: list[RunCurves], rows: list[ComparisonRow], edges: list[float], results: Path,
-                  bootstrap: Bootstrap | None = None) -> list[Path]:
-    paths = {name: results / name for name in FIGURES}
-    written = []
-    if curves:
-        plot_reward_curves(curves, paths["reward_curves.png"])
-        written.append(paths["reward_curves.png"])
-        if any(run.strategy in EPSILON_STRATEGIES for run in curves):
-            plot_epsilon(curves, paths["epsilon.png"])
-            written.append(paths["epsilon.png"])
-        plot_loss_differences(curves, paths["loss_differences.png"])
-        written.append(paths["loss_differences.png"])
-    panels = reward_bin_panels(rows)
-    if panels:
-        plot_reward_bins(panels, bin_labels(edges), paths["reward_bins.png"], FIGURES["reward_bins.png"])
-        written.append(paths["reward_bins.png"])
-    if rows:
-        plot_performance_profiles(rows, paths["performance_profile.png"], bootstrap)
-        written.append(paths["performance_profile.png"])
-    return written
-
-
-def reward_bin_panels(rows: list[ComparisonRow]) -> dict[str, list[tuple[str, str, tuple[float, ...]]]]:
-    """Test-set rows by capacity: (name, strategy, shares) per bar, the random policy last."""
-    panels: dict[str, list[tuple[str, str, tuple[float, ...]]]] = {}
-    for row in rows:
-        if row.start_set == "test" and row.pooled:
-            panels.setdefault(f"replay capacity {row.capacity:,d}", []).append(
-                (STRATEGY_NAMES[row.strategy], row.strategy, row.summary.reward_shares))
-    return panels
-
-
-def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[str, str], figures: list[str],
-                     bootstrap: Bootstrap | None = None) -> str:
-    bootstrap = bootstrap or Bootstrap()
-    level = f"{100 * bootstrap.confidence:g}%"
-    lines = ["# Exploration strategies compared", ""]
-    lines += [f"- {name}: {value}" for name, value in facts.items()]
-    lines += ["", "Greedy policy, episodes pooled over the seeds of each strategy; the random policy "
-                  f"(uniform actions) is the same in every table. ({RANDOM!r} in results.csv.) "
-                  f"Brackets hold {level} percentile intervals of {bootstrap.replicates} bootstrap replicates: "
-                  "the runs (seeds) of a row drawn again whole, then each run's trials within each start "
-                  "(actor/evaluation/intervals.py). With one seed an interval shows only the spread of the "
-                  "trials; with a few seeds, read it as a guide. Updates lists every run's learner updates, "
-                  "in seed order. results.csv has the pooled rows (seed \"all\") and one row per seed.", ""]
-    lines += [comparison_markdown(rows, edges, bootstrap.confidence) if rows else "No run has been evaluated yet.", ""]
-    lines += [f"![{FIGURES[name]}]({name})" for name in figures]
-    return "\n".join(lines) + "\n"
+    runs = collect([options.export_dir, *options.merge], warn=warn)
+    return write_report(runs, options.runs_dir / RESULTS_DIR, facts, report_bootstrap(options), warn)
 
 
 # --- command line ----------------------------------------------------------------------------------------------------
@@ -595,7 +515,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--progress-s", type=float, default=30.0,
                         help="seconds between progress lines of a run (default: 30)")
     parser.add_argument("--report-only", action="store_true",
-                        help="train and evaluate nothing; rebuild results/ from the runs on disk")
+                        help="train and evaluate nothing; export the evaluated runs on disk and rebuild results/")
+    parser.add_argument("--export", type=Path, default=None,
+                        help="where each finished run's small outputs go, to commit or copy (default: "
+                             "<runs-dir>/results/runs); the report reads them from there")
+    parser.add_argument("--merge", type=Path, action="append", default=[],
+                        help="another folder of exported runs for the report, such as another machine's "
+                             "(repeatable; a run already exported here wins)")
     return parser
 
 
@@ -619,7 +545,8 @@ def parse_arguments(argv: list[str] | None) -> tuple[list[RunSpec], Options, int
     specs = grid(parse_list(args.strategies, str, "strategies"), parse_list(args.buffers, int, "buffers"),
                  parse_list(args.seeds, int, "seeds"))
     extra = [*extra, *learner_threads_flags(extra, args.parallel, os.cpu_count() or 1)]
-    options = Options(args.runs_dir, args.steps, args.trials, args.actors, tuple(extra), args.progress_s)
+    options = Options(args.runs_dir, args.steps, args.trials, args.actors, tuple(extra), args.progress_s,
+                      args.export, tuple(args.merge))
     check_config_flags(specs, options)
     return specs, options, args.parallel, args.report_only
 

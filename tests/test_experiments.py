@@ -19,7 +19,7 @@ from actor.evaluation.intervals import Bootstrap
 from actor.evaluation.report import EPISODES_CSV, write_report
 from actor.evaluation.stats import EvaluationEpisode, summarise_all
 from common.checkpoint import save_checkpoint
-from common.config import load_config
+from common.config import load_config, to_toml
 from common.run_dir import log_segments
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
@@ -279,21 +279,18 @@ def options(tmp_path: Path, steps: int = 1000, extra: tuple[str, ...] = ()):
     return experiments.Options(tmp_path, steps, trials=3, actors=None, extra=extra, progress_s=30.0)
 
 
-def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False, updates: int | None = None
-             ) -> Path:
-    """A run folder as the stack and evaluate leave it: a checkpoint with this clock, an evaluation."""
+def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False, updates: int | None = None,
+             strategy: str = "bmc", capacity: int = 50, seed: int = 0) -> Path:
+    """A run folder as the stack and evaluate leave it: its config, a checkpoint with this clock, an evaluation."""
     run_dir.mkdir(parents=True, exist_ok=True)
+    config = load_config("smoke", overrides={"run.name": run_dir.name, "exploration.strategy": strategy,
+                                             "replay.capacity": capacity, "run.seed": seed})
+    (run_dir / "config.toml").write_text(to_toml(config))
     if env_steps is not None:
         save_checkpoint(run_dir / "checkpoints", {"clock": {"env_steps": env_steps}, "learner": {"updates": 7}})
     if evaluated:
         write_evaluation(run_dir / "evaluation", [100, 50], updates=updates)
     return run_dir
-
-
-def test_a_runs_updates_come_from_its_evaluation_then_its_checkpoint(tmp_path):
-    assert experiments.run_updates(make_run(tmp_path / "a", 1000, evaluated=True, updates=250)) == 250
-    assert experiments.run_updates(make_run(tmp_path / "b", 1000, evaluated=True)) == 7  # an older evaluation
-    assert experiments.run_updates(make_run(tmp_path / "c")) is None
 
 
 @pytest.mark.parametrize("env_steps, evaluated, expected", [
@@ -367,7 +364,7 @@ def test_the_results_of_finished_runs_are_written(tmp_path):
     specs = experiments.grid(["bmc", "softmax"], [50], [0])
     opts = options(tmp_path)
     for spec, strategy in zip(specs, ("bmc", "softmax")):
-        run = make_run(tmp_path / spec.name, 1000, evaluated=True, updates=120)
+        run = make_run(tmp_path / spec.name, 1000, evaluated=True, updates=120, strategy=strategy)
         write_log(run / "traffic.mcap", spec.name, strategy, 50,
                   [record(10, 5.0, 1.0), learner_report(50, 0.2), record(12, 6.0, 0.5), learner_report(100, 0.1)])
     paths = experiments.write_results(specs, opts, {"budget": "1,000"})
@@ -382,3 +379,5 @@ def test_the_results_of_finished_runs_are_written(tmp_path):
     assert "95% percentile intervals of 2000 bootstrap replicates" in markdown
     # per set: bmc pooled and its seed, softmax pooled and its seed, random
     assert len((tmp_path / "results" / "results.csv").read_text().splitlines()) == 1 + 2 * 5
+    exported = tmp_path / "results" / "runs"  # the tables were built from the exported runs
+    assert sorted(path.name for path in exported.iterdir()) == ["bmc-b50-s0", "softmax-b50-s0"]

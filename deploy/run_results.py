@@ -1,0 +1,212 @@
+"""A finished run's small outputs, kept where its run folder is not: committed with the code, or brought from
+another machine, so that the comparison's report rebuilds from them alone (deploy/report.py).
+
+An exported run is a folder <strategy>-b<capacity>-s<seed>/ that holds what the tables and figures read and
+nothing large:
+
+    config.toml      the run's resolved config, which says who the run is: strategy, replay capacity, seed
+    summary.json     the run summary: updates, env steps, achieved env steps per update, restarts
+    evaluation/      evaluate's episodes.csv, summary.csv, summary.md, facts.json and config.toml
+    training.csv     one row per training episode, in the order the episodes ended: return, length, epsilon
+    learner.csv      one row per learner report: updates, |loss_k - loss_k-1|
+
+Checkpoints, replay snapshots and MCAP logs stay in the run folder. A run is known by its strategy, capacity
+and seed, so runs exported on several machines merge into one set (collect) and none counts twice.
+"""
+
+from __future__ import annotations
+
+import csv
+import filecmp
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+from actor.evaluation.report import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
+from common.config import Config, ConfigError, load_config
+from common.run_dir import RunDir
+from deploy.comparison import EvaluatedRun
+from replay.log.figures import RunCurves, read_run_curves
+from replay.log.reader import LogError
+
+CONFIG_TOML = "config.toml"
+SUMMARY_JSON = "summary.json"
+EVALUATION = "evaluation"
+TRAINING_CSV = "training.csv"
+LEARNER_CSV = "learner.csv"
+EVALUATION_FILES = (EPISODES_CSV, SUMMARY_CSV, SUMMARY_MD, FACTS_JSON, CONFIG_TOML)
+TRAINING_COLUMNS = ("return", "length", "epsilon")
+LEARNER_COLUMNS = ("updates", "loss_abs_diff")
+
+
+class ExportError(ValueError):
+    """A run cannot be exported, or an exported folder cannot be read; the message says which and why."""
+
+
+def run_name(strategy: str, capacity: int, seed: int) -> str:
+    return f"{strategy}-b{capacity}-s{seed}"
+
+
+@dataclass(frozen=True)
+class ExportedRun:
+    folder: Path
+    config: Config
+
+    @property
+    def strategy(self) -> str:
+        return self.config.exploration.strategy
+
+    @property
+    def capacity(self) -> int:
+        return self.config.replay.capacity
+
+    @property
+    def seed(self) -> int:
+        return self.config.run.seed
+
+    @property
+    def identity(self) -> tuple[str, int, int]:
+        return self.strategy, self.capacity, self.seed
+
+    @property
+    def name(self) -> str:
+        return run_name(*self.identity)
+
+    @property
+    def updates(self) -> int | None:
+        """The updates of the weights its evaluation used, else of the run summary (None if neither says)."""
+        updates = str(read_facts(self.folder / EVALUATION).get("updates", ""))
+        if updates.isdigit():
+            return int(updates)
+        try:
+            updates = json.loads((self.folder / SUMMARY_JSON).read_text()).get("updates")
+        except (OSError, ValueError, AttributeError):
+            return None
+        return updates if isinstance(updates, int) and not isinstance(updates, bool) else None
+
+    def evaluation_config(self) -> Config:
+        """The config its evaluation ran with (trials, caps, bootstrap), else the run's."""
+        path = self.folder / EVALUATION / CONFIG_TOML
+        return _read_config(path) if path.is_file() else self.config
+
+    def evaluated(self) -> EvaluatedRun:
+        return EvaluatedRun(self.strategy, self.capacity, self.folder / EVALUATION, self.seed, self.updates)
+
+    def curves(self) -> RunCurves | None:
+        """Its training curves, or None if it was exported without logs."""
+        if not (self.folder / TRAINING_CSV).is_file():
+            return None
+        curves = RunCurves(self.name, self.strategy, self.capacity)
+        try:
+            for row in _read_rows(self.folder / TRAINING_CSV, TRAINING_COLUMNS):
+                curves.episode_returns.append(float(row["return"]))
+                curves.episode_lengths.append(int(row["length"]))
+                curves.episode_epsilons.append(float(row["epsilon"]))
+            for row in _read_rows(self.folder / LEARNER_CSV, LEARNER_COLUMNS):
+                curves.learner_updates.append(float(row["updates"]))
+                curves.loss_abs_diffs.append(float(row["loss_abs_diff"]))
+        except (TypeError, ValueError) as error:
+            if isinstance(error, ExportError):
+                raise
+            raise ExportError(f"{self.folder}: a training curve holds a value that is not a number: {error}") from None
+        return curves
+
+
+def export_run(run: RunDir, destination: Path) -> Path:
+    """Copies an evaluated run's small outputs to destination/<run name>/, replacing an earlier export of it.
+
+    The copy is built beside its place and renamed into it, so a reader never sees half an export."""
+    if not run.config.is_file() or not (run.evaluation / SUMMARY_CSV).is_file():
+        raise ExportError(f"{run.root}: not an evaluated run (it needs {CONFIG_TOML} and {EVALUATION}/{SUMMARY_CSV})")
+    config = _read_config(run.config)
+    folder = destination / run_name(config.exploration.strategy, config.replay.capacity, config.run.seed)
+    staging = destination / f".{folder.name}.incoming"
+    shutil.rmtree(staging, ignore_errors=True)
+    (staging / EVALUATION).mkdir(parents=True)
+    shutil.copy2(run.config, staging / CONFIG_TOML)
+    if run.summary.is_file():
+        shutil.copy2(run.summary, staging / SUMMARY_JSON)
+    for name in EVALUATION_FILES:
+        if (run.evaluation / name).is_file():
+            shutil.copy2(run.evaluation / name, staging / EVALUATION / name)
+    segments = run.traffic_segments()
+    if segments:
+        try:
+            write_curves(read_run_curves(segments, folder.name), staging)
+        except LogError as error:
+            print(f"{run.root}: exported without training curves: {error}")
+    if folder.exists():
+        shutil.rmtree(folder)
+    staging.rename(folder)
+    return folder
+
+
+def write_curves(curves: RunCurves, folder: Path) -> None:
+    _write_rows(folder / TRAINING_CSV, TRAINING_COLUMNS,
+                zip(curves.episode_returns, curves.episode_lengths, curves.episode_epsilons))
+    _write_rows(folder / LEARNER_CSV, LEARNER_COLUMNS, zip(curves.learner_updates, curves.loss_abs_diffs))
+
+
+def read_exported(folder: Path) -> ExportedRun:
+    for needed in (folder / CONFIG_TOML, folder / EVALUATION / EPISODES_CSV):
+        if not needed.is_file():
+            raise ExportError(f"{folder}: not an exported run: {needed.relative_to(folder)} is missing")
+    run = ExportedRun(folder, _read_config(folder / CONFIG_TOML))
+    if folder.name != run.name:
+        raise ExportError(f"{folder}: its config says it is run {run.name}; the folder must carry that name")
+    return run
+
+
+def collect(folders: Sequence[Path], warn: Callable[[str], None] = print) -> list[ExportedRun]:
+    """Every exported run in these folders, each (strategy, capacity, seed) once.
+
+    The first folder listed wins: a later copy of the same run is left out, silently if its evaluation is the
+    same file, with a warning if it differs (the same grid cell trained twice). Folders that are not
+    exported runs are skipped with a warning."""
+    found: dict[tuple[str, int, int], ExportedRun] = {}
+    for parent in folders:
+        if not parent.is_dir():
+            raise ExportError(f"{parent}: no such folder of exported runs")
+        for folder in sorted(path for path in parent.iterdir() if path.is_dir() and not path.name.startswith(".")):
+            try:
+                run = read_exported(folder)
+            except ExportError as error:
+                warn(f"skipped: {error}")
+                continue
+            kept = found.setdefault(run.identity, run)
+            if kept is not run and not _same_evaluation(kept, run):
+                warn(f"{run.name} is in both {kept.folder.parent} and {parent} with different evaluations: "
+                     f"counted once, from {kept.folder}")
+    return list(found.values())
+
+
+def _same_evaluation(first: ExportedRun, second: ExportedRun) -> bool:
+    return filecmp.cmp(first.folder / EVALUATION / EPISODES_CSV, second.folder / EVALUATION / EPISODES_CSV,
+                       shallow=False)
+
+
+def _read_config(path: Path) -> Config:
+    try:
+        return load_config(toml_path=path)
+    except (ConfigError, OSError, ValueError) as error:
+        raise ExportError(f"{path}: {error}") from None
+
+
+def _write_rows(path: Path, columns: Sequence[str], rows) -> None:
+    with path.open("w", newline="") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(columns)
+        writer.writerows(rows)
+
+
+def _read_rows(path: Path, columns: Sequence[str]) -> list[dict[str, str]]:
+    try:
+        with path.open(newline="") as stream:
+            reader = csv.DictReader(stream)
+            if reader.fieldnames is None or list(reader.fieldnames) != list(columns):
+                raise ExportError(f"{path}: expected the columns {', '.join(columns)}, got {reader.fieldnames}")
+            return list(reader)
+    except OSError as error:
+        raise ExportError(f"{path}: {error}") from None
