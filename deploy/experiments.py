@@ -55,7 +55,7 @@ from actor.evaluation.protocol import bootstrap_of
 from actor.evaluation.report import SUMMARY_CSV
 from common.checkpoint import Checkpoint, CheckpointError
 from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args, parse_flags
-from common.eta import Eta, clock_time
+from common.eta import clock_time
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.report import write_report
 from deploy.run_results import collect, export_run, run_name
@@ -282,6 +282,7 @@ class RunJob:
     error: str | None = None
     headline: str = ""
     trained_at_start: int = 0  # env steps of its checkpoint when the grid started
+    took_s: float | None = None  # wall time of its training and evaluation, once it ran them in this session
     started: float = field(default_factory=time.monotonic)
     started_at: float = field(default_factory=time.time)  # wall clock, to tell this stack's status from older ones
     thread: threading.Thread | None = None
@@ -323,6 +324,7 @@ class RunJob:
         self._child(evaluate_command(self.spec, self.options), run.log("evaluate"),
                     is_progress_line, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
         self.phase, self.headline = "done", evaluation_headline(summary)
+        self.took_s = time.monotonic() - self.started
         folder = export_run(run, self.options.export_dir)
         print(f"{self.tag}: exported to {folder}", flush=True)
 
@@ -354,6 +356,13 @@ class RunJob:
             status = self.status()
             return status_line(status) if status is not None else ""
         return self.child.latest if self.child is not None else ""
+
+    def remaining_s(self) -> float | None:
+        """Its stack's ETA while it trains (None if unknown yet), nothing more once it evaluates."""
+        if self.phase in ("training", "resuming"):
+            status = self.status()
+            return None if status is None else status.eta_s
+        return 0.0
 
     def trained(self) -> int:
         """Env steps of the budget trained so far."""
@@ -400,27 +409,42 @@ def evaluation_headline(summary_csv: Path) -> str:
 # --- the grid ----------------------------------------------------------------------------------------------------------
 
 class GridProgress:
-    """Runs done of all, and an ETA: the env steps still to train at the rate the grid has trained them
-    in this session (which includes the evaluations that finished meanwhile)."""
+    """Runs done of all, the share of env steps trained, and an ETA by runs: the running runs' own ETAs
+    (their stacks'), then the runs still waiting, `parallel` at a time, each taking as long as the runs
+    this session finished took or, before one has finished, as long as the running ones look to take."""
 
-    def __init__(self, jobs: list[RunJob], budget: int) -> None:
+    def __init__(self, jobs: list[RunJob], budget: int, parallel: int = 1) -> None:
         self.jobs = jobs
         self.total = len(jobs) * budget
+        self.parallel = parallel
         self.started = time.monotonic()
-        self.eta = Eta(self.total)
-        self.eta.update(self._trained())
+
+    def remaining_s(self) -> float | None:
+        running = [job for job in self.jobs if job.thread is not None and not job.finished]
+        waiting = sum(job.thread is None for job in self.jobs)
+        left = [job.remaining_s() for job in running]
+        if None in left:
+            return None
+        took = [job.took_s for job in self.jobs if job.took_s is not None]
+        projected = [time.monotonic() - job.started + seconds for job, seconds in zip(running, left)]
+        per_run = took or projected
+        if waiting and not per_run:
+            return None
+        waves = -(-waiting // self.parallel)
+        return max(left, default=0.0) + (waves * sum(per_run) / len(per_run) if waiting else 0.0)
 
     def _trained(self) -> int:
         return sum(job.trained() for job in self.jobs)
 
     def line(self) -> str:
         trained = self._trained()
-        self.eta.update(trained)
+        remaining = self.remaining_s()
         done = sum(job.finished and job.error is None for job in self.jobs)
         failed = sum(job.finished and job.error is not None for job in self.jobs)
         return (f"grid: {done}/{len(self.jobs)} runs done" + (f", {failed} failed" if failed else "")
                 + f", {100 * trained / max(self.total, 1):.1f}% of the env steps trained, "
-                  f"elapsed {clock_time(time.monotonic() - self.started)}, ETA {self.eta.text()}")
+                  f"elapsed {clock_time(time.monotonic() - self.started)}, "
+                  f"ETA {'?' if remaining is None else clock_time(remaining)}")
 
 
 def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
@@ -431,7 +455,7 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
             for number, spec in enumerate(specs, 1)]
     pending, active = deque(jobs), []
     failed = 0
-    grid = GridProgress(jobs, options.steps)
+    grid = GridProgress(jobs, options.steps, parallel)
     last_progress = time.monotonic()
 
     def interrupt(*_) -> None:

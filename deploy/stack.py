@@ -46,7 +46,7 @@ STABLE_S = 60.0  # a process that lived this long before dying is restarted afte
 FINAL_METRICS_WAIT_S = 5.0
 STATUS_PERIOD_S = 1.0  # the status file and the live line
 LOGGED_LINE_PERIOD_S = 30.0  # the progress line when stdout is not a terminal
-ETA_WINDOW_S = 300.0  # the ETA follows the env-step rate of the last five minutes (the random phase is faster)
+ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
 
 
 def default_actor_count() -> int:
@@ -57,7 +57,8 @@ def default_actor_count() -> int:
 class Progress:
     """Collects the system's metrics from Zenoh and renders the live progress line and the status."""
 
-    def __init__(self, total_env_steps: int = 0, clock=time.monotonic) -> None:
+    def __init__(self, total_env_steps: int = 0, clock=time.monotonic, env_steps_per_update: float | None = None
+                 ) -> None:
         self._lock = threading.Lock()
         self.returns: deque[float] = deque(maxlen=100)
         self.episodes = 0
@@ -65,7 +66,11 @@ class Progress:
         self.learner: dict = {}
         self.learner_final = threading.Event()  # the learner's last metrics, sent as it stops
         self.total_env_steps = total_env_steps  # the budget; 0: not shown
-        self.eta = Eta(total_env_steps, ETA_WINDOW_S, clock)
+        # A paced run (env_steps_per_update given) ends when the learner has made the updates the budget owes:
+        # its ETA follows the update rate once updates start, and is unknown before (the random phase runs
+        # many times faster than the learner will). Without pacing, the ETA follows the env-step rate.
+        self.env_steps_per_update = env_steps_per_update
+        self.eta: Eta | None = None if env_steps_per_update else Eta(total_env_steps, ETA_WINDOW_S, clock)
         self._clock = clock
         self._started = clock()
 
@@ -80,14 +85,27 @@ class Progress:
                 self.learner = dict(message.values)
                 if self.learner.get("final") == 1:
                     self.learner_final.set()
+                self._follow_updates()
 
     def on_replay_stats(self, message, key: str) -> None:
         if isinstance(message, Stats) and message.source == "replay":
             with self._lock:
                 self.replay = dict(message.values)
                 env_steps = stat_number(self.replay, "env_steps_total", integer=True, minimum=0)
-                if env_steps is not None:
+                if env_steps is not None and not self.env_steps_per_update:
                     self.eta.update(env_steps)
+                self._follow_updates()
+
+    def _follow_updates(self) -> None:
+        """A paced run's ETA: the updates owed from the start mark to the budget, at the recent update rate."""
+        start = stat_number(self.replay, "rate_start_env_steps", minimum=0)
+        updates = stat_number(self.learner, "updates", integer=True, minimum=0)
+        if not self.env_steps_per_update or start is None or updates is None:
+            return
+        if self.eta is None:
+            owed = max(self.total_env_steps - start, 0) / self.env_steps_per_update
+            self.eta = Eta(owed, ETA_WINDOW_S, self._clock)
+        self.eta.update(updates)
 
     def line(self, restarts: int = 0) -> str:
         with self._lock:
@@ -96,7 +114,7 @@ class Progress:
             elapsed = self._clock() - self._started
             env_steps = _count(replay, "env_steps_total")
             budget = (f"/{self.total_env_steps:,d} ({100 * env_steps / self.total_env_steps:5.1f}%, "
-                      f"ETA {self.eta.text()})" if self.total_env_steps else "")
+                      f"ETA {self._eta_text()})" if self.total_env_steps else "")
             return (f"[{elapsed:7.0f}s] env steps {env_steps:>9,d}{budget} | "
                     f"episodes {self.episodes:>6,d} | "
                     f"updates {_count(learner, 'updates'):>7,d} | "
@@ -112,8 +130,12 @@ class Progress:
             return RunStatus(phase=phase, env_steps=_count(self.replay, "env_steps_total"),
                              total_env_steps=self.total_env_steps, updates=_count(self.learner, "updates"),
                              episodes=self.episodes, mean_return=self._mean_return(),
-                             eta_s=self.eta.remaining_s(), elapsed_s=self._clock() - self._started,
+                             eta_s=self.eta.remaining_s() if self.eta else None,
+                             elapsed_s=self._clock() - self._started,
                              restarts=dict(restarts), pids=dict(pids), time=time.time())
+
+    def _eta_text(self) -> str:
+        return self.eta.text() if self.eta is not None else "?"
 
     def _mean_return(self) -> float | None:
         return sum(self.returns) / len(self.returns) if self.returns else None
@@ -318,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    progress = Progress(config.learner.total_env_steps)
+    progress = Progress(config.learner.total_env_steps, env_steps_per_update=config.learner.env_steps_per_update)
     stack.start_all()
     watcher_config = config.transport
     watcher_config.mode, watcher_config.connect, watcher_config.listen = "client", [endpoint], []

@@ -70,6 +70,27 @@ def test_the_stacks_line_and_status_show_the_budget_its_share_and_the_eta():
     assert status.eta_s == pytest.approx(180.0) and status.pids == {"learner": 7}
 
 
+def test_a_paced_runs_eta_follows_the_updates_it_still_owes_not_the_random_phase():
+    clock = FakeClock()
+    progress = Progress(20_000, clock=clock, env_steps_per_update=4.0)
+
+    def report(env_steps: int, start: float, updates: int) -> None:
+        progress.on_replay_stats(Stats(source="replay", time=0.0, values={
+            "env_steps_total": env_steps, "rate_start_env_steps": start}), "k")
+        progress.on_metric(Stats(source="learner", time=0.0, values={"updates": updates}),
+                           "d3rqn/r/metrics/learner/0")
+
+    report(5_000, -1.0, 0)
+    clock.now = 10.0
+    report(10_000, -1.0, 0)  # 500 random steps a second: no guide to the learner's pace
+    assert "ETA ?" in progress.line() and progress.status("training", {}, {}).eta_s is None
+    report(10_000, 10_000.0, 0)  # updates start: 2,500 owed to reach 20,000 steps
+    clock.now = 60.0
+    report(12_000, 10_000.0, 100)  # 2 updates a second
+    assert progress.status("training", {}, {}).eta_s == pytest.approx(2_400 / 2.0)
+    assert "ETA 20:00)" in progress.line()
+
+
 def test_the_stack_writes_its_status_into_the_run_folder(tmp_path):
     config = load_config("smoke", overrides={"run.runs_dir": str(tmp_path), "run.name": "s"})
     run = RunDir.of(config)
@@ -102,11 +123,43 @@ def test_a_training_run_is_followed_by_its_stacks_status_not_an_older_one(tmp_pa
     assert training.progress_line() == "" and training.trained() == 200
 
 
+class Thread:
+    def __init__(self, alive: bool) -> None:
+        self.alive = alive
+
+    def is_alive(self) -> bool:
+        return self.alive
+
+
 def test_the_grid_line_counts_runs_done_and_the_steps_trained(tmp_path):
     finished, waiting = job(tmp_path, "done"), job(tmp_path / "other", "waiting", trained_at_start=250)
-    finished.thread = type("Ended", (), {"is_alive": lambda self: False})()
+    finished.thread = Thread(alive=False)
     line = experiments.GridProgress([finished, waiting], 1000).line()
     assert line.startswith("grid: 1/2 runs done, 62.5% of the env steps trained, elapsed 0:00, ETA ")
+
+
+def training_job(tmp_path, eta_s: float | None, elapsed_s: float) -> "experiments.RunJob":
+    running = job(tmp_path, "training")
+    running.thread, running.started = Thread(alive=True), time.monotonic() - elapsed_s
+    if eta_s is not None:
+        RunStatus(phase="training", env_steps=400, total_env_steps=1000, eta_s=eta_s,
+                  time=time.time()).write(running.options.run(running.spec).status)
+    return running
+
+
+def test_the_grid_eta_counts_runs_the_running_ones_own_etas_then_the_waiting_in_waves(tmp_path):
+    running = [training_job(tmp_path / "a", 600, 1200), training_job(tmp_path / "b", 300, 1500)]
+    waiting = [job(tmp_path / name, "waiting") for name in ("c", "d", "e")]
+    grid = experiments.GridProgress(running + waiting, 1000, parallel=2)
+    # before any run ended, a run looks to take 1,800 s; 3 waiting runs, 2 at a time, are 2 waves
+    assert grid.remaining_s() == pytest.approx(600 + 2 * 1800, abs=2)
+    done = job(tmp_path / "f", "done")
+    done.thread, done.took_s = Thread(alive=False), 1000.0
+    grid = experiments.GridProgress(running + waiting + [done], 1000, parallel=2)
+    assert grid.remaining_s() == pytest.approx(600 + 2 * 1000, abs=2)  # the runs that ended set the pace
+    unknown = training_job(tmp_path / "g", None, 10)  # its stack has no ETA yet (the random phase)
+    assert experiments.GridProgress([unknown] + waiting, 1000, parallel=2).remaining_s() is None
+    assert "ETA ?" in experiments.GridProgress([unknown] + waiting, 1000, parallel=2).line()
 
 
 def test_held_episodes_are_logged_once_per_period_with_their_count(caplog):
