@@ -27,7 +27,7 @@ from deploy.performance_profile import plot_performance_profiles
 from common.transport import Keys
 from common.wire import EpisodeRecord, Stats, encode
 from replay.log.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
-                                plot_reward_curves, read_run_curves)
+                                plot_reward_curves, read_run_curves, seed_band)
 from replay.log.reader import LogError
 from replay.log.traffic import Arrival, peek
 from replay.log.writer import LogWriter
@@ -117,13 +117,28 @@ def assert_png(path: Path) -> None:
     assert path.read_bytes()[:8] == PNG_MAGIC
 
 
-def test_training_figures_are_written(tmp_path):
-    runs = [curves("bmc-b1000-s0", "bmc", 1000), curves("softmax-b1000-s0", "softmax", 1000),
-            curves("constant-b2000-s0", "constant", 2000)]
+@pytest.mark.parametrize("names", [
+    ("bmc-b1000-s0", "softmax-b1000-s0", "constant-b2000-s0"),  # one run per strategy, two capacities
+    ("bmc-b1000-s0", "bmc-b1000-s1", "softmax-b1000-s0"),  # two seeds of one strategy: a line and a band
+])
+def test_training_figures_are_written(tmp_path, names):
+    runs = [curves(name, name.split("-")[0], int(name.split("-")[1][1:])) for name in names]
     for name, plot in (("reward.png", plot_reward_curves), ("epsilon.png", plot_epsilon),
                        ("loss.png", plot_loss_differences)):
         plot(runs, tmp_path / name)
         assert_png(tmp_path / name)
+
+
+def test_a_seed_band_is_the_mean_and_range_of_the_runs_over_the_stretch_they_share():
+    first = (np.array([0.0, 1.0, 2.0]), np.array([0.0, 2.0, 4.0]))
+    second = (np.array([1.0, 3.0]), np.array([10.0, 30.0]))
+    x, mean, low, high = seed_band([first, second], points=3)
+    assert x.tolist() == [1.0, 1.5, 2.0]  # where both runs have data
+    assert mean.tolist() == [6.0, 9.0, 12.0] and low.tolist() == [2.0, 3.0, 4.0] and high.tolist() == [10.0, 15.0, 20.0]
+    x, mean, low, high = seed_band([first])
+    assert x is first[0] and mean is first[1] and low is first[1] and high is first[1]
+    with pytest.raises(ValueError, match="share no stretch"):
+        seed_band([first, (np.array([5.0, 6.0]), np.array([1.0, 1.0]))])
 
 
 def test_figures_refuse_what_they_cannot_draw(tmp_path):

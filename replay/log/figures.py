@@ -6,8 +6,7 @@ in the order the recorder received them and the learner's metrics reports.
 The figures:
 
 * ``plot_reward_curves``: mean return of the last 100 episodes against episodes,
-  one panel per replay capacity, one line per run (the paper's "average reward
-  per 100 episodes");
+  one panel per replay capacity (the paper's "average reward per 100 episodes");
 * ``plot_epsilon``: the epsilon each episode was acted with against the env
   steps of all episodes so far, in the paper's three panels (deterministic
   epsilon-greedy, adaptive epsilon-greedy, Max-Boltzmann); Softmax has no epsilon;
@@ -17,6 +16,9 @@ The figures:
 * ``plot_reward_bins``: grouped bars of the share of step rewards per bin, one
   group per bin, one bar per entry (the evaluation's strategies and the random
   policy), one panel per replay capacity.
+
+In the training figures each strategy is one line, the mean over its runs
+(seeds), with a band over their range (``seed_band``).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
-from common.strategies import STRATEGIES, epsilon_groups
+from common.strategies import DISPLAY_NAMES, STRATEGIES, epsilon_groups
 from common.wire import EpisodeRecord, Stats
 from replay.log.plot import finite_series, trailing_mean
 from replay.log.reader import LogError, LogFile
@@ -37,6 +39,7 @@ LOSS_WINDOW = 10  # learner reports (each the mean over learner.log_period_s) pe
 EPSILON_PANELS = tuple(epsilon_groups().items())  # (title, strategies) of each panel
 EPSILON_STRATEGIES = tuple(strategy for _, members in EPSILON_PANELS for strategy in members)
 RANDOM_COLOUR = "0.6"
+BAND_NOTE = "\n(a line per strategy: the mean over its runs; band: their range)"
 
 
 @dataclass
@@ -88,25 +91,26 @@ def strategy_colour(strategy: str) -> str:
     return f"C{STRATEGIES.index(strategy)}" if strategy in STRATEGIES else RANDOM_COLOUR
 
 
-def plot_reward_curves(runs: Sequence[RunCurves], path: Path, window: int = RETURN_WINDOW) -> None:
-    def draw(ax, run: RunCurves) -> None:
-        returns = run.episode_returns
-        ax.plot(np.arange(1, len(returns) + 1), trailing_mean(returns, window), label=run.label,
-                color=strategy_colour(run.strategy), linewidth=1)
+Series = tuple[np.ndarray, np.ndarray]  # (x, y) of one run, x increasing
 
-    _plot_by_capacity(runs, path, draw, f"mean return of the last {window} training episodes",
+
+def plot_reward_curves(runs: Sequence[RunCurves], path: Path, window: int = RETURN_WINDOW) -> None:
+    def series(run: RunCurves) -> Series | None:
+        returns = run.episode_returns
+        return (np.arange(1, len(returns) + 1), trailing_mean(returns, window)) if returns else None
+
+    _plot_by_capacity(runs, path, series, f"mean return of the last {window} training episodes",
                       xlabel="episodes", ylabel="return")
 
 
 def plot_loss_differences(runs: Sequence[RunCurves], path: Path, window: int = LOSS_WINDOW) -> None:
-    def draw(ax, run: RunCurves) -> None:
-        if run.loss_abs_diffs:
-            ax.plot(run.learner_updates, trailing_mean(run.loss_abs_diffs, window), label=run.label,
-                    color=strategy_colour(run.strategy), linewidth=1)
-            ax.set_yscale("log")
+    def series(run: RunCurves) -> Series | None:
+        if not run.loss_abs_diffs:
+            return None
+        return np.asarray(run.learner_updates, dtype=float), trailing_mean(run.loss_abs_diffs, window)
 
-    _plot_by_capacity(runs, path, draw, f"|loss_k - loss_k-1|, trailing mean of the last {window} learner reports",
-                      xlabel="updates", ylabel="|Δloss|")
+    _plot_by_capacity(runs, path, series, f"|loss_k - loss_k-1|, trailing mean of the last {window} learner reports",
+                      xlabel="updates", ylabel="|Δloss|", log=True)
 
 
 def plot_epsilon(runs: Sequence[RunCurves], path: Path) -> None:
@@ -118,11 +122,26 @@ def plot_epsilon(runs: Sequence[RunCurves], path: Path) -> None:
     plt = _pyplot()
     figure, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), dpi=90, squeeze=False)
     for ax, (title, members) in zip(axes[0], panels):
-        for run in members:
-            ax.step(np.cumsum(run.episode_lengths), run.episode_epsilons, where="post", label=run.label,
-                    color=strategy_colour(run.strategy), linewidth=1)
+        _draw_cells(ax, members, lambda run: (np.cumsum(run.episode_lengths), np.asarray(run.episode_epsilons))
+                    if run.episode_lengths else None)
         ax.set(title=title, xlabel="env steps", ylabel="epsilon", ylim=(-0.02, 1.02))
-    _finish(plt, figure, axes[0], path, "epsilon the actors used against env steps")
+    _finish(plt, figure, axes[0], path, "epsilon the actors used against env steps" + BAND_NOTE)
+
+
+def seed_band(series: Sequence[Series], points: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The runs of one cell (strategy, capacity) on one x: (x, mean, low, high) across the runs.
+
+    One run is drawn as it is. Several are interpolated onto `points` x values over the range they all
+    cover, so that the band never extrapolates a run past its end."""
+    if len(series) == 1:
+        x, y = series[0]
+        return x, y, y, y
+    start, stop = max(float(x[0]) for x, _ in series), min(float(x[-1]) for x, _ in series)
+    if stop < start:
+        raise ValueError(f"the runs share no stretch of x: [{start:g}, {stop:g}]")
+    grid = np.linspace(start, stop, points)
+    values = np.stack([np.interp(grid, x, y) for x, y in series])
+    return grid, values.mean(axis=0), values.min(axis=0), values.max(axis=0)
 
 
 def plot_reward_bins(panels: dict[str, Sequence[tuple[str, str, Sequence[float]]]], bin_labels: Sequence[str],
@@ -149,19 +168,41 @@ def plot_reward_bins(panels: dict[str, Sequence[tuple[str, str, Sequence[float]]
 
 # --- layout --------------------------------------------------------------------------------------------
 
-def _plot_by_capacity(runs: Sequence[RunCurves], path: Path, draw, title: str, xlabel: str, ylabel: str) -> None:
-    """One panel per replay capacity, draw(ax, run) for each run in it."""
+def _plot_by_capacity(runs: Sequence[RunCurves], path: Path, series, title: str, xlabel: str, ylabel: str,
+                      log: bool = False) -> None:
+    """One panel per replay capacity; in it, a line per strategy: the mean of its runs' series(run), with
+    the band of their range when it has several (seeds)."""
     if not runs:
         raise ValueError("no runs to plot")
     capacities = sorted({run.capacity for run in runs})
     plt = _pyplot()
     figure, axes = plt.subplots(1, len(capacities), figsize=(6 * len(capacities), 4), dpi=90, squeeze=False)
     for ax, capacity in zip(axes[0], capacities):
-        for run in runs:
-            if run.capacity == capacity:
-                draw(ax, run)
+        if _draw_cells(ax, [run for run in runs if run.capacity == capacity], series) and log:
+            ax.set_yscale("log")
         ax.set(title=f"replay capacity {capacity:,d} episodes", xlabel=xlabel, ylabel=ylabel)
-    _finish(plt, figure, axes[0], path, title)
+    _finish(plt, figure, axes[0], path, title + BAND_NOTE)
+
+
+def _draw_cells(ax, runs: Sequence[RunCurves], series) -> bool:
+    """A line per strategy of these runs, mean and range over its runs; False if nothing had data."""
+    drawn = False
+    for strategy in sorted({run.strategy for run in runs}, key=_strategy_rank):
+        found = [one for one in (series(run) for run in runs if run.strategy == strategy) if one is not None]
+        if not found:
+            continue
+        x, mean, low, high = seed_band(found)
+        colour = strategy_colour(strategy)
+        label = DISPLAY_NAMES.get(strategy, strategy) + (f" ({len(found)} runs)" if len(found) > 1 else "")
+        ax.plot(x, mean, label=label, color=colour, linewidth=1)
+        if len(found) > 1:
+            ax.fill_between(x, low, high, color=colour, alpha=0.2, linewidth=0)
+        drawn = True
+    return drawn
+
+
+def _strategy_rank(strategy: str) -> int:
+    return STRATEGIES.index(strategy) if strategy in STRATEGIES else len(STRATEGIES)
 
 
 def _finish(plt, figure, axes, path: Path, title: str) -> None:
@@ -169,7 +210,7 @@ def _finish(plt, figure, axes, path: Path, title: str) -> None:
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
-    figure.suptitle(title)
+    figure.suptitle(title, fontsize=10)
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path)
