@@ -42,6 +42,11 @@ def strategy_named(name: str) -> Strategy:
         raise ValueError(f"unknown exploration strategy {name!r}; choose one of {', '.join(STRATEGIES)}") from None
 
 
+def strategy_rank(name: str) -> int:
+    """The registry's order (the paper's), which tables and figures follow; other names come after."""
+    return STRATEGIES.index(name) if name in STRATEGIES else len(STRATEGIES)
+
+
 def starts_by_steps(name: str, start_by: str = "strategy") -> bool:
     """Whether a run of this strategy starts updates by env steps rather than episodes, by learner.start_by:
     "strategy" is the paper's rule (decreasing epsilon by steps), "steps" and "episodes" hold for every strategy."""

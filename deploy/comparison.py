@@ -9,9 +9,10 @@ intervals resample the runs whole, then each run's trials within each start
 table per start set and capacity: Strategy | Seeds | Updates (of every run) |
 Episodes | Average | IQM | Standard Deviation | Min | CFR | Stalled | Progress
 | Reward/step | the last reward bin's share; then the per-run rows.
-The random policy does not depend on the training, and every evaluation with
-the same seed runs the same random trials, so its row is taken once, from the
-first run that has it, and shown in every table of its start set.
+The baselines do not depend on the training: the random policy and, where an
+evaluation ran it, the privileged map-reading driver. Every evaluation with the
+same seed runs the same trials of them, so each one's row is taken once, from
+the first run that has it, and shown in every table of its start set.
 """
 
 from __future__ import annotations
@@ -25,10 +26,12 @@ from typing import Sequence
 from actor.evaluation.intervals import Bootstrap, Cell
 from actor.evaluation.report import EPISODES_CSV, bin_labels, summary_columns, with_interval
 from actor.evaluation.stats import EvaluationEpisode, SetSummary, episode_cell, summarise
-from common.strategies import DISPLAY_NAMES, STRATEGIES
+from common.strategies import DISPLAY_NAMES, strategy_rank
 
-STRATEGY_NAMES = {**DISPLAY_NAMES, "random": "Random policy"}
 RANDOM = "random"
+PRIVILEGED = "privileged"
+BASELINES = (RANDOM, PRIVILEGED)  # evaluate's policies that need no training, in the tables' order
+STRATEGY_NAMES = {**DISPLAY_NAMES, RANDOM: "Random policy", PRIVILEGED: "Privileged driver"}
 BIN_PREFIX = "steps_"
 RESULTS_CSV = "results.csv"
 RESULTS_MD = "results.md"
@@ -51,7 +54,7 @@ class EvaluatedRun:
 
 @dataclass(frozen=True)
 class ComparisonRow:
-    strategy: str  # a strategy of common.config.STRATEGIES, or "random"
+    strategy: str  # a strategy of common.config.STRATEGIES, or a baseline (BASELINES)
     capacity: int
     runs: int  # evaluations pooled in the row
     summary: SetSummary
@@ -111,9 +114,9 @@ def _episode_of(row: dict[str, str], bin_columns: list[str]) -> EvaluationEpisod
 def comparison_rows(runs: Sequence[EvaluatedRun], bootstrap: Bootstrap | None = None
                     ) -> tuple[list[ComparisonRow], list[float]]:
     """Rows by start set, capacity, then strategy in common.config order, each pooled row followed by one
-    row per run (by seed, even when there is only one), the random row last; and the edges."""
+    row per run (by seed, even when there is only one), the baselines' rows last; and the edges."""
     greedy: dict[tuple[str, int, str], list[tuple[EvaluatedRun, list[EvaluationEpisode]]]] = {}
-    random_rows: dict[str, list[EvaluationEpisode]] = {}
+    baseline_rows: dict[tuple[str, str], list[EvaluationEpisode]] = {}
     edges: list[float] | None = None
     for run in runs:
         episodes, run_edges = read_episodes_csv(run.evaluation_dir / EPISODES_CSV)
@@ -123,18 +126,19 @@ def comparison_rows(runs: Sequence[EvaluatedRun], bootstrap: Bootstrap | None = 
         for (policy, start_set), group in _by_policy_and_set(episodes).items():
             if policy == "greedy":
                 greedy.setdefault((start_set, run.capacity, run.strategy), []).append((run, group))
-            elif policy == RANDOM:
-                random_rows.setdefault(start_set, group)
+            elif policy in BASELINES:
+                baseline_rows.setdefault((policy, start_set), group)
     if edges is None:
         raise ComparisonError("no evaluated runs to compare")
     rows = []
     for start_set, capacity in sorted({(key[0], key[1]) for key in greedy}, key=_set_then_capacity):
-        for strategy in sorted({key[2] for key in greedy if key[:2] == (start_set, capacity)}, key=_strategy_rank):
+        for strategy in sorted({key[2] for key in greedy if key[:2] == (start_set, capacity)}, key=strategy_rank):
             members = sorted(greedy[(start_set, capacity, strategy)], key=lambda member: member[0].seed)
             rows.append(_row(strategy, capacity, members, None, bootstrap))
             rows += [_row(strategy, capacity, [member], member[0].seed, bootstrap) for member in members]
-        if start_set in random_rows:
-            rows.append(_row(RANDOM, capacity, [(None, random_rows[start_set])], None, bootstrap))
+        for baseline in BASELINES:
+            if (baseline, start_set) in baseline_rows:
+                rows.append(_row(baseline, capacity, [(None, baseline_rows[(baseline, start_set)])], None, bootstrap))
     return rows, edges
 
 
@@ -159,10 +163,6 @@ def _by_policy_and_set(episodes: Sequence[EvaluationEpisode]) -> dict[tuple[str,
 def _set_then_capacity(key: tuple[str, int]) -> tuple[int, int]:
     start_set, capacity = key
     return (0 if start_set == "train" else 1, capacity)  # the paper's order: training set first
-
-
-def _strategy_rank(strategy: str) -> int:
-    return STRATEGIES.index(strategy) if strategy in STRATEGIES else len(STRATEGIES)
 
 
 # --- output ----------------------------------------------------------------------------------------------------

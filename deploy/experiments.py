@@ -174,10 +174,12 @@ def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
     return command + (["--resume"] if resume else [])
 
 
-def evaluate_command(spec: RunSpec, options: Options) -> list[str]:
+def evaluate_command(spec: RunSpec, options: Options, privileged: bool = False) -> list[str]:
+    """evaluate's command for a run: its greedy policy and the random baseline, and with `privileged` the
+    map-reading driver too (the grid's first run: the baselines need no training, so once is enough)."""
     run = options.run(spec)
     command = [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.root),
-               "--out", str(run.evaluation), *options.extra]
+               "--out", str(run.evaluation), *(["--privileged"] if privileged else []), *options.extra]
     return command + (["--evaluation.episodes_per_start", str(options.trials)] if options.trials else [])
 
 
@@ -321,7 +323,7 @@ class RunJob:
             if reached < self.options.steps:
                 raise ExperimentError(f"the stack stopped at {reached:,d} of {self.options.steps:,d} env steps")
         self.phase = "evaluating"
-        self._child(evaluate_command(self.spec, self.options), run.log("evaluate"),
+        self._child(evaluate_command(self.spec, self.options, privileged=self.number == 1), run.log("evaluate"),
                     is_progress_line, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
         self.phase, self.headline = "done", evaluation_headline(summary)
         self.took_s = time.monotonic() - self.started

@@ -21,8 +21,8 @@ from typing import Callable, Sequence
 from actor.evaluation.intervals import Bootstrap
 from actor.evaluation.protocol import bootstrap_of
 from actor.evaluation.report import bin_labels
-from deploy.comparison import (RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow, comparison_markdown,
-                               comparison_rows, write_comparison_csv)
+from deploy.comparison import (PRIVILEGED, RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow,
+                               comparison_markdown, comparison_rows, write_comparison_csv)
 from deploy.performance_profile import plot_performance_profiles
 from deploy.run_results import ExportedRun, ExportError, collect
 from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
@@ -110,8 +110,9 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
     level = f"{100 * bootstrap.confidence:g}%"
     lines = ["# Exploration strategies compared", ""]
     lines += [f"- {name}: {value}" for name, value in facts.items()]
-    lines += ["", "Greedy policy, episodes pooled over the seeds of each strategy; the random policy "
-                  f"(uniform actions) is the same in every table. ({RANDOM!r} in results.csv.) "
+    lines += ["", "Greedy policy, episodes pooled over the seeds of each strategy; the baselines, the random "
+                  f"policy (uniform actions, {RANDOM!r} in results.csv) and, where an evaluation ran it, the "
+                  f"privileged map-reading driver ({PRIVILEGED!r}), are the same in every table. "
                   f"Brackets hold {level} percentile intervals of {bootstrap.replicates} bootstrap replicates: "
                   "the runs (seeds) of a row drawn again whole, then each run's trials within each start "
                   "(actor/evaluation/intervals.py). With one seed an interval shows only the spread of the "

@@ -161,9 +161,10 @@ def episode(policy: str, start_set: str, length: int, end: str, bins: tuple[int,
 
 
 def write_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4, updates: int | None = None,
-                     progress: bool = False) -> Path:
+                     progress: bool = False, privileged_length: int | None = None) -> Path:
     """Greedy episodes of the given lengths on both sets (a length of 100 reaches the cap, 50 stalls), one
-    random each; with progress, each greedy episode drove 0.9 m per step."""
+    random each (and one of the privileged driver if given); with progress, each greedy episode drove 0.9 m
+    per step."""
     episodes = []
     for start_set in ("train", "test"):
         for number, length in enumerate(greedy_lengths):
@@ -171,6 +172,8 @@ def write_evaluation(directory: Path, greedy_lengths: list[int], random_length: 
             episodes.append(episode("greedy", start_set, length, end, (0, 0, 0, length), number,
                                     0.9 * length if progress else math.nan))
         episodes.append(episode("random", start_set, random_length, "offroad", (random_length, 0, 0, 0)))
+        if privileged_length is not None:
+            episodes.append(episode("privileged", start_set, privileged_length, "cap", (0, 0, 0, privileged_length)))
     facts = {} if updates is None else {"updates": str(updates)}
     write_report(directory, episodes, summarise_all(episodes), EDGES, facts, 1, "")
     return directory
@@ -249,6 +252,17 @@ def test_seeds_are_pooled_and_the_random_row_comes_once_per_table(tmp_path):
         "bmc", "all", "0;1", "3600;3580", "2")
     assert (float(first["mean_length_low"]), float(first["mean_length_high"])) == (60.0, 70.0)
     assert [(row["seed"], row["updates"]) for row in table[1:3]] == [("0", "3600"), ("1", "3580")]
+
+
+def test_the_privileged_driver_is_a_baseline_row_after_the_random_one(tmp_path):
+    runs = [EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s0", [100, 20]), 0, 10),
+            EvaluatedRun("softmax", 1000, write_evaluation(tmp_path / "softmax-s0", [30], privileged_length=100), 0, 10),
+            EvaluatedRun("vdbe", 1000, write_evaluation(tmp_path / "vdbe-s0", [30], privileged_length=7), 0, 10)]
+    rows, edges = comparison_rows(runs, Bootstrap(replicates=50))
+    train = [row for row in rows if row.start_set == "train"]
+    assert [row.strategy for row in train if row.pooled] == ["vdbe", "bmc", "softmax", "random", "privileged"]
+    assert train[-1].summary.mean_length == 100  # from the first run that has it, not the later one (7)
+    assert "| Privileged driver | – | – | 1 | 100.00" in comparison_markdown(rows, edges)
 
 
 def test_a_runs_headline_gives_its_intervals(tmp_path):
@@ -353,7 +367,8 @@ def test_the_grid_names_runs_and_passes_each_its_flags(tmp_path):
     evaluate = experiments.evaluate_command(specs[0], opts)
     assert evaluate[1:7] == ["-m", "actor.evaluate", "--checkpoint", str(tmp_path / "bmc-b1000-s0"),
                              "--out", str(tmp_path / "bmc-b1000-s0" / "evaluation")]
-    assert evaluate[-2:] == ["--evaluation.episodes_per_start", "3"]
+    assert evaluate[-2:] == ["--evaluation.episodes_per_start", "3"] and "--privileged" not in evaluate
+    assert "--privileged" in experiments.evaluate_command(specs[0], opts, privileged=True)
 
 
 def test_runs_at_once_share_the_cores_between_their_learners_unless_told():

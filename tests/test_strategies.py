@@ -8,7 +8,8 @@ import pytest
 from deploy.comparison import STRATEGY_NAMES
 from common.config import ConfigError, ExplorationConfig, load_config
 from common.exploration import STRATEGY_CLASSES, make_strategy
-from common.strategies import REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named
+from common.strategies import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
+                               strategy_rank)
 from replay.log.figures import EPSILON_STRATEGIES
 
 SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}
@@ -18,7 +19,12 @@ def test_the_seven_strategies_have_one_entry_each_with_a_display_name():
     assert len(STRATEGIES) == len(set(STRATEGIES)) == 7
     assert all(strategy.display_name and strategy.display_name != strategy.name for strategy in REGISTRY)
     assert len({strategy.display_name for strategy in REGISTRY}) == 7
-    assert set(STRATEGY_NAMES) == {*STRATEGIES, "random"}
+    assert set(STRATEGY_NAMES) == {*STRATEGIES, "random", "privileged"}  # and the baselines
+
+
+def test_tables_and_figures_follow_the_registrys_order_and_put_other_names_last():
+    assert sorted(["softmax", "random", "constant", "vdbe_softmax"], key=strategy_rank) == [
+        "constant", "softmax", "vdbe_softmax", "random"]
 
 
 def test_every_strategy_has_config_sections_and_every_section_a_strategy():

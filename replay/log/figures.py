@@ -29,7 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
-from common.strategies import DISPLAY_NAMES, STRATEGIES, epsilon_groups
+from common.strategies import DISPLAY_NAMES, STRATEGIES, epsilon_groups, strategy_rank
 from common.wire import EpisodeRecord, Stats
 from replay.log.plot import finite_series, trailing_mean
 from replay.log.reader import LogError, LogFile
@@ -39,6 +39,7 @@ LOSS_WINDOW = 10  # learner reports (each the mean over learner.log_period_s) pe
 EPSILON_PANELS = tuple(epsilon_groups().items())  # (title, strategies) of each panel
 EPSILON_STRATEGIES = tuple(strategy for _, members in EPSILON_PANELS for strategy in members)
 RANDOM_COLOUR = "0.6"
+PRIVILEGED_COLOUR = "0.15"
 BAND_NOTE = "\n(a line per strategy: the mean over its runs; band: their range)"
 
 
@@ -87,8 +88,11 @@ def _add_log(curves: RunCurves, log: LogFile) -> None:
 # --- the figures -------------------------------------------------------------------------------------
 
 def strategy_colour(strategy: str) -> str:
-    """One colour per strategy, the same in every figure."""
-    return f"C{STRATEGIES.index(strategy)}" if strategy in STRATEGIES else RANDOM_COLOUR
+    """One colour per strategy, the same in every figure; greys for the baselines (the evaluation's
+    policies "random" and "privileged")."""
+    if strategy in STRATEGIES:
+        return f"C{STRATEGIES.index(strategy)}"
+    return PRIVILEGED_COLOUR if strategy == "privileged" else RANDOM_COLOUR
 
 
 Series = tuple[np.ndarray, np.ndarray]  # (x, y) of one run, x increasing
@@ -187,7 +191,7 @@ def _plot_by_capacity(runs: Sequence[RunCurves], path: Path, series, title: str,
 def _draw_cells(ax, runs: Sequence[RunCurves], series) -> bool:
     """A line per strategy of these runs, mean and range over its runs; False if nothing had data."""
     drawn = False
-    for strategy in sorted({run.strategy for run in runs}, key=_strategy_rank):
+    for strategy in sorted({run.strategy for run in runs}, key=strategy_rank):
         found = [one for one in (series(run) for run in runs if run.strategy == strategy) if one is not None]
         if not found:
             continue
@@ -199,10 +203,6 @@ def _draw_cells(ax, runs: Sequence[RunCurves], series) -> bool:
             ax.fill_between(x, low, high, color=colour, alpha=0.2, linewidth=0)
         drawn = True
     return drawn
-
-
-def _strategy_rank(strategy: str) -> int:
-    return STRATEGIES.index(strategy) if strategy in STRATEGIES else len(STRATEGIES)
 
 
 def _finish(plt, figure, axes, path: Path, title: str) -> None:
