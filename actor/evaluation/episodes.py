@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import traceback
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator, Protocol
@@ -234,23 +235,29 @@ class WorkerFailed:
     error: str
 
 
-def queued_jobs(job_queue) -> Iterator[EpisodeJob]:
-    """Jobs from a shared queue until this worker's end marker (None)."""
-    while (job := job_queue.get()) is not None:
+def queued_jobs(job_queue, parent_pid: int | None = None) -> Iterator[EpisodeJob]:
+    """Jobs from a shared queue until this worker's end marker (None), or until the process that started
+    it (parent_pid) is gone: killed, it can read no episode, and its queue holds jobs for hours."""
+    while (parent_pid is None or os.getppid() == parent_pid) and (job := job_queue.get()) is not None:
         yield job
 
 
 def evaluation_worker(worker_id: int, config: Config, weights: dict[str, np.ndarray] | None,
-                      torch_threads: int, job_queue, result_queue) -> None:
+                      torch_threads: int, job_queue, result_queue, parent_pid: int | None = None) -> None:
     """Process entry point: runs queued jobs in lockstep, puts each EvaluationEpisode on result_queue,
-    then WorkerDone, or WorkerFailed with the traceback."""
+    then WorkerDone, or WorkerFailed with the traceback. If the parent dies, the worker finishes the
+    episodes it is driving and exits without waiting to hand over what nobody reads."""
+    parent_pid = os.getppid() if parent_pid is None else parent_pid
     envs = []
     try:
         torch.set_num_threads(torch_threads)
         n_slots = config.evaluation.envs_per_worker
         envs = [make_env(evaluation_env_config(config)) for _ in range(n_slots)]
-        run_lockstep(queued_jobs(job_queue), envs, make_policies(config, weights, n_slots),
+        run_lockstep(queued_jobs(job_queue, parent_pid), envs, make_policies(config, weights, n_slots),
                      config.evaluation.max_steps, config.evaluation.reward_bins, result_queue.put)
+        if os.getppid() != parent_pid:
+            result_queue.cancel_join_thread()  # its reader is gone: exiting must not wait on a full pipe
+            return
         result_queue.put(WorkerDone(worker_id))
     except BaseException:  # the parent must hear of any failure, or it would wait forever
         result_queue.put(WorkerFailed(worker_id, traceback.format_exc()))

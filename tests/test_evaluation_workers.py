@@ -1,0 +1,78 @@
+"""Evaluation workers do not outlive their parent: killed, evaluate can read no episode, so its workers stop
+instead of driving the rest of a queue that can hold hours of jobs."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from actor.evaluation.episodes import EpisodeJob, queued_jobs
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# A parent that starts 2 workers on a long queue of random-policy episodes, says their pids, and waits.
+PARENT = """
+import multiprocessing
+from actor.evaluation.episodes import episode_jobs
+from actor.evaluation.progress import Progress
+from actor.evaluation.workers import run_jobs
+from common.config import load_config
+
+class SayPids(Progress):  # after 20 episodes the workers are driving: say who they are
+    senders = 0
+    def add(self, episode):
+        super().add(episode)
+        SayPids.senders += 1
+        if SayPids.senders == 20:
+            print(" ".join(str(child.pid) for child in multiprocessing.active_children()), flush=True)
+
+config = load_config("smoke", overrides={"evaluation.workers": 2, "evaluation.envs_per_worker": 1,
+                                         "evaluation.max_steps": 2000})
+jobs = episode_jobs(["random"], ["train", "test"], 2000, 0)  # 40,000 episodes: far longer than the test
+run_jobs(config, None, jobs, SayPids(len(jobs), 60.0, stream=None))
+"""
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as stat:  # a zombie has exited; only its reaping is left
+        return stat.read().split(") ", 1)[1][0] != "Z"
+
+
+def test_the_workers_stop_when_their_parent_is_killed():
+    parent = subprocess.Popen([sys.executable, "-c", PARENT], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        workers = [int(pid) for pid in parent.stdout.readline().split()]
+        assert len(workers) == 2 and all(alive(pid) for pid in workers)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 30
+        while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(alive(pid) for pid in workers)
+    finally:
+        parent.kill()
+        parent.stdout.close()
+        for pid in workers if "workers" in locals() else []:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+class Jobs:
+    def __init__(self, jobs):
+        self.jobs = list(jobs)
+
+    def get(self):
+        return self.jobs.pop(0)
+
+
+def test_a_worker_takes_no_job_once_its_parent_is_gone():
+    jobs = [EpisodeJob("random", "train", 0, trial, trial) for trial in range(3)] + [None]
+    assert len(list(queued_jobs(Jobs(jobs), parent_pid=os.getppid()))) == 3
+    assert list(queued_jobs(Jobs(jobs), parent_pid=os.getppid() + 100_000)) == []  # not its parent
+    assert len(list(queued_jobs(Jobs(jobs)))) == 3  # no parent to watch
