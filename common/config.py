@@ -366,7 +366,7 @@ class ActorConfig:
                                     "episodes", "simulators")
     inference: str = option(
         "float32", "number format of the actor's forward pass: float32; bfloat16 (the convolutions and the LSTM's "
-                   "input projection, with float32 state and head: 2.5-3x faster on a CPU with AMX, greedy actions "
+                   "input projection, with float32 state and head: 2.6-3.2x faster on a CPU with AMX, greedy actions "
                    "as float32's within the README's tolerance); or auto (bfloat16 where a timing of both at start "
                    "finds it at least 1.2x faster). The evaluation always acts in float32",
         choices=INFERENCE_PRECISIONS)
