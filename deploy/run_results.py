@@ -31,9 +31,7 @@ from deploy.comparison import EvaluatedRun
 from replay.log.figures import RunCurves, read_run_curves
 from replay.log.reader import LogError
 
-CONFIG_TOML = "config.toml"
-SUMMARY_JSON = "summary.json"
-EVALUATION = "evaluation"
+CONFIG_TOML = "config.toml"  # evaluate's copy of its config, in evaluation/
 TRAINING_CSV = "training.csv"
 LEARNER_CSV = "learner.csv"
 EVALUATION_FILES = (EPISODES_CSV, SUMMARY_CSV, SUMMARY_MD, FACTS_JSON, CONFIG_TOML)
@@ -53,6 +51,10 @@ def run_name(strategy: str, capacity: int, seed: int) -> str:
 class ExportedRun:
     folder: Path
     config: Config
+
+    @property
+    def layout(self) -> RunDir:
+        return RunDir(self.folder)
 
     @property
     def strategy(self) -> str:
@@ -77,22 +79,22 @@ class ExportedRun:
     @property
     def updates(self) -> int | None:
         """The updates of the weights its evaluation used, else of the run summary (None if neither says)."""
-        updates = str(read_facts(self.folder / EVALUATION).get("updates", ""))
+        updates = str(read_facts(self.layout.evaluation).get("updates", ""))
         if updates.isdigit():
             return int(updates)
         try:
-            updates = json.loads((self.folder / SUMMARY_JSON).read_text()).get("updates")
+            updates = json.loads(self.layout.summary.read_text()).get("updates")
         except (OSError, ValueError, AttributeError):
             return None
         return updates if isinstance(updates, int) and not isinstance(updates, bool) else None
 
     def evaluation_config(self) -> Config:
         """The config its evaluation ran with (trials, caps, bootstrap), else the run's."""
-        path = self.folder / EVALUATION / CONFIG_TOML
+        path = self.layout.evaluation / CONFIG_TOML
         return _read_config(path) if path.is_file() else self.config
 
     def evaluated(self) -> EvaluatedRun:
-        return EvaluatedRun(self.strategy, self.capacity, self.folder / EVALUATION, self.seed, self.updates)
+        return EvaluatedRun(self.strategy, self.capacity, self.layout.evaluation, self.seed, self.updates)
 
     def curves(self) -> RunCurves | None:
         """Its training curves, or None if it was exported without logs."""
@@ -119,18 +121,20 @@ def export_run(run: RunDir, destination: Path) -> Path:
 
     The copy is built beside its place and renamed into it, so a reader never sees half an export."""
     if not run.config.is_file() or not (run.evaluation / SUMMARY_CSV).is_file():
-        raise ExportError(f"{run.root}: not an evaluated run (it needs {CONFIG_TOML} and {EVALUATION}/{SUMMARY_CSV})")
+        raise ExportError(f"{run.root}: not an evaluated run (it needs {run.config.name} and "
+                          f"{run.evaluation.name}/{SUMMARY_CSV})")
     config = _read_config(run.config)
     folder = destination / run_name(config.exploration.strategy, config.replay.capacity, config.run.seed)
     staging = destination / f".{folder.name}.incoming"
     shutil.rmtree(staging, ignore_errors=True)
-    (staging / EVALUATION).mkdir(parents=True)
-    shutil.copy2(run.config, staging / CONFIG_TOML)
+    copy = RunDir(staging)  # an export keeps a run folder's layout
+    copy.evaluation.mkdir(parents=True)
+    shutil.copy2(run.config, copy.config)
     if run.summary.is_file():
-        shutil.copy2(run.summary, staging / SUMMARY_JSON)
+        shutil.copy2(run.summary, copy.summary)
     for name in EVALUATION_FILES:
         if (run.evaluation / name).is_file():
-            shutil.copy2(run.evaluation / name, staging / EVALUATION / name)
+            shutil.copy2(run.evaluation / name, copy.evaluation / name)
     segments = run.traffic_segments()
     if segments:
         try:
@@ -150,10 +154,11 @@ def write_curves(curves: RunCurves, folder: Path) -> None:
 
 
 def read_exported(folder: Path) -> ExportedRun:
-    for needed in (folder / CONFIG_TOML, folder / EVALUATION / EPISODES_CSV):
+    layout = RunDir(folder)
+    for needed in (layout.config, layout.evaluation / EPISODES_CSV):
         if not needed.is_file():
             raise ExportError(f"{folder}: not an exported run: {needed.relative_to(folder)} is missing")
-    run = ExportedRun(folder, _read_config(folder / CONFIG_TOML))
+    run = ExportedRun(folder, _read_config(layout.config))
     if folder.name != run.name:
         raise ExportError(f"{folder}: its config says it is run {run.name}; the folder must carry that name")
     return run
@@ -183,7 +188,7 @@ def collect(folders: Sequence[Path], warn: Callable[[str], None] = print) -> lis
 
 
 def _same_evaluation(first: ExportedRun, second: ExportedRun) -> bool:
-    return filecmp.cmp(first.folder / EVALUATION / EPISODES_CSV, second.folder / EVALUATION / EPISODES_CSV,
+    return filecmp.cmp(first.layout.evaluation / EPISODES_CSV, second.layout.evaluation / EPISODES_CSV,
                        shallow=False)
 
 
