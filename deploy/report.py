@@ -23,6 +23,7 @@ from actor.evaluation.protocol import bootstrap_of
 from actor.evaluation.report import bin_labels
 from deploy.comparison import (PRIVILEGED, RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow,
                                comparison_markdown, comparison_rows, write_comparison_csv)
+from deploy.differences import DIFFERENCES_CSV, Difference, differences, differences_markdown, write_differences_csv
 from deploy.performance_profile import plot_performance_profiles
 from deploy.run_results import ExportedRun, ExportError, collect
 from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
@@ -44,22 +45,25 @@ def write_report(runs: Sequence[ExportedRun], out: Path, facts: dict[str, str], 
     written: list[Path] = []
     rows: list[ComparisonRow] = []
     edges: list[float] = []
+    found: list[Difference] = []
     if runs:
         rows, edges = comparison_rows([run.evaluated() for run in runs], bootstrap)
+        found = differences(rows, bootstrap)
         write_comparison_csv(rows, edges, out / RESULTS_CSV)
-        written.append(out / RESULTS_CSV)
+        write_differences_csv(found, out / DIFFERENCES_CSV)
+        written += [out / RESULTS_CSV, out / DIFFERENCES_CSV]
     curves: list[RunCurves] = []
     for run in runs:
         try:
-            found = run.curves()
+            run_curves = run.curves()
         except ExportError as error:
             warn(f"{run.name}: left out of the figures: {error}")
             continue
-        if found is not None:
-            curves.append(found)
+        if run_curves is not None:
+            curves.append(run_curves)
     written += write_figures(curves, rows, edges, out, bootstrap)
     figures = [path.name for path in written if path.suffix == ".png"]
-    (out / RESULTS_MD).write_text(results_markdown(rows, edges, facts, figures, bootstrap))
+    (out / RESULTS_MD).write_text(results_markdown(rows, edges, facts, figures, bootstrap, found))
     return [out / RESULTS_MD, *written]
 
 
@@ -105,7 +109,7 @@ def reward_bin_panels(rows: list[ComparisonRow]) -> dict[str, list[tuple[str, st
 
 
 def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[str, str], figures: list[str],
-                     bootstrap: Bootstrap | None = None) -> str:
+                     bootstrap: Bootstrap | None = None, found: Sequence[Difference] = ()) -> str:
     bootstrap = bootstrap or Bootstrap()
     level = f"{100 * bootstrap.confidence:g}%"
     lines = ["# Exploration strategies compared", ""]
@@ -119,6 +123,14 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
                   "trials; with a few seeds, read it as a guide. Updates lists every run's learner updates, "
                   "in seed order. results.csv has the pooled rows (seed \"all\") and one row per seed.", ""]
     lines += [comparison_markdown(rows, edges, bootstrap.confidence) if rows else "No run has been evaluated yet.", ""]
+    compared = differences_markdown(found, bootstrap.confidence)
+    if compared:
+        lines += ["## Which differences the intervals support", "",
+                  "Each pair of strategies on one start set and capacity (and each strategy at two capacities): "
+                  f"the difference first minus second with a {level} interval of the differences of the two rows' "
+                  "bootstrap replicates, the rows drawn independently (deploy/differences.py). Supported: the "
+                  "interval leaves out 0. With one run a side it compares two policies, not two strategies. "
+                  f"{DIFFERENCES_CSV} has every statistic.", "", compared]
     lines += [f"![{FIGURES[name]}]({name})" for name in figures]
     return "\n".join(lines) + "\n"
 

@@ -398,9 +398,9 @@ def test_the_results_of_finished_runs_are_written(tmp_path):
         write_log(run / "traffic.mcap", spec.name, strategy, 50,
                   [record(10, 5.0, 1.0), learner_report(50, 0.2), record(12, 6.0, 0.5), learner_report(100, 0.1)])
     paths = experiments.write_results(specs, opts, {"budget": "1,000"})
-    assert sorted(path.name for path in paths) == ["epsilon.png", "loss_differences.png", "performance_profile.png",
-                                                  "results.csv", "results.md", "reward_bins.png",
-                                                  "reward_curves.png"]
+    assert sorted(path.name for path in paths) == ["differences.csv", "epsilon.png", "loss_differences.png",
+                                                  "performance_profile.png", "results.csv", "results.md",
+                                                  "reward_bins.png", "reward_curves.png"]
     for path in paths:
         if path.suffix == ".png":
             assert_png(path)

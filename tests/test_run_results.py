@@ -100,6 +100,10 @@ def test_the_report_rebuilds_from_exported_runs_alone(tmp_path):
     assert "- trials: 3 per start" in markdown  # from the evaluation's config, not the training's
     rows = (out / "results.csv").read_text().splitlines()
     assert len(rows) == 1 + 2 * (3 + 2 + 1)  # per set: bmc pooled + 2 seeds, softmax pooled + 1, random
+    assert "## Which differences the intervals support" in markdown
+    assert "| BMC, 50 | Softmax, 50 | 2 vs 1 |" in markdown
+    compared = (out / "differences.csv").read_text().splitlines()
+    assert len(compared) == 1 + 2 * 5  # one pair per start set, five statistics each
     for name in ("reward_curves.png", "epsilon.png", "loss_differences.png", "reward_bins.png",
                  "performance_profile.png"):
         assert_png(out / name)

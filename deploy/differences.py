@@ -1,0 +1,143 @@
+"""Which differences between the comparison's rows its intervals support.
+
+For two pooled rows of the comparison (two strategies on one start set and
+replay capacity, or one strategy at two capacities) the difference of a
+statistic, first row minus second, with the percentile interval of the
+differences of bootstrap replicates. Each row is redrawn as in the tables
+(actor/evaluation/intervals.py: its runs whole, then each run's trials within
+each start), and the two rows independently of each other, because their runs
+are separate trainings; a pairing of trials would narrow the interval by the
+shared evaluation seeds, which is not the question asked. A difference is
+*supported* when its interval leaves out 0.
+
+With one run per row the interval shows only how the trials of two policies
+vary, not how another training run of each strategy would; with two or three
+seeds a run-level bootstrap has few distinct outcomes and runs narrow. Read
+"supported" over a few seeds as a guide, and "not supported" as "these runs
+cannot tell".
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from itertools import combinations
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from actor.evaluation.intervals import Bootstrap, Interval, bootstrap_weights, cell_statistics, percentile_interval
+from deploy.comparison import BASELINES, STRATEGY_NAMES, ComparisonRow
+
+DIFFERENCES_CSV = "differences.csv"
+SHOWN = ("mean_length", "iqm_length")  # the statistics results.md lists; the CSV has every one
+
+
+@dataclass(frozen=True)
+class Difference:
+    start_set: str
+    first: ComparisonRow
+    second: ComparisonRow
+    statistic: str  # a statistic of actor.evaluation.intervals.STATISTICS
+    observed: float  # first minus second, on all episodes
+    interval: Interval
+
+    @property
+    def supported(self) -> bool:
+        """The interval leaves out 0 (and exists)."""
+        low, high = self.interval.low, self.interval.high
+        return math.isfinite(low) and math.isfinite(high) and (low > 0.0 or high < 0.0)
+
+
+def row_replicates(row: ComparisonRow, bootstrap: Bootstrap, stream: int) -> dict[str, np.ndarray]:
+    """Every statistic of the row under `bootstrap.replicates` draws of its own random stream."""
+    if row.cell is None:
+        raise ValueError(f"row {row.strategy!r} has no episodes to resample")
+    rng = np.random.default_rng([bootstrap.seed, stream])
+    return cell_statistics(row.cell, bootstrap_weights(row.cell.runs, row.cell.starts, bootstrap.replicates, rng))
+
+
+def observed_statistics(row: ComparisonRow) -> dict[str, float]:
+    weights = np.ones(len(row.cell.lengths))
+    return {name: float(value) for name, value in cell_statistics(row.cell, weights).items()}
+
+
+def compared_pairs(rows: Sequence[ComparisonRow]) -> list[tuple[ComparisonRow, ComparisonRow]]:
+    """Trained pooled rows: every two strategies of one start set and capacity (in the tables' order), then
+    every strategy at two capacities of one start set (smaller capacity first)."""
+    trained = [row for row in rows if row.pooled and row.strategy not in BASELINES]
+    pairs = []
+    for key in dict.fromkeys((row.start_set, row.capacity) for row in trained):
+        pairs += combinations([row for row in trained if (row.start_set, row.capacity) == key], 2)
+    for key in dict.fromkeys((row.start_set, row.strategy) for row in trained):
+        same = sorted((row for row in trained if (row.start_set, row.strategy) == key), key=lambda row: row.capacity)
+        pairs += combinations(same, 2)
+    return pairs
+
+
+def differences(rows: Sequence[ComparisonRow], bootstrap: Bootstrap | None = None) -> list[Difference]:
+    """Every compared pair's difference in every statistic, each row drawn from a stream of its own."""
+    bootstrap = bootstrap or Bootstrap()
+    pairs = compared_pairs(rows)
+    members = list({id(row): row for pair in pairs for row in pair}.values())
+    replicates = {id(row): row_replicates(row, bootstrap, stream) for stream, row in enumerate(members)}
+    observed = {id(row): observed_statistics(row) for row in members}
+    found = []
+    for first, second in pairs:
+        for statistic in replicates[id(first)]:
+            spread = replicates[id(first)][statistic] - replicates[id(second)][statistic]
+            found.append(Difference(first.start_set, first, second, statistic,
+                                    observed[id(first)][statistic] - observed[id(second)][statistic],
+                                    percentile_interval(spread, bootstrap.confidence)))
+    return found
+
+
+def differences_markdown(found: Sequence[Difference], confidence: float = 0.95) -> str:
+    """One table per start set: each pair's difference in mean and IQM length, and whether it is supported."""
+    level = f"{100 * confidence:g}% CI"
+    header = ["First", "Second", "Runs", f"Mean length, first - second [{level}]", f"IQM, first - second [{level}]",
+              "Supported"]
+    sections = []
+    for start_set in dict.fromkeys(difference.start_set for difference in found):
+        by_pair: dict[tuple[int, int], dict[str, Difference]] = {}
+        for difference in found:
+            if difference.start_set == start_set and difference.statistic in SHOWN:
+                by_pair.setdefault((id(difference.first), id(difference.second)), {})[difference.statistic] = difference
+        lines = [f"### Differences, {start_set} set", "", "| " + " | ".join(header) + " |",
+                 "|---|---|---:|---:|---:|---|"]
+        for pair in by_pair.values():
+            mean, iqm = pair["mean_length"], pair["iqm_length"]
+            lines.append("| " + " | ".join([_label(mean.first), _label(mean.second),
+                                             f"{mean.first.runs} vs {mean.second.runs}", _signed(mean),
+                                             _signed(iqm), _verdict(mean, iqm)]) + " |")
+        sections.append("\n".join(lines))
+    return "\n\n".join(sections) + "\n" if sections else ""
+
+
+def write_differences_csv(found: Sequence[Difference], path: Path) -> None:
+    fields = ["start_set", "first_strategy", "first_capacity", "first_runs", "second_strategy", "second_capacity",
+              "second_runs", "statistic", "difference", "ci_low", "ci_high", "supported"]
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(fields)
+        for d in found:
+            writer.writerow([d.start_set, d.first.strategy, d.first.capacity, d.first.runs, d.second.strategy,
+                             d.second.capacity, d.second.runs, d.statistic, repr(d.observed), repr(d.interval.low),
+                             repr(d.interval.high), int(d.supported)])
+
+
+def _label(row: ComparisonRow) -> str:
+    return f"{STRATEGY_NAMES.get(row.strategy, row.strategy)}, {row.capacity:,d}"
+
+
+def _signed(difference: Difference) -> str:
+    return (f"{difference.observed:+,.2f} [{difference.interval.low:+,.2f}, {difference.interval.high:+,.2f}]"
+            if math.isfinite(difference.observed) else "–")
+
+
+def _verdict(mean: Difference, iqm: Difference) -> str:
+    said = [name for name, difference in (("mean", mean), ("IQM", iqm)) if difference.supported]
+    trials_only = " (trials only)" if said and min(mean.first.runs, mean.second.runs) == 1 else ""
+    return " and ".join(said) + trials_only if said else "no"
