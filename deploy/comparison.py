@@ -7,8 +7,9 @@ row by ``actor.evaluation.stats.summarise``, so a row weighs every episode once;
 intervals resample the runs whole, then each run's trials within each start
 (actor/evaluation/intervals.py). Each run also gets a row of its own. One
 table per start set and capacity: Strategy | Seeds | Updates (of every run) |
-Episodes | Average | IQM | Standard Deviation | Min | CFR | Stalled | Progress
-| Reward/step | the last reward bin's share; then the per-run rows.
+Episodes | Average | IQM | Standard Deviation | Min | CFR | Ends (collision /
+off-road / stalled) | Progress | Reward/step | the last reward bin's share;
+then the per-run rows.
 The baselines do not depend on the training: the random policy and, where an
 evaluation ran it, the privileged map-reading driver. Every evaluation with the
 same seed runs the same trials of them, so each one's row is taken once, from
@@ -173,7 +174,7 @@ def comparison_markdown(rows: Sequence[ComparisonRow], edges: Sequence[float], c
     last_bin = bin_labels(edges)[-1]
     level = f"{100 * confidence:g}% CI"
     header = ["Strategy", "Seeds", "Updates", "Episodes", f"Average [{level}]", f"IQM [{level}]", "Standard Deviation",
-              "Min", f"CFR [{level}]", "Stalled", "Progress m", f"Reward/step [{level}]", f"r in {last_bin}"]
+              "Min", f"CFR [{level}]", "Ends: collision / off-road / stalled", "Progress m", f"Reward/step [{level}]", f"r in {last_bin}"]
     per_run = ["Strategy", "Seed", "Updates", "Episodes", f"Average [{level}]", f"IQM [{level}]", f"CFR [{level}]",
                f"Reward/step [{level}]"]
     sections: list[str] = []
@@ -186,7 +187,7 @@ def comparison_markdown(rows: Sequence[ComparisonRow], edges: Sequence[float], c
                 lines.append(_table_line([
                     STRATEGY_NAMES.get(row.strategy, row.strategy), _seeds(row), _updates(row), str(s.episodes),
                     with_interval(s, "mean_length"), with_interval(s, "iqm_length"), f"{s.std_length:,.2f}",
-                    f"{s.min_length:,d}", with_interval(s, "cfr", percent=True), _percent(s.stalled_share),
+                    f"{s.min_length:,d}", with_interval(s, "cfr", percent=True), _ends(s),
                     _number(s.mean_progress_m), with_interval(s, "reward_per_step", digits=3),
                     _percent(s.reward_shares[-1])]))
         singles = [row for row in table if not row.pooled]
@@ -233,6 +234,11 @@ def _updates(row: ComparisonRow) -> str:
 
 def _number(value: float) -> str:
     return f"{value:,.1f}" if math.isfinite(value) else "–"
+
+
+def _ends(summary: SetSummary) -> str:
+    shares = (summary.collision_share, summary.offroad_share, summary.stalled_share)
+    return " / ".join(f"{100 * share:.0f}%" for share in shares)
 
 
 def _percent(share: float) -> str:

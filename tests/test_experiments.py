@@ -237,7 +237,7 @@ def test_seeds_are_pooled_and_the_random_row_comes_once_per_table(tmp_path):
     markdown = comparison_markdown(rows, edges)
     assert markdown.count("### ") == 4
     assert ("| BMC | 0, 1 | 3,600, 3,580 | 4 | 65.00 [60.00, 70.00] | 70.00 [60.00, 70.00] | 35.71 | 20 | "
-            "50.00% [50.00, 50.00] | 0.00% | – | 0.500 [0.500, 0.500] | 100.00% |") in markdown
+            "50.00% [50.00, 50.00] | 50% / 0% / 0% | – | 0.500 [0.500, 0.500] | 100.00% |") in markdown
     assert "| Random policy | – | – | 1 | 4.00 [4.00, 4.00] |" in markdown
     assert "| BMC | 0 | 3,600 | 2 | 60.00 [60.00, 60.00] |" in markdown  # the per-run table
     assert markdown.count("Each run on its own") == 2  # the capacity-1000 tables; 2000 has one run a row
@@ -278,7 +278,7 @@ def test_progress_and_stalls_reach_the_tables(tmp_path):
     s = rows[0].summary
     assert (s.stalled_share, s.cfr, s.mean_progress_m) == (0.5, 0.5, pytest.approx(67.5))
     assert "| VDBE | 0 | 10 | 2 | 75.00" in comparison_markdown(rows, edges)
-    assert "| 50.00% | 67.5 |" in comparison_markdown(rows, edges)
+    assert "| 50.00% [50.00, 50.00] | 0% / 0% / 50% | 67.5 |" in comparison_markdown(rows, edges)
 
 
 def test_the_performance_profile_is_drawn_from_the_pooled_rows(tmp_path):
