@@ -23,14 +23,19 @@ class Eta:
         while len(self._samples) > 2 and now - self._samples[1][0] >= self.window_s:
             self._samples.popleft()
 
-    def remaining_s(self) -> float | None:
-        """Seconds to the total; None until the count has grown."""
+    def rate(self) -> float | None:
+        """Count per second over the window; None until time has passed between two samples."""
         if len(self._samples) < 2:
             return None
         (first_time, first), (last_time, last) = self._samples[0], self._samples[-1]
-        if last <= first or last_time <= first_time:
+        return (last - first) / (last_time - first_time) if last_time > first_time else None
+
+    def remaining_s(self) -> float | None:
+        """Seconds to the total; None until the count has grown."""
+        rate = self.rate()
+        if rate is None or rate <= 0.0:
             return None
-        return max(self.total - last, 0.0) / ((last - first) / (last_time - first_time))
+        return max(self.total - self._samples[-1][1], 0.0) / rate
 
     def text(self) -> str:
         remaining = self.remaining_s()

@@ -47,6 +47,7 @@ FINAL_METRICS_WAIT_S = 5.0
 STATUS_PERIOD_S = 1.0  # the status file and the live line
 LOGGED_LINE_PERIOD_S = 30.0  # the progress line when stdout is not a terminal
 ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
+STEP_RATE_WINDOW_S = 60.0  # the line's steps/s: actors held by the rate limiter send episodes in bursts
 
 
 def default_actor_count() -> int:
@@ -71,6 +72,7 @@ class Progress:
         # many times faster than the learner will). Without pacing, the ETA follows the env-step rate.
         self.env_steps_per_update = env_steps_per_update
         self.eta: Eta | None = None if env_steps_per_update else Eta(total_env_steps, ETA_WINDOW_S, clock)
+        self.env_step_rate = Eta(total_env_steps, STEP_RATE_WINDOW_S, clock)
         self._clock = clock
         self._started = clock()
 
@@ -92,8 +94,10 @@ class Progress:
             with self._lock:
                 self.replay = dict(message.values)
                 env_steps = stat_number(self.replay, "env_steps_total", integer=True, minimum=0)
-                if env_steps is not None and not self.env_steps_per_update:
-                    self.eta.update(env_steps)
+                if env_steps is not None:
+                    self.env_step_rate.update(env_steps)
+                    if not self.env_steps_per_update:
+                        self.eta.update(env_steps)
                 self._follow_updates()
 
     def _follow_updates(self) -> None:
@@ -121,7 +125,7 @@ class Progress:
                     f"eps {_number(learner, 'epsilon', 1.0):.3f} | "
                     f"return(100) {math.nan if mean_return is None else mean_return:8.2f} | "
                     f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
-                    f"steps/s {_number(replay, 'env_steps_total_per_s', 0.0):6.1f} | "
+                    f"steps/s {self.env_step_rate.rate() or 0.0:6.1f} | "
                     f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
                     f"restarts {restarts}")
 

@@ -202,3 +202,26 @@ def test_a_status_file_that_cannot_be_written_is_said_once_and_the_stack_goes_on
     for _ in range(3):
         stack.report(Progress(), "training")
     assert capsys.readouterr().err.count("cannot write the status file") == 1
+
+
+def test_the_lines_step_rate_is_over_a_minute_so_bursts_from_held_actors_do_not_read_as_zero():
+    clock = FakeClock()
+    progress = Progress(100_000, clock=clock, env_steps_per_update=4.0)
+    env_steps = 30_000
+    for second in range(61):  # an actor held by the rate limiter sends a 300-step burst every 10 s
+        clock.now = float(second)
+        env_steps += 300 if second and second % 10 == 0 else 0
+        progress.on_replay_stats(replay_stats(env_steps), "k")
+    assert "steps/s   30.0 |" in progress.line()  # 1,800 steps in 60 s, though the last second added none
+
+
+def test_a_rate_needs_time_between_two_samples():
+    clock = FakeClock()
+    eta = Eta(10, clock=clock)
+    eta.update(3)
+    assert eta.rate() is None
+    eta.update(4)
+    assert eta.rate() is None
+    clock.now = 2.0
+    eta.update(3)
+    assert eta.rate() == 0.0 and eta.remaining_s() is None
