@@ -11,7 +11,10 @@ The learner is the authority on exploration: a state naming another strategy
 or other params than this actor's config replaces the actor's strategy (one log
 line). Between episodes the actor obeys the replay's rate limiter: a simulator
 whose episode has ended starts no other while the replay says the learner is
-behind (``replay/rate``); see EpisodeGate.
+behind (``replay/rate``); see EpisodeGate. Once the replay says updates have
+started, an actor that has not yet had the learner's weights and exploration
+state (a run resumed, an actor restarted) starts no episode either: it would
+act at random and fill the replay with episodes no policy of the run drove.
 
 Nothing that arrives is taken on trust: weights must be in an encoding this build
 reads (float32, or compact float16 or bfloat16, widened to float32 on arrival) and
@@ -56,7 +59,9 @@ from common.transport import Keys, publisher, request, subscribe, watch_liveline
 from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights, WireError
 
 MEGABYTE = 1 << 20
-HOLD_REASONS = ("", "behind", "budget")
+HOLD_REASONS = ("", "behind", "budget")  # what the replay's rate message may say
+HOLD_WHY = {"budget": "the run's step budget is spent",
+            "policy": "updates have started and the learner's weights and exploration state have not come"}
 
 log = logging.getLogger("actor")
 
@@ -90,6 +95,7 @@ class Mailbox:
         self._exploration: ExplorationState | None = None
         self._heard_weights = False  # a broadcast arrived: the answer to the start-up ask is older
         self.hold_reason = ""  # the replay's word on the next episode: "behind", "budget" or "" (go)
+        self.updates_started = False  # the replay's word: updates have started (and it is not refilling)
         self.shapes = shapes
         self.rejections = rejections or Rejections(log)
 
@@ -137,21 +143,27 @@ class Mailbox:
 
     def offer_rate(self, message: Stats, key: str = "") -> None:
         """The replay's rate limiter; kept, not taken: the hold is read repeatedly. A message that
-        does not say "", "behind" or "budget" is refused and the last word stands."""
+        does not say "", "behind" or "budget", or whose start mark or refilling flag is not a number, is
+        refused and the last word stands. A replay that gives no start mark has not started updates."""
         values = message.values if isinstance(message, Stats) and message.source == "rate_limiter" else None
         reason = values.get("hold_reason") if values is not None else None
-        if reason not in HOLD_REASONS:
-            shown = f"hold_reason {reason!r}" if values is not None else f"a {type(message).__name__}"
+        start, refilling = ((values.get("start_env_steps", -1.0), values.get("refilling", 0))
+                            if values is not None else (None, None))
+        if reason not in HOLD_REASONS or not (_real(start) and _real(refilling)):
+            shown = (f"hold_reason {reason!r}, start_env_steps {start!r}, refilling {refilling!r}"
+                     if values is not None else f"a {type(message).__name__}")
             self.rejections.reject("rate", f"replay/rate: {shown} (expected a rate_limiter Stats saying "
-                                           f"'', 'behind' or 'budget')")
+                                           f"'', 'behind' or 'budget', with numbers for the others)")
             return
         with self._lock:
             self.hold_reason = reason
+            self.updates_started = start >= 0 and not refilling
 
-    def must_hold(self) -> str:
-        """Why the next episode must wait ("" when it may start); no word from a replay: go."""
+    def must_hold(self, has_policy: bool = True) -> str:
+        """Why the next episode must wait ("" when it may start); no word from a replay: go. Without
+        the learner's policy (has_policy False) it waits too once updates have started ("policy")."""
         with self._lock:
-            return self.hold_reason
+            return self.hold_reason or ("" if has_policy or not self.updates_started else "policy")
 
     def take(self) -> tuple[Weights | None, ExplorationState | None]:
         with self._lock:
@@ -470,6 +482,10 @@ def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop
             log.warning("could not publish the actor's stats", exc_info=True)
 
 
+def _real(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
 def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox) -> None:
     reply = request(session, keys.weights_latest, None, LATEST_WEIGHTS_TIMEOUT_S)
     if reply is not None:
@@ -479,7 +495,8 @@ def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox) -> None:
 def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, records_out) -> None:
     report = Every(actor.config.actor.log_period_s)
     may_start = EpisodeGate(actor.mailbox, HoldLog(HOLD_LOG_S),
-                            lambda: max_episodes is None or actor.episodes_started < max_episodes)
+                            lambda: max_episodes is None or actor.episodes_started < max_episodes,
+                            actor.uses_network)
     steps = 0
     returns: list[float] = []
     while not stop.is_set() and (max_episodes is None or actor.episode_index < max_episodes):
@@ -510,19 +527,23 @@ class EpisodeGate:
     separate actors, so pausing it would only delay steps that are owed anyway. What keeps the ratio
     exact is that no simulator begins an episode while the replay says hold.
 
+    Once updates have started, an actor without the learner's policy (`has_policy` False) holds as well.
+
     A hold, for the log, lasts from the first refused start until the replay lets the next one go: the
     replay's word holds all of the actor's idle simulators at once."""
 
-    def __init__(self, mailbox: Mailbox, holds: HoldLog, more: Callable[[], bool]) -> None:
+    def __init__(self, mailbox: Mailbox, holds: HoldLog, more: Callable[[], bool],
+                 has_policy: Callable[[], bool] = lambda: True) -> None:
         self.mailbox = mailbox
         self.holds = holds
         self.more = more
+        self.has_policy = has_policy
         self.held = False
 
     def __call__(self) -> bool:
         if not self.more():
             return False
-        reason = self.mailbox.must_hold()
+        reason = self.mailbox.must_hold(self.has_policy())
         if reason:
             if not self.held:
                 self.holds.begin()
@@ -560,7 +581,7 @@ class HoldLog:
             return
         ongoing = self._since is not None
         held_s = self._held_s + (now - self._since if ongoing else 0.0)
-        why = "the run's step budget is spent" if reason == "budget" else "the learner is behind"
+        why = HOLD_WHY.get(reason, "the learner is behind")
         log.info("held %d episode(s) for %.0fs of the last %.0fs: %s", self._held, held_s, now - self._line_at, why)
         self._line_at, self._held, self._held_s = now, int(ongoing), 0.0
         if ongoing:

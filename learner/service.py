@@ -395,6 +395,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
         return
     process.start_updates()
     outputs.exploration(process.strategy, force=True)
+    outputs.weights(process.make_weights())  # actors hold from now until they have the learner's policy
     with process._lock:
         mark = process.clock.start_env_steps
     log.info("updates start: the replay's first batch, at %s env steps (start mark %s) with %s episodes stored",

@@ -187,3 +187,23 @@ def test_a_held_env_waits_while_the_others_finish_their_episodes():
     rate("")
     actor.step(gate)
     assert actor.episodes_started == 6
+
+
+def test_once_updates_have_started_an_actor_without_the_learners_policy_starts_no_episode():
+    # a resumed run or a restarted actor: acting at random would fill the replay with episodes of no policy
+    actor = Actor(config_with(2), actor_id=0)
+    gate = EpisodeGate(actor.mailbox, HoldLog(10.0), lambda: True, actor.uses_network)
+    rate = lambda **values: actor.mailbox.offer_rate(Stats(source="rate_limiter", time=0.0,
+                                                           values={"hold_reason": "", **values}))
+    rate(start_env_steps=-1.0)  # stage 1: random episodes are what the run wants
+    assert gate() and actor.mailbox.must_hold(False) == ""
+    rate(start_env_steps=500.0, refilling=1)  # a resumed replay refilling its lost store: stage 1 again
+    assert gate()
+    rate(start_env_steps=500.0, refilling=0)
+    assert not gate() and actor.mailbox.must_hold(False) == "policy"
+    actor.mailbox.offer_weights(Weights(version=7, tensors={name: tensor.numpy() for name, tensor
+                                                             in actor.network.state_dict().items()}))
+    actor.strategy.start()  # the learner's exploration state says started
+    actor.apply_mail()
+    assert actor.uses_network() and gate()
+

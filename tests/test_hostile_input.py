@@ -328,6 +328,9 @@ def test_the_actor_refuses_weights_of_another_network_and_keeps_the_good_ones(tm
     Stats(source="rate_limiter", time=0.0, values={}),
     Stats(source="rate_limiter", time=0.0, values={"hold_reason": 3}),
     Stats(source="rate_limiter", time=0.0, values={"hold_reason": "forever"}),
+    Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "start_env_steps": "soon"}),
+    Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "start_env_steps": float("nan")}),
+    Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "refilling": [1]}),
     Stats(source="replay", time=0.0, values={"hold_reason": "budget"}),
     Weights(version=1, tensors={})])
 def test_a_rate_message_that_says_nothing_sound_leaves_the_last_word(message):
