@@ -3,7 +3,10 @@ what an export holds, how exports from several folders merge, and a report with 
 
 from __future__ import annotations
 
+import csv
+import math
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -124,3 +127,41 @@ def test_a_report_of_nothing_is_an_error(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert report.main([str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 1
     assert "no exported run" in capsys.readouterr().err
+
+
+COMMITTED = sorted(path.parent for path in (Path(__file__).resolve().parents[1] / "results").glob("*/runs"))
+
+
+def csv_rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def same_cell(mine: str, committed: str) -> bool:
+    """Equal text, or numbers equal to rounding (another CPU's BLAS may sum in another order)."""
+    if mine == committed:
+        return True
+    try:
+        return math.isclose(float(mine), float(committed), rel_tol=1e-9, abs_tol=1e-12)
+    except ValueError:
+        return False
+
+
+@pytest.mark.parametrize("folder", COMMITTED, ids=[path.name for path in COMMITTED])
+def test_the_committed_results_rebuild_from_the_committed_runs_alone(folder, tmp_path):
+    # every run the committed report names is in the repository, and its tables come out of them again
+    named = next(line for line in (folder / "results.md").read_text().splitlines() if line.startswith("- runs: "))
+    runs = collect([folder / "runs"])
+    assert sorted(run.name for run in runs) == sorted(named[len("- runs: "):].split(", "))
+    assert report.main([str(folder / "runs"), "--out", str(tmp_path)]) == 0
+    assert csv_rows(tmp_path / "results.csv")  # a report with rows, so the comparison below has something to hold
+    for name in ("results.csv", "differences.csv"):
+        mine, committed = csv_rows(tmp_path / name), csv_rows(folder / name)
+        header = (tmp_path / name).read_text().splitlines()[0]
+        assert header == (folder / name).read_text().splitlines()[0] and len(mine) == len(committed)
+        for row, committed_row in zip(mine, committed):
+            assert all(same_cell(row[key], committed_row[key]) for key in row), (name, row, committed_row)
+
+
+def test_the_repository_holds_committed_results():
+    assert {path.name for path in COMMITTED} >= {"comparison", "main-job-front-camera"}
