@@ -15,6 +15,7 @@ behind (``replay/rate``); see EpisodeGate. Once the replay says updates have
 started, an actor that has not yet had the learner's weights and exploration
 state (a run resumed, an actor restarted) starts no episode either: it would
 act at random and fill the replay with episodes no policy of the run drove.
+So an actor begins its first episode only once it has heard the replay's word.
 
 Nothing that arrives is taken on trust: weights must be in an encoding this build
 reads (float32, or compact float16 or bfloat16, widened to float32 on arrival) and
@@ -66,6 +67,7 @@ HOLD_WHY = {"budget": "the run's step budget is spent",
 log = logging.getLogger("actor")
 
 LATEST_WEIGHTS_TIMEOUT_S = 30.0
+LATEST_WEIGHTS_RETRY_S = 5.0  # asked again while no weights have come: a resuming learner answers late
 REPLAY_WAIT_LOG_S = 10.0
 HOLD_LOG_S = 10.0  # a paced run holds nearly every episode briefly: one line per period counts them
 
@@ -96,6 +98,8 @@ class Mailbox:
         self._heard_weights = False  # a broadcast arrived: the answer to the start-up ask is older
         self.hold_reason = ""  # the replay's word on the next episode: "behind", "budget" or "" (go)
         self.updates_started = False  # the replay's word: updates have started (and it is not refilling)
+        self.heard_rate = threading.Event()  # a rate message was accepted: the replay's word is known
+        self.had_weights = threading.Event()  # weights that fit were accepted at least once
         self.shapes = shapes
         self.rejections = rejections or Rejections(log)
 
@@ -105,6 +109,7 @@ class Mailbox:
         if usable is not None:
             with self._lock:
                 self._weights, self._heard_weights = usable, True
+            self.had_weights.set()
 
     def offer_latest(self, message: Weights) -> None:
         """The learner's answer to the start-up ask: kept unless a broadcast came first."""
@@ -113,6 +118,7 @@ class Mailbox:
             with self._lock:
                 if not self._heard_weights:
                     self._weights = usable
+            self.had_weights.set()
 
     def _usable(self, message) -> Weights | None:
         """The message with its tensors as float32 if it fits the network, else None (counted). Compact
@@ -158,6 +164,7 @@ class Mailbox:
         with self._lock:
             self.hold_reason = reason
             self.updates_started = start >= 0 and not refilling
+        self.heard_rate.set()
 
     def must_hold(self, has_policy: bool = True) -> str:
         """Why the next episode must wait ("" when it may start); no word from a replay: go. Without
@@ -446,14 +453,15 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
         records_out = publisher(session, keys.metrics_source("actor", str(actor_id)))
         stats_out = publisher(session, keys.metrics_source("actor_stats", str(actor_id)))
         threads = [
-            threading.Thread(target=_fetch_latest_weights, args=(session, keys, actor.mailbox), daemon=True),
+            threading.Thread(target=_fetch_latest_weights, args=(session, keys, actor.mailbox, stop), daemon=True),
             threading.Thread(target=outbox.run, args=(episodes_out.put, lambda: replay.alive and episodes_out.matched,
                                                       sending), name="outbox", daemon=True),
             threading.Thread(target=_report_stats, args=(actor, outbox, receivers, stats_out, sending),
                              name="stats", daemon=True)]
         for thread in threads:
             thread.start()
-        _drive(actor, stop, max_episodes, outbox, records_out)
+        if _await_replays_word(actor.mailbox, stop):
+            _drive(actor, stop, max_episodes, outbox, records_out)
         outbox.drain(stop)
         sending.set()
         for thread in threads[1:]:
@@ -482,14 +490,30 @@ def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop
             log.warning("could not publish the actor's stats", exc_info=True)
 
 
+def _await_replays_word(mailbox: Mailbox, stop: threading.Event) -> bool:
+    """Waits for the replay's first rate message, which says whether updates have started: until then
+    an actor cannot tell a fresh run (act at random) from a resumed one (wait for the policy). False if
+    stopped first."""
+    waiting = Every(REPLAY_WAIT_LOG_S)
+    while not mailbox.heard_rate.wait(timeout=0.1):
+        if stop.is_set():
+            return False
+        if waiting.due():
+            log.info("waiting for the replay's word on replay/rate before the first episode")
+    return True
+
+
 def _real(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
 
 
-def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox) -> None:
-    reply = request(session, keys.weights_latest, None, LATEST_WEIGHTS_TIMEOUT_S)
-    if reply is not None:
-        mailbox.offer_latest(reply)
+def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox, stop: threading.Event) -> None:
+    """Asks the learner for its latest weights, and again while none have come by any way."""
+    while not stop.is_set() and not mailbox.had_weights.is_set():
+        reply = request(session, keys.weights_latest, None, LATEST_WEIGHTS_TIMEOUT_S)
+        if reply is not None:
+            mailbox.offer_latest(reply)
+        stop.wait(LATEST_WEIGHTS_RETRY_S)
 
 
 def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, records_out) -> None:

@@ -388,6 +388,9 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
         return request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S)
 
     prefetcher = Prefetcher(fetch, config.batch_size, config.trace_length, config.prefetch, prepare=process.admit)
+    if process.strategy.started:  # resumed past the start: actors hold until they have the policy
+        outputs.weights(process.make_weights())
+        outputs.exploration(process.strategy, force=True)
     batch = _first_batch(process, outputs, prefetcher, stop)
     if batch is None:
         prefetcher.close()
@@ -403,6 +406,11 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
              getattr(batch.batch, "episodes_stored", "?"))  # perhaps refused: train_on counts that
     _warn_if_bmc_starves(process)
     report = Report(process, prefetcher)
+
+    def idle() -> None:  # while no batch comes: the learner is ahead, or the actors hold
+        if heartbeat.due():
+            outputs.metrics(report.values())
+            outputs.exploration(process.strategy, force=True)  # a late actor holds until it has the state
     try:
         while batch is not None:
             loss = process.train_on(batch)
@@ -415,7 +423,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                     process.checkpoint()
             if heartbeat.due():
                 outputs.metrics(report.values())
-            batch = _next_batch(process, prefetcher, stop, lambda: heartbeat.due() and outputs.metrics(report.values()))
+            batch = _next_batch(process, prefetcher, stop, idle)
     finally:
         prefetcher.close()
         outputs.weights(process.make_weights())

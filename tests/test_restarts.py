@@ -120,3 +120,22 @@ def test_a_killed_actor_is_replaced_and_the_replay_keeps_all_it_stored(tmp_path)
                       "stored after": after["episodes"], "inserted after": after["inserted"],
                       "evicted": after["evicted"], "actor incarnations seen": after["episode_sources"],
                       "episodes missing": after["episodes_missing"]})
+
+
+def test_a_stopped_stack_resumes_and_its_actors_drive_only_with_the_learners_policy(tmp_path):
+    with StackRun(tmp_path, "resume", actors=1) as run:
+        run.wait(lambda w: w.updates() >= 5, "updates under way", timeout_s=90)
+        assert run.stop() == 0
+    first_updates = run.summary()["updates"]
+    with StackRun(tmp_path, "resume", actors=1, flags=("--resume",)) as resumed:
+        resumed.wait(lambda w: w.updates() >= first_updates + 5 and len(w.episodes) >= 5,
+                     "the resumed learner and actor at work", timeout_s=120)
+        assert resumed.stop() == 0
+        with resumed.watch.lock:
+            versions = [int(step) for episode in resumed.watch.episodes.values() for step in episode.weights_version]
+    # updates had started before the stop, so no step after the resume may be driven without the learner's
+    # weights (version -1: uniform random actions) while the learner loads its checkpoint
+    assert versions and min(versions) >= 0, sorted(versions)[:20]
+    assert resumed.summary()["updates"] > first_updates
+    report(tmp_path, {"updates before the stop": first_updates, "steps seen after the resume": len(versions),
+                      "lowest weights version after the resume": min(versions)})
