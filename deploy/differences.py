@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import math
+import zlib
 from dataclasses import dataclass
 from itertools import combinations
 from pathlib import Path
@@ -51,11 +52,17 @@ class Difference:
         return math.isfinite(low) and math.isfinite(high) and (low > 0.0 or high < 0.0)
 
 
-def row_replicates(row: ComparisonRow, bootstrap: Bootstrap, stream: int) -> dict[str, np.ndarray]:
+def row_stream(row: ComparisonRow) -> int:
+    """The row's own random stream, named by what it is, so that adding rows to a report leaves the
+    intervals of the others as they were."""
+    return zlib.crc32(f"{row.start_set}/{row.capacity}/{row.strategy}".encode())
+
+
+def row_replicates(row: ComparisonRow, bootstrap: Bootstrap) -> dict[str, np.ndarray]:
     """Every statistic of the row under `bootstrap.replicates` draws of its own random stream."""
     if row.cell is None:
         raise ValueError(f"row {row.strategy!r} has no episodes to resample")
-    rng = np.random.default_rng([bootstrap.seed, stream])
+    rng = np.random.default_rng([bootstrap.seed, row_stream(row)])
     return cell_statistics(row.cell, bootstrap_weights(row.cell.runs, row.cell.starts, bootstrap.replicates, rng))
 
 
@@ -82,7 +89,7 @@ def differences(rows: Sequence[ComparisonRow], bootstrap: Bootstrap | None = Non
     bootstrap = bootstrap or Bootstrap()
     pairs = compared_pairs(rows)
     members = list({id(row): row for pair in pairs for row in pair}.values())
-    replicates = {id(row): row_replicates(row, bootstrap, stream) for stream, row in enumerate(members)}
+    replicates = {id(row): row_replicates(row, bootstrap) for row in members}
     observed = {id(row): observed_statistics(row) for row in members}
     found = []
     for first, second in pairs:

@@ -98,3 +98,12 @@ def test_the_same_rows_give_the_same_intervals():
     first, second = differences(rows, Bootstrap(replicates=300)), differences(rows, Bootstrap(replicates=300))
     assert [(d.interval.low, d.interval.high) for d in first] == [(d.interval.low, d.interval.high) for d in second]
     assert np.isfinite([d.interval.low for d in first if d.statistic != "progress_m"]).all()
+
+
+def test_a_rows_interval_does_not_move_when_other_rows_join_the_report():
+    constant, bmc = row("constant", [[5, 9, 13], [7, 8, 30]]), row("bmc", [[6, 6, 20], [1, 40, 9]])
+    alone = difference_of(differences([constant, bmc], Bootstrap(replicates=300)))
+    joined = differences([row("random", [[1]]), row("softmax", [[3, 4]]), constant, bmc], Bootstrap(replicates=300))
+    (same,) = [d for d in joined if d.statistic == "mean_length" and (d.first.strategy, d.second.strategy)
+               == ("constant", "bmc")]
+    assert (same.interval.low, same.interval.high) == (alone.interval.low, alone.interval.high)
