@@ -460,7 +460,7 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
                              name="stats", daemon=True)]
         for thread in threads:
             thread.start()
-        if _await_replays_word(actor.mailbox, stop):
+        if max_episodes != 0 and _await_replays_word(actor.mailbox, stop):  # 0: nothing to drive, no word needed
             _drive(actor, stop, max_episodes, outbox, records_out)
         outbox.drain(stop)
         sending.set()
