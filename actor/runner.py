@@ -57,7 +57,8 @@ from common.logs import Every
 from common.network import D3RQN
 from common.service import Service
 from common.transport import Keys, publisher, request, subscribe, watch_liveliness
-from common.wire import Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights, WireError
+from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights,
+                         WireError, stat_number)
 
 MEGABYTE = 1 << 20
 HOLD_REASONS = ("", "behind", "budget")  # what the replay's rate message may say
@@ -153,11 +154,11 @@ class Mailbox:
         refused and the last word stands. A replay that gives no start mark has not started updates."""
         values = message.values if isinstance(message, Stats) and message.source == "rate_limiter" else None
         reason = values.get("hold_reason") if values is not None else None
-        start, refilling = ((values.get("start_env_steps", -1.0), values.get("refilling", 0))
-                            if values is not None else (None, None))
-        if reason not in HOLD_REASONS or not (_real(start) and _real(refilling)):
-            shown = (f"hold_reason {reason!r}, start_env_steps {start!r}, refilling {refilling!r}"
-                     if values is not None else f"a {type(message).__name__}")
+        given = {"start_env_steps": -1.0, "refilling": 0, **(values or {})}
+        start, refilling = stat_number(given, "start_env_steps"), stat_number(given, "refilling")
+        if reason not in HOLD_REASONS or start is None or refilling is None:
+            shown = (f"hold_reason {reason!r}, start_env_steps {given['start_env_steps']!r}, refilling "
+                     f"{given['refilling']!r}" if values is not None else f"a {type(message).__name__}")
             self.rejections.reject("rate", f"replay/rate: {shown} (expected a rate_limiter Stats saying "
                                            f"'', 'behind' or 'budget', with numbers for the others)")
             return
@@ -501,10 +502,6 @@ def _await_replays_word(mailbox: Mailbox, stop: threading.Event) -> bool:
         if waiting.due():
             log.info("waiting for the replay's word on replay/rate before the first episode")
     return True
-
-
-def _real(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
 
 
 def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox, stop: threading.Event) -> None:
