@@ -159,6 +159,9 @@ class Progress:
             "env_steps_per_update": ratio,  # achieved, since the start mark
             "env_steps_per_update_configured": config.learner.env_steps_per_update,
             "replay_env_steps_total": _count(replay, "env_steps_total"),
+            # the replay's counters come back with its snapshot, so they count the episodes of a resumed
+            # run's earlier stacks too; "episodes" counts only what this stack saw
+            "replay_episodes_total": _count(replay, "inserted"),
             "episodes": self.episodes,
             "restarts": dict(restarts or {}),
         }

@@ -126,7 +126,8 @@ def test_a_stopped_stack_resumes_and_its_actors_drive_only_with_the_learners_pol
     with StackRun(tmp_path, "resume", actors=1) as run:
         run.wait(lambda w: w.updates() >= 5, "updates under way", timeout_s=90)
         assert run.stop() == 0
-    first_updates = run.summary()["updates"]
+    first = run.summary()
+    first_updates = first["updates"]
     with StackRun(tmp_path, "resume", actors=1, flags=("--resume",)) as resumed:
         resumed.wait(lambda w: w.updates() >= first_updates + 5 and len(w.episodes) >= 5,
                      "the resumed learner and actor at work", timeout_s=120)
@@ -136,6 +137,10 @@ def test_a_stopped_stack_resumes_and_its_actors_drive_only_with_the_learners_pol
     # updates had started before the stop, so no step after the resume may be driven without the learner's
     # weights (version -1: uniform random actions) while the learner loads its checkpoint
     assert versions and min(versions) >= 0, sorted(versions)[:20]
-    assert resumed.summary()["updates"] > first_updates
+    after = resumed.summary()
+    assert after["updates"] > first_updates
+    # the run's episode total carries on from the first stack's, not from 0
+    assert first["replay_episodes_total"] > 0
+    assert after["replay_episodes_total"] > max(first["replay_episodes_total"], after["episodes"])
     report(tmp_path, {"updates before the stop": first_updates, "steps seen after the resume": len(versions),
                       "lowest weights version after the resume": min(versions)})
