@@ -130,7 +130,9 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
                   f"the difference first minus second with a {level} interval of the differences of the two rows' "
                   "bootstrap replicates, the rows drawn independently (deploy/differences.py). Supported: the "
                   "interval leaves out 0. With one run a side it compares two policies, not two strategies. "
-                  f"{DIFFERENCES_CSV} has every statistic.", "", compared]
+                  "Runs apart: every run of one strategy, its statistic on its own episodes, beyond every run of "
+                  "the other; with two seeds a run-level bootstrap narrows, and by chance alone two runs a side "
+                  f"lie apart one time in three. {DIFFERENCES_CSV} has every statistic.", "", compared]
     lines += [f"![{FIGURES[name]}]({name})" for name in figures]
     return "\n".join(lines) + "\n"
 

@@ -90,7 +90,7 @@ def test_the_markdown_names_each_pair_and_says_when_only_the_trials_support_it()
     text = differences_markdown(found)
     assert "### Differences, train set" in text
     line = next(line for line in text.splitlines() if line.startswith("| Constant"))
-    assert "1 vs 1" in line and "+6.00 [+6.00, +6.00]" in line and line.endswith("mean and IQM (trials only) |")
+    assert "1 vs 1" in line and "+6.00 [+6.00, +6.00]" in line and line.endswith("| mean and IQM (trials only) | – |")
 
 
 def test_the_same_rows_give_the_same_intervals():
@@ -107,3 +107,34 @@ def test_a_rows_interval_does_not_move_when_other_rows_join_the_report():
     (same,) = [d for d in joined if d.statistic == "mean_length" and (d.first.strategy, d.second.strategy)
                == ("constant", "bmc")]
     assert (same.interval.low, same.interval.high) == (alone.interval.low, alone.interval.high)
+
+
+def test_runs_lie_apart_only_when_every_run_of_one_side_is_beyond_every_run_of_the_other():
+    # run means 10 and 20 against 15 and 16: pooled +4.5 apart from nothing, but the runs interleave
+    interleaved = difference_of(differences([row("constant", [[10, 10], [20, 20]]), row("bmc", [[15, 15], [16, 16]])],
+                                            Bootstrap(replicates=200)))
+    assert interleaved.observed == pytest.approx(-0.5) and interleaved.runs_apart is False
+    # run means 30 and 40 against 10 and 12: apart, and so is the reverse order of the pair
+    apart = [row("constant", [[30, 30], [40, 40]]), row("bmc", [[10, 10], [12, 12]])]
+    assert difference_of(differences(apart, Bootstrap(replicates=200))).runs_apart is True
+    assert difference_of(differences(apart[::-1], Bootstrap(replicates=200))).runs_apart is True
+    # one run a side: not asked
+    assert difference_of(differences([row("constant", [[30]]), row("bmc", [[10]])])).runs_apart is None
+
+
+def test_runs_apart_uses_each_runs_own_statistic():
+    # IQM per run: run [1, 5, 5, 9] has middle half 5, 5; the pooled IQM would mix the runs' episodes
+    rows = [row("constant", [[1, 5, 5, 9], [2, 6, 6, 40]]), row("bmc", [[3, 3, 3, 3], [4, 4, 4, 4]])]
+    iqm = difference_of(differences(rows, Bootstrap(replicates=200)), "iqm_length")
+    assert iqm.runs_apart is True  # 5 and 6 against 3 and 4
+    mean = difference_of(differences(rows, Bootstrap(replicates=200)))
+    assert mean.runs_apart is True  # 5 and 13.5 against 3 and 4
+
+
+def test_the_markdown_says_whether_the_runs_lie_apart():
+    found = differences([row("constant", [[30, 30], [40, 40]]), row("bmc", [[10, 10], [35, 35]])],
+                        Bootstrap(replicates=200))
+    line = next(line for line in differences_markdown(found).splitlines() if line.startswith("| Constant"))
+    assert "2 vs 2" in line and line.endswith("| no |")
+    single = differences_markdown(differences([row("constant", [[10, 10]]), row("bmc", [[4, 4]])]))
+    assert next(line for line in single.splitlines() if line.startswith("| Constant")).endswith("| – |")
