@@ -168,8 +168,13 @@ def _signed(difference: Difference) -> str:
             if math.isfinite(difference.observed) else "–")
 
 
+def _holding(mean: Difference, iqm: Difference, holds) -> list[str]:
+    """Which of the two statistics `holds`, by name."""
+    return [name for name, difference in (("mean", mean), ("IQM", iqm)) if holds(difference)]
+
+
 def _verdict(mean: Difference, iqm: Difference) -> str:
-    said = [name for name, difference in (("mean", mean), ("IQM", iqm)) if difference.supported]
+    said = _holding(mean, iqm, lambda difference: difference.supported)
     trials_only = " (trials only)" if said and min(mean.first.runs, mean.second.runs) == 1 else ""
     return " and ".join(said) + trials_only if said else "no"
 
@@ -177,5 +182,5 @@ def _verdict(mean: Difference, iqm: Difference) -> str:
 def _apart(mean: Difference, iqm: Difference) -> str:
     if mean.runs_apart is None:
         return "–"
-    said = [name for name, difference in (("mean", mean), ("IQM", iqm)) if difference.runs_apart]
+    said = _holding(mean, iqm, lambda difference: difference.runs_apart)
     return " and ".join(said) if said else "no"
