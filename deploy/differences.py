@@ -86,8 +86,9 @@ def run_statistics(row: ComparisonRow) -> dict[str, np.ndarray]:
 
 
 def lie_apart(first: np.ndarray, second: np.ndarray) -> bool | None:
-    """Every value of one side beyond every value of the other (None unless each side has two or more)."""
-    if min(len(first), len(second)) < 2:
+    """Every value of one side beyond every value of the other (None unless each side has two or more, or
+    when a run's value is missing: a NaN cannot be placed, so the question is not asked)."""
+    if min(len(first), len(second)) < 2 or np.isnan(first).any() or np.isnan(second).any():
         return None
     return bool(first.min() > second.max() or first.max() < second.min())
 

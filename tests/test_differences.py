@@ -8,7 +8,7 @@ import pytest
 from actor.evaluation.intervals import Bootstrap
 from actor.evaluation.stats import EvaluationEpisode, episode_cell, summarise
 from deploy.comparison import ComparisonRow
-from deploy.differences import compared_pairs, differences, differences_markdown, observed_statistics
+from deploy.differences import compared_pairs, differences, differences_markdown, lie_apart, observed_statistics
 
 
 def episode(length: int, start_set: str = "train", start_index: int = 0, trial: int = 0) -> EvaluationEpisode:
@@ -120,6 +120,12 @@ def test_runs_lie_apart_only_when_every_run_of_one_side_is_beyond_every_run_of_t
     assert difference_of(differences(apart[::-1], Bootstrap(replicates=200))).runs_apart is True
     # one run a side: not asked
     assert difference_of(differences([row("constant", [[30]]), row("bmc", [[10]])])).runs_apart is None
+
+
+def test_runs_with_a_missing_statistic_are_not_placed_apart_or_together():
+    assert lie_apart(np.array([30.0, np.nan]), np.array([10.0, 12.0])) is None
+    assert lie_apart(np.array([30.0, 40.0]), np.array([np.nan, 12.0])) is None
+    assert lie_apart(np.array([30.0, 40.0]), np.array([10.0, 12.0])) is True
 
 
 def test_runs_apart_uses_each_runs_own_statistic():
