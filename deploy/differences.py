@@ -85,6 +85,20 @@ def run_statistics(row: ComparisonRow) -> dict[str, np.ndarray]:
     return cell_statistics(row.cell, weights)
 
 
+def chance_apart(first_runs: int, second_runs: int) -> float:
+    """How often runs lie apart by chance alone, with no difference between the strategies: of the ways to
+    order n + m exchangeable values, the 2 that put one side wholly above the other (2 n! m! / (n + m)!)."""
+    return 2 / math.comb(first_runs + second_runs, first_runs)
+
+
+def chances_apart(found: Sequence[Difference]) -> str:
+    """The chance of lying apart for each count of runs that the differences compare, in words."""
+    counts = sorted({(d.first.runs, d.second.runs) for d in found if d.runs_apart is not None}, key=sorted)
+    said = {tuple(sorted(pair)): f"{min(pair)} against {max(pair)} one time in {round(1 / chance_apart(*pair))}"
+            for pair in counts}
+    return "; ".join(said.values())
+
+
 def lie_apart(first: np.ndarray, second: np.ndarray) -> bool | None:
     """Every value of one side beyond every value of the other (None unless each side has two or more, or
     when a run's value is missing: a NaN cannot be placed, so the question is not asked)."""

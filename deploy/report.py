@@ -23,7 +23,8 @@ from actor.evaluation.protocol import bootstrap_of
 from actor.evaluation.report import bin_labels
 from deploy.comparison import (PRIVILEGED, RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow,
                                comparison_markdown, comparison_rows, write_comparison_csv)
-from deploy.differences import DIFFERENCES_CSV, Difference, differences, differences_markdown, write_differences_csv
+from deploy.differences import (DIFFERENCES_CSV, Difference, chances_apart, differences, differences_markdown,
+                                write_differences_csv)
 from deploy.performance_profile import plot_performance_profiles
 from deploy.run_results import ExportedRun, ExportError, collect
 from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
@@ -131,8 +132,9 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
                   "bootstrap replicates, the rows drawn independently (deploy/differences.py). Supported: the "
                   "interval leaves out 0. With one run a side it compares two policies, not two strategies. "
                   "Runs apart: every run of one strategy, its statistic on its own episodes, beyond every run of "
-                  "the other; with two seeds a run-level bootstrap narrows, and by chance alone two runs a side "
-                  f"lie apart one time in three. {DIFFERENCES_CSV} has every statistic.", "", compared]
+                  "the other; with two seeds a run-level bootstrap narrows. By chance alone runs lie apart "
+                  f"{chances_apart(found) or 'with one run a side: never asked'}. {DIFFERENCES_CSV} has every "
+                  "statistic.", "", compared]
     lines += [f"![{FIGURES[name]}]({name})" for name in figures]
     return "\n".join(lines) + "\n"
 

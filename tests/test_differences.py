@@ -8,7 +8,8 @@ import pytest
 from actor.evaluation.intervals import Bootstrap
 from actor.evaluation.stats import EvaluationEpisode, episode_cell, summarise
 from deploy.comparison import ComparisonRow
-from deploy.differences import compared_pairs, differences, differences_markdown, lie_apart, observed_statistics
+from deploy.differences import (chance_apart, chances_apart, compared_pairs, differences, differences_markdown, lie_apart,
+                                observed_statistics)
 
 
 def episode(length: int, start_set: str = "train", start_index: int = 0, trial: int = 0) -> EvaluationEpisode:
@@ -126,6 +127,16 @@ def test_runs_with_a_missing_statistic_are_not_placed_apart_or_together():
     assert lie_apart(np.array([30.0, np.nan]), np.array([10.0, 12.0])) is None
     assert lie_apart(np.array([30.0, 40.0]), np.array([np.nan, 12.0])) is None
     assert lie_apart(np.array([30.0, 40.0]), np.array([10.0, 12.0])) is True
+
+
+def test_the_chance_of_runs_lying_apart_counts_orderings():
+    # two a side: of the 6 orderings of 4 values, aabb and bbaa; two against three: 2 of 10; three a side: 2 of 20
+    assert chance_apart(2, 2) == pytest.approx(1 / 3)
+    assert chance_apart(2, 3) == chance_apart(3, 2) == pytest.approx(1 / 5)
+    assert chance_apart(3, 3) == pytest.approx(1 / 10)
+    found = differences([row("constant", [[30, 30], [40, 40]]), row("bmc", [[10, 10], [12, 12], [14, 14]]),
+                         row("softmax", [[5, 6], [7, 8]])], Bootstrap(replicates=50))
+    assert chances_apart(found) == "2 against 2 one time in 3; 2 against 3 one time in 5"
 
 
 def test_runs_apart_uses_each_runs_own_statistic():
