@@ -93,10 +93,9 @@ def chance_apart(first_runs: int, second_runs: int) -> float:
 
 def chances_apart(found: Sequence[Difference]) -> str:
     """The chance of lying apart for each count of runs that the differences compare, in words."""
-    counts = sorted({(d.first.runs, d.second.runs) for d in found if d.runs_apart is not None}, key=sorted)
-    said = {tuple(sorted(pair)): f"{min(pair)} against {max(pair)} one time in {round(1 / chance_apart(*pair))}"
-            for pair in counts}
-    return "; ".join(said.values())
+    counts = sorted({tuple(sorted((d.first.runs, d.second.runs))) for d in found if d.runs_apart is not None})
+    return "; ".join(f"{fewer} against {more} one time in {round(1 / chance_apart(fewer, more))}"
+                     for fewer, more in counts)
 
 
 def lie_apart(first: np.ndarray, second: np.ndarray) -> bool | None:
