@@ -12,8 +12,10 @@ convolutions and the LSTM's input projection, 95% of the pass's FLOPs and 91%
 of the weights it reads, take bfloat16 inputs and weights; the
 recurrent product, the LSTM's state and the dueling head stay float32. On a CPU
 with AMX the pass is 2.6-3.2x faster at 16-64 slots; on one without bfloat16
-units it may be slower, which "auto" finds by timing both at start. The evaluation always acts in
-float32: it measures the policy the learner trained.
+units it may be slower, which "auto" finds by timing both at start. Where the CPU
+cannot run bfloat16 at all (common/cpu_capability.py), "auto" acts in float32 with
+a log line and an explicit "bfloat16" is refused at start. The evaluation always
+acts in float32: it measures the policy the learner trained.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import time
 import numpy as np
 import torch
 
+from common import cpu_capability
 from common.config import INFERENCE_PRECISIONS
 from common.network import CONV_LAYERS, D3RQN, conv_relu, fused_relu_convolution_available, load_numpy_weights
 
@@ -130,12 +133,18 @@ def step_seconds(network: D3RQN, n_slots: int, precision: str, rounds: int = AUT
     return statistics.median(seconds)
 
 
-def choose_precision(network: D3RQN, n_slots: int, requested: str) -> str:
-    """The precision to act in: as configured, or for "auto" bfloat16 where it times clearly faster here."""
+def choose_precision(network: D3RQN, n_slots: int, requested: str, option: str = "actor.inference") -> str:
+    """The precision to act in: as configured, or for "auto" bfloat16 where it runs and times clearly faster
+    here. An explicit bfloat16 this CPU cannot run raises cpu_capability.PrecisionUnavailable."""
     if requested not in INFERENCE_PRECISIONS:
         raise ValueError(f"inference precision must be one of {', '.join(INFERENCE_PRECISIONS)}, got {requested!r}")
     if requested != "auto":
+        cpu_capability.require_precision(option, requested)
         return requested
+    problem = cpu_capability.bfloat16_problem()
+    if problem is not None:
+        log.info("%s auto: float32, since bfloat16 cannot run here (%s)", option, problem)
+        return "float32"
     float32_s, bfloat16_s = (step_seconds(network, n_slots, precision) for precision in ("float32", "bfloat16"))
     chosen = "bfloat16" if float32_s > AUTO_MIN_SPEEDUP * bfloat16_s else "float32"
     log.info("inference %s: a step of %d simulators took %.2f ms in float32 and %.2f ms in bfloat16 (CPU time)",

@@ -17,7 +17,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-episodes", type=int, default=None,
                         help="stop after this many episodes (default: run until stopped)")
     args, config = parse_service_args(parser, argv)
-    from actor.runner import run_actor  # here, so that --help does not wait for torch
+    from common.cpu_capability import exit_if_unrunnable  # here, so that --help does not wait for torch
+    exit_if_unrunnable(parser.prog, {"actor.inference": config.actor.inference})
+    from actor.runner import run_actor
     run_actor(config, max_episodes=args.max_episodes)
 
 

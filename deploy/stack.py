@@ -34,6 +34,7 @@ import time
 from collections import deque
 
 from common.config import Config, add_config_arguments, parse_config_or_exit, to_toml
+from common.cpu_capability import exit_if_unrunnable
 from common.eta import Eta
 from common.run_dir import RunDir, RunStatus
 from common.transport import Keys, free_port, open_session, subscribe
@@ -332,6 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args, config = parse_config_or_exit(build_parser(), argv)
+    exit_if_unrunnable("deploy/run.sh", {"actor.inference": config.actor.inference})  # its actors run here
     if args.tensorboard and not config.record.enabled:
         print("deploy/run.sh: --tensorboard needs the recorder, but record.enabled is false", file=sys.stderr)
         return 2

@@ -1,5 +1,7 @@
 """The actor's bfloat16 forward pass (actor.inference): the float32 pass's function within bfloat16's rounding,
-state kept per slot, weights refreshed on load, and "auto" choosing by the timing it measures."""
+state kept per slot, weights refreshed on load, "auto" choosing by the timing it measures, and both
+falling back or refusing where the CPU cannot run bfloat16. The tests that run the bfloat16 pass skip, with
+the reason, on such a CPU; the fallback tests run everywhere, with the probe made to report bfloat16 absent."""
 
 import numpy as np
 import pytest
@@ -8,10 +10,12 @@ import torch
 import actor.batched_q as batched_q_module
 from actor.batched_q import BatchedQ, choose_precision
 from actor.runner import Actor
+from common import cpu_capability
 from common.config import ConfigError, load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire import Weights
+from tests.cpu_support import needs_bfloat16
 
 SLOTS = 4
 
@@ -44,6 +48,7 @@ def relative_error(got: torch.Tensor, expected: torch.Tensor) -> float:
     return float((got - expected).abs().max() / expected.abs().max())
 
 
+@needs_bfloat16
 def test_bfloat16_steps_follow_float32_within_rounding_with_a_state_per_slot():
     config = smoke_config()
     exact, compact = pair(config)
@@ -62,6 +67,7 @@ def test_bfloat16_steps_follow_float32_within_rounding_with_a_state_per_slot():
     assert compact.hidden[0, 1].abs().sum() > 0  # slot 1 ran again after its reset
 
 
+@needs_bfloat16
 def test_bfloat16_greedy_actions_agree_with_float32_on_nearly_all_frames():
     config = smoke_config()
     exact, compact = pair(config, seed=2)
@@ -76,6 +82,7 @@ def test_bfloat16_greedy_actions_agree_with_float32_on_nearly_all_frames():
     assert agree / total >= 0.9
 
 
+@needs_bfloat16
 def test_loading_weights_replaces_the_bfloat16_copies():
     config = smoke_config()
     exact, compact = pair(config, seed=0)
@@ -86,6 +93,7 @@ def test_loading_weights_replaces_the_bfloat16_copies():
     assert relative_error(compact.q_values(list(range(SLOTS)), observations), expected) < 0.03
 
 
+@needs_bfloat16
 def test_refused_weights_change_neither_copy():
     config = smoke_config()
     _, compact = pair(config)
@@ -100,6 +108,7 @@ def test_refused_weights_change_neither_copy():
 
 def test_auto_takes_bfloat16_only_when_it_times_clearly_faster(monkeypatch):
     network = D3RQN(smoke_config().network)
+    monkeypatch.setattr(cpu_capability, "bfloat16_problem", lambda: None)  # this test is about the timing
     timings = {}
     monkeypatch.setattr(batched_q_module, "step_seconds", lambda net, slots, precision: timings[precision])
     timings.update(float32=1.0, bfloat16=0.4)
@@ -114,12 +123,14 @@ def test_auto_takes_bfloat16_only_when_it_times_clearly_faster(monkeypatch):
         choose_precision(network, SLOTS, "int8")
 
 
+@needs_bfloat16
 def test_step_seconds_times_each_precision():
     network = D3RQN(smoke_config().network)
     for precision in ("float32", "bfloat16"):
         assert 0 < batched_q_module.step_seconds(network, 2, precision, rounds=2) < 5
 
 
+@needs_bfloat16
 def test_an_actor_configured_for_bfloat16_acts_with_the_compact_pass():
     config = smoke_config(**{"actor.inference": "bfloat16", "actor.envs_per_actor": 2})
     actor = Actor(config, 0)
@@ -142,3 +153,30 @@ def test_an_actor_configured_for_bfloat16_acts_with_the_compact_pass():
 def test_an_unknown_inference_precision_is_a_config_error():
     with pytest.raises(ConfigError, match="inference"):
         smoke_config(**{"actor.inference": "int8"})
+
+
+ABSENT = "this CPU (a test's) lacks the avx512bw+avx512vl+avx512dq or avx_ne_convert instructions"
+
+
+def test_auto_falls_back_to_float32_with_one_log_line_where_bfloat16_cannot_run(monkeypatch, caplog):
+    monkeypatch.setattr(cpu_capability, "bfloat16_problem", lambda: ABSENT)
+    monkeypatch.setattr(batched_q_module, "step_seconds", lambda *_: pytest.fail("auto timed a precision"))
+    with caplog.at_level("INFO", logger="actor"):
+        assert choose_precision(D3RQN(smoke_config().network), SLOTS, "auto") == "float32"
+    said = [record.getMessage() for record in caplog.records]
+    assert len(said) == 1 and "actor.inference auto: float32" in said[0] and ABSENT in said[0]
+
+
+def test_an_actor_configured_auto_acts_in_float32_where_bfloat16_cannot_run(monkeypatch):
+    monkeypatch.setattr(cpu_capability, "bfloat16_problem", lambda: ABSENT)
+    actor = Actor(smoke_config(**{"actor.inference": "auto", "actor.envs_per_actor": 2}), 0)
+    assert actor.batched_q.precision == "float32"
+
+
+def test_an_explicit_bfloat16_is_refused_where_it_cannot_run(monkeypatch):
+    monkeypatch.setattr(cpu_capability, "bfloat16_problem", lambda: ABSENT)
+    network = D3RQN(smoke_config().network)
+    with pytest.raises(cpu_capability.PrecisionUnavailable, match=r"^actor.inference = bfloat16 cannot run here: "
+                                                                  r"this CPU \(a test's\) lacks"):
+        choose_precision(network, SLOTS, "bfloat16")
+    assert choose_precision(network, SLOTS, "float32") == "float32"

@@ -36,6 +36,7 @@ import torch
 
 from actor.evaluation.episodes import GreedyPolicy
 from actor.runner import Actor
+from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.config import Config
 from common.exploration import exploration_message, make_strategy
 from common.network import weights_to_numpy
@@ -85,13 +86,18 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="rounds; every measurement once per round")
     parser.add_argument("--seconds", type=float, default=4.0, help="time per measurement")
     args = parser.parse_args()
+    print(f"CPU: {describe_cpu()}", flush=True)
     cpu = one_core()
     config = Config()
     print(f"pinned to CPU {cpu}, {torch.get_num_threads()} torch thread, torch {torch.__version__}; paper's "
           f"network ({config.network.frame_height}x{config.network.frame_width}x{config.network.frame_channels}, "
           f"LSTM {config.network.lstm_units}), strategy {config.exploration.strategy}, env.max_steps "
           f"{config.env.max_steps}", flush=True)
-    cases = [(int(envs), inference) for envs in args.envs.split(",") for inference in args.inference.split(",")]
+    inferences = args.inference.split(",")
+    if "bfloat16" in inferences and bfloat16_problem() is not None:
+        inferences.remove("bfloat16")
+        print(f"skipping bfloat16: {bfloat16_problem()}", flush=True)
+    cases = [(int(envs), inference) for envs in args.envs.split(",") for inference in inferences]
     actors = {case: acting_actor(config, *case) for case in cases}
     networks = {case: GreedyPolicy(actor.network, case[0], actor.batched_q.precision)
                 for case, actor in actors.items()}

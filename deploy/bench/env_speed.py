@@ -34,6 +34,7 @@ import numpy as np
 
 from actor.sim.env import NeighbourhoodEnv
 from actor.sim.privileged import PrivilegedDriver
+from common.cpu_capability import describe_cpu
 from common.config import EnvConfig
 
 GRAYSCALE = {"type": "GrayscaleObservation", "observation_shape": (200, 66), "stack_size": 1,
@@ -119,6 +120,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20_000, help="steps for our env")
     parser.add_argument("--highway-steps", type=int, default=1_000, help="steps for highway-env's renderer")
     args = parser.parse_args()
+    print(f"CPU: {describe_cpu()}", flush=True)
     cpu = one_core()
     front = NeighbourhoodEnv(EnvConfig(camera="front"))
     topdown = NeighbourhoodEnv(EnvConfig(camera="topdown"))

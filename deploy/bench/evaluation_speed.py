@@ -32,6 +32,7 @@ import torch
 from actor.evaluation.episodes import (GreedyPolicy, PrivilegedPolicy, episode_jobs, evaluation_env_config,
                                        run_lockstep)
 from actor.sim import START_SETS, make_env, start_poses
+from common.cpu_capability import describe_cpu
 from common.config import Config
 from env_speed import one_core  # deploy/bench is this script's directory
 from learner.update import DoubleQLearner
@@ -85,6 +86,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=3.0, help="time per inference measurement")
     parser.add_argument("--cap", type=int, default=300, help="steps per lockstep episode (the rate does not depend on it)")
     args = parser.parse_args()
+    print(f"CPU: {describe_cpu()}", flush=True)
     cpu = one_core()
     paper = Config().evaluation  # the protocol being estimated
     config = Config()

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from common.config import Config, add_config_arguments, parse_config_or_exit
+from common.cpu_capability import describe_cpu
 from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device, scale_frames
 from common.wire import FrameStack
 from learner.flops import conv_features, conv_multiply_adds, update_flops
@@ -418,18 +419,7 @@ def bench_actor_steps(config: Config, steps: int, repeats: int) -> list[float]:
 
 
 def describe_machine(device: torch.device) -> str:
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    model, flags = "unknown CPU", set()
-    with contextlib.suppress(OSError):
-        with open("/proc/cpuinfo") as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith("model name") and model == "unknown CPU":
-                    model = line.split(":", 1)[1].strip()
-                elif line.startswith("flags") and not flags:
-                    flags = set(line.split(":", 1)[1].split())
-    wanted = ["avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_tile"]
-    return f"{model}; {' '.join(flag for flag in wanted if flag in flags) or 'no AVX flags read'}"
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else describe_cpu()
 
 
 def main(argv: list[str] | None = None) -> None:

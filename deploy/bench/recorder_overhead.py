@@ -24,6 +24,7 @@ import tempfile
 import threading
 from pathlib import Path
 
+from common.cpu_capability import describe_cpu
 from common.config import TransportConfig
 from common.run_dir import RunDir
 from common.transport import Keys, free_port, loopback_endpoint, open_session, subscribe
@@ -118,6 +119,7 @@ def main() -> None:
     argv = sys.argv[1:]
     extra = argv[argv.index("--") + 1:] if "--" in argv else []
     args = parser.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    print(f"CPU: {describe_cpu()}", flush=True)
     print(f"stack: smoke preset, 1 actor, {args.steps:,d} env steps measured per run, {args.rounds} rounds"
           + (f", stack flags {' '.join(extra)}" if extra else ""), flush=True)
     with tempfile.TemporaryDirectory() as runs_dir:

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from actor.sim import make_env
+from common.cpu_capability import describe_cpu
 from common.config import load_config
 from common.wire import Episode, FrameStack, check_episode
 from replay.service import ReplayService
@@ -127,6 +128,7 @@ def main() -> None:
     parser.add_argument("--sample-rate", type=float, default=100.0,
                         help="trace batches per second under load (the paper's learner takes about 7)")
     args = parser.parse_args()
+    print(f"CPU: {describe_cpu()}", flush=True)
     directory = Path(tempfile.mkdtemp(prefix="snapshot-bench-"))
     try:
         config = load_config("paper", overrides={"replay.capacity": args.episodes, "run.runs_dir": str(directory),

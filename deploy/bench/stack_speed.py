@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from actor.runner import Actor
+from common.cpu_capability import describe_cpu
 from common.config import Config, TransportConfig, add_config_arguments, parse_config_or_exit, to_toml
 from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
 from common.wire import Stats, TraceBatch, TraceBatchRequest
@@ -146,6 +147,7 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=2, help="parallel query threads for the replay part")
     add_config_arguments(parser)
     args, config = parse_config_or_exit(parser)
+    print(f"CPU: {describe_cpu()}", flush=True)
     config.learner.start_episodes = min(config.learner.start_episodes, 50)  # both sides: a short fill
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; B={config.learner.batch_size} "
           f"T={config.learner.trace_length}, LSTM {config.network.lstm_units}, "

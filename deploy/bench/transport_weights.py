@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from common.cpu_capability import describe_cpu
 from common.config import NetworkConfig, TransportConfig
 from common.transport import (Keys, SharedMemory, loopback_endpoint, open_session, publisher, request, serve,
                               subscribe)
@@ -124,6 +125,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--subscribers", type=int, nargs="+", default=[1, 2, 4])
     args = parser.parse_args()
+    print(f"CPU: {describe_cpu()}", flush=True)
     tensors = d3rqn_tensors(NetworkConfig(), np.random.default_rng(0))
     print(f"{sum(t.size for t in tensors.values()):,} float32 parameters; load average at start "
           f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; medians of {args.repeats}")

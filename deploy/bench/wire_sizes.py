@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
+from common.cpu_capability import describe_cpu
 from common.config import NetworkConfig
 from common.wire import (
     Episode, EpisodeRecord, ExplorationState, FrameStack, Heartbeat, Stats, TraceBatch,
@@ -128,6 +129,7 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=1.0, help="std of the pixel noise of synthetic frames (default 1)")
     parser.add_argument("--repeats", type=int, default=20)
     args = parser.parse_args()
+    print(f"CPU: {describe_cpu()}", flush=True)
     rng = np.random.default_rng(0)
     network = NetworkConfig()
     if args.frames_from:
