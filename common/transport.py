@@ -194,7 +194,7 @@ class Keys:
 # --- logging and closing ---------------------------------------------------------------------
 
 class RateLimitedLog:
-    """A warning at most once per period; the next one says how many were suppressed."""
+    """A log line at most once per period; the next one says how many were suppressed."""
 
     def __init__(self, period_s: float = LOG_PERIOD_S, clock: Callable[[], float] = time.monotonic) -> None:
         self.period_s = period_s
@@ -204,6 +204,12 @@ class RateLimitedLog:
         self._lock = threading.Lock()
 
     def warning(self, message: str, *args: Any, exc_info: bool = False) -> None:
+        self._log(logging.WARNING, message, *args, exc_info=exc_info)
+
+    def info(self, message: str, *args: Any) -> None:
+        self._log(logging.INFO, message, *args)
+
+    def _log(self, level: int, message: str, *args: Any, exc_info: bool = False) -> None:
         with self._lock:
             now = self._clock()
             if now - self._last < self.period_s:
@@ -212,7 +218,7 @@ class RateLimitedLog:
             suppressed, self._suppressed, self._last = self._suppressed, 0, now
         if suppressed:
             message += f" ({suppressed} similar suppressed)"
-        log.warning(message, *args, exc_info=exc_info)
+        log.log(level, message, *args, exc_info=exc_info)
 
 
 class Declared:

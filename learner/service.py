@@ -48,16 +48,15 @@ log = logging.getLogger("learner")
 SAMPLE_TIMEOUT_S = 30.0
 IDLE_POLL_S = 0.05
 WAIT_LOG_S = 10.0
-# Once the budget is paid for, the learner waits this long for episodes still in flight (an actor
-# that started one before it heard the budget was spent) and pays for them too before it stops.
-FINISH_GRACE_S = 2.0
 MAX_FAILED_IN_A_ROW = 20  # updates that raise on consecutive batches: the learner itself is at fault; it stops
 
 
 class RunClock:
-    """The run's env steps and start mark as the replay counts them, and the updates they pay for.
+    """The run's env steps, start mark and close as the replay counts them, and the updates they pay for.
 
-    Reports arrive from batches and two replay keys, not in order, so the count only grows.
+    Reports arrive from batches and two replay keys, not in order, so the count only grows. The learner
+    stops once the replay has closed the run (budget spent, every update it pays for served, no more
+    episodes taken: replay/rate_limiter.py) and its updates pay for every step the replay took.
     """
 
     def __init__(self, env_steps_per_update: float, error_buffer: float) -> None:
@@ -65,12 +64,14 @@ class RunClock:
         self.error_buffer = error_buffer
         self.env_steps = 0  # env steps of the whole system, as the replay last reported them
         self.start_env_steps: float | None = None  # the replay's start mark
-        self.finish_line: float | None = None  # updates at which the learner stops once the budget is spent
+        self.closed = False  # the replay's word: it takes no more episodes
 
-    def observe(self, env_steps: int, start_env_steps: float | None = None) -> None:
+    def observe(self, env_steps: int, start_env_steps: float | None = None, closed: bool | None = None) -> None:
         self.env_steps = max(self.env_steps, int(env_steps))
         if start_env_steps is not None and start_env_steps >= 0:
             self.start_env_steps = float(start_env_steps)
+        if closed is not None:
+            self.closed = closed
 
     def updates_due(self) -> float | None:
         if self.start_env_steps is None:
@@ -83,19 +84,14 @@ class RunClock:
         return (self.env_steps - self.start_env_steps) / updates
 
     def finished(self, updates: int, total_env_steps: int) -> bool:
-        """Budget spent and its steps paid for: updates >= due, or, if actors keep outrunning the
-        learner, B updates past what was due when the budget was first seen spent. An unpaced run
-        (B at least the updates the whole budget pays for: nobody is ever held) ends at the budget."""
-        if self.env_steps < total_env_steps:
+        """The run is closed and its steps paid for (updates >= due). An unpaced run (B at least the updates
+        the whole budget pays for: nobody is ever held) ends once closed, at the budget."""
+        if not self.closed or self.env_steps < total_env_steps:
             return False
         if self.error_buffer >= total_env_steps / self.env_steps_per_update:
             return True
         due = self.updates_due()
-        if due is None:
-            return False
-        if self.finish_line is None:
-            self.finish_line = max(due, updates) + self.error_buffer
-        return updates >= due or updates >= self.finish_line
+        return due is not None and updates >= due
 
     def state_dict(self) -> dict:
         # Checkpoint.env_steps reads "env_steps": the grid runner and evaluate ask it how far a run got.
@@ -168,18 +164,18 @@ class LearnerProcess:
     # --- inputs from Zenoh callbacks ----------------------------------------------------
 
     def on_replay_stats(self, stats: Stats, key: str = "") -> None:
-        if self._replay_numbers(stats, "replay", "env_steps_total", "rate_start_env_steps", "stats"):
+        if self._replay_numbers(stats, "replay", "env_steps_total", "rate_", "stats"):
             episodes = stat_number(stats.values, "episodes", integer=True, minimum=0)
             if episodes is not None:
                 with self._lock:
                     self.episodes_stored = episodes
 
     def on_replay_rate(self, stats: Stats, key: str = "") -> None:
-        self._replay_numbers(stats, "rate_limiter", "env_steps", "start_env_steps", "rate")
+        self._replay_numbers(stats, "rate_limiter", "env_steps", "", "rate")
 
-    def _replay_numbers(self, stats, source: str, steps_name: str, mark_name: str, door: str) -> bool:
-        """Observes the env steps and start mark of a replay message; False (counted) if they are
-        missing, of the wrong type or absurd."""
+    def _replay_numbers(self, stats, source: str, steps_name: str, prefix: str, door: str) -> bool:
+        """Observes the env steps, and the rate limiter's start mark and close (named with `prefix`), of a
+        replay message; False (counted) if they are missing, of the wrong type or absurd."""
         if not isinstance(stats, Stats) or stats.source != source:
             shown = f"source {stats.source!r}" if isinstance(stats, Stats) else f"a {type(stats).__name__}"
             self.rejections.reject(f"{door}_wrong_type", f"{shown} on replay/{door}, expected a {source} Stats")
@@ -190,6 +186,7 @@ class LearnerProcess:
                                    f"{stats.values.get(steps_name)!r} is missing, not a count, or more than "
                                    f"{self.max_env_steps} (budget plus a full buffer)")
             return False
+        mark_name, closed_name = f"{prefix}start_env_steps", f"{prefix}closed"
         mark = stats.values.get(mark_name)
         if mark is not None and mark != -1:  # -1: updates have not started
             mark = stat_number(stats.values, mark_name, minimum=0, maximum=env_steps)
@@ -197,10 +194,14 @@ class LearnerProcess:
                 self.rejections.reject(f"{door}_values", f"replay/{door}: {mark_name} "
                                        f"{stats.values.get(mark_name)!r} is not a number in [0, {env_steps}]")
                 return False
-        self._observe(env_steps, mark)
+        closed = stats.values.get(closed_name, 0)
+        if closed not in (0, 1) or isinstance(closed, float):
+            self.rejections.reject(f"{door}_values", f"replay/{door}: {closed_name} {closed!r} is not 0 or 1")
+            return False
+        self._observe(env_steps, mark, bool(closed))
         return True
 
-    def _observe(self, env_steps: int, start_env_steps: float | None = None) -> None:
+    def _observe(self, env_steps: int, start_env_steps: float | None = None, closed: bool | None = None) -> None:
         mark = start_env_steps if isinstance(start_env_steps, (int, float)) and start_env_steps >= 0 else None
         with self._lock:
             resumed = self._resumed_env_steps
@@ -211,7 +212,7 @@ class LearnerProcess:
                                 "without --resume and lost the run's counters; the step budget now waits for "
                                 "its new count", env_steps, resumed)
                     self.clock.env_steps = 0
-            self.clock.observe(int(env_steps), mark)
+            self.clock.observe(int(env_steps), mark, closed)
 
     def serve_latest_weights(self, request_message) -> Weights | None:
         """A query without payload gets the latest weights; one carrying a message is refused."""
@@ -435,18 +436,10 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
 
 
 def _next_batch(process: LearnerProcess, prefetcher: Prefetcher, stop: threading.Event, idle) -> Admitted | None:
-    """The next batch, or None when stopped or when the budget is paid for and stays so for
-    FINISH_GRACE_S; idle() runs while waiting."""
-    paid_since = None
+    """The next batch, or None when stopped or when the closed run is paid for; idle() runs while waiting."""
     while not stop.is_set():
         if process.finished():
-            paid_since = paid_since or time.monotonic()
-            if time.monotonic() - paid_since >= FINISH_GRACE_S:
-                return None
-            idle()
-            stop.wait(IDLE_POLL_S)
-            continue
-        paid_since = None
+            return None
         batch = prefetcher.next(stop, timeout_s=IDLE_POLL_S * 10)
         if batch is not None:
             return batch

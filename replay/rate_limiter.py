@@ -18,7 +18,13 @@ only place that counts both:
   after the start mark (episodes still in flight when it was reached, the
   random phase's last episodes) are owed like any others.
 - Once the run's step budget is reached, actors are held for good, so the
-  learner can pay for the last steps and stop on the configured ratio.
+  learner can pay for the last steps and stop on the configured ratio. Episodes
+  still in flight then keep arriving and are owed like any others, until the
+  learner has been served every update they paid for: then the run is *closed*.
+  A closed run takes no more episodes (the replay refuses and counts them), so
+  what the learner pays for is final, however long the episodes in flight are.
+  An unpaced run (B at least the updates the whole budget pays for) closes at
+  the budget.
 
 An episode is inserted whole, so the actors' hold acts at episode boundaries:
 the learner can fall behind by B plus the episodes in flight, never more.
@@ -161,6 +167,18 @@ class RateLimiter:
         total = self.limit.total_env_steps
         return total is not None and self.env_steps >= total
 
+    @property
+    def unpaced(self) -> bool:
+        """B holds nobody: at least the updates the whole budget pays for."""
+        total = self.limit.total_env_steps
+        return total is not None and self.limit.error_buffer >= total / self.limit.env_steps_per_update
+
+    @property
+    def closed(self) -> bool:
+        """Budget spent and every update its steps paid for served: no episode is taken any more."""
+        return (self.budget_spent and self.started and not self.refilling
+                and (self.unpaced or self.served >= self.updates_due))
+
     def hold_reason(self) -> str:
         """Why actors must hold their next episode: "behind", "budget", or "" (go on)."""
         if self.budget_spent:
@@ -212,6 +230,7 @@ class RateLimiter:
             "start_env_steps": -1.0 if self.start_mark is None else self.start_mark,
             "hold_actors": 1 if self.hold_reason() else 0,
             "hold_reason": self.hold_reason(),
+            "closed": 1 if self.closed else 0,
             "refilling": 1 if self.refilling else 0,
             "refill_env_steps": self.refill_env_steps,
             "lost_updates": self.lost_updates,

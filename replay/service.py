@@ -94,7 +94,7 @@ class ReplayService:
         self.learner_strategy: str | None = None
         self._measured = False
         self._warn_budget = RateLimitedLog(60.0)
-        self._announced: tuple[str, int] | None = None  # the hold reason and env steps last published on replay/rate
+        self._announced: tuple[str, int, bool] | None = None  # hold reason, env steps, closed: last on replay/rate
         self.shape = RunShape.of(config)
         self.ledger = EpisodeLedger()
         self.rejections = Rejections(log)
@@ -105,6 +105,9 @@ class ReplayService:
         self.snapshot_taken: float | None = None  # time.time() of the last snapshot's view
         self.restored_episodes = 0
         self.restore_skipped = 0
+        self.late_episodes = 0  # arrived after the run closed: not taken (replay/rate_limiter.py)
+        self.late_env_steps = 0
+        self._warn_late = RateLimitedLog(60.0)
 
     # --- inputs from Zenoh callbacks (never wait) ----------------------------------------
 
@@ -119,10 +122,18 @@ class ReplayService:
                                                             f"{episode.actor_id}: {error}")
             return
         with self._lock:
-            admitted = self.ledger.admit(episode.actor_id, episode.incarnation, episode.episode_index)
+            closed = self.limiter.closed
+            admitted = not closed and self.ledger.admit(episode.actor_id, episode.incarnation, episode.episode_index)
             if admitted:
                 self._store_locked(episode)
-        if not admitted:
+            elif closed:
+                self.late_episodes += 1
+                self.late_env_steps += len(episode.actions)
+        if closed:
+            self._warn_late.info("the run is closed (budget spent and paid for): episode %d of actor %d, %d steps, "
+                                 "not taken (%d such so far)", episode.episode_index, episode.actor_id,
+                                 len(episode.actions), self.late_episodes)
+        elif not admitted:
             self.rejections.reject("episode_duplicate", f"episode {episode.episode_index} of actor "
                                    f"{episode.actor_id} (incarnation {episode.incarnation:x}) was stored before")
 
@@ -226,9 +237,10 @@ class ReplayService:
             served = self._serve_one_locked()
             announce_now = False
             if announce is not None:
-                # a change of the hold; past the budget every new step too (the learner pays the last ones)
+                # a change of the hold; past the budget every new step and the close too (the learner pays
+                # the last steps and stops once the run is closed)
                 reason = self.limiter.hold_reason()
-                now = (reason, self.limiter.env_steps if reason == "budget" else 0)
+                now = (reason, self.limiter.env_steps if reason == "budget" else 0, self.limiter.closed)
                 announce_now = now != self._announced or every.due()
                 if announce_now:
                     self._announced = now
@@ -313,6 +325,7 @@ class ReplayService:
                 "failed_samples": self.failed_samples, "pending_requests": len(self._pending),
                 "episodes_missing": self.ledger.missing, "episode_sources": self.ledger.sources,
                 "restored_episodes": self.restored_episodes, "restore_skipped": self.restore_skipped,
+                "late_episodes": self.late_episodes, "late_env_steps": self.late_env_steps,
                 **self.snapshot_stats,
                 "snapshot_age_s": -1.0 if self.snapshot_taken is None else time.time() - self.snapshot_taken,
             }

@@ -74,26 +74,38 @@ def test_the_achieved_ratio_counts_from_the_replays_start_mark(tmp_path):
     assert process.env_steps_per_update() == pytest.approx(4.8)
 
 
-def test_the_run_ends_when_its_budget_is_paid_for():
+def test_the_run_ends_when_the_replay_closed_it_and_its_steps_are_paid_for():
     clock = RunClock(env_steps_per_update=4.0, error_buffer=5.0)
     clock.observe(980, start_env_steps=100)
-    assert not clock.finished(updates=200, total_env_steps=1_000)  # budget not spent
-    clock.observe(1_020)  # 230 updates due
-    assert not clock.finished(updates=229, total_env_steps=1_000)
-    assert clock.finished(updates=230, total_env_steps=1_000)
-    # Actors that keep outrunning the learner: it stops B updates past what was due when it saw the budget spent.
-    outrun = RunClock(env_steps_per_update=4.0, error_buffer=5.0)
-    outrun.observe(1_020, start_env_steps=100)
-    assert not outrun.finished(updates=220, total_env_steps=1_000)  # 230 due: the finish line is 235
-    outrun.observe(1_100)  # 250 due
-    assert not outrun.finished(updates=234, total_env_steps=1_000)
-    assert outrun.finished(updates=235, total_env_steps=1_000)
+    assert not clock.finished(updates=300, total_env_steps=1_000)  # budget not spent
+    clock.observe(1_020)  # 230 updates due, but episodes still in flight may come: not closed
+    assert not clock.finished(updates=240, total_env_steps=1_000)
+    clock.observe(1_100)  # an episode in flight at the budget arrived: 250 due, owed like any other
+    clock.observe(1_100, closed=True)
+    assert not clock.finished(updates=249, total_env_steps=1_000)
+    assert clock.finished(updates=250, total_env_steps=1_000)
 
 
-def test_an_unpaced_run_ends_at_its_budget_without_paying_the_rest():
+def test_an_unpaced_run_ends_once_closed_without_paying_the_rest():
     clock = RunClock(env_steps_per_update=4.0, error_buffer=1e9)  # more than the 250 updates 1,000 steps pay
     clock.observe(1_020, start_env_steps=100)
+    assert not clock.finished(updates=10, total_env_steps=1_000)
+    clock.observe(1_020, closed=True)
     assert clock.finished(updates=10, total_env_steps=1_000)
+
+
+def test_the_replays_close_comes_on_both_of_its_keys_and_must_be_0_or_1(tmp_path):
+    process = LearnerProcess(config_with(tmp_path, **{"learner.total_env_steps": 1_000}))
+    process.on_replay_rate(Stats(source="rate_limiter", time=0.0, values={
+        "env_steps": 1_040, "start_env_steps": 1_000.0, "closed": 1}))
+    assert process.clock.closed and not process.finished()  # 10 updates due, none made
+    process.on_replay_stats(Stats(source="replay", time=0.0, values={
+        "env_steps_total": 1_040, "rate_start_env_steps": 1_000.0, "rate_closed": 0, "episodes": 5}))
+    assert not process.clock.closed
+    for bad in (2, 0.5, "yes"):
+        process.on_replay_rate(Stats(source="rate_limiter", time=0.0, values={
+            "env_steps": 1_040, "start_env_steps": 1_000.0, "closed": bad}))
+    assert not process.clock.closed and process.rejections.values()["rejected_rate_values"] == 3
 
 
 def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():

@@ -114,6 +114,37 @@ def test_budget_holds_the_actors_for_good():
     assert rate.hold_reason() == "budget" and rate.served == 16  # (120 - 60) / 4 + 1
 
 
+def test_the_run_closes_once_the_budget_is_spent_and_every_update_it_pays_for_is_served():
+    rate = limiter(start_episodes=1, total=100, buffer=2.0)
+    rate.on_episode(60, episodes_stored=1)  # the mark: 60
+    for _ in range(8):
+        rate.on_served()  # 8 updates: 32 steps paid for
+    rate.on_episode(50, episodes_stored=2)  # 110 >= 100: budget spent, (110 - 60) / 4 = 12.5 due
+    assert rate.budget_spent and not rate.closed and rate.values()["closed"] == 0
+    rate.on_episode(30, episodes_stored=3)  # in flight at the budget: owed too, 20 due
+    for _ in range(12):
+        rate.on_served()
+    assert rate.served == 20 and rate.closed and rate.values()["closed"] == 1
+
+
+def test_an_unpaced_run_closes_at_its_budget():
+    rate = limiter(start_episodes=1, total=100, buffer=1e9)
+    rate.on_episode(60, episodes_stored=1)
+    assert rate.unpaced and not rate.closed
+    rate.on_episode(60, episodes_stored=2)
+    assert rate.served == 0 and rate.closed
+
+
+def test_a_run_reopens_when_a_restarted_learner_owes_lost_updates_again():
+    rate = limiter(start_episodes=1, total=100, buffer=2.0)
+    rate.on_episode(100, episodes_stored=1)
+    rate.on_episode(40, episodes_stored=2)  # 10 due
+    assert serve_all(rate) == 12 and rate.closed  # 10 due, B = 2 ahead
+    assert rate.on_learner_start(7) == 5 and not rate.closed  # its checkpoint kept 7: 3 of the 10 owed again
+    serve_all(rate)
+    assert rate.closed
+
+
 def test_the_start_rule_follows_the_learner_until_updates_start():
     rate = limiter(start_episodes=2, start_steps=50)
     assert rate.set_start_by_steps(True)

@@ -264,3 +264,30 @@ def test_a_reply_thread_survives_a_failing_sample(caplog):
         thread.join(10)
     assert not thread.is_alive() and announced  # the rate message went out
     assert service.limiter.served == 1  # the failed sample was not counted as served
+
+
+def test_episodes_after_the_run_closed_are_refused_counted_and_announced(caplog):
+    config = load_config("smoke", overrides={"learner.total_env_steps": 30, "learner.start_episodes": 1,
+                                             "learner.env_steps_per_update": 4.0, "replay.error_buffer_updates": 2.0})
+    service = ReplayService(config)
+    service.on_episode(episode(12, 0))  # the start mark: 12 steps
+    service.on_episode(episode(24, 1))  # 36 >= 30: the budget is spent, 6 updates due
+    assert service.limiter.budget_spent and not service.limiter.closed
+    stop, announced = threading.Event(), []
+    thread = threading.Thread(target=service.serve_pending, args=(stop, announced.append))
+    thread.start()
+    try:
+        for request_id in range(6):
+            query = FakeQuery(request_id)
+            service.on_sample_request(query)
+            assert query.done.wait(10) and isinstance(query.answer, TraceBatch)
+        processes.wait_for(lambda: announced and announced[-1]["closed"] == 1, "the close on replay/rate", 10.0)
+    finally:
+        stop.set()
+        thread.join(10)
+    with caplog.at_level(logging.INFO):
+        service.on_episode(episode(12, 2))  # in flight at the budget, too late
+    values = service.stats()
+    assert (values["episodes"], values["late_episodes"], values["late_env_steps"]) == (2, 1, 12)
+    assert values["rate_env_steps"] == 36 and values["rate_closed"] == 1
+    assert "the run is closed" in caplog.text
