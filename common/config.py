@@ -134,7 +134,10 @@ class LearnerConfig:
                     "steps, the others at start_episodes episodes), episodes (every strategy at start_episodes) or "
                     "steps (every strategy at start_steps: the same point for all, as a comparison wants)",
         choices=START_RULES)
-    total_env_steps: int = option(1_000_000, "the run ends here: actors hold, the learner pays the last steps",
+    total_env_steps: int = option(1_000_000, "the run ends here: actors hold, episodes in flight are taken until "
+                                             "the learner is served the updates they pay for, then the replay "
+                                             "closes the run (later episodes refused, counted as late_episodes) "
+                                             "and the learner stops once it has paid for every step taken",
                                   "env steps")
     weights_every: int = option(50, "broadcast the weights to the actors every this many updates", "updates")
     weights_period_s: float = option(
