@@ -211,9 +211,14 @@ def test_a_locked_down_stack_trains_and_a_rogue_actor_cannot_feed_weights(cluste
     while missing() and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not missing(), f"denied by the access rules or never published: {sorted(missing())}"
+
+    def rogue_counts() -> dict:
+        return [line for line in read_lines(rogue_out) if line["kind"] == "counts"][-1]
+
+    # it kept forging all along: 10 rounds of 0.5 s at least, however fast the stack trained meanwhile
+    wait_for(lambda: rogue_counts()["weights_sent"] >= 10, "10 rounds of forgeries", 30, cluster.logs)
     lines = read_lines(watch)
-    counts = [line for line in read_lines(rogue_out) if line["kind"] == "counts"][-1]
-    assert counts["weights_sent"] >= 10  # it kept forging all along
+    counts = rogue_counts()
     acted_with = {version for line in lines if line["kind"] == "episode" for version in line["versions"]}
     assert FORGED_VERSION not in acted_with and max(acted_with) >= 1, acted_with  # no step acted with the rogue's
     markers = {line["key"].rsplit("cluster/", 1)[1] for line in lines if line["kind"] == "marker"}
