@@ -71,6 +71,9 @@ class D3RQN(nn.Module):
         half = config.lstm_units // 2
         self.advantage = nn.Linear(half, config.n_actions, bias=False)
         self.value = nn.Linear(half, 1, bias=False)
+        # The number format of the trace pass's convolutions and LSTM input projection (learner.precision);
+        # the weights, the recurrence and the head stay float32.
+        self.trace_dtype = torch.float32
 
     def initial_state(self, batch_size: int, device: torch.device | str | None = None) -> RecurrentState:
         """The zero state every episode and every sampled trace starts from."""
@@ -121,9 +124,11 @@ class D3RQN(nn.Module):
         return self.trace_head(self.trace_features(pixels, batch, grad_steps), batch, grad_steps)
 
     def trace_features(self, pixels: torch.Tensor, batch: int, grad_steps: int) -> torch.Tensor:
-        """trace_q_values' first part: the convolutions, (frames, n_features)."""
+        """trace_q_values' first part: the convolutions, (frames, n_features), in trace_dtype."""
         fused = fused_relu_convolution_available(pixels.device)
-        weights = [module.weight for module in self.conv if isinstance(module, nn.Conv2d)]
+        # .to() is differentiable: a bfloat16 pass hands float32 gradients to the float32 weights
+        weights = [module.weight.to(self.trace_dtype) for module in self.conv if isinstance(module, nn.Conv2d)]
+        pixels = pixels.to(self.trace_dtype)
         if torch.is_grad_enabled():
             return _ConvStack.apply(pixels, grad_steps * batch, fused, *weights)
         features = pixels
@@ -135,12 +140,13 @@ class D3RQN(nn.Module):
         """trace_q_values' second part: the LSTM and the dueling head, (batch, time, n_actions)."""
         time = features.shape[0] // batch
         lstm = self.lstm
-        bias = lstm.bias_ih_l0 + lstm.bias_hh_l0
+        dtype = features.dtype  # the projection in the features' format, the recurrence in float32
+        bias, weight_ih = (lstm.bias_ih_l0 + lstm.bias_hh_l0).to(dtype), lstm.weight_ih_l0.to(dtype)
         if torch.is_grad_enabled():
-            projected = _Projection.apply(features, lstm.weight_ih_l0, bias, grad_steps * batch)
+            projected = _Projection.apply(features, weight_ih, bias, grad_steps * batch).float()
             hidden = _Recurrence.apply(projected.view(time, batch, -1), lstm.weight_hh_l0, grad_steps)
         else:
-            projected = torch.addmm(bias, features, lstm.weight_ih_l0.t())
+            projected = torch.addmm(bias, features, weight_ih.t()).float()
             hidden = _Recurrence.forward(_NoContext(), projected.view(time, batch, -1), lstm.weight_hh_l0, time)
         advantage_stream, value_stream = hidden.transpose(0, 1).chunk(2, dim=-1)
         advantage = self.advantage(advantage_stream)

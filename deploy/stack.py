@@ -331,9 +331,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def stack_precisions(config: Config) -> dict[str, str]:
+    """The precision options of the processes this stack starts here: the actors', and the learner's on a CPU."""
+    precisions = {"actor.inference": config.actor.inference}
+    if config.learner.precision == "bfloat16":
+        from common.network import resolve_device  # torch: only for the one value that may be refused
+        if resolve_device(config.network).type == "cpu":
+            precisions["learner.precision"] = config.learner.precision
+    return precisions
+
+
 def main(argv: list[str] | None = None) -> int:
     args, config = parse_config_or_exit(build_parser(), argv)
-    exit_if_unrunnable("deploy/run.sh", {"actor.inference": config.actor.inference})  # its actors run here
+    exit_if_unrunnable("deploy/run.sh", stack_precisions(config))
     if args.tensorboard and not config.record.enabled:
         print("deploy/run.sh: --tensorboard needs the recorder, but record.enabled is false", file=sys.stderr)
         return 2

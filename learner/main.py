@@ -17,7 +17,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="learner", description=__doc__)
     parser.add_argument("--resume", action="store_true", help="continue from the run's latest checkpoint")
     args, config = parse_service_args(parser, argv)
-    from learner.service import run_learner  # here, so that --help does not wait for torch
+    from common.cpu_capability import exit_if_unrunnable  # here, so that --help does not wait for torch
+    from common.network import resolve_device
+    if resolve_device(config.network).type == "cpu":
+        exit_if_unrunnable(parser.prog, {"learner.precision": config.learner.precision})
+    from learner.service import run_learner
     run_learner(config, resume=args.resume)
 
 

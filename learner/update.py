@@ -53,6 +53,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from common import cpu_capability
 from common.config import LearnerConfig, NetworkConfig
 from common.exploration import greedy_and_uniform_returns
 from common.network import D3RQN, resolve_device, scale_frames, weights_to_numpy
@@ -319,12 +320,24 @@ class DoubleQLearner:
         self.optimizer = _adam(self.online.parameters(), learner.lr)
         self.updates = 0
         self.split_passes = False  # the target pass on a helper thread (update path "trace-split")
+        self.precision = learner.precision  # "auto" until the first batch has timed both
+        if self.precision != "auto":
+            self.use_precision(self.precision)
         if loss_function is not None:
             self.loss_function: LossFunction | None = loss_function
             self.update_path = next((name for name, (function, split) in UPDATE_PATHS.items()
                                      if function is loss_function and not split), "custom")
         else:
             self.use_path(learner.update_path)
+
+    def use_precision(self, precision: str) -> None:
+        """The trace passes' convolutions and input projection in float32 or bfloat16 (learner.precision).
+
+        An explicit bfloat16 that this CPU cannot run raises cpu_capability.PrecisionUnavailable."""
+        if self.device.type == "cpu":
+            cpu_capability.require_precision("learner.precision", precision)
+        self.online.trace_dtype = self.target.trace_dtype = getattr(torch, precision)
+        self.precision = precision
 
     def use_path(self, name: str) -> None:
         """Switches to one of UPDATE_PATHS, or to "auto" (chosen on the next batch)."""
@@ -349,6 +362,8 @@ class DoubleQLearner:
         """
         tensors = batch if isinstance(batch, TraceTensors) else self.prepare(batch)
         _wait_until_ready(tensors)
+        if self.precision == "auto":
+            self.use_precision(choose_learner_precision(self, tensors))
         if self.update_path == "auto":
             self.use_path(choose_update_path(self, tensors))
         return self._update(tensors, with_q_after)
@@ -460,6 +475,7 @@ UPDATE_PATHS: dict[str, tuple[LossFunction, bool]] = {
 }
 
 _chosen_paths: dict[tuple, str] = {}  # choose_update_path's measurements, per process
+AUTO_BFLOAT16_SPEEDUP = 1.3  # learner.precision auto: a smaller gain is not worth other numbers than the paper's
 _helper: ThreadPoolExecutor | None = None
 
 
@@ -470,9 +486,37 @@ def _helper_thread() -> ThreadPoolExecutor:
     return _helper
 
 
-def candidate_paths(device: torch.device, threads: int) -> list[str]:
-    """The update paths worth timing: "trace-split" needs two torch threads; on CUDA one stream does it all."""
-    return [name for name in UPDATE_PATHS if name != "trace-split" or (device.type == "cpu" and threads >= 2)]
+def candidate_paths(device: torch.device, threads: int, precision: str = "float32") -> list[str]:
+    """The update paths worth timing: "trace-split" needs two torch threads; on CUDA one stream does it all;
+    bfloat16 runs on the trace paths only."""
+    return [name for name in UPDATE_PATHS if (name != "trace-split" or (device.type == "cpu" and threads >= 2))
+            and (name != "autograd" or precision == "float32")]
+
+
+def choose_learner_precision(learner: DoubleQLearner, batch: TraceTensors, rounds: int = 2) -> str:
+    """learner.precision auto: bfloat16 where the CPU does it natively and whole updates of the trace path
+    time at least AUTO_BFLOAT16_SPEEDUP faster than in float32; float32 otherwise. One log line says why."""
+    if learner.device.type != "cpu" or not cpu_capability.bfloat16_native():
+        why = ("the learner is on " + learner.device.type if learner.device.type != "cpu" else
+               cpu_capability.bfloat16_problem() or "this CPU has no native bfloat16 (AMX or AVX512-BF16)")
+        log.info("learner.precision auto: float32, since %s", why)
+        return "float32"
+    scratch = copy.deepcopy(learner)
+    scratch.use_path("trace")
+    best = {precision: math.inf for precision in ("float32", "bfloat16")}
+    for round_ in range(rounds + 1):
+        for precision in best:
+            scratch.use_precision(precision)
+            started = time.perf_counter()
+            scratch._update(batch, with_q_after=False)
+            if round_:
+                best[precision] = min(best[precision], time.perf_counter() - started)
+    del scratch
+    chosen = "bfloat16" if best["float32"] >= AUTO_BFLOAT16_SPEEDUP * best["bfloat16"] else "float32"
+    log.info("learner.precision auto: %s (best of %d updates each: float32 %.1f ms, bfloat16 %.1f ms; bfloat16 "
+             "is taken at %.1fx or more)", chosen, rounds, 1e3 * best["float32"], 1e3 * best["bfloat16"],
+             AUTO_BFLOAT16_SPEEDUP)
+    return chosen
 
 
 def choose_update_path(learner: DoubleQLearner, batch: TraceTensors, rounds: int = 2) -> str:
@@ -484,11 +528,11 @@ def choose_update_path(learner: DoubleQLearner, batch: TraceTensors, rounds: int
     """
     threads = torch.get_num_threads()
     key = (learner.device.type, learner.device.index, dataclasses.astuple(learner.network_config),
-           tuple(batch.observations.shape), threads)
+           tuple(batch.observations.shape), threads, learner.precision)
     if key in _chosen_paths:
         return _chosen_paths[key]
     scratch = copy.deepcopy(learner)
-    best = {name: math.inf for name in candidate_paths(learner.device, threads)}
+    best = {name: math.inf for name in candidate_paths(learner.device, threads, learner.precision)}
     for round_ in range(rounds + 1):
         for name in best:
             scratch.use_path(name)

@@ -70,9 +70,22 @@ def test_the_probe_finds_no_bfloat16_on_a_cpu_without_it():
     assert description.endswith("bfloat16 compute: absent)")
 
 
-def test_an_actor_asked_for_bfloat16_on_a_cpu_without_it_stops_at_start_with_one_line():
-    child = without_bfloat16("-m actor.main --preset smoke --actor.inference bfloat16")
+
+
+@pytest.mark.parametrize("role, option", [("actor", "actor.inference"), ("learner", "learner.precision")])
+def test_a_process_asked_for_bfloat16_on_a_cpu_without_it_stops_at_start_with_one_line(role, option):
+    child = without_bfloat16(f"-m {role}.main --preset smoke --network.device cpu --{option} bfloat16")
     assert child.returncode == 2
     last = child.stderr.strip().splitlines()[-1]
-    assert last.startswith("actor: config error: actor.inference = bfloat16 cannot run here: ")
+    assert last.startswith(f"{role}: config error: {option} = bfloat16 cannot run here: ")
     assert "Traceback" not in child.stderr
+
+
+def test_the_stack_checks_the_precisions_of_the_processes_it_starts_here():
+    from common.config import load_config
+    from deploy.stack import stack_precisions
+    config = load_config("smoke", overrides={"actor.inference": "auto", "learner.precision": "bfloat16",
+                                             "network.device": "cpu"})
+    assert stack_precisions(config) == {"actor.inference": "auto", "learner.precision": "bfloat16"}
+    config.learner.precision = "auto"  # auto falls back by itself: nothing to refuse
+    assert stack_precisions(config) == {"actor.inference": "auto"}

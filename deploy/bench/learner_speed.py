@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from common.config import Config, add_config_arguments, parse_config_or_exit
-from common.cpu_capability import describe_cpu
+from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device, scale_frames
 from common.wire import FrameStack
 from learner.flops import conv_features, conv_multiply_adds, update_flops
@@ -48,6 +48,7 @@ class Variant:
     with_q_after: bool = False
     ahead: bool = False  # decode and stage the next batch on a thread while the update runs
     threads: int = 0  # torch threads for this variant's updates; 0: the run's
+    precision: str = "float32"  # learner.precision
 
 
 # "today" is the code before issue 14. Every variant decodes its batch from the wire format first.
@@ -61,8 +62,10 @@ VARIANTS = {
     "today+vdbe": Variant("today + VDBE after-pass", "autograd", with_q_after=True),
     "new+vdbe": Variant("new + VDBE after-pass", "trace", with_q_after=True),
     "paper": Variant("paper reference, 3 passes", paper_reference_loss),
+    "new-bf16": Variant("new: trace passes, bfloat16", "trace", precision="bfloat16"),
+    "split-bf16": Variant("new: split threads, bfloat16", "trace-split", precision="bfloat16"),
 }
-DEFAULT_VARIANTS = "today,new,split,ahead,new+vdbe,paper"
+DEFAULT_VARIANTS = "today,new,split,ahead,new+vdbe,paper,new-bf16,split-bf16"
 
 
 class Runner:
@@ -105,9 +108,10 @@ class Runner:
             self.thread.shutdown()
 
 
-def make_learner(config: Config, path, device: torch.device) -> DoubleQLearner:
+def make_learner(config: Config, path, device: torch.device, precision: str = "float32") -> DoubleQLearner:
     if isinstance(path, str):
-        return DoubleQLearner(config.network, dataclasses.replace(config.learner, update_path=path), device=device)
+        learner = dataclasses.replace(config.learner, update_path=path, precision=precision)
+        return DoubleQLearner(config.network, learner, device=device)
     return DoubleQLearner(config.network, config.learner, path, device=device)
 
 
@@ -326,7 +330,7 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
     batch = random_batch(config)
     wire_frames = FrameStack.from_array(batch.observations.reshape(-1, *batch.observations.shape[2:]))
     gemms = Gemms(config, device, square)
-    runners = {name: Runner(VARIANTS[name], make_learner(config, VARIANTS[name].path, device), wire_frames, batch)
+    runners = {name: Runner(VARIANTS[name], make_learner(config, VARIANTS[name].path, device, VARIANTS[name].precision), wire_frames, batch)
                for name in variants}
     staged = {name: make_learner(config, path, device)
               for name, path in (("today", "autograd"), ("new", "trace"), ("split", "trace-split"))
@@ -444,6 +448,11 @@ def main(argv: list[str] | None = None) -> None:
     unknown = [name for name in variants if name not in VARIANTS]
     if unknown:
         parser.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
+    if bfloat16_problem() is not None and resolve_device(config.network).type == "cpu":
+        skipped = [name for name in variants if VARIANTS[name].precision == "bfloat16"]
+        variants = [name for name in variants if name not in skipped]
+        if skipped:
+            print(f"skipping {', '.join(skipped)}: {bfloat16_problem()}")
     if args.threads:
         torch.set_num_threads(args.threads)
     net, learner = config.network, config.learner
