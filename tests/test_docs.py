@@ -6,6 +6,7 @@ repository. Static reading only (no process, no network, no torch): fast and det
 from __future__ import annotations
 
 import ast
+import os
 import re
 from collections import defaultdict
 from functools import cache
@@ -234,8 +235,12 @@ def test_the_readme_is_a_front_door():
 
 def source_files() -> list[Path]:
     skip = {".git", ".venv", "runs", "build", "__pycache__", ".pytest_cache", ".hypothesis"}
-    return [path for path in ROOT.rglob("*") if path.is_file() and not skip & set(path.relative_to(ROOT).parts)
-            and path.suffix in {".py", ".md", ".toml", ".sh", ".txt", ""}]
+    suffixes = {".py", ".md", ".toml", ".sh", ".txt", ""}
+    files = []
+    for folder, folders, names in os.walk(ROOT):
+        folders[:] = [name for name in folders if name not in skip and not name.endswith(".egg-info")]
+        files += [Path(folder) / name for name in names if Path(name).suffix in suffixes]
+    return files
 
 
 def test_nothing_cites_the_spec_outside_the_repository():
