@@ -201,7 +201,8 @@ class ConstantEpsilonConfig:
 
 @dataclass
 class DecreasingEpsilonConfig:
-    """Decreasing epsilon-greedy: epsilon by env steps, two linear slopes (REFERENCE.md)."""
+    """Decreasing epsilon-greedy: epsilon by env steps, two linear slopes (docs/method.md, "Decreasing
+    epsilon-greedy")."""
 
     eps_start: float = option(1.0, "epsilon until n_start env steps, in [0, 1]")
     eps_last: float = option(0.1, "epsilon reached at n_start + n_ann env steps, the end of the first slope, "

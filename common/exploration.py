@@ -122,7 +122,7 @@ class BmcPosterior:
 
 
 def bmc_update(posterior: BmcPosterior, g_greedy: float, g_uniform: float, config: BmcConfig) -> BmcPosterior:
-    """One epsilon-BMC observation (REFERENCE.md steps 2-6)."""
+    """One epsilon-BMC observation (docs/method.md, "epsilon-BMC", steps 2-6)."""
     alpha, beta = posterior.alpha, posterior.beta
     eps = posterior.epsilon
     g = (1.0 - eps) * g_greedy + eps * g_uniform

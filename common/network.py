@@ -1,8 +1,8 @@
 """The D3RQN: convolutions, an LSTM over the trace, and a dueling head.
 
-Shapes follow REFERENCE.md: frames are uint8 (batch, time, height, width,
-channels) and are scaled to [0, 1] inside the model, so replay and actors only
-ever hold uint8. The recurrent state is explicit, in and out, as PyTorch's LSTM
+Shapes follow docs/method.md ("The network"): frames are uint8 (batch, time,
+height, width, channels) and are scaled to [0, 1] inside the model, so replay
+and actors only ever hold uint8. The recurrent state is explicit, in and out, as PyTorch's LSTM
 holds it: a pair (h, c), each (1, batch, lstm_units). An actor steps one frame
 at a time carrying the state; a learner runs whole traces from a zero state.
 """

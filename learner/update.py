@@ -4,7 +4,7 @@ A batch holds B traces of T steps: observations s_0..s_T (T + 1 frames), the
 actions a_t taken in s_t, the rewards r_t and the flags ``terminated[t]``
 ("s_t+1 ends the episode"). Every trace starts from a zero LSTM state.
 
-Per step (REFERENCE.md), in this order:
+Per step (docs/method.md, "The update"), in this order:
 
 1. soft target update, *before* the gradient step as the authors' code does:
    target <- tau * online + (1 - tau) * target; so the targets of step k

@@ -50,7 +50,8 @@ def synthetic_frames(count: int, height: int, width: int, noise: float, seed: in
 
 
 def d3rqn_tensors(network: NetworkConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Random float32 tensors with the D3RQN's parameter shapes (REFERENCE.md), to size a Weights message."""
+    """Random float32 tensors with the D3RQN's parameter shapes (docs/method.md, "The network"), to size a
+    Weights message."""
     lstm_in = 64 * 4 * 21  # conv 3 output for a 66 x 200 input
     units = network.lstm_units
     shapes = {
