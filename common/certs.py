@@ -117,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="d3rqn-certs",
         description="Makes a run's CA (once) and certificates signed by it, for TLS, mutual TLS and the "
-                    "router's access rules (README: Securing a cluster). Without --name: the four role "
+                    "router's access rules (docs/security.md). Without --name: the four role "
                     f"certificates {', '.join(ROLE_NAMES)} (CN = the name).")
     parser.add_argument("directory", type=Path, help="where the CA and certificates go (created if missing)")
     parser.add_argument("--address", action="append", default=[], metavar="HOST",

@@ -148,7 +148,7 @@ class LearnerConfig:
     weights_encoding: str = option(
         "float32", "how weights travel to the actors (broadcasts and the latest-weights answer): float32 (whole; "
                    "48.6 MB at the paper's sizes), or half the size as float16 or bfloat16, whose greedy actions "
-                   "differ from float32's within the tolerance the README states", choices=tuple(WEIGHTS_ENCODINGS))
+                   "differ from float32's within the tolerance docs/architecture.md states", choices=tuple(WEIGHTS_ENCODINGS))
     checkpoint_every: int = option(5_000, "write checkpoints/latest.pt every this many updates", "updates")
     prefetch: int = option(2, "batch requests kept in flight to the replay", "batches")
     torch_threads: int = option(
@@ -382,7 +382,7 @@ class ActorConfig:
     inference: str = option(
         "float32", "number format of the actor's forward pass: float32; bfloat16 (the convolutions and the LSTM's "
                    "input projection, with float32 state and head: 2.6-3.2x faster on a CPU with AMX, greedy actions "
-                   "as float32's within the README's tolerance); or auto (bfloat16 where a timing of both at start "
+                   "as float32's within the tolerance docs/architecture.md states); or auto (bfloat16 where a timing of both at start "
                    "finds it at least 1.2x faster). The evaluation always acts in float32",
         choices=INFERENCE_PRECISIONS)
     # Finished episodes wait in a queue while no replay listens (a replay restart).
@@ -446,7 +446,7 @@ class TransportConfig:
     namespace: str = option("d3rqn", "first chunk of every key: <namespace>/<run.name>/...")
     connect_timeout_s: float = option(10.0, "client mode: how long opening a session retries its connect endpoints",
                                       "s")
-    # TLS on tls/<host>:<port> endpoints (README "Securing a cluster"; d3rqn-certs makes the files).
+    # TLS on tls/<host>:<port> endpoints (docs/security.md; d3rqn-certs makes the files).
     tls_ca: str = option("", "PEM file of the run's CA: listeners' certificates (and with tls_mtls, peers') must "
                              "be signed by it; relative paths start from the working directory")
     tls_certificate: str = option("", "PEM file of this host's certificate, shown when listening (and with "

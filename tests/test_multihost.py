@@ -1,4 +1,4 @@
-"""README "Across machines" for real: three hosts as Linux network namespaces on one switch.
+"""docs/deployment.md "Across machines" for real: three hosts as Linux network namespaces on one switch.
 
     hub  10.203.0.1   replay (router) + learner, from deploy/configs/hub-replay.toml and hub-learner.toml
     a1   10.203.0.11  actor 1, from remote-actor.toml with --transport.connect tcp/10.203.0.1:7447
@@ -155,7 +155,7 @@ def lab(tmp_path):
 
 
 def config_flags(secure: bool, role: str) -> list[str]:
-    """The deploy/configs file of a role, and the one flag the README adds for remote actors."""
+    """The deploy/configs file of a role, and the one flag docs/deployment.md adds for remote actors."""
     prefix = "secure-" if secure else ""
     name = {"replay": "hub-replay", "learner": "hub-learner", "actor": "remote-actor", "watch": "hub-learner"}[role]
     flags = ["--config", str(CONFIGS / f"{prefix}{name}.toml")]

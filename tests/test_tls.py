@@ -1,4 +1,4 @@
-"""A locked-down cluster (README "Securing a cluster"): TLS on every link, mutual TLS, and the
+"""A locked-down cluster (docs/security.md): TLS on every link, mutual TLS, and the
 router's access rules by certificate common name.
 
 The live tests run the deploy/configs/secure-*.toml files as written, from a directory holding

@@ -22,7 +22,7 @@ from tests import weights_peers
 from tests.cpu_support import needs_bfloat16
 from tests.test_progress import FakeClock
 
-# What the README states, measured by deploy/bench/weights_encoding.py on 4,000 frames: at most this
+# What docs/architecture.md states, measured by deploy/bench/weights_encoding.py on 4,000 frames: at most this
 # share of greedy actions changes, and |Q| moves by at most this fraction of the largest |Q|; for the
 # compact encodings and for the actor's bfloat16 pass (actor.inference).
 TOLERANCE = {"float16": (0.01, 1e-3), "bfloat16": (0.01, 1e-2), BFLOAT16_PASS: (0.01, 1e-2)}
@@ -154,7 +154,7 @@ def simulator_frames():
 @pytest.mark.parametrize("encoding", [pytest.param(encoding, marks=needs_bfloat16) if encoding == BFLOAT16_PASS
                                       else encoding for encoding in TOLERANCE])
 def test_compact_weights_change_the_greedy_actions_within_the_stated_tolerance(simulator_frames, encoding):
-    network_config = load_config("paper").network  # the paper's sizes: the README's figures
+    network_config = load_config("paper").network  # the paper's sizes: docs/architecture.md's figures
     torch.manual_seed(0)
     tensors = weights_to_numpy(D3RQN(network_config))
     difference = compare(network_config, tensors, encoding, simulator_frames)
