@@ -1,20 +1,27 @@
-"""Greedy learning curves: the learner keeps policies at its cadence, and a kept file reads back into the
-network."""
+"""Greedy learning curves: the learner keeps policies at its cadence, a kept file reads back into the
+network, `evaluate --curve` evaluates the kept policies once each, and the time to drive."""
 
+import csv
+import json
+import logging
 import math
 import time
 
 import pytest
 import torch
 
+from actor.evaluate import build_parser, main
+from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, summary_lines
 from common.checkpoint import CheckpointError, KeptPolicy
-from common.config import ConfigError, from_dict, load_config
+from common.config import ConfigError, from_dict, load_config, to_dict
 from common.network import D3RQN, load_numpy_weights
 from common.run_dir import RunDir
 from deploy.experiments import keep_flags
 from learner.service import LearnerProcess
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
 from tests.test_progress import FakeClock
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 def learner(config, clock=time.monotonic, keep_every=0, keep_every_s=0.0) -> LearnerProcess:
@@ -135,3 +142,109 @@ def test_keeping_options_are_checked_and_set_by_the_presets_and_the_grid():
     assert keep_flags(["--preset", "paper"], 80_000) == ["--learner.keep_every", "1000"]
     assert keep_flags(["--preset", "local"], 80_000) == []
     assert keep_flags(["--learner.keep_every_s", "60"], 80_000) == []
+
+
+# --- the curve ----------------------------------------------------------------------------------------------
+
+def tiny_config(runs_dir):
+    return load_config("smoke", overrides={"run.name": "tiny", "run.runs_dir": str(runs_dir),
+                                           "network.lstm_units": 16, "evaluation.workers": 1,
+                                           "evaluation.envs_per_worker": 5})
+
+
+def keep(config, updates: int) -> None:
+    """A kept policy as the learner writes it, with weights of its own."""
+    torch.manual_seed(updates)
+    online = D3RQN(config.network).state_dict()
+    KeptPolicy(updates=updates, env_steps=40 * updates, wall_s=2.0 * updates, cpu="Test CPU", config=to_dict(config),
+               online=online).save(RunDir.of(config).policy(updates))
+
+
+def read_rows(path):
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+# one trial per start: the default (5) is test_the_curve_takes_five_trials_per_start_unless_told's
+CURVE_FLAGS = ["--evaluation.episodes_per_start", "1", "--evaluation.max_steps", "8"]
+
+
+def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_path, capsys, caplog):
+    config = tiny_config(tmp_path)
+    run = RunDir.of(config)
+    keep(config, 10)
+    run.policy(20).write_bytes(b"half a file")
+    caplog.set_level(logging.WARNING, logger="evaluate")
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--nice", "1"])  # this test process stays at the lower priority
+    assert any("skipped" in record.message and "policy-u0000020.pt" in record.message for record in caplog.records)
+    rows = read_rows(run.curve / "curve.csv")
+    assert [(row["updates"], row["start_set"]) for row in rows] == [("10", "train"), ("10", "test")]
+    first = rows[1]
+    assert (first["env_steps"], first["wall_s"], first["kept_file"], first["trained_on"]) == (
+        "400", "20.0", "policy-u0000010.pt", "Test CPU")
+    assert int(first["nice"]) >= 1 and first["policy"] == "greedy" and first["episodes"] == "10"
+    for statistic in ("mean_length", "cfr"):
+        assert float(first[f"{statistic}_low"]) <= float(first[statistic]) <= float(first[f"{statistic}_high"])
+    assert 1 <= float(first["mean_length"]) <= 8
+    assert (run.curve / "curve.png").read_bytes()[:8] == PNG_MAGIC
+    summary = json.loads((run.curve / "curve_summary.json").read_text())
+    assert summary["drive"]["reached"] is None and summary["policies"] == 1
+    out = capsys.readouterr().out
+    assert "first greedy test mean length >= 1,000 steps: not reached in 1 kept policies" in out
+
+    keep(config, 30)  # the run went on
+    main(["--curve", str(run.root), *CURVE_FLAGS])
+    errors = capsys.readouterr().err  # the new one and the damaged one, not the one evaluated already
+    assert "curve: 2/2 kept policies" in errors and "policy-u0000020.pt skipped" in errors
+    rows_after = read_rows(run.curve / "curve.csv")
+    assert rows_after[:2] == rows and [row["updates"] for row in rows_after[2:]] == ["30", "30"]
+
+    run.policy(20).unlink()
+    written = (run.curve / "curve.csv").stat().st_mtime_ns
+    main(["--curve", str(run.root), *CURVE_FLAGS])
+    assert "nothing new: all 2 kept policies are in" in capsys.readouterr().err
+    assert (run.curve / "curve.csv").stat().st_mtime_ns == written
+
+
+def test_a_run_without_kept_policies_is_a_clear_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--curve", str(tmp_path / "nothing")])
+    assert exit_info.value.code == 1
+    assert "no kept policies in" in capsys.readouterr().err
+
+
+def test_the_curve_takes_five_trials_per_start_unless_told():
+    saved = to_dict(load_config("smoke"))
+    assert curve_config(saved, build_parser().parse_args(["--curve", "x"])).evaluation.episodes_per_start == CURVE_TRIALS
+    flags = build_parser().parse_args(["--curve", "x", "--evaluation.episodes_per_start", "7"])
+    assert curve_config(saved, flags).evaluation.episodes_per_start == 7
+
+
+# --- the time to drive ---------------------------------------------------------------------------------------
+
+def row(updates, start_set, mean_length, cfr):
+    return {"updates": str(updates), "env_steps": str(4 * updates), "wall_s": str(updates / 10), "kept_file": f"u{updates}",
+            "trained_on": "Test CPU", "nice": "10", "start_set": start_set, "mean_length": str(mean_length),
+            "cfr": str(cfr)}
+
+
+def test_the_time_to_drive_is_the_first_test_row_that_reaches_it():
+    rows = [row(3000, "test", 1200, 0.6), row(1000, "train", 1500, 0.9), row(1000, "test", 400, 0.1),
+            row(2000, "test", 1000, 0.3), row(2000, "train", 800, 0.2)]  # out of order, as a CSV may not be
+    drive = first_reaching(rows, "mean_length", 1000)
+    assert (drive["updates"], drive["env_steps"], drive["wall_s"], drive["trained_on"]) == (2000, 8000, 200.0,
+                                                                                           "Test CPU")
+    assert first_reaching(rows, "cfr", 0.5)["updates"] == 3000  # the train set's 90% at 1,000 does not count
+    summary = curve_summary(rows)
+    assert (summary["policies"], summary["last_updates"], summary["nice"]) == (3, 3000, [10])
+    assert summary_lines(summary)[0].startswith("first greedy test mean length >= 1,000 steps: update 2,000, "
+                                                "8,000 env steps, 3:20 of wall time, trained on Test CPU")
+
+
+def test_a_curve_that_never_drives_says_so():
+    rows = [row(1000, "test", 400, 0.1), row(2000, "test", 999, 0.49)]
+    assert first_reaching(rows, "mean_length", 1000) is None and first_reaching(rows, "cfr", 0.5) is None
+    lines = summary_lines(curve_summary(rows))
+    assert lines[1] == "first greedy test CFR >= 50%: not reached in 2 kept policies (up to update 2,000)"
+    train_only = summary_lines(curve_summary([row(1000, "train", 2000, 1.0)]))
+    assert train_only[0] == "first greedy test mean length >= 1,000 steps: the test set was not evaluated"
