@@ -17,17 +17,21 @@ show the spread of the trials only, not that of other training runs.
     evaluate --checkpoint runs/bmc                 # the run's latest checkpoint
     evaluate --checkpoint backup/bmc-early.pt --evaluation.workers 2
     evaluate --live --run.name bmc --transport.mode client --transport.connect tcp/127.0.0.1:7447
+    evaluate --curve runs/bmc --nice 10            # every policy the run kept (actor/evaluation/curve.py)
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import logging
+import os
 import sys
 import time
 from pathlib import Path
 
 from actor.evaluation import EvaluationError
+from actor.evaluation.curve import CURVE_TRIALS, curve_config, evaluate_curve, summary_lines, write_outputs
 from actor.evaluation.protocol import evaluate
 from actor.evaluation.report import SUMMARY_MD, write_report
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
@@ -35,6 +39,7 @@ from actor.evaluation.workers import torch_threads_per_worker
 from actor.sim import START_SETS
 from common.checkpoint import CheckpointError
 from common.config import ConfigError, add_config_arguments, config_from_args, parse_flags, to_toml
+from common.run_dir import RunDir
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,13 +50,23 @@ def build_parser() -> argparse.ArgumentParser:
                     "train and test sets, capped at evaluation.max_steps steps, spread over evaluation.workers "
                     "processes of evaluation.envs_per_worker lockstep simulators. Writes episodes.csv, "
                     "summary.csv, summary.md, facts.json and config.toml. With --checkpoint the config is the checkpoint's, "
-                    "changed only by --config FILE and the flags given (--preset is ignored).")
+                    "changed only by --config FILE and the flags given (--preset is ignored); with --curve each "
+                    "kept policy's.")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", type=Path, metavar="PATH",
                         help="a checkpoint file, or a run folder (uses its latest checkpoint)")
     source.add_argument("--live", action="store_true",
                         help="ask the running learner of run.name for its latest weights (transport.* settings)")
-    parser.add_argument("--out", type=Path, metavar="DIR", help="output directory (default: <run dir>/evaluation)")
+    source.add_argument("--curve", type=Path, metavar="RUN",
+                        help="the greedy learning curve of a run folder: every policy it kept (learner.keep_every) "
+                             f"not yet in the curve, greedy only, {CURVE_TRIALS} trials per start unless "
+                             "--evaluation.episodes_per_start says; writes curve.csv, curve.png, "
+                             "curve_summary.json and .md (the time to drive)")
+    parser.add_argument("--out", type=Path, metavar="DIR",
+                        help="output directory (default: <run dir>/evaluation, with --curve <run dir>/curve)")
+    parser.add_argument("--nice", type=int, default=0, metavar="N",
+                        help="lower the priority of this evaluation and its workers by N (os.nice), e.g. 10 beside "
+                             "a training run; the output names the niceness it ran at (default: 0)")
     parser.add_argument("--sets", default=",".join(START_SETS), metavar="train,test",
                         help="start sets to evaluate on (default: train,test)")
     parser.add_argument("--random-baseline", action=argparse.BooleanOptionalAction, default=True,
@@ -78,12 +93,24 @@ def main(argv: list[str] | None = None) -> None:
         print(f"evaluate: error: {error}", file=sys.stderr)
         raise SystemExit(1) from None
     except KeyboardInterrupt:
-        print("\nevaluate: interrupted, nothing written", file=sys.stderr)
+        kept = "; the curve keeps the policies evaluated so far" if args.curve else ", nothing written"
+        print(f"\nevaluate: interrupted{kept}", file=sys.stderr)
         raise SystemExit(130) from None
+
+
+def lower_priority(steps: int) -> int:
+    """Lowers this process's priority (its workers inherit it) by `steps`; returns the niceness it now runs at."""
+    if steps < 0:
+        raise EvaluationError(f"--nice: must be >= 0 (raising a priority needs root), got {steps}")
+    return os.nice(steps)
 
 
 def _main(args: argparse.Namespace) -> None:
     sets = parse_sets(args.sets)
+    nice = lower_priority(args.nice)
+    if args.curve is not None:
+        _curve(args, sets, nice)
+        return
     source = checkpoint_source(args.checkpoint, args) if args.checkpoint is not None else None
     config = source.config if source is not None else config_from_args(args)
     if args.dump_config:
@@ -107,10 +134,26 @@ def _main(args: argparse.Namespace) -> None:
              "processes": f"{workers} worker(s) x {evaluation.envs_per_worker} lockstep env(s), "
                           f"{torch_threads_per_worker(workers)} torch thread(s) each",
              "wall time": f"{wall_s:.1f} s",
+             "priority": f"nice {nice}",
              "date": datetime.datetime.now().isoformat(timespec="seconds")}
     paths = write_report(out_dir, episodes, summaries, evaluation.reward_bins, facts, evaluation.episodes_per_start,
                          to_toml(config), evaluation.confidence)
     print((out_dir / SUMMARY_MD).read_text())
+    print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
+
+
+def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
+    if args.dump_config:
+        raise EvaluationError("--dump-config does not apply to --curve: each kept policy has its own config")
+    config_from_args(args)  # a bad flag is one error here, not every kept policy skipped
+    logging.basicConfig(format="evaluate: %(levelname)s %(message)s")  # the log lines of skipped files
+    run = RunDir(args.curve)
+    out_dir = args.out if args.out is not None else run.curve
+    rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice)
+    if rows is None:
+        return
+    summary, paths = write_outputs(out_dir, rows, run.root.name)
+    print("\n".join(summary_lines(summary)))
     print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
 
 

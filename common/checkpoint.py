@@ -6,13 +6,18 @@ far a run got. Only this module knows what the file holds:
 
     learner      DoubleQLearner.state_dict(): online, target, optimizer, updates
     exploration  the strategy's state_dict()
-    clock        RunClock.state_dict(): env_steps (of the whole system), start_env_steps
+    clock        RunClock.state_dict(): env_steps (of the whole system), start_env_steps, wall_s
     config       the run's config as a table (common.config.to_dict)
+
+The policies the learner keeps for greedy learning curves (learner.keep_every,
+<run>/policies/) are files of their own, KeptPolicy: the online weights only.
 """
 
 from __future__ import annotations
 
+import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -85,27 +90,103 @@ class Checkpoint:
         online = self.learner.get("online")
         if not isinstance(online, dict):
             raise CheckpointError(f"checkpoint {self.path} has no online network in its learner section")
-        return {name: tensor.detach().cpu().numpy() for name, tensor in online.items()}
+        return _numpy(online)
 
     def _count(self, section: str, name: str) -> int | None:
         if section not in self._sections or name not in self._section(section):
             return None
         value = self._section(section)[name]
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        if not _is_count(value):
             raise CheckpointError(f"checkpoint {self.path}: {section} {name} {value!r} is not a count")
         return value
 
 
+POLICY_FORMAT = "d3rqn kept policy"  # a kept policy's "format" entry: tells it from a checkpoint or a stranger
+
+
+@dataclass(frozen=True)
+class KeptPolicy:
+    """A policy the learner kept: the online weights and where the run stood when it kept them.
+
+    The file is one dict: format (POLICY_FORMAT) and the fields below but path.
+    """
+
+    updates: int
+    env_steps: int  # of the whole system
+    wall_s: float  # since the run started, summed over the learner's sessions of a resumed run
+    cpu: str  # the learner host's CPU model: wall_s is that machine's time
+    config: dict  # the run's config as a table (common.config.to_dict): it rebuilds the network
+    online: dict[str, torch.Tensor]  # the online network's state dict
+    path: Path | None = None  # the file it was read from
+
+    def save(self, path: Path) -> Path:
+        fields = {name: getattr(self, name) for name in _POLICY_CHECKS}
+        write_atomically(path, {"format": POLICY_FORMAT, **fields})
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> KeptPolicy:
+        """The kept policy in a file; a CheckpointError naming the file if it is damaged or not one."""
+        payload = _read(path, (), "kept policy")
+        if payload.get("format") != POLICY_FORMAT:
+            raise CheckpointError(f"{path} is not a kept policy (a learner checkpoint? `evaluate --checkpoint` "
+                                  "reads those)")
+        wrong = [name for name, check in _POLICY_CHECKS.items() if not check(payload.get(name))]
+        if wrong:
+            raise CheckpointError(f"kept policy {path}: {', '.join(wrong)} missing or malformed")
+        return cls(**{name: payload[name] for name in _POLICY_CHECKS}, path=path)
+
+    def weights(self) -> dict[str, np.ndarray]:
+        """The online network's tensors as numpy arrays by parameter name, as evaluate takes them."""
+        return _numpy(self.online)
+
+
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+_POLICY_CHECKS = {
+    "updates": _is_count,
+    "env_steps": _is_count,
+    "wall_s": lambda value: isinstance(value, (int, float)) and not isinstance(value, bool)
+    and math.isfinite(value) and value >= 0,
+    "cpu": lambda value: isinstance(value, str),
+    "config": lambda value: isinstance(value, dict),
+    "online": lambda value: isinstance(value, dict) and bool(value)
+    and all(isinstance(tensor, torch.Tensor) for tensor in value.values()),
+}
+
+
+def cpu_model() -> str:
+    """The model name /proc/cpuinfo gives for this host's CPU; "unknown" where it says none."""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"
+
+
+def _numpy(tensors: dict) -> dict[str, np.ndarray]:
+    return {name: tensor.detach().cpu().numpy() for name, tensor in tensors.items()}
+
+
 def save_checkpoint(directory: Path, payload: dict[str, Any]) -> Path:
-    """Writes to a temporary file, then renames it over the old checkpoint: a crash leaves one whole file."""
-    directory.mkdir(parents=True, exist_ok=True)
-    final = directory / CHECKPOINT_FILE
-    temporary = directory / f".{CHECKPOINT_FILE}.{os.getpid()}.tmp"
+    """The checkpoint's sections into <directory>/latest.pt, replacing the old one whole."""
+    return write_atomically(directory / CHECKPOINT_FILE, payload)
+
+
+def write_atomically(path: Path, payload: dict[str, Any]) -> Path:
+    """Writes to a temporary file, then renames it over `path`: a crash leaves the old file or the new one."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     torch.save(payload, temporary)
     with open(temporary, "rb") as handle:
         os.fsync(handle.fileno())
-    os.replace(temporary, final)
-    return final
+    os.replace(temporary, path)
+    return path
 
 
 def load_checkpoint(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
@@ -121,14 +202,14 @@ def _locate(path: Path) -> Path:
     return file
 
 
-def _read(file: Path, required: tuple[str, ...]) -> dict[str, Any]:
+def _read(file: Path, required: tuple[str, ...], kind: str = "checkpoint") -> dict[str, Any]:
     try:
         payload = torch.load(file, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a damaged file
-        raise CheckpointError(f"cannot read checkpoint {file}: {error}") from None
+        raise CheckpointError(f"cannot read {kind} {file}: {error}") from None
     if not isinstance(payload, dict):
-        raise CheckpointError(f"checkpoint {file} is not a d3rqn checkpoint")
+        raise CheckpointError(f"{kind} {file} is not a d3rqn {kind}")
     missing = [name for name in required if name not in payload]
     if missing:
-        raise CheckpointError(f"checkpoint {file} lacks {', '.join(missing)}")
+        raise CheckpointError(f"{kind} {file} lacks {', '.join(missing)}")
     return payload

@@ -150,6 +150,13 @@ class LearnerConfig:
                    "48.6 MB at the paper's sizes), or half the size as float16 or bfloat16, whose greedy actions "
                    "differ from float32's within the tolerance docs/architecture.md states", choices=tuple(WEIGHTS_ENCODINGS))
     checkpoint_every: int = option(5_000, "write checkpoints/latest.pt every this many updates", "updates")
+    keep_every: int = option(
+        0, "keep the policy (the online weights, with the run's updates, env steps and wall time) in the run folder's "
+           "policies/ every this many updates, and at the end, for greedy learning curves (`evaluate --curve`); "
+           "each file holds one network (48.6 MB at the paper's sizes); 0: not by updates", "updates")
+    keep_every_s: float = option(
+        0.0, "also keep the policy once this long has passed since the last kept one (after an update), whichever of "
+             "this and keep_every comes first; 0: not by time", "s")
     prefetch: int = option(2, "batch requests kept in flight to the replay", "batches")
     torch_threads: int = option(
         0, "torch's CPU threads; 0 keeps torch's default (all cores): paced actors leave the learner most of the "
@@ -185,6 +192,8 @@ class LearnerConfig:
         _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
         _check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
         _check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
+        _check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
+        _check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
         _check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
                f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
 
@@ -584,6 +593,7 @@ PRESETS: dict[str, Preset] = {
             "learner.total_env_steps": 60_000,
             "learner.start_steps": 10_000,
             "learner.checkpoint_every": 1_000,
+            "learner.keep_every": 1_000,  # about 12 policies a run for its greedy curve
             "exploration.decreasing.n_start": 10_000,
             "exploration.decreasing.n_ann": 20_000,
             "exploration.decreasing.n_max": 60_000,
@@ -600,6 +610,7 @@ PRESETS: dict[str, Preset] = {
             "learner.total_env_steps": 20_000,
             "learner.weights_every": 5,
             "learner.checkpoint_every": 50,
+            "learner.keep_every": 100,
             "learner.log_period_s": 1.0,
             "exploration.decreasing.n_start": 100,
             "exploration.decreasing.n_ann": 800,

@@ -3,6 +3,8 @@
     config.toml                 the config the stack started the run with
     logs/<process>.log          one file per process of the stack; the grid adds stack.log, evaluate.log
     checkpoints/latest.pt       the learner's checkpoint (common/checkpoint.py)
+    policies/policy-u<updates>.pt  the policies the learner kept (learner.keep_every), 7-digit updates
+    curve/                      `evaluate --curve`'s greedy learning curve of the kept policies
     replay/rate_limiter.json    the replay's counters, and replay/snapshot/ its episodes (replay --resume)
     traffic.mcap                the flight recorder's log; traffic-2.mcap, ... after each restart
     evaluation/                 evaluate's report
@@ -19,12 +21,14 @@ import dataclasses
 import itertools
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
 CHECKPOINTS = "checkpoints"
 CHECKPOINT_FILE = "latest.pt"
+POLICY_FILE = re.compile(r"policy-u(\d+)\.pt")
 
 
 class StatusError(ValueError):
@@ -64,6 +68,24 @@ class RunDir:
     @property
     def checkpoint(self) -> Path:
         return self.checkpoints / CHECKPOINT_FILE
+
+    @property
+    def policies(self) -> Path:
+        return self.root / "policies"
+
+    def policy(self, updates: int) -> Path:
+        """The kept policy of this many updates; zero-padded, so the names sort by updates."""
+        return self.policies / f"policy-u{updates:07d}.pt"
+
+    def kept_policies(self) -> list[tuple[int, Path]]:
+        """(updates, file) of every kept policy, by updates."""
+        found = [(int(match[1]), path) for path in self.policies.glob("policy-u*.pt")
+                 if (match := POLICY_FILE.fullmatch(path.name))]
+        return sorted(found)
+
+    @property
+    def curve(self) -> Path:
+        return self.root / "curve"
 
     @property
     def replay_counters(self) -> Path:

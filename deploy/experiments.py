@@ -19,6 +19,11 @@ seeds (results.md, results.csv: pooled rows and one row per seed, with every
 run's updates), the figures of replay/log/figures.py and the performance
 profiles of deploy/performance_profile.py.
 
+Every run keeps its policy now and then for a greedy learning curve
+(learner.keep_every: the config's, or about GRID_KEPT_POLICIES over the budget
+when it keeps none); `evaluate --curve <run folder>` draws it, after the run or
+beside it (docs/evaluation-curves.md).
+
 Stopping and running the same command again resumes: a run with an evaluation
 and a checkpoint at the step budget is done; a run whose checkpoint is short of
 the budget is resumed (--resume) and evaluated again; a trained run without an
@@ -68,6 +73,7 @@ GRID_KEYS = {"run.name": "the run names", "run.seed": "--seeds", "run.runs_dir":
              "exploration.strategy": "--strategies", "replay.capacity": "--buffers",
              "learner.total_env_steps": "--steps", "evaluation.episodes_per_start": "--trials"}
 POLL_S = 0.5
+GRID_KEPT_POLICIES = 20  # policies a run keeps for its greedy curve when the runs' config keeps none
 TRAIN, RESUME, EVALUATE, DONE = "train", "resume", "evaluate", "done"
 
 
@@ -559,6 +565,18 @@ def learner_threads_flags(extra: list[str], parallel: int, cores: int) -> list[s
     return ["--learner.torch_threads", str(max(1, cores // parallel))]
 
 
+def keep_flags(extra: list[str], steps: int) -> list[str]:
+    """Every run keeps policies for its greedy learning curve (`evaluate --curve`): when the flags' config
+    keeps none (the paper preset), about GRID_KEPT_POLICIES over the budget."""
+    try:
+        learner = config_from_args(parse_flags(config_parser(), extra)).learner
+    except ConfigError:
+        return []  # check_config_flags says what is wrong
+    if learner.keep_every or learner.keep_every_s:
+        return []
+    return ["--learner.keep_every", str(max(1, round(steps / learner.env_steps_per_update / GRID_KEPT_POLICIES)))]
+
+
 def parse_arguments(argv: list[str] | None) -> tuple[list[RunSpec], Options, int, bool]:
     args, extra = build_parser().parse_known_args(argv)
     unknown_strategies = [name for name in parse_list(args.strategies, str, "strategies") if name not in STRATEGIES]
@@ -570,7 +588,7 @@ def parse_arguments(argv: list[str] | None) -> tuple[list[RunSpec], Options, int
             raise ExperimentError(f"--{name.replace('_', '-')}: must be > 0, got {value}")
     specs = grid(parse_list(args.strategies, str, "strategies"), parse_list(args.buffers, int, "buffers"),
                  parse_list(args.seeds, int, "seeds"))
-    extra = [*extra, *learner_threads_flags(extra, args.parallel, os.cpu_count() or 1)]
+    extra = [*extra, *learner_threads_flags(extra, args.parallel, os.cpu_count() or 1), *keep_flags(extra, args.steps)]
     options = Options(args.runs_dir, args.steps, args.trials, args.actors, tuple(extra), args.progress_s,
                       args.export, tuple(args.merge))
     check_config_flags(specs, options)

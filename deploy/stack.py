@@ -312,6 +312,16 @@ class Stack:
         log.close()
 
 
+def keeping(config: Config) -> str:
+    """What the learner keeps for the greedy learning curve (`evaluate --curve`), for the start line."""
+    learner = config.learner
+    rules = ([f"every {learner.keep_every:,d} updates"] if learner.keep_every else []) + \
+        ([f"every {learner.keep_every_s:g} s"] if learner.keep_every_s else [])
+    if not rules:
+        return "no policies kept (learner.keep_every 0)"
+    return f"a policy kept {' or '.join(rules)} into {RunDir.of(config).policies.name}/"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="deploy/run.sh",
@@ -353,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
     actors = args.actors or config.actor.num_actors or default_actor_count()
     print(f"run {config.run.name!r}: strategy {config.exploration.strategy}, {actors} actor(s), "
-          f"router {endpoint}, files in {run.root}/", flush=True)
+          f"router {endpoint}, files in {run.root}/; {keeping(config)}", flush=True)
 
     stack = Stack(config, run, endpoint, actors, args.resume, args.tensorboard)
     stop = threading.Event()

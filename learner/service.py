@@ -1,7 +1,8 @@
 """The learner process: trains on the replay's trace batches and broadcasts weights and exploration.
 
 Top to bottom, one loop: take a prefetched batch, update, feed the exploration
-strategy, broadcast what changed, checkpoint now and then. The pacing is not
+strategy, broadcast what changed, checkpoint now and then, and keep the policy
+for the greedy learning curve (learner.keep_every, learner/keep.py). The pacing is not
 here: the replay's rate limiter (replay/rate_limiter.py) answers the first
 batch request the moment updates start and holds replies back while the
 learner is ahead of one update per `learner.env_steps_per_update` env steps.
@@ -31,8 +32,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.checkpoint import Checkpoint, CheckpointError
+from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy, cpu_model
 from common.config import Config, to_dict
+from common.eta import clock_time
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.logs import Every
 from common.run_dir import RunDir
@@ -40,6 +42,7 @@ from common.service import Service
 from common.transport import Keys, SharedMemory, publisher, request, serve, subscribe
 from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
                          WireError, check_trace_batch, stat_number)
+from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
 from learner.update import DoubleQLearner, TraceBatch as Traces, TraceTensors
 
@@ -49,22 +52,32 @@ SAMPLE_TIMEOUT_S = 30.0
 IDLE_POLL_S = 0.05
 WAIT_LOG_S = 10.0
 MAX_FAILED_IN_A_ROW = 20  # updates that raise on consecutive batches: the learner itself is at fault; it stops
+CPU_MODEL = cpu_model()  # recorded in each kept policy: its wall time is this machine's
 
 
 class RunClock:
-    """The run's env steps, start mark and close as the replay counts them, and the updates they pay for.
+    """The run's env steps, start mark and close as the replay counts them, the updates they pay for,
+    and the run's wall time.
 
     Reports arrive from batches and two replay keys, not in order, so the count only grows. The learner
     stops once the replay has closed the run (budget spent, every update it pays for served, no more
-    episodes taken: replay/rate_limiter.py) and its updates pay for every step the replay took.
+    episodes taken: replay/rate_limiter.py) and its updates pay for every step the replay took. The
+    wall time is this learner session's plus that of the sessions before a resume, so that a
+    resumed run's greedy curve (kept policies) carries on where it stopped.
     """
 
-    def __init__(self, env_steps_per_update: float, error_buffer: float) -> None:
+    def __init__(self, env_steps_per_update: float, error_buffer: float, wall_clock=time.monotonic) -> None:
         self.env_steps_per_update = env_steps_per_update
         self.error_buffer = error_buffer
         self.env_steps = 0  # env steps of the whole system, as the replay last reported them
         self.start_env_steps: float | None = None  # the replay's start mark
         self.closed = False  # the replay's word: it takes no more episodes
+        self.earlier_wall_s = 0.0  # the run's wall time before this session (a resumed run's checkpoint)
+        self._wall_clock = wall_clock
+        self._session_start = wall_clock()
+
+    def wall_s(self) -> float:
+        return self.earlier_wall_s + self._wall_clock() - self._session_start
 
     def observe(self, env_steps: int, start_env_steps: float | None = None, closed: bool | None = None) -> None:
         self.env_steps = max(self.env_steps, int(env_steps))
@@ -95,10 +108,11 @@ class RunClock:
 
     def state_dict(self) -> dict:
         # Checkpoint.env_steps reads "env_steps": the grid runner and evaluate ask it how far a run got.
-        return {"env_steps": self.env_steps, "start_env_steps": self.start_env_steps}
+        return {"env_steps": self.env_steps, "start_env_steps": self.start_env_steps, "wall_s": self.wall_s()}
 
     def load_state_dict(self, state: dict) -> None:
         self.env_steps = int(state.get("env_steps", 0))
+        self.earlier_wall_s = float(state.get("wall_s", 0.0))  # 0: a checkpoint from before it was kept
         mark = state.get("start_env_steps", state.get("steps_at_first_update"))
         self.start_env_steps = None if mark is None else float(mark)
 
@@ -112,9 +126,10 @@ class Admitted:
     error: WireError | None
 
 
-class BroadcastSchedule:
-    """When the weights go out: after every `every`-th update, and (period_s > 0) after the first update
-    once period_s has passed since the last broadcast, whichever comes first."""
+class Cadence:
+    """When the weights go out, or a policy is kept: after every `every`-th update (every > 0), and
+    (period_s > 0) after the first update once period_s has passed since the last time, whichever
+    comes first."""
 
     def __init__(self, every: int, period_s: float, clock=time.monotonic) -> None:
         self.every = every
@@ -123,9 +138,10 @@ class BroadcastSchedule:
         self._last = clock()
 
     def due(self, updates: int) -> bool:
-        """Whether the weights after this update go out; a broadcast restarts the period."""
+        """Whether it is time after this update; a yes restarts the period."""
         now = self._clock()
-        if updates % self.every == 0 or (self.period_s > 0 and now - self._last >= self.period_s):
+        by_count = self.every > 0 and updates % self.every == 0
+        if by_count or (self.period_s > 0 and now - self._last >= self.period_s):
             self._last = now
             return True
         return False
@@ -134,14 +150,17 @@ class BroadcastSchedule:
 class LearnerProcess:
     """The learner's state and its loop; transport objects are handed in."""
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, clock=time.monotonic) -> None:
         self.config = config
         self.learner = DoubleQLearner(config.network, config.learner)
         # On a GPU, batches are copied to the device by the prefetch threads while the previous
         # update runs (pinned buffers, a side stream); on a CPU the arrays are used where they lie.
         self.stager = self.learner.stager() if self.learner.device.type == "cuda" else None
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
-        self.clock = RunClock(config.learner.env_steps_per_update, config.replay.error_buffer_updates)
+        self.clock = RunClock(config.learner.env_steps_per_update, config.replay.error_buffer_updates, clock)
+        keeping = config.learner.keep_every > 0 or config.learner.keep_every_s > 0
+        self.keeper = PolicyKeeper(RunDir.of(config), Cadence(config.learner.keep_every, config.learner.keep_every_s,
+                                                              clock) if keeping else None)
         self.episodes_stored = 0
         self.bmc_observations = 0  # transitions passed to the strategy's on_returns
         self._resumed_env_steps: int | None = None
@@ -319,13 +338,32 @@ class LearnerProcess:
         return Checkpoint(learner=self.learner.state_dict(), exploration=self.strategy.state_dict(), clock=clock,
                           config=to_dict(self.config)).save(self.checkpoint_dir)
 
+    def keep_policy(self) -> None:
+        """Keeps the online weights with the run's updates, env steps and wall time (written in the background)."""
+        with self._lock:
+            env_steps, wall_s = self.clock.env_steps, self.clock.wall_s()
+        online = {name: torch.from_numpy(array) for name, array in self.learner.online_weights().items()}
+        self.keeper.keep(KeptPolicy(updates=self.updates, env_steps=env_steps, wall_s=wall_s, cpu=CPU_MODEL,
+                                    config=to_dict(self.config), online=online))
+
+    def keep_policy_if_due(self) -> None:
+        if self.keeper.due(self.updates):
+            self.keep_policy()
+
+    def keep_last_policy(self) -> None:
+        """At the end: the policy the run stopped with, unless just kept; returns once every file is written."""
+        if self.keeper.cadence is not None and self.keeper.last_kept != self.updates:
+            self.keep_policy()
+        self.keeper.wait()
+
     def resume(self) -> None:
         checkpoint = Checkpoint.load(self.checkpoint_dir, complete=True)
         self.learner.load_state_dict(checkpoint.learner)
         self.strategy.load_state_dict(checkpoint.exploration)
         self.clock.load_state_dict(checkpoint.clock)
         self._resumed_env_steps = self.clock.env_steps
-        log.info("resumed from %s: %d updates, %d env steps", self.checkpoint_dir, self.updates, self.clock.env_steps)
+        log.info("resumed from %s: %d updates, %d env steps, %s of wall time", self.checkpoint_dir, self.updates,
+                 self.clock.env_steps, clock_time(self.clock.earlier_wall_s))
 
 
 def run_learner(config: Config, resume: bool = False) -> None:
@@ -380,7 +418,7 @@ class Outputs:
 def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, session, keys: Keys) -> None:
     config = process.config.learner
     heartbeat = Every(config.log_period_s)
-    broadcasts = BroadcastSchedule(config.weights_every, config.weights_period_s)
+    broadcasts = Cadence(config.weights_every, config.weights_period_s)
     started_from = process.updates
 
     def fetch(message: TraceBatchRequest):
@@ -422,6 +460,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                     outputs.weights(process.make_weights())
                 if process.updates % config.checkpoint_every == 0:
                     process.checkpoint()
+                process.keep_policy_if_due()
             if heartbeat.due():
                 outputs.metrics(report.values())
             batch = _next_batch(process, prefetcher, stop, idle)
@@ -429,6 +468,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
         prefetcher.close()
         outputs.weights(process.make_weights())
         path = process.checkpoint()
+        process.keep_last_policy()
         outputs.metrics({**report.values(), "final": 1})
         log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
                  "checkpoint %s", process.updates, process.clock.env_steps, process.env_steps_per_update(),

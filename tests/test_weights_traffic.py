@@ -15,7 +15,7 @@ from common.network import D3RQN, weights_to_numpy
 from common.transport import loopback_endpoint
 from common.wire import WEIGHTS_ENCODINGS, Weights, WireError, decode, encode
 from deploy.bench.weights_encoding import BFLOAT16_PASS, compare, drives
-from learner.service import BroadcastSchedule, LearnerProcess
+from learner.service import Cadence, LearnerProcess
 from replay.log.recorder import WeightsSampler
 from replay.log.traffic import Arrival, peek
 from tests import weights_peers
@@ -43,7 +43,7 @@ def float32_tensors(seed: int = 0) -> dict[str, np.ndarray]:
 
 def test_without_a_period_the_weights_go_out_every_n_updates_only():
     clock = FakeClock()
-    schedule = BroadcastSchedule(every=5, period_s=0.0, clock=clock)
+    schedule = Cadence(every=5, period_s=0.0, clock=clock)
     due = []
     for updates in range(1, 16):
         clock.now += 10.0  # however long an update takes
@@ -53,7 +53,7 @@ def test_without_a_period_the_weights_go_out_every_n_updates_only():
 
 def test_a_period_broadcasts_between_the_counted_updates_and_restarts_at_each_broadcast():
     clock = FakeClock()
-    schedule = BroadcastSchedule(every=50, period_s=1.0, clock=clock)
+    schedule = Cadence(every=50, period_s=1.0, clock=clock)
     sent = []
     for updates in range(1, 101):
         clock.now += 0.3  # 3.3 updates a second: the time rule comes first
@@ -66,7 +66,7 @@ def test_a_period_broadcasts_between_the_counted_updates_and_restarts_at_each_br
 
 def test_a_slow_learner_broadcasts_after_every_update_once_the_period_has_passed():
     clock = FakeClock()
-    schedule = BroadcastSchedule(every=50, period_s=1.0, clock=clock)
+    schedule = Cadence(every=50, period_s=1.0, clock=clock)
     clock.now += 5.0
     assert schedule.due(1) and not schedule.due(2)
 

@@ -4,8 +4,9 @@ episodes (which episodes, the policies, lockstep stepping inside a worker),
 workers (the worker processes), progress (the status line), protocol (policies
 x start sets -> episodes and table rows), sources (the weights: a checkpoint or
 the live learner), stats and intervals (the tables' figures), report (the
-files written). The command line is actor/evaluate.py; the comparison across
-runs is deploy/comparison.py.
+files written), curve (the greedy learning curve of the policies a run kept).
+The command line is actor/evaluate.py; the comparison across runs is
+deploy/comparison.py.
 """
 
 

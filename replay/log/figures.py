@@ -29,6 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
+from common.plotting import finish_figure, pyplot
 from common.strategies import DISPLAY_NAMES, STRATEGIES, epsilon_groups, strategy_rank
 from common.wire import EpisodeRecord, Stats
 from replay.log.plot import finite_series, trailing_mean
@@ -123,13 +124,13 @@ def plot_epsilon(runs: Sequence[RunCurves], path: Path) -> None:
     panels = [(title, members) for title, members in panels if members]
     if not panels:
         raise ValueError(f"no run of an epsilon-based strategy ({', '.join(EPSILON_STRATEGIES)})")
-    plt = _pyplot()
+    plt = pyplot()
     figure, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), dpi=90, squeeze=False)
     for ax, (title, members) in zip(axes[0], panels):
         _draw_cells(ax, members, lambda run: (np.cumsum(run.episode_lengths), np.asarray(run.episode_epsilons))
                     if run.episode_lengths else None)
         ax.set(title=title, xlabel="env steps", ylabel="epsilon", ylim=(-0.02, 1.02))
-    _finish(plt, figure, axes[0], path, "epsilon the actors used against env steps" + BAND_NOTE)
+    finish_figure(plt, figure, axes[0], path, "epsilon the actors used against env steps" + BAND_NOTE)
 
 
 def seed_band(series: Sequence[Series], points: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -157,7 +158,7 @@ def plot_reward_bins(panels: dict[str, Sequence[tuple[str, str, Sequence[float]]
         for label, _, shares in bars:
             if len(shares) != len(bin_labels):
                 raise ValueError(f"{label}: {len(shares)} shares for {len(bin_labels)} bins")
-    plt = _pyplot()
+    plt = pyplot()
     figure, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), dpi=90, squeeze=False)
     positions = np.arange(len(bin_labels))
     for ax, (panel_title, bars) in zip(axes[0], panels.items()):
@@ -167,7 +168,7 @@ def plot_reward_bins(panels: dict[str, Sequence[tuple[str, str, Sequence[float]]
                    color=strategy_colour(strategy))
         ax.set_xticks(positions, bin_labels)
         ax.set(title=panel_title, xlabel="step reward", ylabel="% of steps", ylim=(0, 100))
-    _finish(plt, figure, axes[0], path, title)
+    finish_figure(plt, figure, axes[0], path, title)
 
 
 # --- layout --------------------------------------------------------------------------------------------
@@ -179,13 +180,13 @@ def _plot_by_capacity(runs: Sequence[RunCurves], path: Path, series, title: str,
     if not runs:
         raise ValueError("no runs to plot")
     capacities = sorted({run.capacity for run in runs})
-    plt = _pyplot()
+    plt = pyplot()
     figure, axes = plt.subplots(1, len(capacities), figsize=(6 * len(capacities), 4), dpi=90, squeeze=False)
     for ax, capacity in zip(axes[0], capacities):
         if _draw_cells(ax, [run for run in runs if run.capacity == capacity], series) and log:
             ax.set_yscale("log")
         ax.set(title=f"replay capacity {capacity:,d} episodes", xlabel=xlabel, ylabel=ylabel)
-    _finish(plt, figure, axes[0], path, title + BAND_NOTE)
+    finish_figure(plt, figure, axes[0], path, title + BAND_NOTE)
 
 
 def _draw_cells(ax, runs: Sequence[RunCurves], series) -> bool:
@@ -203,22 +204,3 @@ def _draw_cells(ax, runs: Sequence[RunCurves], series) -> bool:
             ax.fill_between(x, low, high, color=colour, alpha=0.2, linewidth=0)
         drawn = True
     return drawn
-
-
-def _finish(plt, figure, axes, path: Path, title: str) -> None:
-    for ax in axes:
-        ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
-    figure.suptitle(title, fontsize=10)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path)
-    plt.close(figure)
-
-
-def _pyplot():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt

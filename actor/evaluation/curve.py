@@ -1,0 +1,234 @@
+"""Greedy learning curves: every policy a run kept, on the paper's protocol, into one CSV, a figure and
+the time to drive.
+
+The learner keeps its online weights every learner.keep_every updates (or keep_every_s seconds)
+in <run>/policies/ (KeptPolicy, common/checkpoint.py). `evaluate --curve <run>` runs the greedy
+policy of each kept file from every start of both start sets, CURVE_TRIALS trials per start
+unless the config says otherwise, and writes one row per kept policy and start set: where the
+run stood (updates, env steps, wall time, the CPU it trained on), the priority the evaluation
+ran at, and the columns of evaluate's summary.csv with their intervals. A policy already in the
+CSV is not run again, so the command can follow a run that goes on; a damaged file is logged and
+skipped. The milestones (the time to drive) are read from the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+
+from actor.evaluation import EvaluationError
+from actor.evaluation.protocol import evaluate
+from actor.evaluation.report import summary_columns
+from actor.evaluation.sources import check_weights, checkpoint_config
+from actor.evaluation.stats import SetSummary
+from common.checkpoint import CheckpointError, KeptPolicy, cpu_model
+from common.config import Config, ConfigError
+from common.eta import Eta, clock_time
+from common.plotting import finish_figure, pyplot
+from common.run_dir import RunDir
+
+CURVE_TRIALS = 5  # trials per start: a curve evaluates many policies, so fewer than a table's 30
+DRIVE_LENGTH = 1000.0  # steps: a greedy test mean length this long is driving
+CURVE_CSV, CURVE_PNG = "curve.csv", "curve.png"
+SUMMARY_JSON, SUMMARY_MD = "curve_summary.json", "curve_summary.md"
+# name, column, threshold, what it means: the first kept policy whose test row reaches the threshold
+MILESTONES = (("drive", "mean_length", DRIVE_LENGTH, "greedy test mean length >= 1,000 steps"),
+              ("half_cfr", "cfr", 0.5, "greedy test CFR >= 50%"))
+
+log = logging.getLogger("evaluate")
+
+
+def curve_config(saved: dict, args: argparse.Namespace) -> Config:
+    """A kept policy's config with CURVE_TRIALS trials per start, then --config FILE and the flags given."""
+    evaluation = saved.get("evaluation")
+    trials = {"evaluation": {**evaluation, "episodes_per_start": CURVE_TRIALS}} if isinstance(evaluation, dict) else {}
+    return checkpoint_config({**saved, **trials}, args)
+
+
+def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],
+                   nice: int, show_progress: bool = True) -> list[dict] | None:
+    """Evaluates the kept policies the CSV lacks, writing it after each; returns all its rows, or None
+    when nothing was added (nothing new, or every new file skipped)."""
+    kept = run.kept_policies()
+    if not kept:
+        raise EvaluationError(f"no kept policies in {run.policies}/ (the learner keeps them with "
+                              "learner.keep_every or learner.keep_every_s)")
+    path = out_dir / CURVE_CSV
+    rows = read_curve(path)
+    done = {int(row["updates"]) for row in rows}
+    todo = [(updates, file) for updates, file in kept if updates not in done]
+    if not todo:
+        print(f"curve: nothing new: all {len(kept)} kept policies are in {path}", file=sys.stderr)
+        return None
+    eta, added = Eta(len(todo)), 0
+    eta.update(0)
+    for number, (updates, file) in enumerate(todo, 1):
+        new = policy_rows(file, updates, start_sets, configure, nice, show_progress)
+        if new:
+            rows = write_curve(path, rows + new)
+            added += 1
+        eta.update(number)
+        print(f"curve: {number}/{len(todo)} kept policies, ETA {eta.text()}: {file.name} {headline(new)}",
+              file=sys.stderr, flush=True)
+    if not added:
+        print(f"curve: every new kept policy was skipped; {path} is unchanged", file=sys.stderr)
+        return None
+    return rows
+
+
+def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: Callable[[dict], Config],
+                nice: int, show_progress: bool) -> list[dict]:
+    """The curve's rows of one kept policy; none, with a log line, when the file cannot be used."""
+    try:
+        policy = KeptPolicy.load(file)
+        if policy.updates != updates:
+            raise CheckpointError(f"its name says update {updates}, it holds update {policy.updates}")
+        config = configure(policy.config)
+        weights = policy.weights()
+        check_weights(config, weights)
+    except (CheckpointError, ConfigError, EvaluationError) as error:
+        log.warning("skipped %s: %s", file, error)
+        return []
+    _, summaries = evaluate(config, weights, ["greedy"], start_sets, show_progress)
+    return [curve_row(policy, summary, config.evaluation.reward_bins, nice) for summary in summaries]
+
+
+def curve_row(policy: KeptPolicy, summary: SetSummary, edges: Sequence[float], nice: int) -> dict:
+    return {"updates": policy.updates, "env_steps": policy.env_steps, "wall_s": round(policy.wall_s, 3),
+            "kept_file": policy.path.name, "trained_on": policy.cpu, "nice": nice,
+            **summary_columns(summary, edges)}
+
+
+def headline(rows: list[dict]) -> str:
+    """'test: mean length 41.2, CFR 0.0%; train: ...' of one policy's rows, or 'skipped'."""
+    return "; ".join(f"{row['start_set']}: mean length {float(row['mean_length']):,.1f}, "
+                     f"CFR {100 * float(row['cfr']):.1f}%" for row in rows) or "skipped"
+
+
+# --- the CSV ----------------------------------------------------------------------------------------------
+
+def read_curve(path: Path) -> list[dict]:
+    """The rows of a curve CSV, [] when there is none yet."""
+    if not path.exists():
+        return []
+    try:
+        with path.open(newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        for row in rows:
+            int(row["updates"])
+    except (OSError, csv.Error, KeyError, TypeError, ValueError) as error:
+        raise EvaluationError(f"{path} is not a curve of evaluate --curve ({type(error).__name__}: {error}); "
+                              "move it away or give another --out") from None
+    return rows
+
+
+def write_curve(path: Path, rows: list[dict]) -> list[dict]:
+    """All rows, by updates, atomically: an interruption leaves the previous file whole."""
+    columns = list(rows[0])
+    if any(list(row) != columns for row in rows):
+        raise EvaluationError(f"{path} has other columns than this evaluation writes (other reward bins?); "
+                              "give another --out")
+    rows = sorted(rows, key=lambda row: int(row["updates"]))  # stable: a policy's start sets stay in order
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with temporary.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(temporary, path)
+    return rows
+
+
+# --- the time to drive ---------------------------------------------------------------------------------------
+
+def first_reaching(rows: Sequence[dict], column: str, threshold: float, start_set: str = "test") -> dict | None:
+    """Where the run stood at the first kept policy whose `column` on `start_set` reached `threshold`."""
+    for row in sorted((row for row in rows if row["start_set"] == start_set), key=lambda row: int(row["updates"])):
+        if float(row[column]) >= threshold:
+            return {"updates": int(row["updates"]), "env_steps": int(row["env_steps"]),
+                    "wall_s": float(row["wall_s"]), "trained_on": row["trained_on"], "kept_file": row["kept_file"],
+                    column: float(row[column])}
+    return None
+
+
+def curve_summary(rows: Sequence[dict]) -> dict:
+    """The milestones of a curve's rows, and what they were measured from."""
+    return {
+        "policies": len({row["updates"] for row in rows}),
+        "last_updates": max(int(row["updates"]) for row in rows),
+        "test_set": any(row["start_set"] == "test" for row in rows),
+        "nice": sorted({int(row["nice"]) for row in rows}),
+        "evaluated_on": cpu_model(),
+        **{name: {"criterion": criterion, "reached": first_reaching(rows, column, threshold)}
+           for name, column, threshold, criterion in MILESTONES},
+    }
+
+
+def summary_lines(summary: dict) -> list[str]:
+    lines = []
+    for name, _, _, _ in MILESTONES:
+        criterion, reached = summary[name]["criterion"], summary[name]["reached"]
+        if reached is not None:
+            lines.append(f"first {criterion}: update {reached['updates']:,d}, {reached['env_steps']:,d} env steps, "
+                         f"{clock_time(reached['wall_s'])} of wall time, trained on {reached['trained_on']}")
+        elif not summary["test_set"]:
+            lines.append(f"first {criterion}: the test set was not evaluated")
+        else:
+            lines.append(f"first {criterion}: not reached in {summary['policies']} kept policies "
+                         f"(up to update {summary['last_updates']:,d})")
+    nice = ", ".join(str(value) for value in summary["nice"])
+    lines.append(f"evaluated on {summary['evaluated_on']} at nice {nice}")
+    return lines
+
+
+def write_summary(out_dir: Path, summary: dict, run_name: str) -> list[Path]:
+    paths = [out_dir / SUMMARY_JSON, out_dir / SUMMARY_MD]
+    paths[0].write_text(json.dumps(summary, indent=1) + "\n")
+    body = "\n".join(f"- {line}" for line in summary_lines(summary))
+    paths[1].write_text(f"# Greedy learning curve of {run_name}: time to drive\n\n{body}\n")
+    return paths
+
+
+# --- the figure --------------------------------------------------------------------------------------------
+
+PANELS = (("mean_length", 1.0, "greedy mean length (steps)"), ("cfr", 100.0, "greedy CFR (%)"))
+SET_COLOURS = {"train": "tab:blue", "test": "tab:orange"}
+
+
+def plot_curve(rows: Sequence[dict], path: Path, title: str) -> None:
+    """Mean length and CFR of the greedy policy against wall time and env steps, a line per start set,
+    its band the rows' intervals over the trials."""
+    plt = pyplot()
+    hours = max(float(row["wall_s"]) for row in rows) > 2 * 3600  # else minutes
+    x_axes = (("wall_s", 1 / 3600 if hours else 1 / 60, f"wall time since the run started ({'h' if hours else 'min'})"),
+              ("env_steps", 1.0, "env steps"))
+    figure, axes = plt.subplots(2, 2, figsize=(10, 6.5), dpi=90)
+    for panel_axes, (statistic, scale, y_label) in zip(axes, PANELS):
+        for ax, (x_column, x_scale, x_label) in zip(panel_axes, x_axes):
+            for start_set, colour in SET_COLOURS.items():
+                points = sorted((row for row in rows if row["start_set"] == start_set), key=lambda r: int(r["updates"]))
+                if not points:
+                    continue
+                x = [x_scale * float(row[x_column]) for row in points]
+                y, low, high = ([scale * float(row[key]) for row in points]
+                                for key in (statistic, f"{statistic}_low", f"{statistic}_high"))
+                ax.plot(x, y, color=colour, marker=".", label=start_set)
+                if all(math.isfinite(value) for value in low + high):
+                    ax.fill_between(x, low, high, color=colour, alpha=0.2, linewidth=0)
+            ax.set(xlabel=x_label, ylabel=y_label)
+    finish_figure(plt, figure, axes.flat, path, title)
+
+
+def write_outputs(out_dir: Path, rows: list[dict], run_name: str) -> tuple[dict, list[Path]]:
+    """The figure and the summary of all the curve's rows."""
+    figure = out_dir / CURVE_PNG
+    plot_curve(rows, figure, f"greedy learning curve of {run_name} (bands: intervals over the trials)")
+    summary = curve_summary(rows)
+    return summary, [out_dir / CURVE_CSV, figure, *write_summary(out_dir, summary, run_name)]

@@ -1,0 +1,253 @@
+"""Greedy learning curves: the learner keeps policies at its cadence, a kept file reads back into the
+network, `evaluate --curve` evaluates the kept policies once each, and the time to drive."""
+
+import csv
+import json
+import logging
+import math
+import time
+
+import pytest
+import torch
+
+from actor.evaluate import build_parser, main
+from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, summary_lines
+from common.checkpoint import CheckpointError, KeptPolicy
+from common.config import ConfigError, from_dict, load_config, to_dict
+from common.network import D3RQN, load_numpy_weights
+from common.run_dir import RunDir
+from deploy.experiments import keep_flags
+from learner.service import LearnerProcess
+from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
+from tests.test_progress import FakeClock
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def learner(config, clock=time.monotonic, keep_every=0, keep_every_s=0.0) -> LearnerProcess:
+    config.learner.keep_every, config.learner.keep_every_s = keep_every, keep_every_s
+    process = LearnerProcess(config, clock=clock)
+    process.start_updates()
+    return process
+
+
+def kept(config) -> list[int]:
+    return [updates for updates, _ in RunDir.of(config).kept_policies()]
+
+
+# --- the learner keeps policies ----------------------------------------------------------------------------
+
+def test_the_learner_keeps_a_policy_every_n_updates_and_at_the_end(config):
+    process = learner(config, keep_every=2)
+    for batch in batches(5):
+        train(process, batch)
+        process.keep_policy_if_due()
+    process.keeper.wait()
+    assert kept(config) == [2, 4]
+    process.keep_last_policy()
+    assert kept(config) == [2, 4, 5]
+    run = RunDir.of(config)
+    assert [path.name for _, path in run.kept_policies()] == ["policy-u0000002.pt", "policy-u0000004.pt",
+                                                             "policy-u0000005.pt"]
+    assert not list(run.policies.glob(".*"))  # written whole: no temporary file left behind
+    second = KeptPolicy.load(run.policy(2))
+    assert (second.updates, second.env_steps) == (2, 140)  # the replay's count after the second batch
+    assert second.config["learner"]["keep_every"] == 2
+
+
+def test_the_learner_keeps_a_policy_every_period_by_its_clock(config):
+    clock = FakeClock()
+    process = learner(config, clock, keep_every_s=10.0)
+    for batch in batches(6):
+        clock.now += 4.0  # an update takes 4 s
+        train(process, batch)
+        process.keep_policy_if_due()
+    process.keep_last_policy()  # the last one was just kept: not again
+    run = RunDir.of(config)
+    assert kept(config) == [3, 6]
+    assert [KeptPolicy.load(path).wall_s for _, path in run.kept_policies()] == [12.0, 24.0]
+
+
+def test_without_a_cadence_nothing_is_kept(config):
+    process = learner(config)
+    for batch in batches(2):
+        train(process, batch)
+        process.keep_policy_if_due()
+    process.keep_last_policy()
+    assert kept(config) == []
+
+
+def test_a_resumed_run_s_wall_time_carries_on(config):
+    clock = FakeClock()
+    first = learner(config, clock, keep_every=1)
+    train(first, batches(1)[0])
+    clock.now += 100.0
+    first.checkpoint()
+    later = FakeClock()
+    later.now = 5000.0  # another session: its clock has its own origin
+    resumed = LearnerProcess(config, clock=later)
+    resumed.resume()
+    later.now += 30.0
+    train(resumed, batches(2)[1])
+    resumed.keep_policy_if_due()
+    resumed.keeper.wait()
+    assert KeptPolicy.load(RunDir.of(config).policy(2)).wall_s == pytest.approx(130.0)
+
+
+# --- the kept file ---------------------------------------------------------------------------------------------
+
+def test_a_kept_policy_reads_back_into_the_network(config):
+    process = learner(config, keep_every=1)
+    train(process, batches(1)[0])
+    process.keep_policy_if_due()
+    process.keeper.wait()
+    path = RunDir.of(config).policy(1)
+    payload = torch.load(path, weights_only=True)
+    assert set(payload) == {"format", "updates", "env_steps", "wall_s", "cpu", "config", "online"}  # no target
+    policy = KeptPolicy.load(path)
+    network = D3RQN(from_dict(policy.config).network)
+    load_numpy_weights(network, policy.weights())
+    shape = (1, 2, config.network.frame_height, config.network.frame_width, 3)
+    frames = torch.randint(0, 256, shape, dtype=torch.uint8)
+    with torch.no_grad():
+        assert torch.equal(network(frames)[0], process.learner.online(frames)[0])
+
+
+def test_a_damaged_or_foreign_policy_file_is_a_clear_error(config, tmp_path):
+    process = learner(config, keep_every=1)
+    train(process, batches(1)[0])
+    process.keep_policy_if_due()
+    process.keeper.wait()
+    path = RunDir.of(config).policy(1)
+    good = path.read_bytes()
+    path.write_bytes(good[:len(good) // 2])
+    with pytest.raises(CheckpointError, match="cannot read kept policy"):
+        KeptPolicy.load(path)
+    checkpoint = process.checkpoint()
+    with pytest.raises(CheckpointError, match="is not a kept policy"):
+        KeptPolicy.load(checkpoint)
+    payload = torch.load(checkpoint, weights_only=True)
+    torch.save({"format": "d3rqn kept policy", "updates": -1, "env_steps": 3, "wall_s": math.nan, "cpu": "x",
+                "config": payload["config"], "online": payload["learner"]["online"]}, path)
+    with pytest.raises(CheckpointError, match="updates, wall_s missing or malformed"):
+        KeptPolicy.load(path)
+
+
+def test_keeping_options_are_checked_and_set_by_the_presets_and_the_grid():
+    assert (load_config("paper").learner.keep_every, load_config("paper").learner.keep_every_s) == (0, 0.0)
+    assert load_config("local").learner.keep_every == 1_000 and load_config("smoke").learner.keep_every == 100
+    with pytest.raises(ConfigError, match="learner.keep_every_s"):
+        load_config("paper", overrides={"learner.keep_every_s": -1})
+    # the grid: a config that keeps nothing keeps about 20 policies a run; one that keeps is left alone
+    assert keep_flags(["--preset", "paper"], 80_000) == ["--learner.keep_every", "1000"]
+    assert keep_flags(["--preset", "local"], 80_000) == []
+    assert keep_flags(["--learner.keep_every_s", "60"], 80_000) == []
+
+
+# --- the curve ----------------------------------------------------------------------------------------------
+
+def tiny_config(runs_dir):
+    return load_config("smoke", overrides={"run.name": "tiny", "run.runs_dir": str(runs_dir),
+                                           "network.lstm_units": 16, "evaluation.workers": 1,
+                                           "evaluation.envs_per_worker": 5})
+
+
+def keep(config, updates: int) -> None:
+    """A kept policy as the learner writes it, with weights of its own."""
+    torch.manual_seed(updates)
+    online = D3RQN(config.network).state_dict()
+    KeptPolicy(updates=updates, env_steps=40 * updates, wall_s=2.0 * updates, cpu="Test CPU", config=to_dict(config),
+               online=online).save(RunDir.of(config).policy(updates))
+
+
+def read_rows(path):
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+# one trial per start: the default (5) is test_the_curve_takes_five_trials_per_start_unless_told's
+CURVE_FLAGS = ["--evaluation.episodes_per_start", "1", "--evaluation.max_steps", "8"]
+
+
+def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_path, capsys, caplog, monkeypatch):
+    config = tiny_config(tmp_path)
+    run = RunDir.of(config)
+    keep(config, 10)
+    run.policy(20).write_bytes(b"half a file")
+    caplog.set_level(logging.WARNING, logger="evaluate")
+    lowered = []  # the test process keeps its priority: os.nice is asked, and answers as from niceness 6
+    monkeypatch.setattr("actor.evaluate.os.nice", lambda steps: lowered.append(steps) or 6 + steps)
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--nice", "1"])
+    assert lowered == [1]
+    assert any("skipped" in record.message and "policy-u0000020.pt" in record.message for record in caplog.records)
+    rows = read_rows(run.curve / "curve.csv")
+    assert [(row["updates"], row["start_set"]) for row in rows] == [("10", "train"), ("10", "test")]
+    first = rows[1]
+    assert (first["env_steps"], first["wall_s"], first["kept_file"], first["trained_on"]) == (
+        "400", "20.0", "policy-u0000010.pt", "Test CPU")
+    assert int(first["nice"]) == 7 and first["policy"] == "greedy" and first["episodes"] == "10"
+    for statistic in ("mean_length", "cfr"):
+        assert float(first[f"{statistic}_low"]) <= float(first[statistic]) <= float(first[f"{statistic}_high"])
+    assert 1 <= float(first["mean_length"]) <= 8
+    assert (run.curve / "curve.png").read_bytes()[:8] == PNG_MAGIC
+    summary = json.loads((run.curve / "curve_summary.json").read_text())
+    assert summary["drive"]["reached"] is None and summary["policies"] == 1
+    out = capsys.readouterr().out
+    assert "first greedy test mean length >= 1,000 steps: not reached in 1 kept policies" in out
+
+    keep(config, 30)  # the run went on
+    main(["--curve", str(run.root), *CURVE_FLAGS])
+    errors = capsys.readouterr().err  # the new one and the damaged one, not the one evaluated already
+    assert "curve: 2/2 kept policies" in errors and "policy-u0000020.pt skipped" in errors
+    rows_after = read_rows(run.curve / "curve.csv")
+    assert rows_after[:2] == rows and [row["updates"] for row in rows_after[2:]] == ["30", "30"]
+
+    run.policy(20).unlink()
+    written = (run.curve / "curve.csv").stat().st_mtime_ns
+    main(["--curve", str(run.root), *CURVE_FLAGS])
+    assert "nothing new: all 2 kept policies are in" in capsys.readouterr().err
+    assert (run.curve / "curve.csv").stat().st_mtime_ns == written
+
+
+def test_a_run_without_kept_policies_is_a_clear_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--curve", str(tmp_path / "nothing")])
+    assert exit_info.value.code == 1
+    assert "no kept policies in" in capsys.readouterr().err
+
+
+def test_the_curve_takes_five_trials_per_start_unless_told():
+    saved = to_dict(load_config("smoke"))
+    assert curve_config(saved, build_parser().parse_args(["--curve", "x"])).evaluation.episodes_per_start == CURVE_TRIALS
+    flags = build_parser().parse_args(["--curve", "x", "--evaluation.episodes_per_start", "7"])
+    assert curve_config(saved, flags).evaluation.episodes_per_start == 7
+
+
+# --- the time to drive ---------------------------------------------------------------------------------------
+
+def row(updates, start_set, mean_length, cfr):
+    return {"updates": str(updates), "env_steps": str(4 * updates), "wall_s": str(updates / 10), "kept_file": f"u{updates}",
+            "trained_on": "Test CPU", "nice": "10", "start_set": start_set, "mean_length": str(mean_length),
+            "cfr": str(cfr)}
+
+
+def test_the_time_to_drive_is_the_first_test_row_that_reaches_it():
+    rows = [row(3000, "test", 1200, 0.6), row(1000, "train", 1500, 0.9), row(1000, "test", 400, 0.1),
+            row(2000, "test", 1000, 0.3), row(2000, "train", 800, 0.2)]  # out of order, as a CSV may not be
+    drive = first_reaching(rows, "mean_length", 1000)
+    assert (drive["updates"], drive["env_steps"], drive["wall_s"], drive["trained_on"]) == (2000, 8000, 200.0,
+                                                                                           "Test CPU")
+    assert first_reaching(rows, "cfr", 0.5)["updates"] == 3000  # the train set's 90% at 1,000 does not count
+    summary = curve_summary(rows)
+    assert (summary["policies"], summary["last_updates"], summary["nice"]) == (3, 3000, [10])
+    assert summary_lines(summary)[0].startswith("first greedy test mean length >= 1,000 steps: update 2,000, "
+                                                "8,000 env steps, 3:20 of wall time, trained on Test CPU")
+
+
+def test_a_curve_that_never_drives_says_so():
+    rows = [row(1000, "test", 400, 0.1), row(2000, "test", 999, 0.49)]
+    assert first_reaching(rows, "mean_length", 1000) is None and first_reaching(rows, "cfr", 0.5) is None
+    lines = summary_lines(curve_summary(rows))
+    assert lines[1] == "first greedy test CFR >= 50%: not reached in 2 kept policies (up to update 2,000)"
+    train_only = summary_lines(curve_summary([row(1000, "train", 2000, 1.0)]))
+    assert train_only[0] == "first greedy test mean length >= 1,000 steps: the test set was not evaluated"
