@@ -9,6 +9,7 @@
     traffic.mcap                the flight recorder's log; traffic-2.mcap, ... after each restart
     evaluation/                 evaluate's report
     status.json                 what the stack is doing, rewritten while it runs (RunStatus)
+    soak/                       deploy/soak.py's samples of memory, folder size and restarts
     summary.json                the stack's figures of the whole run, written when it stops
     abandoned/<time>/           what an attempt that never checkpointed left behind (the grid runner)
 
@@ -119,6 +120,10 @@ class RunDir:
     @property
     def summary(self) -> Path:
         return self.root / "summary.json"
+
+    @property
+    def soak(self) -> Path:
+        return self.root / "soak"
 
     def abandoned(self, stamp: str) -> Path:
         return self.root / "abandoned" / stamp

@@ -1,0 +1,192 @@
+"""Soak samples of a running stack: every process's memory, the run folder's size by part, and the restarts.
+
+Beside a run of deploy/run.sh (it reads the stack's status.json for the pids), every --every seconds it
+appends one row to <run>/soak/soak.csv: the run's env steps and updates, each process's resident memory
+(VmRSS, MB), the bytes of each part of the run folder (the flight log, the replay's snapshot, checkpoints,
+kept policies, logs) and the restarts. When the run stops (or at --until-s), it draws soak.png and writes
+soak_summary.json / .md: each process's memory growth over the second half of the samples, when the replay
+is full, and the run folder's growth per hour.
+
+    .venv/bin/python deploy/soak.py runs/default --every 30              # until the run stops
+    .venv/bin/python deploy/soak.py runs/default --report                # the figure and summary of what is there
+
+A rerun appends to the CSV, so a resumed run's soak carries on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from common.plotting import finish_figure, pyplot
+from common.run_dir import RunDir, RunStatus, StatusError
+
+PARTS = {  # the run folder's parts, by what they are
+    "log": lambda run: run.traffic_segments(),
+    "snapshot": lambda run: [run.replay_snapshot],
+    "checkpoints": lambda run: [run.checkpoints],
+    "policies": lambda run: [run.policies],
+    "process_logs": lambda run: [run.logs],
+}
+FIXED = ["time", "elapsed_s", "phase", "env_steps", "updates", "restarts"]
+
+
+def resident_mb(pid: int) -> float:
+    """The process's VmRSS in MB; nan if it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return math.nan
+
+
+def tree_bytes(paths: list[Path]) -> int:
+    total = 0
+    for path in paths:
+        files = [path] if path.is_file() else path.rglob("*") if path.is_dir() else []
+        for file in files:
+            try:
+                total += file.stat().st_size if file.is_file() else 0
+            except OSError:  # a snapshot file replaced while we looked
+                pass
+    return total
+
+
+def sample(run: RunDir, status: RunStatus) -> dict:
+    row = {"time": round(time.time(), 1), "elapsed_s": round(status.elapsed_s, 1), "phase": status.phase,
+           "env_steps": status.env_steps, "updates": status.updates, "restarts": sum(status.restarts.values())}
+    row.update({f"rss_mb_{name}": round(resident_mb(pid), 1) for name, pid in sorted(status.pids.items())})
+    row.update({f"bytes_{part}": tree_bytes(paths(run)) for part, paths in PARTS.items()})
+    return row
+
+
+def append(path: Path, row: dict) -> None:
+    """One row; the header is the first row's, and a later row's new columns are left out (the roles are fixed)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fields = list(row) if not path.exists() else next(csv.reader(path.open()))
+    with path.open("a", newline="") as out:
+        writer = csv.DictWriter(out, fieldnames=fields, extrasaction="ignore")
+        if out.tell() == 0:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def read_rows(path: Path) -> list[dict]:
+    with path.open(newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def slope_per_hour(hours: np.ndarray, values: np.ndarray) -> float:
+    """Least-squares growth per hour; nan with fewer than two finite samples or no time between them."""
+    keep = np.isfinite(values)
+    if keep.sum() < 2 or np.ptp(hours[keep]) <= 0:
+        return math.nan
+    return float(np.polyfit(hours[keep], values[keep], 1)[0])
+
+
+def memory_figures(resident: np.ndarray, hours: np.ndarray, late: np.ndarray) -> dict:
+    """First, last and largest resident MB (nan where the process was never seen), and the late growth."""
+    seen = resident[np.isfinite(resident)]
+    return {"first_mb": float(resident[0]), "last_mb": float(resident[-1]),
+            "max_mb": float(seen.max()) if seen.size else math.nan,
+            "second_half_mb_per_hour": slope_per_hour(hours[late], resident[late])}
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Memory growth of each process over the second half of the samples, and the folder's growth per hour."""
+    hours = np.array([(float(row["time"]) - float(rows[0]["time"])) / 3600 for row in rows])
+    late = hours >= hours[-1] / 2
+    column = lambda name: np.array([float(row[name]) if row[name] not in ("", None) else math.nan for row in rows])
+    processes = sorted(name[len("rss_mb_"):] for name in rows[0] if name.startswith("rss_mb_"))
+    memory = {name: memory_figures(column(f"rss_mb_{name}"), hours, late) for name in processes}
+    total = sum(column(f"bytes_{part}") for part in PARTS)
+    return {"samples": len(rows), "hours": float(hours[-1]), "env_steps": int(float(rows[-1]["env_steps"])),
+            "updates": int(float(rows[-1]["updates"])), "restarts": int(float(rows[-1]["restarts"])),
+            "memory": memory, "folder_bytes_last": int(total[-1]),
+            "folder_mb_per_hour": slope_per_hour(hours, total / 2**20),
+            "folder_mb_per_hour_by_part": {part: slope_per_hour(hours, column(f"bytes_{part}") / 2**20)
+                                           for part in PARTS}}
+
+
+def summary_text(summary: dict) -> str:
+    lines = [f"{summary['samples']} samples over {summary['hours']:.2f} h: {summary['env_steps']:,} env steps, "
+             f"{summary['updates']:,} updates, {summary['restarts']} restarts",
+             "", "| process | first MB | last MB | max MB | growth, second half (MB/h) |", "|---|---:|---:|---:|---:|"]
+    for name, memory in summary["memory"].items():
+        lines.append(f"| {name} | {memory['first_mb']:.0f} | {memory['last_mb']:.0f} | {memory['max_mb']:.0f} | "
+                     f"{memory['second_half_mb_per_hour']:+.1f} |")
+    parts = ", ".join(f"{part} {rate:+.1f}" for part, rate in summary["folder_mb_per_hour_by_part"].items())
+    lines += ["", f"run folder: {summary['folder_bytes_last'] / 2**20:.0f} MB at the last sample, "
+                  f"{summary['folder_mb_per_hour']:+.1f} MB per hour ({parts})"]
+    return "\n".join(lines) + "\n"
+
+
+def draw(rows: list[dict], path: Path, title: str) -> None:
+    plt = pyplot()
+    figure, axes = plt.subplots(1, 3, figsize=(15, 4))
+    hours = [(float(row["time"]) - float(rows[0]["time"])) / 3600 for row in rows]
+    for name in (name for name in rows[0] if name.startswith("rss_mb_")):
+        axes[0].plot(hours, [float(row[name] or "nan") for row in rows], label=name[len("rss_mb_"):])
+    for part in PARTS:
+        axes[1].plot(hours, [int(row[f"bytes_{part}"]) / 2**20 for row in rows], label=part)
+    axes[2].step(hours, [int(row["restarts"]) for row in rows], where="post")
+    for ax, label in zip(axes, ("resident memory (MB)", "run folder (MB)", "restarts")):
+        ax.set_xlabel("hours")
+        ax.set_ylabel(label)
+    finish_figure(plt, figure, axes, path, title)
+
+
+def report(run: RunDir) -> dict:
+    rows = read_rows(run.soak / "soak.csv")
+    summary = summarize(rows)
+    (run.soak / "soak_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (run.soak / "soak_summary.md").write_text(summary_text(summary))
+    draw(rows, run.soak / "soak.png", f"soak of {run.root.name}")
+    print(summary_text(summary), end="")
+    return summary
+
+
+def watch(run: RunDir, every_s: float, until_s: float) -> None:
+    """Samples until the stack's status leaves "training" (after one more sample) or until_s passes."""
+    started = time.monotonic()
+    while time.monotonic() - started < until_s:
+        try:
+            status = RunStatus.read(run.status)
+        except StatusError as error:
+            print(f"soak: no status yet ({error})", file=sys.stderr)
+        else:
+            append(run.soak / "soak.csv", sample(run, status))
+            print(f"soak: {status.phase}, {status.env_steps:,} env steps, {status.updates:,} updates", flush=True)
+            if status.phase != "training":
+                return
+        time.sleep(every_s)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="deploy/soak.py", description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path, help="the run folder, runs/<run>")
+    parser.add_argument("--every", type=float, default=60.0, help="seconds between samples (default 60)")
+    parser.add_argument("--until-s", type=float, default=math.inf, help="stop sampling after this many seconds")
+    parser.add_argument("--report", action="store_true", help="only draw and summarize the samples there are")
+    args = parser.parse_args(argv)
+    run = RunDir(args.run)
+    if not args.report:
+        watch(run, args.every, args.until_s)
+    if not (run.soak / "soak.csv").exists():
+        print(f"soak: no samples in {run.soak}", file=sys.stderr)
+        return 1
+    report(run)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

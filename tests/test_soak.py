@@ -1,0 +1,49 @@
+"""deploy/soak.py: what one sample reads of a run, and the growth figures of its summary, from hand-made rows."""
+
+import csv
+import json
+import math
+import os
+
+import pytest
+
+from common.run_dir import RunDir, RunStatus
+from deploy import soak
+
+
+def test_a_sample_reads_the_processes_memory_and_the_folders_parts(tmp_path):
+    run = RunDir(tmp_path / "run")
+    run.replay_snapshot.mkdir(parents=True)
+    (run.replay_snapshot / "episodes-1").write_bytes(b"x" * 3000)
+    run.traffic.write_bytes(b"y" * 500)
+    run.traffic.with_name("traffic-2.mcap").write_bytes(b"z" * 20)  # a recorder restarted
+    RunStatus("finished", env_steps=1234, updates=300, restarts={"learner": 2, "replay": 1},
+              pids={"learner": os.getpid(), "replay": 2**22 + 17}).write(run.status)
+    assert soak.main([str(run.root), "--every", "0.01"]) == 0  # one sample: the stack no longer trains
+    [row] = list(csv.DictReader((run.soak / "soak.csv").open()))
+    assert (row["phase"], row["env_steps"], row["updates"], row["restarts"]) == ("finished", "1234", "300", "3")
+    assert float(row["rss_mb_learner"]) > 10 and row["rss_mb_replay"] == "nan"  # this process; a pid that is gone
+    assert (row["bytes_log"], row["bytes_snapshot"], row["bytes_checkpoints"]) == ("520", "3000", "0")
+    assert (run.soak / "soak.png").stat().st_size > 0
+    assert json.loads((run.soak / "soak_summary.json").read_text())["samples"] == 1
+
+
+def rows(hours: int, learner_mb, folder_mb) -> list[dict]:
+    return [{"time": 3600.0 * hour, "elapsed_s": 0, "phase": "training", "env_steps": 100 * hour,
+             "updates": 25 * hour, "restarts": hour // 2, "rss_mb_learner": learner_mb(hour), "rss_mb_replay": 300.0,
+             **{f"bytes_{part}": 0 for part in soak.PARTS}, "bytes_log": int(folder_mb(hour) * 2**20)}
+            for hour in range(hours + 1)]
+
+
+def test_the_summary_reads_growth_per_hour_from_the_second_half():
+    # the learner grows 100 MB an hour for two hours (filling up), then stays flat; the log grows 50 MB an hour
+    summary = soak.summarize(rows(4, lambda hour: 500.0 + 100 * min(hour, 2), lambda hour: 50.0 * hour))
+    assert summary["memory"]["learner"]["second_half_mb_per_hour"] == pytest.approx(0.0, abs=1e-9)
+    assert summary["memory"]["learner"]["max_mb"] == 700.0
+    assert summary["memory"]["replay"]["second_half_mb_per_hour"] == pytest.approx(0.0, abs=1e-9)
+    assert summary["folder_mb_per_hour"] == pytest.approx(50.0)
+    assert summary["folder_mb_per_hour_by_part"]["log"] == pytest.approx(50.0)
+    assert (summary["hours"], summary["restarts"], summary["updates"]) == (4.0, 2, 100)
+    leaking = soak.summarize(rows(4, lambda hour: 500.0 + 30 * hour, lambda hour: 0.0))
+    assert leaking["memory"]["learner"]["second_half_mb_per_hour"] == pytest.approx(30.0)
+    assert math.isnan(soak.slope_per_hour(soak.np.array([1.0]), soak.np.array([5.0])))
