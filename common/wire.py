@@ -498,8 +498,10 @@ class TraceBatchRequest(Message):
     request_id: int = wired(Integer())
     batch_size: int = wired(Integer(min_value=1))
     trace_length: int = wired(Integer(min_value=1))
-    # A learner process's first request (request_id 0) states the updates it starts from (its
-    # checkpoint's, 0 when fresh): the replay owes again the batches a killed learner never kept.
+    # The updates the learner has made. A learner process's first request (request_id 0) states the
+    # updates it starts from (its checkpoint's, 0 when fresh): the replay owes again the batches a killed
+    # learner never kept. A later one stating more than the replay counts served (counters lost with a
+    # replay that died since its last save) makes the replay count them served.
     learner_updates: int = wired(Integer(min_value=-1), default=-1)  # -1: not stated
 
 

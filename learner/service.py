@@ -419,11 +419,11 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
     config = process.config.learner
     heartbeat = Every(config.log_period_s)
     broadcasts = Cadence(config.weights_every, config.weights_period_s)
-    started_from = process.updates
 
     def fetch(message: TraceBatchRequest):
-        if message.request_id == 0:  # this process's first request: the replay re-owes what a dead learner lost
-            message = dataclasses.replace(message, learner_updates=started_from)
+        # Every request states the updates made: the first of this process (its checkpoint's) lets the replay
+        # re-owe what a dead learner lost; a later one, what a replay that died with its counters forgot.
+        message = dataclasses.replace(message, learner_updates=process.updates)
         return request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S)
 
     prefetcher = Prefetcher(fetch, config.batch_size, config.trace_length, config.prefetch, prepare=process.admit)

@@ -96,6 +96,7 @@ class RateLimiter:
         self.refilling = False  # resumed with an empty store: stage 1 again until start_episodes are stored
         self.refill_env_steps = 0  # steps that refilled a resumed replay's store (not owed)
         self.lost_updates = 0  # batches served to a learner that died before checkpointing their updates
+        self.recounted_updates = 0  # updates a learner had made that a resumed replay's counters had lost
 
     # --- events -------------------------------------------------------------------------
 
@@ -132,6 +133,16 @@ class RateLimiter:
         lost, self.served = self.served - updates, updates
         self.lost_updates += lost
         return lost
+
+    def on_learner_updates(self, updates: int) -> int:
+        """A running learner has made `updates`: more than served means this replay lost the count of
+        batches served since its counters were last saved (it died and resumed); they are counted served
+        again, so the learner is not paid twice for the steps that were lost with them. Returns how many."""
+        if self.start_mark is None or self.refilling or updates <= self.served:
+            return 0
+        gained, self.served = updates - self.served, updates
+        self.recounted_updates += gained
+        return gained
 
     def set_start_by_steps(self, by_steps: bool) -> bool:
         """Changes the start rule (the learner's strategy decides it); False once updates started."""
@@ -198,7 +209,7 @@ class RateLimiter:
     def state_dict(self) -> dict:
         return {"version": STATE_VERSION, "env_steps": self.env_steps, "served": self.served,
                 "start_mark": self.start_mark, "refill_env_steps": self.refill_env_steps,
-                "lost_updates": self.lost_updates}
+                "lost_updates": self.lost_updates, "recounted_updates": self.recounted_updates}
 
     def load_state_dict(self, state: dict, episodes_stored: int = 0) -> None:
         """Counters of an earlier replay of the same run whose store now holds episodes_stored
@@ -209,15 +220,17 @@ class RateLimiter:
                 raise ValueError(f"rate limiter state version {state['version']!r}, expected {STATE_VERSION}")
             env_steps, served, mark = state["env_steps"], state["served"], state["start_mark"]
             refill, lost = state.get("refill_env_steps", 0), state.get("lost_updates", 0)
+            recounted = state.get("recounted_updates", 0)
         except (KeyError, TypeError, AttributeError) as error:
             raise ValueError(f"malformed rate limiter state ({error!r})") from None
-        if not (_count(env_steps) and _count(served) and _count(refill) and _count(lost)):
+        if not all(_count(value) for value in (env_steps, served, refill, lost, recounted)):
             raise ValueError(f"rate limiter counters must be non-negative integers, got {env_steps!r}, {served!r}")
         if mark is not None and not (isinstance(mark, (int, float)) and 0 <= mark <= env_steps):
             raise ValueError(f"rate limiter start mark {mark!r} must lie in [0, env_steps]")
         if mark is None and served:
             raise ValueError("rate limiter state served batches before updates started")
         self.env_steps, self.served, self.refill_env_steps, self.lost_updates = env_steps, served, refill, lost
+        self.recounted_updates = recounted
         self.start_mark = None if mark is None else float(mark)
         self.refilling = mark is not None and episodes_stored < self.limit.start_episodes
 
@@ -234,6 +247,7 @@ class RateLimiter:
             "refilling": 1 if self.refilling else 0,
             "refill_env_steps": self.refill_env_steps,
             "lost_updates": self.lost_updates,
+            "recounted_updates": self.recounted_updates,
             "error_buffer_updates": self.limit.error_buffer,
             "env_steps_per_update_target": self.limit.env_steps_per_update,
         }

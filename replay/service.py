@@ -84,6 +84,10 @@ class ReplayService:
         )
         self.limiter = RateLimiter(rate_limit_from_config(config))
         self.max_trace_batch = config.replay.max_batch_size
+        # No learner makes more updates than the budget pays for, plus its buffer and a buffer of episodes in flight.
+        self.max_learner_updates = math.ceil((config.learner.total_env_steps + config.replay.capacity
+                                              * config.env.max_steps) / config.learner.env_steps_per_update
+                                             + config.replay.error_buffer_updates)
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._pending: deque[PendingQuery] = deque()
@@ -162,11 +166,7 @@ class ReplayService:
         request = pending.request
         fault = self._request_fault(request)
         if fault is None and request.learner_updates >= 0:
-            with self._lock:
-                lost = self.limiter.on_learner_start(request.learner_updates)
-            if lost:
-                log.info("a learner starts from %d updates: the %d batches served beyond them were lost with "
-                         "the learner that died, and are owed again", request.learner_updates, lost)
+            self._learner_updates(request)
         if fault is None:
             with self._lock:
                 if len(self._pending) < MAX_PENDING:
@@ -180,12 +180,31 @@ class ReplayService:
         self.rejections.reject(kind, text)
         pending.reply_error(f"rejected: {text}")
 
+    def _learner_updates(self, request: TraceBatchRequest) -> None:
+        """The updates a request states: a learner's start re-owes what it lost; a running learner's count
+        above this replay's (counters lost in its restart) is counted served."""
+        updates = request.learner_updates
+        with self._lock:
+            if request.request_id == 0:
+                lost, gained = self.limiter.on_learner_start(updates), 0
+            else:
+                lost, gained = 0, self.limiter.on_learner_updates(updates)
+        if lost:
+            log.info("a learner starts from %d updates: the %d batches served beyond them were lost with "
+                     "the learner that died, and are owed again", updates, lost)
+        if gained:
+            log.info("the learner has made %d updates, %d more than this replay counted served (lost with its "
+                     "counters when it died): counted served", updates, gained)
+
     def _request_fault(self, request) -> tuple[str, str] | None:
         if not isinstance(request, TraceBatchRequest):
             return "request_wrong_type", f"a {type(request).__name__} on replay/sample, not a TraceBatchRequest"
         if request.trace_length != self.store.trace_length or not 0 < request.batch_size <= self.max_trace_batch:
             return "request_size", (f"a request for {request.batch_size} traces of {request.trace_length} steps "
                                     f"(serving up to {self.max_trace_batch} traces of {self.store.trace_length} steps)")
+        if request.learner_updates > self.max_learner_updates:
+            return "request_updates", (f"a request stating {request.learner_updates} learner updates, more than the "
+                                       f"run's budget pays for ({self.max_learner_updates})")
         return None
 
     def on_exploration(self, state: ExplorationState, key: str = "") -> None:

@@ -283,3 +283,13 @@ class Snapshotter:
         if not self.directory.exists():
             return []
         return sorted(number for path in self.directory.iterdir() if (number := _segment_number(path)) is not None)
+
+
+def manifest_episodes(directory: Path) -> int | None:
+    """How many episodes the snapshot in `directory` names (what a replay resumed now restores, less any
+    damaged record); None without a readable manifest. Reads the manifest only."""
+    try:
+        manifest = msgpack.unpackb((Path(directory) / MANIFEST).read_bytes(), raw=False)
+        return len(manifest["episodes"])
+    except (OSError, KeyError, TypeError, ValueError, msgpack.UnpackException):
+        return None

@@ -198,3 +198,23 @@ def test_settings_come_from_the_config():
     assert not rate_limit_from_config(by_episodes, strategy="decreasing").start_by_steps
     with pytest.raises(ValueError, match="error_buffer"):
         RateLimit(4.0, 1, 0, 0.5)
+
+
+def test_a_resumed_replay_counts_the_updates_a_running_learner_made_beyond_its_saved_counters():
+    rate = limiter(start_episodes=1, buffer=2.0)
+    rate.on_episode(100, episodes_stored=1)
+    rate.on_episode(400, episodes_stored=2)  # 100 due
+    for _ in range(20):
+        rate.on_served()
+    saved = rate.state_dict()
+    for _ in range(30):
+        rate.on_served()  # served, then the replay dies before saving again
+    resumed = limiter(start_episodes=1, buffer=2.0)
+    resumed.load_state_dict(saved, episodes_stored=2)
+    assert resumed.served == 20
+    assert resumed.on_learner_updates(50) == 30 and resumed.served == 50  # the learner made 50
+    assert resumed.on_learner_updates(48) == 0 and resumed.served == 50  # a request sent before two came back
+    again = limiter(start_episodes=1, buffer=2.0)
+    again.load_state_dict(resumed.state_dict(), episodes_stored=2)
+    assert (again.recounted_updates, again.values()["recounted_updates"]) == (30, 30)
+    assert limiter().on_learner_updates(5) == 0  # before updates start there is nothing to count

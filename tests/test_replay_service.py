@@ -1,6 +1,7 @@
 """The replay process over real Zenoh: stores episodes, serves traces, shrugs off bad input, and
 paces the learner and the actors with its rate limiter."""
 
+import dataclasses
 import json
 import logging
 import threading
@@ -291,3 +292,13 @@ def test_episodes_after_the_run_closed_are_refused_counted_and_announced(caplog)
     assert (values["episodes"], values["late_episodes"], values["late_env_steps"]) == (2, 1, 12)
     assert values["rate_env_steps"] == 36 and values["rate_closed"] == 1
     assert "the run is closed" in caplog.text
+
+
+def test_a_request_stating_more_updates_than_the_budget_pays_for_is_refused():
+    config = load_config("smoke", overrides={"learner.total_env_steps": 400, "replay.capacity": 5})
+    service = ReplayService(config)  # (400 + 5 x 60) / 20 + 2 = 37 updates at most
+    query = FakeQuery(3)
+    query.request = dataclasses.replace(query.request, learner_updates=38)
+    service.on_sample_request(query)
+    assert query.done.is_set() and "more than the run's budget pays for (37)" in query.answer
+    assert service.rejections.values()["rejected_request_updates"] == 1
