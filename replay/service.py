@@ -38,6 +38,7 @@ from pathlib import Path
 from common.config import Config
 from common.exploration import strategy_from_state
 from common.logs import Every
+from common.pacing import rate_limit_from_config
 from common.run_dir import RunDir
 from common.service import Service
 from common.strategies import starts_by_steps
@@ -45,7 +46,7 @@ from common.transport import PendingQuery, RateLimitedLog, publisher, serve_defe
 from common.wire import Episode, ExplorationState, Rejections, RunShape, Stats, TraceBatchRequest, WireError, \
     check_episode
 from replay.ledger import EpisodeLedger
-from replay.rate_limiter import RateLimiter, rate_limit_from_config
+from replay.rate_limiter import RateLimiter
 from replay.snapshot import Restored, SnapshotError, Snapshotter, SnapshotView
 from replay.store import EpisodeStore, full_episodes_fit
 
