@@ -38,7 +38,8 @@ from actor.evaluation.sources import checkpoint_source, check_weights, live_sour
 from actor.evaluation.workers import torch_threads_per_worker
 from actor.sim import START_SETS
 from common.checkpoint import CheckpointError
-from common.config import ConfigError, add_config_arguments, config_from_args, parse_flags, to_toml
+from common.config import add_config_arguments, config_from_args, parse_flags, to_toml
+from common.options import ConfigError
 from common.run_dir import RunDir
 
 

@@ -27,21 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from common.options import ConfigError, check, check_positive, check_probability, option
 from common.strategies import STRATEGIES  # re-exported: the config's choices of exploration.strategy
 from common.wire import WEIGHTS_ENCODINGS
-
-
-def option(default: Any, doc: str, unit: str = "", choices: tuple[str, ...] = ()) -> Any:
-    """A config field with its one documentation string, which `--help` shows: what the value
-    means, its unit (if it has one) and, for a closed set of words, its choices."""
-    metadata = {"doc": doc, "unit": unit, "choices": choices}
-    if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata=metadata)
-    return field(default=default, metadata=metadata)
-
-
-class ConfigError(ValueError):
-    """A configuration value, file or flag is wrong; the message names the key."""
 
 
 @dataclass
@@ -59,12 +47,12 @@ class NetworkConfig:
                          choices=("auto", "cpu", "cuda[:N]"))
 
     def validate(self) -> None:
-        _positive(self, "frame_height", "frame_width", "frame_channels", "n_actions")
+        check_positive(self, "frame_height", "frame_width", "frame_channels", "n_actions")
         # The three VALID convolutions (8/4, 4/2, 3/1) need at least 36 pixels per side.
-        _check(self.frame_height >= 36, "frame_height", f"must be >= 36 for the convolutions, got {self.frame_height}")
-        _check(self.frame_width >= 36, "frame_width", f"must be >= 36 for the convolutions, got {self.frame_width}")
-        _check(self.lstm_units > 0 and self.lstm_units % 2 == 0, "lstm_units", "must be a positive even number (it is split in two dueling halves)")
-        _check(self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda"), "device", "must be 'auto', 'cpu' or 'cuda[:N]'")
+        check(self.frame_height >= 36, "frame_height", f"must be >= 36 for the convolutions, got {self.frame_height}")
+        check(self.frame_width >= 36, "frame_width", f"must be >= 36 for the convolutions, got {self.frame_width}")
+        check(self.lstm_units > 0 and self.lstm_units % 2 == 0, "lstm_units", "must be a positive even number (it is split in two dueling halves)")
+        check(self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda"), "device", "must be 'auto', 'cpu' or 'cuda[:N]'")
 
 
 @dataclass
@@ -100,11 +88,11 @@ class ReplayConfig:
               "snapshots off", "s")
 
     def validate(self) -> None:
-        _positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
-                  "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
-        _check(self.error_buffer_updates >= 1, "error_buffer_updates",
-               f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
-        _check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
+        check_positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
+                       "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
+        check(self.error_buffer_updates >= 1, "error_buffer_updates",
+              f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
+        check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
 
 
 UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
@@ -178,24 +166,24 @@ class LearnerConfig:
     seed: int = option(0, "seed of the network's initial weights")
 
     def validate(self) -> None:
-        _check(self.precision in LEARNER_PRECISIONS, "precision", f"must be one of {', '.join(LEARNER_PRECISIONS)}")
-        _check(not (self.precision == "bfloat16" and self.update_path == "autograd"), "precision",
-               "bfloat16 runs on the trace paths only: set learner.update_path to trace, trace-split or auto")
-        _positive(self, "lr", "batch_size", "trace_length", "env_steps_per_update",
-                  "total_env_steps", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
-        _check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
-        _check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
-        _check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
-        _check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
-        _check(self.start_steps >= 0, "start_steps", "must be >= 0")
-        _check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")
-        _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
-        _check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
-        _check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
-        _check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
-        _check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
-        _check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
-               f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
+        check(self.precision in LEARNER_PRECISIONS, "precision", f"must be one of {', '.join(LEARNER_PRECISIONS)}")
+        check(not (self.precision == "bfloat16" and self.update_path == "autograd"), "precision",
+              "bfloat16 runs on the trace paths only: set learner.update_path to trace, trace-split or auto")
+        check_positive(self, "lr", "batch_size", "trace_length", "env_steps_per_update",
+                       "total_env_steps", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
+        check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
+        check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
+        check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
+        check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
+        check(self.start_steps >= 0, "start_steps", "must be >= 0")
+        check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")
+        check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
+        check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
+        check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
+        check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
+        check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
+        check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
+              f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
 
 
 @dataclass
@@ -205,7 +193,7 @@ class ConstantEpsilonConfig:
     epsilon: float = option(0.05, "probability of a uniformly random action, in [0, 1]")
 
     def validate(self) -> None:
-        _probability(self, "epsilon")
+        check_probability(self, "epsilon")
 
 
 @dataclass
@@ -222,10 +210,10 @@ class DecreasingEpsilonConfig:
     n_max: int = option(1_000_000, "end of the second slope, at eps_end; must exceed n_start + n_ann", "env steps")
 
     def validate(self) -> None:
-        _probability(self, "eps_start", "eps_last", "eps_end")
-        _check(self.n_start >= 0, "n_start", "must be >= 0")
-        _check(self.n_ann > 0, "n_ann", "must be > 0")
-        _check(self.n_max > self.n_start + self.n_ann, "n_max", "must exceed n_start + n_ann")
+        check_probability(self, "eps_start", "eps_last", "eps_end")
+        check(self.n_start >= 0, "n_start", "must be >= 0")
+        check(self.n_ann > 0, "n_ann", "must be > 0")
+        check(self.n_max > self.n_start + self.n_ann, "n_max", "must exceed n_start + n_ann")
 
 
 @dataclass
@@ -238,8 +226,8 @@ class VdbeConfig:
     eps0: float = option(1.0, "epsilon when updates start, in [0, 1]")
 
     def validate(self) -> None:
-        _probability(self, "lam", "eps0")
-        _positive(self, "nu")
+        check_probability(self, "lam", "eps0")
+        check_positive(self, "nu")
 
 
 INFERENCE_PRECISIONS = ("float32", "bfloat16", "auto")  # actor.inference
@@ -264,8 +252,8 @@ class BmcConfig:
         choices=BMC_OBSERVATIONS)
 
     def validate(self) -> None:
-        _positive(self, "alpha0", "beta0", "a0", "b0", "tau0")
-        _check(self.observations in BMC_OBSERVATIONS, "observations", f"must be one of {', '.join(BMC_OBSERVATIONS)}")
+        check_positive(self, "alpha0", "beta0", "a0", "b0", "tau0")
+        check(self.observations in BMC_OBSERVATIONS, "observations", f"must be one of {', '.join(BMC_OBSERVATIONS)}")
 
 
 @dataclass
@@ -275,7 +263,7 @@ class SoftmaxConfig:
     kappa: float = option(0.1, "temperature of softmax(Q / kappa); also VDBE-Softmax's")
 
     def validate(self) -> None:
-        _positive(self, "kappa")
+        check_positive(self, "kappa")
 
 
 @dataclass
@@ -286,8 +274,8 @@ class MaxBoltzmannConfig:
     kappa: float = option(0.1, "temperature of the softmax sample")
 
     def validate(self) -> None:
-        _probability(self, "epsilon")
-        _positive(self, "kappa")
+        check_probability(self, "epsilon")
+        check_positive(self, "kappa")
 
 
 @dataclass
@@ -304,7 +292,7 @@ class ExplorationConfig:
     max_boltzmann: MaxBoltzmannConfig = field(default_factory=MaxBoltzmannConfig)
 
     def validate(self) -> None:
-        _check(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
+        check(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
 
 
 CAMERAS = ("front", "topdown")
@@ -356,25 +344,25 @@ class EnvConfig:
     traffic_speed_max: float = option(9.0, "fastest speed a traffic vehicle is given (drawn uniformly)", "m/s")
 
     def validate(self) -> None:
-        _positive(self, "speed", "max_steer_deg", "policy_frequency", "simulation_frequency",
-                  "reward_beta", "offroad_distance", "max_steps", "camera_height_m",
-                  "camera_hfov_deg", "camera_range_m", "topdown_ahead_m", "topdown_width_m",
-                  "render_scale", "stall_window_s", "progress_memory_s", "traffic_speed_min")
-        _check(self.camera in CAMERAS, "camera", f"must be one of {', '.join(CAMERAS)}")
-        _check(self.simulation_frequency % self.policy_frequency == 0, "simulation_frequency",
-               "must be a multiple of policy_frequency")
-        _check(0 <= self.lane_offset_m < self.offroad_distance, "lane_offset_m", "must lie in [0, offroad_distance)")
-        _check(self.topdown_behind_m >= 0, "topdown_behind_m", "must be >= 0")
-        _check(self.max_steer_deg < 90, "max_steer_deg", "must be < 90")
-        _check(-45 < self.camera_pitch_deg < 45, "camera_pitch_deg", "must lie in (-45, 45)")
-        _check(self.camera_hfov_deg < 170, "camera_hfov_deg", "must be < 170")
-        _check(0 <= self.start_jitter_m < self.offroad_distance, "start_jitter_m", "must lie in [0, offroad_distance)")
-        _check(0 <= self.start_jitter_deg < 45, "start_jitter_deg", "must lie in [0, 45)")
-        _check(self.stall_min_progress_m >= 0, "stall_min_progress_m", "must be >= 0")
+        check_positive(self, "speed", "max_steer_deg", "policy_frequency", "simulation_frequency",
+                       "reward_beta", "offroad_distance", "max_steps", "camera_height_m",
+                       "camera_hfov_deg", "camera_range_m", "topdown_ahead_m", "topdown_width_m",
+                       "render_scale", "stall_window_s", "progress_memory_s", "traffic_speed_min")
+        check(self.camera in CAMERAS, "camera", f"must be one of {', '.join(CAMERAS)}")
+        check(self.simulation_frequency % self.policy_frequency == 0, "simulation_frequency",
+              "must be a multiple of policy_frequency")
+        check(0 <= self.lane_offset_m < self.offroad_distance, "lane_offset_m", "must lie in [0, offroad_distance)")
+        check(self.topdown_behind_m >= 0, "topdown_behind_m", "must be >= 0")
+        check(self.max_steer_deg < 90, "max_steer_deg", "must be < 90")
+        check(-45 < self.camera_pitch_deg < 45, "camera_pitch_deg", "must lie in (-45, 45)")
+        check(self.camera_hfov_deg < 170, "camera_hfov_deg", "must be < 170")
+        check(0 <= self.start_jitter_m < self.offroad_distance, "start_jitter_m", "must lie in [0, offroad_distance)")
+        check(0 <= self.start_jitter_deg < 45, "start_jitter_deg", "must lie in [0, 45)")
+        check(self.stall_min_progress_m >= 0, "stall_min_progress_m", "must be >= 0")
         # 20 cars always found room to start in tests (seeds 0-4); 30 did for only 2 seeds of 5.
-        _check(0 <= self.traffic_vehicles <= 20, "traffic_vehicles", "must lie in [0, 20]")
-        _check(self.traffic_speed_min <= self.traffic_speed_max, "traffic_speed_max",
-               "must be >= traffic_speed_min")
+        check(0 <= self.traffic_vehicles <= 20, "traffic_vehicles", "must lie in [0, 20]")
+        check(self.traffic_speed_min <= self.traffic_speed_max, "traffic_speed_max",
+              "must be >= traffic_speed_min")
 
 
 @dataclass
@@ -401,11 +389,11 @@ class ActorConfig:
                                     "for a replay", "MB")
 
     def validate(self) -> None:
-        _check(self.num_actors >= 0, "num_actors", "must be >= 0")
-        _check(self.actor_id >= 0, "actor_id", "must be >= 0")
-        _positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb")
-        _check(self.inference in INFERENCE_PRECISIONS, "inference",
-               f"must be one of {', '.join(INFERENCE_PRECISIONS)}")
+        check(self.num_actors >= 0, "num_actors", "must be >= 0")
+        check(self.actor_id >= 0, "actor_id", "must be >= 0")
+        check_positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb")
+        check(self.inference in INFERENCE_PRECISIONS, "inference",
+              f"must be one of {', '.join(INFERENCE_PRECISIONS)}")
 
 
 @dataclass
@@ -427,12 +415,12 @@ class EvaluationConfig:
     confidence: float = option(0.95, "level of the tables' percentile intervals, in (0, 1)")
 
     def validate(self) -> None:
-        _positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
-                  "progress_period_s", "live_timeout_s", "bootstrap_replicates")
-        _check(self.seed >= 0, "seed", "must be >= 0")
-        _check(0.0 < self.confidence < 1.0, "confidence", "must lie in (0, 1)")
+        check_positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
+                       "progress_period_s", "live_timeout_s", "bootstrap_replicates")
+        check(self.seed >= 0, "seed", "must be >= 0")
+        check(0.0 < self.confidence < 1.0, "confidence", "must lie in (0, 1)")
         bins = self.reward_bins
-        _check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
+        check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
 
 
 TRANSPORT_MODES = ("peer", "client", "router")
@@ -475,32 +463,32 @@ class TransportConfig:
                                                     "everything and write nothing")
 
     def validate(self) -> None:
-        _check(self.mode in TRANSPORT_MODES, "mode", "must be 'peer', 'client' or 'router'")
-        _positive(self, "connect_timeout_s")
+        check(self.mode in TRANSPORT_MODES, "mode", "must be 'peer', 'client' or 'router'")
+        check_positive(self, "connect_timeout_s")
         for key in ("listen", "connect"):
             for endpoint in getattr(self, key):
-                _check("/" in endpoint, key, f"endpoint {endpoint!r} must look like 'tcp/127.0.0.1:7447'")
-        _check(_is_key_chunk(self.namespace), "namespace", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+                check("/" in endpoint, key, f"endpoint {endpoint!r} must look like 'tcp/127.0.0.1:7447'")
+        check(_is_key_chunk(self.namespace), "namespace", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
         self._validate_security()
 
     def _validate_security(self) -> None:
-        _check(bool(self.tls_certificate) == bool(self.tls_key), "tls_key",
-               "tls_certificate and tls_key go together: give both or neither")
+        check(bool(self.tls_certificate) == bool(self.tls_key), "tls_key",
+              "tls_certificate and tls_key go together: give both or neither")
         if any(endpoint.startswith("tls/") for endpoint in self.listen):
-            _check(bool(self.tls_certificate), "tls_certificate", "a tls/ listener needs a certificate and key")
+            check(bool(self.tls_certificate), "tls_certificate", "a tls/ listener needs a certificate and key")
         if any(endpoint.startswith("tls/") for endpoint in self.listen + self.connect):
-            _check(bool(self.tls_ca), "tls_ca", "tls/ endpoints need the run's CA certificate")
+            check(bool(self.tls_ca), "tls_ca", "tls/ endpoints need the run's CA certificate")
         if self.tls_mtls:
-            _check(bool(self.tls_certificate and self.tls_ca), "tls_mtls", "needs tls_ca, tls_certificate and tls_key")
+            check(bool(self.tls_certificate and self.tls_ca), "tls_mtls", "needs tls_ca, tls_certificate and tls_key")
             for key in ("listen", "connect"):
                 for endpoint in getattr(self, key):
-                    _check(endpoint.startswith("tls/"), key,
-                           f"endpoint {endpoint!r}: with tls_mtls every endpoint must be tls/ (another would admit peers without a certificate)")
+                    check(endpoint.startswith("tls/"), key,
+                          f"endpoint {endpoint!r}: with tls_mtls every endpoint must be tls/ (another would admit peers without a certificate)")
         if self.acl:
-            _check(self.tls_mtls, "acl", "needs tls_mtls: the access rules tell peers apart by their certificates")
+            check(self.tls_mtls, "acl", "needs tls_mtls: the access rules tell peers apart by their certificates")
         for key in ("acl_learners", "acl_actors", "acl_replays", "acl_observers"):
             for name in getattr(self, key):
-                _check(bool(name.strip()), key, "common names must not be empty")
+                check(bool(name.strip()), key, "common names must not be empty")
 
 
 @dataclass
@@ -513,7 +501,7 @@ class RunConfig:
     runs_dir: str = option("runs", "folder that holds the run folders")
 
     def validate(self) -> None:
-        _check(_is_key_chunk(self.name), "name", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+        check(_is_key_chunk(self.name), "name", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
 
 
 IMAGE_FORMATS = ("png", "jpeg")
@@ -544,9 +532,9 @@ class RecorderConfig:
                                    "s")
 
     def validate(self) -> None:
-        _positive(self, "weights_every_versions", "flush_period_s", "chunk_mb", "queue_messages", "queue_mb",
-                  "stats_period_s")
-        _check(self.image_format in IMAGE_FORMATS, "image_format", "must be 'png' or 'jpeg'")
+        check_positive(self, "weights_every_versions", "flush_period_s", "chunk_mb", "queue_messages", "queue_mb",
+                       "stats_period_s")
+        check(self.image_format in IMAGE_FORMATS, "image_format", "must be 'png' or 'jpeg'")
 
 
 @dataclass
@@ -570,8 +558,8 @@ class Config:
                 section.validate()
             except ConfigError as error:
                 raise ConfigError(f"{path}.{error}" if path else str(error)) from None
-        _check(self.learner.start_episodes <= self.replay.capacity, "learner.start_episodes",
-               f"{self.learner.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
+        check(self.learner.start_episodes <= self.replay.capacity, "learner.start_episodes",
+              f"{self.learner.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
         return self
 
 
@@ -934,23 +922,6 @@ def _metavar(default: Any) -> str:
     if isinstance(default, list):
         return "A,B,..."
     return "STR"
-
-
-def _check(condition: bool, key: str, message: str) -> None:
-    if not condition:
-        raise ConfigError(f"{key}: {message}")
-
-
-def _positive(section: Any, *names: str) -> None:
-    for name in names:
-        value = getattr(section, name)
-        _check(value > 0, name, f"must be > 0, got {value!r}")
-
-
-def _probability(section: Any, *names: str) -> None:
-    for name in names:
-        value = getattr(section, name)
-        _check(0.0 <= value <= 1.0, name, f"must lie in [0, 1], got {value!r}")
 
 
 def _is_key_chunk(text: str) -> bool:

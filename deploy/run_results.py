@@ -25,7 +25,8 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from actor.evaluation.report import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
-from common.config import Config, ConfigError, load_config
+from common.config import Config, load_config
+from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.comparison import EvaluatedRun
 from replay.log.figures import RunCurves, read_run_curves

@@ -17,7 +17,8 @@ import pytest
 
 from common.access import GRANTS, acl_config
 from common.certs import main as certs_main
-from common.config import ConfigError, TransportConfig, load_config
+from common.config import TransportConfig, load_config
+from common.options import ConfigError
 from common.transport import zenoh_config
 from tests.processes import free_port, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER

@@ -10,8 +10,9 @@ from torch import nn
 
 from torch.utils.flop_counter import FlopCounterMode
 
-from common.config import ConfigError, LearnerConfig, NetworkConfig, load_config
+from common.config import LearnerConfig, NetworkConfig, load_config
 from common.exploration import greedy_and_uniform_returns
+from common.options import ConfigError
 from learner.allocator import keep_freed_memory
 from learner.reference_update import paper_reference_loss, same_history_reference_loss
 import learner.update as update_module

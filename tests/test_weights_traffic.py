@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from actor.runner import Actor
-from common.config import ConfigError, load_config
+from common.config import load_config
 from common.network import D3RQN, weights_to_numpy
+from common.options import ConfigError
 from common.transport import loopback_endpoint
 from common.wire import WEIGHTS_ENCODINGS, Weights, WireError, decode, encode
 from deploy.bench.weights_encoding import BFLOAT16_PASS, compare, drives

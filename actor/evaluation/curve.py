@@ -29,8 +29,9 @@ from actor.evaluation.report import summary_columns
 from actor.evaluation.sources import check_weights, checkpoint_config
 from actor.evaluation.stats import SetSummary
 from common.checkpoint import CheckpointError, KeptPolicy, cpu_model
-from common.config import Config, ConfigError
+from common.config import Config
 from common.eta import Eta, clock_time
+from common.options import ConfigError
 from common.plotting import finish_figure, pyplot
 from common.run_dir import RunDir
 

@@ -28,7 +28,8 @@ from mcap.records import Channel, Chunk, ChunkIndex, MetadataIndex, Schema, Stat
 from mcap.stream_reader import MAGIC_SIZE, breakup_chunk
 from mcap.summary import Summary
 
-from common.config import Config, ConfigError, from_dict
+from common.config import Config, from_dict
+from common.options import ConfigError
 from common.transport import Keys
 from common.wire import Message, WireError, decode
 from replay.log.traffic import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING
