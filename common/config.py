@@ -27,8 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.options import ConfigError, check, check_positive, check_probability, option
-from common.strategies import STRATEGIES  # re-exported: the config's choices of exploration.strategy
+from common.options import ConfigError, check, check_positive, option
+from common.exploration import (BmcConfig, ConstantEpsilonConfig, DecreasingEpsilonConfig, MaxBoltzmannConfig,
+                                SoftmaxConfig, VdbeConfig)
+from common.strategies import STRATEGIES
 from common.wire import WEIGHTS_ENCODINGS
 
 
@@ -186,96 +188,7 @@ class LearnerConfig:
               f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
 
 
-@dataclass
-class ConstantEpsilonConfig:
-    """Constant epsilon-greedy."""
-
-    epsilon: float = option(0.05, "probability of a uniformly random action, in [0, 1]")
-
-    def validate(self) -> None:
-        check_probability(self, "epsilon")
-
-
-@dataclass
-class DecreasingEpsilonConfig:
-    """Decreasing epsilon-greedy: epsilon by env steps, two linear slopes (docs/method.md, "Decreasing
-    epsilon-greedy")."""
-
-    eps_start: float = option(1.0, "epsilon until n_start env steps, in [0, 1]")
-    eps_last: float = option(0.1, "epsilon reached at n_start + n_ann env steps, the end of the first slope, "
-                                  "in [0, 1]")
-    eps_end: float = option(0.01, "epsilon reached at n_max env steps and held after, in [0, 1]")
-    n_start: int = option(50_000, "env steps at eps_start before epsilon starts to fall", "env steps")
-    n_ann: int = option(400_000, "length of the first slope, from eps_start to eps_last", "env steps")
-    n_max: int = option(1_000_000, "end of the second slope, at eps_end; must exceed n_start + n_ann", "env steps")
-
-    def validate(self) -> None:
-        check_probability(self, "eps_start", "eps_last", "eps_end")
-        check(self.n_start >= 0, "n_start", "must be >= 0")
-        check(self.n_ann > 0, "n_ann", "must be > 0")
-        check(self.n_max > self.n_start + self.n_ann, "n_max", "must exceed n_start + n_ann")
-
-
-@dataclass
-class VdbeConfig:
-    """VDBE: epsilon follows how much each update changes Q (also VDBE-Softmax's epsilon)."""
-
-    lam: float = option(0.2, "lambda, the weight of each update's f(Delta) in epsilon (1 / number of actions), "
-                             "in [0, 1]")
-    nu: float = option(1.0, "inverse sensitivity: f = (1 - e^(-|Delta|/nu)) / (1 + e^(-|Delta|/nu))")
-    eps0: float = option(1.0, "epsilon when updates start, in [0, 1]")
-
-    def validate(self) -> None:
-        check_probability(self, "lam", "eps0")
-        check_positive(self, "nu")
-
-
 INFERENCE_PRECISIONS = ("float32", "bfloat16", "auto")  # actor.inference
-BMC_OBSERVATIONS = ("per_step", "per_transition")
-
-
-@dataclass
-class BmcConfig:
-    """epsilon-BMC: epsilon = alpha / (alpha + beta), a Beta posterior over a greedy and a uniform model."""
-
-    alpha0: float = option(25.0, "alpha of the Beta prior (the uniform model's weight)")
-    beta0: float = option(25.01, "beta of the Beta prior (the greedy model's weight); 25.01 is the authors' code, "
-                                 "the paper says 25")
-    a0: float = option(250.0, "shape a of the Normal-Gamma prior on the returns")
-    b0: float = option(250.0, "rate b of the Normal-Gamma prior on the returns")
-    mu0: float = option(0.0, "prior mean of the returns")
-    tau0: float = option(1.0, "prior precision scale of the returns' mean")
-    observations: str = option(
-        "per_step", "which transitions of each batch the posterior observes: per_step (the authors' rate: as many "
-                    "per update as env steps per update, the newest step of each trace first) or per_transition "
-                    "(every unmasked transition of the batch: 30 per update, 7.5 per env step)",
-        choices=BMC_OBSERVATIONS)
-
-    def validate(self) -> None:
-        check_positive(self, "alpha0", "beta0", "a0", "b0", "tau0")
-        check(self.observations in BMC_OBSERVATIONS, "observations", f"must be one of {', '.join(BMC_OBSERVATIONS)}")
-
-
-@dataclass
-class SoftmaxConfig:
-    """Softmax (Boltzmann) exploration: every action is sampled from softmax(Q / kappa)."""
-
-    kappa: float = option(0.1, "temperature of softmax(Q / kappa); also VDBE-Softmax's")
-
-    def validate(self) -> None:
-        check_positive(self, "kappa")
-
-
-@dataclass
-class MaxBoltzmannConfig:
-    """Max-Boltzmann: greedy, or with probability epsilon a softmax(Q / kappa) sample."""
-
-    epsilon: float = option(0.05, "probability of a softmax sample instead of the greedy action, in [0, 1]")
-    kappa: float = option(0.1, "temperature of the softmax sample")
-
-    def validate(self) -> None:
-        check_probability(self, "epsilon")
-        check_positive(self, "kappa")
 
 
 @dataclass

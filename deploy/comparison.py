@@ -55,7 +55,7 @@ class EvaluatedRun:
 
 @dataclass(frozen=True)
 class ComparisonRow:
-    strategy: str  # a strategy of common.config.STRATEGIES, or a baseline (BASELINES)
+    strategy: str  # a strategy of common.strategies.STRATEGIES, or a baseline (BASELINES)
     capacity: int
     runs: int  # evaluations pooled in the row
     summary: SetSummary

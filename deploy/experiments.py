@@ -59,10 +59,11 @@ from actor.evaluation.progress import is_progress_line
 from actor.evaluation.protocol import bootstrap_of
 from actor.evaluation.report import SUMMARY_CSV
 from common.checkpoint import Checkpoint, CheckpointError
-from common.config import STRATEGIES, add_config_arguments, config_from_args, parse_flags
+from common.config import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
+from common.strategies import STRATEGIES
 from deploy.report import write_report
 from deploy.run_results import collect, export_run, run_name
 

@@ -5,10 +5,12 @@ from pathlib import Path
 
 import pytest
 
-from common.config import (BMC_OBSERVATIONS, CAMERAS, PRESETS, STRATEGIES, UPDATE_PATHS, Config, add_config_arguments,
-                           config_fields, flat_items, load_config, parse_config_or_exit, parse_flags, to_toml)
+from common.config import (CAMERAS, PRESETS, UPDATE_PATHS, Config, add_config_arguments, config_fields, flat_items,
+                           load_config, parse_config_or_exit, parse_flags, to_toml)
 from common.config import _toml_value as to_toml_value
+from common.exploration import BMC_OBSERVATIONS
 from common.options import ConfigError
+from common.strategies import STRATEGIES
 
 
 def test_paper_preset_holds_the_reference_values():

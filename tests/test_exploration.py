@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from common.config import STRATEGIES, BmcConfig, DecreasingEpsilonConfig, ExplorationConfig, MaxBoltzmannConfig
+from common.config import ExplorationConfig
+from common.exploration import BmcConfig, DecreasingEpsilonConfig, MaxBoltzmannConfig
 from common.exploration import (
     BmcPosterior, DecreasingEpsilonGreedy, EpsilonBmc, MaxBoltzmann, decreasing_epsilon,
     bmc_observation_count, exploration_message, greedy_and_uniform_returns, make_strategy, newest_transitions,
     same_strategy, softmax_probabilities, strategy_from_state, student_t_pdf, vdbe_f,
 )
+from common.strategies import STRATEGIES
 from common.wire import ExplorationState, decode, encode
 
 N_ACTIONS = 5

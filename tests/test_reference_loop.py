@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from common.config import STRATEGIES, load_config
+from common.config import load_config
 from common.exploration import bmc_observation_count
+from common.strategies import STRATEGIES
 from learner import reference_loop
 
 HOOKS = ("start", "act", "on_env_steps", "on_update", "on_returns")
