@@ -324,7 +324,7 @@ class EvaluationConfig:
     progress_period_s: float = option(1.0, "how often the progress line on stderr is refreshed", "s")
     live_timeout_s: float = option(30.0, "--live: how long to wait for the learner's latest weights", "s")
     bootstrap_replicates: int = option(2000, "replicates of the tables' intervals: a stratified bootstrap over "
-                                             "runs and trials (actor/evaluation/intervals.py)", "replicates")
+                                             "runs and trials (common/analysis/intervals.py)", "replicates")
     confidence: float = option(0.95, "level of the tables' percentile intervals, in (0, 1)")
 
     def validate(self) -> None:

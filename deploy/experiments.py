@@ -54,10 +54,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from actor.evaluation.intervals import Bootstrap
 from actor.evaluation.progress import is_progress_line
-from actor.evaluation.protocol import bootstrap_of
-from actor.evaluation.report import SUMMARY_CSV
+from common.analysis.intervals import Bootstrap, bootstrap_of
+from common.analysis.tables import SUMMARY_CSV
 from common.checkpoint import Checkpoint, CheckpointError
 from common.config import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time

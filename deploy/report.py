@@ -18,9 +18,8 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from actor.evaluation.intervals import Bootstrap
-from actor.evaluation.protocol import bootstrap_of
-from actor.evaluation.report import bin_labels
+from common.analysis.intervals import Bootstrap, bootstrap_of
+from common.analysis.tables import bin_labels
 from deploy.comparison import (PRIVILEGED, RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow,
                                comparison_markdown, comparison_rows, write_comparison_csv)
 from deploy.differences import (DIFFERENCES_CSV, Difference, chances_apart, differences, differences_markdown,
@@ -120,7 +119,7 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
                   f"privileged map-reading driver ({PRIVILEGED!r}), are the same in every table. "
                   f"Brackets hold {level} percentile intervals of {bootstrap.replicates} bootstrap replicates: "
                   "the runs (seeds) of a row drawn again whole, then each run's trials within each start "
-                  "(actor/evaluation/intervals.py). With one seed an interval shows only the spread of the "
+                  "(common/analysis/intervals.py). With one seed an interval shows only the spread of the "
                   "trials; with a few seeds, read it as a guide. Updates lists every run's learner updates, "
                   "in seed order. results.csv has the pooled rows (seed \"all\") and one row per seed.", ""]
     lines += [comparison_markdown(rows, edges, bootstrap.confidence) if rows else "No run has been evaluated yet.", ""]

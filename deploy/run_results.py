@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-from actor.evaluation.report import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
+from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
 from common.config import Config, load_config
 from common.options import ConfigError
 from common.run_dir import RunDir

@@ -68,7 +68,7 @@ class LoopResult:
     mean_return: float  # of the last 100 episodes
     epsilon: float
     loss: float  # of the last update
-    summaries: list | None = None  # the evaluation's rows (actor.evaluation.stats.SetSummary), if evaluated
+    summaries: list | None = None  # the evaluation's rows (common.analysis.stats.SetSummary), if evaluated
 
     @property
     def env_steps_per_update(self) -> float:
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> None:
           f"{result.start_env_steps} env steps); random phase {result.seconds_to_start:.1f} s, updating "
           f"{result.seconds_updating:.1f} s; mean return of the last 100 episodes {result.mean_return:.2f}")
     if result.summaries:
-        from actor.evaluation.report import markdown_table
+        from common.analysis.tables import markdown_table
         print(markdown_table(result.summaries, config.evaluation.reward_bins, config.evaluation.confidence))
 
 

@@ -10,21 +10,21 @@ import torch
 
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
+from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
+                                       evaluation_env_config, progress_of, run_lockstep)
 from actor.evaluation.progress import Progress, progress_line
 from actor.evaluation.sources import check_weights, checkpoint_config, live_source
 from actor.evaluation.workers import run_jobs
-from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
-                                       evaluation_env_config, progress_of, run_lockstep)
-from actor.evaluation.report import bin_labels, markdown_table
-from actor.evaluation.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts,
-                                    summarise, summarise_all)
 from actor.sim import make_env
+from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
+                                   summarise_all)
+from common.analysis.tables import bin_labels, markdown_table
 from common.checkpoint import save_checkpoint
 from common.config import TransportConfig, load_config, to_dict
 from common.transport import Keys, open_session, serve
-from tests.processes import loopback_endpoint
 from common.wire import Weights
 from learner.update import DoubleQLearner
+from tests.processes import loopback_endpoint
 
 EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]
 

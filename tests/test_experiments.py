@@ -15,17 +15,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from actor.evaluation.intervals import Bootstrap
-from actor.evaluation.report import EPISODES_CSV, write_report
-from actor.evaluation.stats import EvaluationEpisode, summarise_all
+from common.analysis.intervals import Bootstrap
+from common.analysis.stats import EvaluationEpisode, summarise_all
+from common.analysis.tables import EPISODES_CSV, write_report
 from common.checkpoint import save_checkpoint
 from common.config import load_config, to_toml
 from common.run_dir import log_segments
+from common.transport import Keys
+from common.wire import EpisodeRecord, Stats, encode
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
 from deploy.performance_profile import plot_performance_profiles
-from common.transport import Keys
-from common.wire import EpisodeRecord, Stats, encode
 from replay.log.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
                                 plot_reward_curves, read_run_curves, seed_band)
 from replay.log.reader import LogError

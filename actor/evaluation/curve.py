@@ -25,9 +25,9 @@ from typing import Callable, Sequence
 
 from actor.evaluation import EvaluationError
 from actor.evaluation.protocol import evaluate
-from actor.evaluation.report import summary_columns
 from actor.evaluation.sources import check_weights, checkpoint_config
-from actor.evaluation.stats import SetSummary
+from common.analysis.stats import SetSummary
+from common.analysis.tables import summary_columns
 from common.checkpoint import CheckpointError, KeptPolicy, cpu_model
 from common.config import Config
 from common.eta import Eta, clock_time

@@ -6,7 +6,7 @@ import sys
 import time
 from typing import TextIO
 
-from actor.evaluation.stats import EvaluationEpisode
+from common.analysis.stats import EvaluationEpisode
 from common.eta import clock_time
 
 PREFIX = "evaluate: "

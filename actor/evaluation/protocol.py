@@ -9,11 +9,11 @@ import numpy as np
 
 from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import episode_jobs
-from actor.evaluation.intervals import Bootstrap
 from actor.evaluation.progress import Progress
-from actor.evaluation.stats import EvaluationEpisode, SetSummary, summarise_all
 from actor.evaluation.workers import run_jobs
 from actor.sim import START_SETS
+from common.analysis.intervals import bootstrap_of
+from common.analysis.stats import EvaluationEpisode, SetSummary, summarise_all
 from common.config import Config
 
 
@@ -30,9 +30,3 @@ def evaluate(config: Config, weights: dict[str, np.ndarray] | None, policies: Se
     progress = Progress(len(jobs), config.evaluation.progress_period_s, sys.stderr if show_progress else None)
     episodes = run_jobs(config, weights, jobs, progress)
     return episodes, summarise_all(episodes, bootstrap_of(config))
-
-
-def bootstrap_of(config: Config) -> Bootstrap:
-    """The intervals' settings; the bootstrap draws from evaluation.seed, so a table is reproducible."""
-    evaluation = config.evaluation
-    return Bootstrap(evaluation.bootstrap_replicates, evaluation.confidence, evaluation.seed)

@@ -12,7 +12,7 @@ import numpy as np
 from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import EpisodeJob, WorkerDone, WorkerFailed, evaluation_worker
 from actor.evaluation.progress import Progress
-from actor.evaluation.stats import EvaluationEpisode
+from common.analysis.stats import EvaluationEpisode
 from common.config import Config
 
 WORKER_EXIT_TIMEOUT_S = 10.0

@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from actor.evaluation.stats import EvaluationEpisode, SetSummary
+from common.analysis.stats import EvaluationEpisode, SetSummary
 
 EPISODES_CSV = "episodes.csv"
 SUMMARY_CSV = "summary.csv"
@@ -33,7 +33,7 @@ COLUMN_LEGEND = (
                  "(– where the simulator does not report it)"),
     ("Reward/step", "mean step reward exp(-beta d), pooled over all steps of the set"),
     ("[low, high]", "confidence interval by stratified bootstrap: training runs resampled whole, then each "
-                    "run's trials within each start (actor/evaluation/intervals.py); with one run it shows "
+                    "run's trials within each start (common/analysis/intervals.py); with one run it shows "
                     "only the spread of the trials"),
     ("r in [a, b)", "share of all steps whose reward fell in the bin; the last bin holds the near-optimal steps"),
     ("Distinct/start", "different trajectories among the trials of one start, averaged over starts"),
