@@ -16,7 +16,7 @@ receives the report on the exported runs and those of any --merge folder
 (deploy/report.py, which also rebuilds it from committed runs alone): the
 tables of the paper's tables 3-6 with bootstrap confidence intervals over the
 seeds (results.md, results.csv: pooled rows and one row per seed, with every
-run's updates), the figures of replay/log/figures.py and the performance
+run's updates), the figures of common/analysis/figures.py and the performance
 profiles of deploy/performance_profile.py.
 
 Every run keeps its policy now and then for a greedy learning curve

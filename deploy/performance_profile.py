@@ -15,9 +15,9 @@ from typing import Sequence
 
 import numpy as np
 
+from common.analysis.figures import strategy_colour
 from common.analysis.intervals import Bootstrap, bootstrap_weights, profile_band
 from deploy.comparison import STRATEGY_NAMES, ComparisonRow
-from replay.log.figures import strategy_colour
 
 POINTS = 201  # thresholds per curve, from 0 to the longest episode
 

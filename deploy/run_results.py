@@ -24,13 +24,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from common.analysis.figures import RunCurves
 from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
 from common.config import Config, load_config
 from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.comparison import EvaluatedRun
-from replay.log.figures import RunCurves, read_run_curves
 from replay.log.reader import LogError
+from replay.log.run_curves import read_run_curves
 
 CONFIG_TOML = "config.toml"  # evaluate's copy of its config, in evaluation/
 TRAINING_CSV = "training.csv"

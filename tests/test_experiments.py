@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common.analysis.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
+                                     plot_reward_curves, seed_band)
 from common.analysis.intervals import Bootstrap
 from common.analysis.stats import EvaluationEpisode, summarise_all
 from common.analysis.tables import EPISODES_CSV, write_report
@@ -26,9 +28,8 @@ from common.wire import EpisodeRecord, Stats, encode
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
 from deploy.performance_profile import plot_performance_profiles
-from replay.log.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
-                                plot_reward_curves, read_run_curves, seed_band)
 from replay.log.reader import LogError
+from replay.log.run_curves import read_run_curves
 from replay.log.traffic import Arrival, peek
 from replay.log.writer import LogWriter
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from common.analysis.plotting import trailing_mean
 from common.config import Config, TransportConfig, flat_items, load_config
 from common.run_dir import next_free_path
 from common.transport import Keys, open_session, publisher, request, subscribe
@@ -24,7 +25,6 @@ from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, S
                          TraceBatchRequest, Weights, decode, encode)
 from replay.log.cli import main as log_main
 from replay.log.export import collect
-from replay.log.plot import trailing_mean
 from replay.log.reader import LogError, LogFile
 from replay.log.recorder import HandOff, Recorder, WeightsSampler
 from replay.log.recover import recover

@@ -5,13 +5,13 @@ import dataclasses
 
 import pytest
 
+from common.analysis.figures import EPSILON_STRATEGIES
 from common.config import ExplorationConfig, load_config
 from common.exploration import STRATEGY_CLASSES, make_strategy
 from common.options import ConfigError
 from common.strategies import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
                                strategy_rank)
 from deploy.comparison import STRATEGY_NAMES
-from replay.log.figures import EPSILON_STRATEGIES
 
 SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}
 

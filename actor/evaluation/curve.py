@@ -26,13 +26,13 @@ from typing import Callable, Sequence
 from actor.evaluation import EvaluationError
 from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import check_weights, checkpoint_config
+from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.stats import SetSummary
 from common.analysis.tables import summary_columns
 from common.checkpoint import CheckpointError, KeptPolicy, cpu_model
 from common.config import Config
 from common.eta import Eta, clock_time
 from common.options import ConfigError
-from common.plotting import finish_figure, pyplot
 from common.run_dir import RunDir
 
 CURVE_TRIALS = 5  # trials per start: a curve evaluates many policies, so fewer than a table's 30
