@@ -53,7 +53,7 @@ from common.config import Config, add_config_arguments, parse_config_or_exit, pr
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.strategies import starts_by_steps
 from common.wire import Episode, FrameStack
-from learner.update import DoubleQLearner, TraceBatch as Traces, UpdateResult
+from learner.update import DoubleQLearner, TraceArrays, UpdateResult
 from replay.store import EpisodeStore
 
 
@@ -149,8 +149,8 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
         # 4. sample and update, one update per env_steps_per_update steps since the start
         while start_mark is not None and learner.updates < (env_steps - start_mark) / learner_config.env_steps_per_update:
             batch = store.sample(learner_config.batch_size)
-            result = learner.update(Traces(batch.observations_array(), np.asarray(batch.actions),
-                                           np.asarray(batch.rewards), np.asarray(batch.terminated)),
+            result = learner.update(TraceArrays(batch.observations_array(), np.asarray(batch.actions),
+                                                np.asarray(batch.rewards), np.asarray(batch.terminated)),
                                     with_q_after=strategy.needs_q_after)
             # 5. feed the strategy, as learner/service.py does after each update (the learner knows
             # the steps of the episodes the replay has received; here every step taken is known)

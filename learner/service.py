@@ -44,7 +44,7 @@ from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBat
                          WireError, check_trace_batch, stat_number)
 from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
-from learner.update import DoubleQLearner, TraceBatch as Traces, TraceTensors
+from learner.update import DoubleQLearner, TraceArrays, TraceTensors
 
 log = logging.getLogger("learner")
 
@@ -122,7 +122,7 @@ class Admitted:
     """A reply to a trace-batch request once checked: its traces (on the learner's device), or why
     it is refused."""
     batch: object
-    traces: Traces | TraceTensors | None
+    traces: TraceArrays | TraceTensors | None
     error: WireError | None
 
 
@@ -272,7 +272,7 @@ class LearnerProcess:
             observations = batch.observations_array()
         except WireError as error:
             return Admitted(batch, None, error)
-        traces = Traces(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated))
+        traces = TraceArrays(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated))
         if self.stager is None:
             return Admitted(batch, traces, None)
         try:

@@ -18,7 +18,7 @@ from learner.reference_update import paper_reference_loss, same_history_referenc
 import learner.update as update_module
 from learner.flops import update_flops
 from learner.update import (
-    DoubleQLearner, TraceBatch, TraceTensors, candidate_paths, choose_update_path, double_q_targets,
+    DoubleQLearner, TraceArrays, TraceTensors, candidate_paths, choose_update_path, double_q_targets,
     masked_squared_error,
     one_pass_loss, to_tensors, trace_pass_loss,
 )
@@ -37,11 +37,11 @@ def one_torch_thread():
 
 
 def random_batch(rng: np.random.Generator, config: NetworkConfig = TINY, batch: int = 10, steps: int = 10,
-                 terminal_last: bool = False) -> TraceBatch:
+                 terminal_last: bool = False) -> TraceArrays:
     frames = (batch, steps + 1, config.frame_height, config.frame_width, config.frame_channels)
     terminated = np.zeros((batch, steps), bool)
     terminated[:, -1] = terminal_last
-    return TraceBatch(
+    return TraceArrays(
         observations=rng.integers(0, 256, frames, dtype=np.uint8),
         actions=rng.integers(0, config.n_actions, (batch, steps)),
         rewards=rng.random((batch, steps)).astype(np.float32),

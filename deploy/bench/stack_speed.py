@@ -33,7 +33,7 @@ from common.config import Config, TransportConfig, add_config_arguments, parse_c
 from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
 from common.wire import Stats, TraceBatch, TraceBatchRequest
 from learner.reference_loop import train
-from learner.update import DoubleQLearner, TraceBatch as Traces
+from learner.update import DoubleQLearner, TraceArrays
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -54,8 +54,8 @@ def time_update_paths(config: Config) -> None:
     shape = (learner_config.batch_size, learner_config.trace_length + 1, network.frame_height, network.frame_width,
              network.frame_channels)
     steps = shape[:1] + (learner_config.trace_length,)
-    DoubleQLearner(network, learner_config).update(Traces(np.zeros(shape, np.uint8), np.zeros(steps, np.int64),
-                                                          np.zeros(steps, np.float32), np.zeros(steps, bool)))
+    DoubleQLearner(network, learner_config).update(TraceArrays(np.zeros(shape, np.uint8), np.zeros(steps, np.int64),
+                                                               np.zeros(steps, np.float32), np.zeros(steps, bool)))
 
 
 def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, float]:
