@@ -321,7 +321,7 @@ class EvaluationConfig:
                                                                    "are counted in; must cover [0, 1]")
     seed: int = option(0, "root of every trial's seed (env reset, random baseline, privileged driver's turns) and "
                           "of the bootstrap")
-    progress_period_s: float = option(1.0, "how often the progress line on stderr is refreshed", "s")
+    progress_period_s: float = option(1.0, "how often the status line on stderr is refreshed", "s")
     live_timeout_s: float = option(30.0, "--live: how long to wait for the learner's latest weights", "s")
     bootstrap_replicates: int = option(2000, "replicates of the tables' intervals: a stratified bootstrap over "
                                              "runs and trials (common/analysis/intervals.py)", "replicates")

@@ -183,7 +183,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
         loss=result.loss if result is not None else math.nan)
     if evaluate_at_end:
         from actor.evaluation.protocol import evaluate  # spawns the evaluation's worker processes
-        outcome.summaries = evaluate(config, learner.online_weights(), policies=("greedy",), show_progress=False)[1]
+        outcome.summaries = evaluate(config, learner.online_weights(), policies=("greedy",), show_status=False)[1]
     return outcome
 
 

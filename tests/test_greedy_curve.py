@@ -20,7 +20,7 @@ from common.run_dir import RunDir
 from deploy.experiments import keep_flags
 from learner.service import LearnerProcess
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
-from tests.test_progress import FakeClock
+from tests.test_status_lines import FakeClock
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

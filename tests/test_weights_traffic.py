@@ -21,7 +21,7 @@ from replay.log.recorder import WeightsSampler
 from replay.log.traffic import Arrival, peek
 from tests import weights_peers
 from tests.cpu_support import needs_bfloat16
-from tests.test_progress import FakeClock
+from tests.test_status_lines import FakeClock
 
 # What docs/architecture.md states, measured by deploy/bench/weights_encoding.py on 4,000 frames: at most this
 # share of greedy actions changes, and |Q| moves by at most this fraction of the largest |Q|; for the

@@ -54,7 +54,7 @@ def curve_config(saved: dict, args: argparse.Namespace) -> Config:
 
 
 def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],
-                   nice: int, show_progress: bool = True) -> list[dict] | None:
+                   nice: int, show_status: bool = True) -> list[dict] | None:
     """Evaluates the kept policies the CSV lacks, writing it after each; returns all its rows, or None
     when nothing was added (nothing new, or every new file skipped)."""
     kept = run.kept_policies()
@@ -71,7 +71,7 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
     eta, added = Eta(len(todo)), 0
     eta.update(0)
     for number, (updates, file) in enumerate(todo, 1):
-        new = policy_rows(file, updates, start_sets, configure, nice, show_progress)
+        new = policy_rows(file, updates, start_sets, configure, nice, show_status)
         if new:
             rows = write_curve(path, rows + new)
             added += 1
@@ -85,7 +85,7 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
 
 
 def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: Callable[[dict], Config],
-                nice: int, show_progress: bool) -> list[dict]:
+                nice: int, show_status: bool) -> list[dict]:
     """The curve's rows of one kept policy; none, with a log line, when the file cannot be used."""
     try:
         policy = KeptPolicy.load(file)
@@ -97,7 +97,7 @@ def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: 
     except (CheckpointError, ConfigError, EvaluationError) as error:
         log.warning("skipped %s: %s", file, error)
         return []
-    _, summaries = evaluate(config, weights, ["greedy"], start_sets, show_progress)
+    _, summaries = evaluate(config, weights, ["greedy"], start_sets, show_status)
     return [curve_row(policy, summary, config.evaluation.reward_bins, nice) for summary in summaries]
 
 
