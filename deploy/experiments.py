@@ -163,7 +163,7 @@ def set_aside_stale_files(run_dir: Path) -> Path | None:
     figures would read both as one run.
     """
     run = RunDir(run_dir)
-    stale = run.traffic_segments() + [path for path in [run.logs] if path.is_dir()]
+    stale = run.wire_log_segments() + [path for path in [run.logs] if path.is_dir()]
     if not stale:
         return None
     target = run.abandoned(datetime.datetime.now().strftime("%Y%m%d-%H%M%S"))

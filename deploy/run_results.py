@@ -137,7 +137,7 @@ def export_run(run: RunDir, destination: Path) -> Path:
     for name in EVALUATION_FILES:
         if (run.evaluation / name).is_file():
             shutil.copy2(run.evaluation / name, copy.evaluation / name)
-    segments = run.traffic_segments()
+    segments = run.wire_log_segments()
     if segments:
         try:
             write_curves(read_run_curves(segments, folder.name), staging)

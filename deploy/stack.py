@@ -209,7 +209,7 @@ class Stack:
         client = ["--transport.mode", "client", "--transport.connect", endpoint]
         self.roles: dict[str, Role] = {"replay": Role("replay", "replay.main", [
             "--transport.mode", "router", "--transport.listen", endpoint])}
-        if config.record.enabled:  # the flight recorder writes the run's traffic log
+        if config.record.enabled:  # the flight recorder writes the run's wire log
             curves = ["--tensorboard", str(run.tensorboard)] if tensorboard else []
             self.roles["recorder"] = Role("recorder", "replay.log.cli record", client + curves)
         self.roles["learner"] = Role("learner", "learner.main", client)

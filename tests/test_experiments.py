@@ -28,9 +28,9 @@ from common.wire import EpisodeRecord, Stats, encode
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
 from deploy.performance_profile import plot_performance_profiles
+from replay.log.arrival import Arrival, peek
 from replay.log.reader import LogError
 from replay.log.run_curves import read_run_curves
-from replay.log.traffic import Arrival, peek
 from replay.log.writer import LogWriter
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -23,12 +23,12 @@ from common.run_dir import next_free_path
 from common.transport import Keys, open_session, publisher, request, subscribe
 from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, Stats, TraceBatch,
                          TraceBatchRequest, Weights, decode, encode)
+from replay.log.arrival import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.log.cli import main as log_main
 from replay.log.export import collect
 from replay.log.reader import LogError, LogFile
 from replay.log.recorder import HandOff, Recorder, WeightsSampler
 from replay.log.recover import recover
-from replay.log.traffic import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.log.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns
 from replay.log.writer import LogWriter
 from tests.processes import loopback_endpoint, start, stop, wait_for

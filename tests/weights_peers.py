@@ -1,4 +1,4 @@
-"""The two ends of a weights broadcast, each run in a spawned process by tests/test_weights_traffic.py
+"""The two ends of a weights broadcast, each run in a spawned process by tests/test_weights_broadcasts.py
 (a Zenoh session lives only in a fresh interpreter); light imports, so they start fast."""
 
 from __future__ import annotations

@@ -95,7 +95,7 @@ def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[s
                   "random": rate(samples, 1, watch.network_from) if watch.network_from > 0 else float("nan"),
                   "updates_per_s": statistics.mean(watch.updates_per_s) if watch.updates_per_s else float("nan")}
     if record:
-        result.update(log_sizes(RunDir(runs_dir / name).traffic, name))
+        result.update(log_sizes(RunDir(runs_dir / name).wire_log, name))
     return result
 
 

@@ -1,4 +1,4 @@
-"""Weights traffic at the paper's sizes (~48.6 MB of float32): encodings, shared memory, subscribers.
+"""Weights messages at the paper's sizes (~48.6 MB of float32): encodings, shared memory, subscribers.
 
 In one run, side by side:
   * encode and decode (with the finite check, then widened to float32 as an actor does) per encoding;

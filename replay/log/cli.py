@@ -1,4 +1,4 @@
-"""`d3rqn-log`: record a run's traffic into an MCAP log, and inspect, replay, export, plot or recover logs.
+"""`d3rqn-log`: record a run's messages into an MCAP log, and inspect, replay, export, plot or recover logs.
 
     d3rqn-log record --config runs/R/config.toml --transport.mode client --transport.connect tcp/127.0.0.1:7447
     d3rqn-log info runs/R/traffic.mcap
@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    record = commands.add_parser("record", help="record a run's traffic until stopped (SIGINT/SIGTERM)",
+    record = commands.add_parser("record", help="record a run's messages until stopped (SIGINT/SIGTERM)",
                                  description="Subscribes to <namespace>/<run>/** and writes every message into one "
                                              "MCAP file (record.* settings: weights sampling, flushes, views).")
     record.add_argument("--output", type=Path, default=None,
@@ -114,7 +114,7 @@ def _record(args, config) -> int:
 def _info(args, config) -> None:
     from common.wire import EpisodeRecord
     from replay.log.reader import LogFile
-    from replay.log.traffic import peek
+    from replay.log.arrival import peek
 
     with LogFile(args.log, unfinished_ok=True) as log:
         keys = log.keys()

@@ -30,8 +30,8 @@ from typing import Collection, NamedTuple
 
 from common.analysis.plotting import RETURN_WINDOW
 from common.wire import EpisodeRecord, ExplorationState, Message, Stats, stat_number
+from replay.log.arrival import relative_key
 from replay.log.reader import LogFile
-from replay.log.traffic import relative_key
 
 CURVE_TYPES = (EpisodeRecord, Stats, ExplorationState)
 CURVE_TYPE_NAMES = frozenset(cls.__name__ for cls in CURVE_TYPES)

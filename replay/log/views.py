@@ -27,7 +27,7 @@ import numpy as np
 
 from common.wire import (Episode, EpisodeRecord, ExplorationState, Flag, Integer, Message, NumberDict, PlainDict,
                          Real, Stats, Text, WireError, decode)
-from replay.log.traffic import relative_key
+from replay.log.arrival import relative_key
 
 VIEW_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"

@@ -1,4 +1,4 @@
-"""Weights traffic that scales: broadcasts by time as well as by updates, compact encodings that
+"""Weights broadcasts that scale: broadcasts by time as well as by updates, compact encodings that
 actors load within a stated tolerance, and Zenoh shared memory between the processes of one host."""
 
 import dataclasses
@@ -17,8 +17,8 @@ from common.transport import loopback_endpoint
 from common.wire import WEIGHTS_ENCODINGS, Weights, WireError, decode, encode
 from deploy.bench.weights_encoding import BFLOAT16_PASS, compare, drives
 from learner.service import Cadence, LearnerProcess
+from replay.log.arrival import Arrival, peek
 from replay.log.recorder import WeightsSampler
-from replay.log.traffic import Arrival, peek
 from tests import weights_peers
 from tests.cpu_support import needs_bfloat16
 from tests.test_status_lines import FakeClock
