@@ -36,7 +36,7 @@ from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
 from actor.evaluation.workers import torch_threads_per_worker
 from actor.sim import START_SETS
-from common.analysis.tables import SUMMARY_MD, write_report
+from common.analysis.tables import SUMMARY_MD, write_evaluation
 from common.checkpoint import CheckpointError
 from common.config import add_config_arguments, config_from_args, parse_flags, to_toml
 from common.options import ConfigError
@@ -137,8 +137,8 @@ def _main(args: argparse.Namespace) -> None:
              "wall time": f"{wall_s:.1f} s",
              "priority": f"nice {nice}",
              "date": datetime.datetime.now().isoformat(timespec="seconds")}
-    paths = write_report(out_dir, episodes, summaries, evaluation.reward_bins, facts, evaluation.episodes_per_start,
-                         to_toml(config), evaluation.confidence)
+    paths = write_evaluation(out_dir, episodes, summaries, evaluation.reward_bins, facts, evaluation.episodes_per_start,
+                             to_toml(config), evaluation.confidence)
     print((out_dir / SUMMARY_MD).read_text())
     print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
 

@@ -444,17 +444,17 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
              getattr(batch.batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
              getattr(batch.batch, "episodes_stored", "?"))  # perhaps refused: train_on counts that
     _warn_if_bmc_starves(process)
-    report = Report(process, prefetcher)
+    metrics = LearnerMetrics(process, prefetcher)
 
     def idle() -> None:  # while no batch comes: the learner is ahead, or the actors hold
         if heartbeat.due():
-            outputs.metrics(report.values())
+            outputs.metrics(metrics.values())
             outputs.exploration(process.strategy, force=True)  # a late actor holds until it has the state
     try:
         while batch is not None:
             loss = process.train_on(batch)
             if loss is not None:  # None: the batch was refused or its update failed (counted)
-                report.loss(loss)
+                metrics.loss(loss)
                 outputs.exploration(process.strategy)
                 if broadcasts.due(process.updates):
                     outputs.weights(process.make_weights())
@@ -462,14 +462,14 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                     process.checkpoint()
                 process.keep_policy_if_due()
             if heartbeat.due():
-                outputs.metrics(report.values())
+                outputs.metrics(metrics.values())
             batch = _next_batch(process, prefetcher, stop, idle)
     finally:
         prefetcher.close()
         outputs.weights(process.make_weights())
         path = process.checkpoint()
         process.keep_last_policy()
-        outputs.metrics({**report.values(), "final": 1})
+        outputs.metrics({**metrics.values(), "final": 1})
         log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
                  "checkpoint %s", process.updates, process.clock.env_steps, process.env_steps_per_update(),
                  config.env_steps_per_update, path)
@@ -514,7 +514,7 @@ def _warn_if_bmc_starves(process: LearnerProcess) -> None:
                     config.learner.env_steps_per_update, available)
 
 
-class Report:
+class LearnerMetrics:
     """Running figures for the learner's log line and metrics message."""
 
     def __init__(self, process: LearnerProcess, prefetcher: Prefetcher) -> None:
