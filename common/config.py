@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.options import ConfigError, check, check_positive, option
 from common.exploration import (BmcConfig, ConstantEpsilonConfig, DecreasingEpsilonConfig, MaxBoltzmannConfig,
                                 SoftmaxConfig, VdbeConfig)
+from common.options import ConfigError, check, check_positive, option
 from common.strategies import STRATEGIES
-from common.wire import WEIGHTS_ENCODINGS
+from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 
 
 @dataclass

@@ -43,7 +43,7 @@ import numpy as np
 
 from common.options import check, check_positive, check_probability, option
 from common.strategies import strategy_named
-from common.wire import ExplorationState
+from common.wire.messages import ExplorationState
 
 if TYPE_CHECKING:  # common/config.py imports this module: the annotation only
     from common.config import ExplorationConfig

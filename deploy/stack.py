@@ -38,7 +38,8 @@ from common.cpu_capability import exit_if_unrunnable
 from common.eta import Eta
 from common.run_dir import RunDir, RunStatus
 from common.transport import Keys, free_port, open_session, subscribe
-from common.wire import EpisodeRecord, Stats, stat_number
+from common.wire.messages import EpisodeRecord, Stats
+from common.wire.run_shape import stat_number
 
 STOP_GRACE_S = 20.0
 RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubled for each death in a row

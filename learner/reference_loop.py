@@ -52,7 +52,8 @@ from actor.sim import make_env
 from common.config import Config, add_config_arguments, parse_config_or_exit, print_config
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.strategies import starts_by_steps
-from common.wire import Episode, FrameStack
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode
 from learner.update import DoubleQLearner, TraceArrays, UpdateResult
 from replay.store import EpisodeStore
 

@@ -37,11 +37,13 @@ from common.config import Config, to_dict
 from common.eta import clock_time
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.logs import Every
+from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
 from common.transport import Keys, SharedMemory, publisher, request, serve, subscribe
-from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
-                         WireError, check_trace_batch, stat_number)
+from common.wire.errors import WireError
+from common.wire.messages import ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
+from common.wire.run_shape import RunShape, check_trace_batch, stat_number
 from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
 from learner.update import DoubleQLearner, TraceArrays, TraceTensors

@@ -14,7 +14,8 @@ from common.config import load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
 from common.options import ConfigError
-from common.wire import Episode, Stats, Weights, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.messages import Episode, Stats, Weights
 from replay.service import ReplayService
 
 

@@ -15,7 +15,7 @@ from common.config import load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.options import ConfigError
-from common.wire import Weights
+from common.wire.messages import Weights
 from tests.cpu_support import needs_bfloat16
 
 SLOTS = 4

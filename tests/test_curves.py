@@ -13,7 +13,9 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from common.config import TransportConfig, load_config
 from common.transport import Keys, open_session, publisher
-from common.wire import EpisodeRecord, ExplorationState, Message, Stats, encode
+from common.wire.codecs import Message
+from common.wire.envelope import encode
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from deploy.stack import main as stack_main
 from replay.log.arrival import Arrival, peek
 from replay.log.cli import main as log_main

@@ -12,8 +12,8 @@ from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
                                        evaluation_env_config, progress_of, run_lockstep)
-from actor.evaluation.status import EvaluationStatus, evaluation_line
 from actor.evaluation.sources import check_weights, checkpoint_config, live_source
+from actor.evaluation.status import EvaluationStatus, evaluation_line
 from actor.evaluation.workers import run_jobs
 from actor.sim import make_env
 from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
@@ -22,7 +22,7 @@ from common.analysis.tables import bin_labels, markdown_table
 from common.checkpoint import save_checkpoint
 from common.config import TransportConfig, load_config, to_dict
 from common.transport import Keys, open_session, serve
-from common.wire import Weights
+from common.wire.messages import Weights
 from learner.update import DoubleQLearner
 from tests.processes import loopback_endpoint
 

@@ -24,7 +24,8 @@ from common.checkpoint import save_checkpoint
 from common.config import load_config, to_toml
 from common.run_dir import log_segments
 from common.transport import Keys
-from common.wire import EpisodeRecord, Stats, encode
+from common.wire.envelope import encode
+from common.wire.messages import EpisodeRecord, Stats
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
 from deploy.performance_profile import plot_performance_profiles

@@ -7,14 +7,13 @@ import pytest
 import scipy.stats
 
 from common.config import ExplorationConfig
-from common.exploration import BmcConfig, DecreasingEpsilonConfig, MaxBoltzmannConfig
-from common.exploration import (
-    BmcPosterior, DecreasingEpsilonGreedy, EpsilonBmc, MaxBoltzmann, decreasing_epsilon,
-    bmc_observation_count, exploration_message, greedy_and_uniform_returns, make_strategy, newest_transitions,
-    same_strategy, softmax_probabilities, strategy_from_state, student_t_pdf, vdbe_f,
-)
+from common.exploration import (BmcConfig, BmcPosterior, DecreasingEpsilonConfig, DecreasingEpsilonGreedy, EpsilonBmc,
+                                MaxBoltzmann, MaxBoltzmannConfig, bmc_observation_count, decreasing_epsilon,
+                                exploration_message, greedy_and_uniform_returns, make_strategy, newest_transitions,
+                                same_strategy, softmax_probabilities, strategy_from_state, student_t_pdf, vdbe_f)
 from common.strategies import STRATEGIES
-from common.wire import ExplorationState, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.messages import ExplorationState
 
 N_ACTIONS = 5
 

@@ -14,8 +14,11 @@ from actor.runner import Actor, Mailbox, Outbox
 from common.config import load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
-from common.wire import (Episode, ExplorationState, FrameStack, Rejections, RunShape, Stats, TraceBatch,
-                         TraceBatchRequest, Weights, WireError, check_episode, stat_number)
+from common.rejections import Rejections
+from common.wire.errors import WireError
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
+from common.wire.run_shape import RunShape, check_episode, stat_number
 from deploy.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerProcess

@@ -21,8 +21,9 @@ from common.analysis.plotting import trailing_mean
 from common.config import Config, TransportConfig, flat_items, load_config
 from common.run_dir import next_free_path
 from common.transport import Keys, open_session, publisher, request, subscribe
-from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, Stats, TraceBatch,
-                         TraceBatchRequest, Weights, decode, encode)
+from common.wire.envelope import decode, encode
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, EpisodeRecord, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
 from replay.log.arrival import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.log.cli import main as log_main
 from replay.log.export import collect

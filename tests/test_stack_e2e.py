@@ -11,7 +11,7 @@ import pytest
 
 from common.config import PRESETS, TransportConfig
 from common.transport import Keys, open_session, subscribe
-from common.wire import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from tests.processes import loopback_endpoint, start, stop
 
 DEADLINE_S = 240.0

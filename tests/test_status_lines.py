@@ -12,7 +12,7 @@ from common.checkpoint import save_checkpoint
 from common.config import load_config
 from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus
-from common.wire import EpisodeRecord, Stats
+from common.wire.messages import EpisodeRecord, Stats
 from deploy.stack import Stack, StackMonitor
 
 

@@ -14,7 +14,10 @@ from common.config import load_config
 from common.network import D3RQN, weights_to_numpy
 from common.options import ConfigError
 from common.transport import loopback_endpoint
-from common.wire import WEIGHTS_ENCODINGS, Weights, WireError, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.errors import WireError
+from common.wire.messages import Weights
+from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 from deploy.bench.weights_encoding import BFLOAT16_PASS, compare, drives
 from learner.service import Cadence, LearnerProcess
 from replay.log.arrival import Arrival, peek

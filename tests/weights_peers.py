@@ -9,7 +9,7 @@ import numpy as np
 
 from common.config import TransportConfig
 from common.transport import Keys, SharedMemory, open_session, publisher, subscribe
-from common.wire import Weights
+from common.wire.messages import Weights
 
 KEYS = Keys("d3rqn-test", "shm")
 RECEIVE_TIMEOUT_S = 20.0

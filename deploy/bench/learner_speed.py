@@ -36,7 +36,7 @@ import torch
 from common.config import Config, add_config_arguments, parse_config_or_exit
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device, scale_frames
-from common.wire import FrameStack
+from common.wire.frames import FrameStack
 from learner.flops import conv_features, conv_multiply_adds, update_flops
 from learner.reference_update import paper_reference_loss
 from learner.update import DoubleQLearner, TraceArrays, candidate_paths, one_pass_terms, trace_pass_loss

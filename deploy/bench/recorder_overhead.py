@@ -24,11 +24,12 @@ import tempfile
 import threading
 from pathlib import Path
 
-from common.cpu_capability import describe_cpu
 from common.config import TransportConfig
+from common.cpu_capability import describe_cpu
 from common.run_dir import RunDir
 from common.transport import Keys, free_port, loopback_endpoint, open_session, subscribe
-from common.wire import EpisodeRecord, Stats, decode
+from common.wire.envelope import decode
+from common.wire.messages import EpisodeRecord, Stats
 from replay.log.reader import LogFile
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -28,10 +28,10 @@ import numpy as np
 import torch
 
 from actor.runner import Actor
-from common.cpu_capability import describe_cpu
 from common.config import Config, TransportConfig, add_config_arguments, parse_config_or_exit, to_toml
+from common.cpu_capability import describe_cpu
 from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
-from common.wire import Stats, TraceBatch, TraceBatchRequest
+from common.wire.messages import Stats, TraceBatch, TraceBatchRequest
 from learner.reference_loop import train
 from learner.update import DoubleQLearner, TraceArrays
 

@@ -28,7 +28,9 @@ from common.cpu_capability import describe_cpu
 from common.config import NetworkConfig, TransportConfig
 from common.transport import (Keys, SharedMemory, loopback_endpoint, open_session, publisher, request, serve,
                               subscribe)
-from common.wire import WEIGHTS_ENCODINGS, Weights, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.messages import Weights
+from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 from wire_sizes import d3rqn_tensors
 
 TIMEOUT_S = 60.0

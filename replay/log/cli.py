@@ -112,7 +112,7 @@ def _record(args, config) -> int:
 
 
 def _info(args, config) -> None:
-    from common.wire import EpisodeRecord
+    from common.wire.messages import EpisodeRecord
     from replay.log.reader import LogFile
     from replay.log.arrival import peek
 

@@ -31,7 +31,9 @@ from mcap.summary import Summary
 from common.config import Config, from_dict
 from common.options import ConfigError
 from common.transport import Keys
-from common.wire import Message, WireError, decode
+from common.wire.codecs import Message
+from common.wire.envelope import decode
+from common.wire.errors import WireError
 from replay.log.arrival import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"

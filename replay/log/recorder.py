@@ -33,7 +33,7 @@ from common.config import Config, RecorderConfig
 from common.run_dir import RunDir, next_free_path
 from common.service import Service
 from common.transport import Declared, RateLimitedLog, publisher
-from common.wire import Stats, Weights
+from common.wire.messages import Stats, Weights
 from replay.log.arrival import Arrival, Peek, peek
 from replay.log.tensorboard_events import EventsWriter
 from replay.log.views import ViewMaker

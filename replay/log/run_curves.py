@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Sequence
 
 from common.analysis.figures import RunCurves
-from common.wire import EpisodeRecord, Stats
+from common.wire.messages import EpisodeRecord, Stats
 from replay.log.reader import LogError, LogFile
 
 

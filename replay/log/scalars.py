@@ -29,7 +29,9 @@ from collections import deque
 from typing import Collection, NamedTuple
 
 from common.analysis.plotting import RETURN_WINDOW
-from common.wire import EpisodeRecord, ExplorationState, Message, Stats, stat_number
+from common.wire.codecs import Message
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from common.wire.run_shape import stat_number
 from replay.log.arrival import relative_key
 from replay.log.reader import LogFile
 
