@@ -38,7 +38,8 @@ from actor.evaluation.workers import torch_threads_per_worker
 from actor.sim import START_SETS
 from common.analysis.tables import SUMMARY_MD, write_evaluation
 from common.checkpoint import CheckpointError
-from common.config import add_config_arguments, config_from_args, parse_flags, to_toml
+from common.config_cli import add_config_arguments, config_from_args, parse_flags
+from common.config_values import to_toml
 from common.options import ConfigError
 from common.run_dir import RunDir
 

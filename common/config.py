@@ -1,30 +1,20 @@
-"""One typed configuration for every process, with the paper's values as defaults.
+"""One typed configuration for every process, with the paper's values as defaults: the schema.
 
-A config is a tree of dataclasses. It is built from a preset, then a TOML file,
-then command-line flags named after the dotted path of a field
-(``--learner.lr 3e-4``, ``--exploration.bmc.alpha0 25``). Every value is
-checked against its field's type and range; a bad one raises ``ConfigError``
-whose one-line message names the key.
+A config is a tree of dataclasses, one per section (``Config.learner``, ``Config.exploration.bmc``, ...);
+a strategy's section is declared next to its rule (common/exploration.py). Each field is declared with
+``option()`` (common/options.py), whose one documentation string (with the unit and choices) is the
+flag's ``--help`` line, and every section checks its values (``validate``); a bad one raises
+``ConfigError`` whose one-line message names the key.
 
-Each field is declared with ``option()``, whose one documentation string (with
-the unit and choices) is the flag's ``--help`` line; ``--preset NAME --help``
-shows that preset's defaults. Flags are never abbreviated: an unknown one is an
-error that suggests the nearest known flag.
+A config is built from a preset (common/presets.py), then a TOML file, then dotted keys
+(common/config_values.py), which the command line's flags (``--learner.lr 3e-4``,
+``--exploration.bmc.alpha0 25``) set (common/config_cli.py).
 """
 
 from __future__ import annotations
 
-import argparse
-import copy
 import dataclasses
-import difflib
-import math
-import sys
-import textwrap
-import tomllib
-import typing
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from common.exploration import (BmcConfig, ConstantEpsilonConfig, DecreasingEpsilonConfig, MaxBoltzmannConfig,
@@ -464,7 +454,7 @@ class Config:
     record: RecorderConfig = field(default_factory=RecorderConfig)
 
     def validate(self) -> "Config":
-        for path, section in _sections(self):
+        for path, section in sections(self):
             if section is self:
                 continue
             try:
@@ -476,365 +466,13 @@ class Config:
         return self
 
 
-# --- presets -----------------------------------------------------------------
-
-class Preset(dict):
-    """Values over the dataclass defaults, by dotted key, and what the preset is for (shown by --help)."""
-
-    def __init__(self, doc: str, values: dict[str, Any]) -> None:
-        super().__init__(values)
-        self.doc = doc
-
-
-PRESETS: dict[str, Preset] = {
-    "paper": Preset("the paper's values, which are the defaults", {}),
-    "local": Preset(
-        "the main job on a 2-core CPU machine (about 30 minutes): the paper's agent, buffer and ratio, with the run "
-        "cut to 60,000 steps and the decreasing schedule scaled to that length", {
-            "learner.total_env_steps": 60_000,
-            "learner.start_steps": 10_000,
-            "learner.checkpoint_every": 1_000,
-            "learner.keep_every": 1_000,  # about 12 policies a run for its greedy curve
-            "exploration.decreasing.n_start": 10_000,
-            "exploration.decreasing.n_ann": 20_000,
-            "exploration.decreasing.n_max": 60_000,
-        }),
-    "smoke": Preset(
-        "seconds-long runs for tests: tiny buffer, short episodes, early updates", {
-            "replay.capacity": 50,
-            "replay.stats_period_s": 0.5,
-            "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
-            "learner.batch_size": 4,
-            "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
-            "learner.start_episodes": 2,
-            "learner.start_steps": 100,
-            "learner.total_env_steps": 20_000,
-            "learner.weights_every": 5,
-            "learner.checkpoint_every": 50,
-            "learner.keep_every": 100,
-            "learner.log_period_s": 1.0,
-            "exploration.decreasing.n_start": 100,
-            "exploration.decreasing.n_ann": 800,
-            "exploration.decreasing.n_max": 2_000,
-            "env.max_steps": 60,
-            "actor.log_period_s": 1.0,
-            "evaluation.episodes_per_start": 1,
-            "evaluation.max_steps": 60,
-            "evaluation.workers": 1,
-            "evaluation.envs_per_worker": 2,
-        }),
-}
-
-# --- building a config ---------------------------------------------------------
-
-def load_config(preset: str = "paper", toml_path: str | Path | None = None,
-                overrides: dict[str, Any] | None = None, base: Config | None = None) -> Config:
-    """Preset (or a copy of `base`, such as a checkpoint's config), then TOML file, then
-    overrides (dotted keys); validated."""
-    if base is not None:
-        config = copy.deepcopy(base)
-    elif preset in PRESETS:
-        config = Config()
-        for key, value in PRESETS[preset].items():
-            set_value(config, key, value)
-    else:
-        raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    if toml_path is not None:
-        for key, value in _flatten(_read_toml(Path(toml_path))).items():
-            set_value(config, key, value)
-    for key, value in (overrides or {}).items():
-        set_value(config, key, value)
-    return config.validate()
-
-
-# Keys of earlier versions; a checkpoint's or log's config that holds one still loads (from_dict).
-RETIRED_KEYS = {
-    "learner.ratio_tolerance": "replaced by replay.error_buffer_updates (a number of updates)",
-    "actor.pace_with_learner": "the replay's rate limiter paces the actors; replay.error_buffer_updates 1e9 lets them run free",
-}
-
-
-def set_value(config: Config, dotted_key: str, value: Any) -> None:
-    """Set one field by its dotted path, converting and type-checking the value."""
-    if dotted_key in RETIRED_KEYS:
-        raise ConfigError(f"{dotted_key}: retired key; {RETIRED_KEYS[dotted_key]}")
-    *parents, name = dotted_key.split(".")
-    target: Any = config
-    for part in parents:
-        if not dataclasses.is_dataclass(target) or part not in _field_types(target):
-            raise ConfigError(f"{dotted_key}: unknown key")
-        target = getattr(target, part)
-    types = _field_types(target) if dataclasses.is_dataclass(target) else {}
-    if name not in types or dataclasses.is_dataclass(types[name]):
-        raise ConfigError(f"{dotted_key}: unknown key")
-    setattr(target, name, _coerce(dotted_key, types[name], value))
-
-
-def flat_items(config: Any, prefix: str = "") -> dict[str, Any]:
-    """Every leaf field as {dotted key: value}."""
-    items: dict[str, Any] = {}
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        key = f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(value):
-            items.update(flat_items(value, key + "."))
-        else:
-            items[key] = value
-    return items
-
-
-def to_toml(config: Config) -> str:
-    """The config as a TOML document that load_config reads back unchanged."""
-    lines: list[str] = []
-    for path, section in _sections(config):
-        leaves = {f.name: getattr(section, f.name) for f in dataclasses.fields(section)
-                  if not dataclasses.is_dataclass(getattr(section, f.name))}
-        if not path or not leaves:
-            continue
-        lines.append(f"[{path}]")
-        lines.extend(f"{name} = {_toml_value(value)}" for name, value in leaves.items())
-        lines.append("")
-    return "\n".join(lines)
-
-
-def from_dict(nested: dict[str, Any]) -> Config:
-    """A config from the nested dict of a TOML document or a checkpoint."""
-    config = Config()
-    for key, value in _flatten(nested).items():
-        if key not in RETIRED_KEYS:
-            set_value(config, key, value)
-    return config.validate()
-
-
-def to_dict(config: Config) -> dict[str, Any]:
-    return dataclasses.asdict(config)
-
-
-# --- command line ------------------------------------------------------------------
-
-def config_fields() -> dict[str, dataclasses.Field]:
-    """Every leaf field by dotted key; its metadata holds the doc, unit and choices of option()."""
-    fields: dict[str, dataclasses.Field] = {}
-    for path, section in _sections(Config()):
-        for f in dataclasses.fields(section):
-            if not dataclasses.is_dataclass(getattr(section, f.name)):
-                fields[f"{path}.{f.name}" if path else f.name] = f
-    return fields
-
-
-def add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    """Adds --preset, --config, --dump-config and one flag per config field, whose help is the
-    field's documentation with the defaults of the preset given before --help."""
-    parser.allow_abbrev = False  # a mistyped prefix (--run.nam) must not set another key
-    _shorten_usage(parser)
-    flags: dict[str, argparse.Action] = {}
-    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS), action=_PresetAction, flags=flags,
-                        help="base values, listed below (default: paper); `--preset NAME --help` shows its defaults")
-    parser.add_argument("--config", metavar="FILE.toml", help="TOML file applied over the preset")
-    parser.add_argument("--dump-config", action="store_true", help="print the resolved config as TOML and exit")
-    for name, preset in PRESETS.items():
-        parser.add_argument_group(f"preset {name}", _preset_description(preset))
-    group = parser.add_argument_group("configuration (dotted keys; applied over preset and file)")
-    defaults = flat_items(Config())
-    for key, f in config_fields().items():
-        choices = f.metadata["choices"]
-        metavar = "{" + ",".join(choices) + "}" if choices else _metavar(defaults[key])
-        flags[key] = group.add_argument(f"--{key}", dest=_dest(key), default=None, metavar=metavar)
-    _show_defaults(flags, "paper")
-
-
-def parse_flags(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> argparse.Namespace:
-    """parser.parse_args(argv), but the error for an unknown flag suggests the nearest known one."""
-    args, unknown = parser.parse_known_args(argv)
-    if unknown:
-        parser.error(f"unrecognized arguments: {' '.join(unknown)}{_suggestions(parser, unknown)}")
-    return args
-
-
-def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
-    """The flags of add_config_arguments applied over the preset, or over `base` if given."""
-    overrides = {key: getattr(args, _dest(key)) for key in flat_items(Config())
-                 if getattr(args, _dest(key), None) is not None}
-    return load_config(args.preset, args.config, overrides, base)
-
-
-def parse_config_or_exit(parser: argparse.ArgumentParser, argv: list[str] | None = None
-                         ) -> tuple[argparse.Namespace, Config]:
-    """Parses argv; a config error is one line on stderr and exit code 2, not a traceback.
-
-    With --dump-config, prints the TOML and exits 0.
-    """
-    args = parse_flags(parser, argv)
-    try:
-        config = config_from_args(args)
-    except ConfigError as error:
-        print(f"{parser.prog}: config error: {error}", file=sys.stderr)
-        raise SystemExit(2) from None
-    if args.dump_config:
-        print(to_toml(config), end="")
-        raise SystemExit(0)
-    return args, config
-
-
-def print_config(prog: str, config: Config) -> None:
-    """The resolved config on stderr, so every process's log starts with what it ran with."""
-    body = "\n".join(f"  {line}" for line in to_toml(config).splitlines() if line)
-    print(f"{prog}: resolved config\n{body}", file=sys.stderr, flush=True)
-
-
-def _shorten_usage(parser: argparse.ArgumentParser) -> None:
-    """One placeholder for the config flags in the usage line: a hundred would bury an error message."""
-    if parser.usage is None:
-        own = parser.format_usage().removeprefix("usage: ").rstrip().replace("%", "%%")
-        indent = " " * len(f"usage: {parser.prog} ")
-        parser.usage = f"{own}\n{indent}[--preset NAME] [--config FILE.toml] [--dump-config] [--SECTION.KEY VALUE ...]"
-
-
-class _PresetAction(argparse.Action):
-    """Stores --preset and shows its defaults in the help of the config flags."""
-
-    def __init__(self, option_strings: list[str], dest: str, flags: dict[str, argparse.Action], **kwargs: Any) -> None:
-        super().__init__(option_strings, dest, **kwargs)
-        self.flags = flags
-
-    def __call__(self, parser, namespace, values, option_string=None) -> None:
-        setattr(namespace, self.dest, values)
-        _show_defaults(self.flags, values)
-
-
-def _show_defaults(flags: dict[str, argparse.Action], preset: str) -> None:
-    defaults = flat_items(load_config(preset))
-    fields = config_fields()
-    for key, flag in flags.items():
-        f = fields[key]
-        unit = f" [{f.metadata['unit']}]" if f.metadata["unit"] else ""
-        source = f" of preset {preset}" if key in PRESETS[preset] else ""
-        text = f"{f.metadata['doc']}{unit} (default{source}: {_toml_value(defaults[key])})"
-        flag.help = text.replace("%", "%%")  # argparse expands %-formats in help
-
-
-def _preset_description(preset: Preset) -> str:
-    changes = ", ".join(f"{key} = {_toml_value(value)}" for key, value in preset.items())
-    text = f"{preset.doc}; sets {changes}" if changes else f"{preset.doc}"
-    return textwrap.fill(text, width=100)  # pre-wrapped for parsers with a raw description formatter
-
-
-def _suggestions(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
-    # argparse lists a parser's own flags only in this attribute; the config flags may sit in a subparser
-    known = [f"--{key}" for key in config_fields()] + list(parser._option_string_actions)
-    hints = []
-    for token in unknown:
-        flag = token.split("=", 1)[0]
-        if flag.startswith("--"):
-            hints += [f"; {flag}: did you mean {match}?" for match in difflib.get_close_matches(flag, known, n=1)]
-    return "".join(hints)
-
-
-# --- helpers -------------------------------------------------------------------------
-
-def _sections(config: Any, path: str = ""):
+def sections(config: Any, path: str = ""):
+    """Every section of a config with its dotted path, the config itself ("") first."""
     yield path, config
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         if dataclasses.is_dataclass(value):
-            yield from _sections(value, f"{path}.{f.name}" if path else f.name)
-
-
-def _field_types(instance: Any) -> dict[str, Any]:
-    return typing.get_type_hints(type(instance))
-
-
-def _coerce(key: str, kind: Any, value: Any) -> Any:
-    origin = typing.get_origin(kind)
-    if origin is list:
-        (item_kind,) = typing.get_args(kind)
-        if isinstance(value, str):
-            value = [part for part in (p.strip() for p in value.split(",")) if part]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key}: expected a list, got {value!r}")
-        return [_coerce(key, item_kind, item) for item in value]
-    if kind is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
-            return value.lower() in ("true", "1", "yes", "on")
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
-    if kind is int:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        if isinstance(value, int):
-            return value
-        if isinstance(value, str):
-            try:
-                return int(value.replace("_", ""))
-            except ValueError:
-                pass
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-        raise ConfigError(f"{key}: expected an integer, got {value!r}")
-    if kind is float:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected a number, got {value!r}")
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{key}: expected a number, got {value!r}") from None
-        if not math.isfinite(number):
-            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
-        return number
-    if kind is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{key}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{key}: unsupported field type {kind!r}")
-
-
-def _flatten(nested: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in nested.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
-def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        with path.open("rb") as handle:
-            return tomllib.load(handle)
-    except FileNotFoundError:
-        raise ConfigError(f"config file {path}: not found") from None
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"config file {path}: invalid TOML ({error})") from None
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
-    raise TypeError(f"cannot write {value!r} as TOML")
-
-
-def _dest(key: str) -> str:
-    return "cfg__" + key.replace(".", "__")
-
-
-def _metavar(default: Any) -> str:
-    if isinstance(default, bool):
-        return "BOOL"
-    if isinstance(default, int):
-        return "INT"
-    if isinstance(default, float):
-        return "FLOAT"
-    if isinstance(default, list):
-        return "A,B,..."
-    return "STR"
+            yield from sections(value, f"{path}.{f.name}" if path else f.name)
 
 
 def _is_key_chunk(text: str) -> bool:

@@ -477,7 +477,8 @@ def same_strategy(strategy: ExplorationStrategy, state: dict) -> bool:
 def strategy_from_state(state: dict, n_actions: int) -> ExplorationStrategy:
     """The strategy another process's state_dict() describes, built from its name and params
     (not from the local config) and loaded with its state; ValueError if it cannot be."""
-    from common.config import Config, set_value  # the full config checks every value
+    from common.config import Config  # the full config checks every value
+    from common.config_values import set_value
     from common.options import ConfigError
 
     try:

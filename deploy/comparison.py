@@ -114,7 +114,7 @@ def _episode_of(row: dict[str, str], bin_columns: list[str]) -> EvaluationEpisod
 
 def comparison_rows(runs: Sequence[EvaluatedRun], bootstrap: Bootstrap | None = None
                     ) -> tuple[list[ComparisonRow], list[float]]:
-    """Rows by start set, capacity, then strategy in common.config order, each pooled row followed by one
+    """Rows by start set, capacity, then strategy in common.strategies order, each pooled row followed by one
     row per run (by seed, even when there is only one), the baselines' rows last; and the edges."""
     greedy: dict[tuple[str, int, str], list[tuple[EvaluatedRun, list[EvaluationEpisode]]]] = {}
     baseline_rows: dict[tuple[str, str], list[EvaluationEpisode]] = {}

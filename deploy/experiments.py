@@ -58,7 +58,7 @@ from actor.evaluation.status import is_evaluation_line
 from common.analysis.intervals import Bootstrap, bootstrap_of
 from common.analysis.tables import SUMMARY_CSV
 from common.checkpoint import Checkpoint, CheckpointError
-from common.config import add_config_arguments, config_from_args, parse_flags
+from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError

@@ -26,7 +26,8 @@ from typing import Callable, Sequence
 
 from common.analysis.figures import RunCurves
 from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
-from common.config import Config, load_config
+from common.config import Config
+from common.config_values import load_config
 from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.comparison import EvaluatedRun

@@ -33,7 +33,9 @@ import threading
 import time
 from collections import deque
 
-from common.config import Config, add_config_arguments, parse_config_or_exit, to_toml
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit
+from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
 from common.eta import Eta
 from common.run_dir import RunDir, RunStatus

@@ -49,7 +49,8 @@ import torch
 
 from actor.runner import actor_seed
 from actor.sim import make_env
-from common.config import Config, add_config_arguments, parse_config_or_exit, print_config
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.strategies import starts_by_steps
 from common.wire.frames import FrameStack

@@ -33,7 +33,8 @@ import numpy as np
 import torch
 
 from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy, cpu_model
-from common.config import Config, to_dict
+from common.config import Config
+from common.config_values import to_dict
 from common.eta import clock_time
 from common.exploration import bmc_observation_count, make_strategy, newest_transitions
 from common.logs import Every

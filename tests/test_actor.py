@@ -4,7 +4,7 @@ import threading
 import numpy as np
 
 from actor.runner import Actor, Mailbox, actor_seed
-from common.config import load_config
+from common.config_values import load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire.messages import Stats, Weights

@@ -10,7 +10,7 @@ import torch
 from actor.batched_q import BatchedQ
 from actor.runner import Actor, EpisodeGate, HoldLog, Outbox, _drive, actor_seed, env_seed
 from actor.sim import make_env
-from common.config import load_config
+from common.config_values import load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
 from common.options import ConfigError

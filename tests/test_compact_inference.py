@@ -11,7 +11,7 @@ import actor.batched_q as batched_q_module
 from actor.batched_q import BatchedQ, choose_precision
 from actor.runner import Actor
 from common import cpu_capability
-from common.config import load_config
+from common.config_values import load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.options import ConfigError

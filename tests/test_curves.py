@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from common.config import TransportConfig, load_config
+from common.config import TransportConfig
+from common.config_values import load_config
 from common.transport import Keys, open_session, publisher
 from common.wire.codecs import Message
 from common.wire.envelope import encode

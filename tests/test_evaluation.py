@@ -20,7 +20,8 @@ from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_act
                                    summarise_all)
 from common.analysis.tables import bin_labels, markdown_table
 from common.checkpoint import save_checkpoint
-from common.config import TransportConfig, load_config, to_dict
+from common.config import TransportConfig
+from common.config_values import load_config, to_dict
 from common.transport import Keys, open_session, serve
 from common.wire.messages import Weights
 from learner.update import DoubleQLearner

@@ -18,7 +18,7 @@ import multiprocessing
 from actor.evaluation.episodes import episode_jobs
 from actor.evaluation.status import EvaluationStatus
 from actor.evaluation.workers import run_jobs
-from common.config import load_config
+from common.config_values import load_config
 
 class SayPids(EvaluationStatus):  # after 20 episodes the workers are driving: say who they are
     senders = 0

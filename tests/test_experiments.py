@@ -21,7 +21,7 @@ from common.analysis.intervals import Bootstrap
 from common.analysis.stats import EvaluationEpisode, summarise_all
 from common.analysis.tables import EPISODES_CSV, write_evaluation
 from common.checkpoint import save_checkpoint
-from common.config import load_config, to_toml
+from common.config_values import load_config, to_toml
 from common.run_dir import log_segments
 from common.transport import Keys
 from common.wire.envelope import encode

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import zenoh
 
-from common.config import load_config
+from common.config_values import load_config
 from common.wire.envelope import decode, encode
 from common.wire.errors import WireError
 from common.wire.messages import Episode, ExplorationState, Stats, TraceBatchRequest, Weights

@@ -13,7 +13,7 @@ import torch
 from actor.evaluate import build_parser, main
 from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, summary_lines
 from common.checkpoint import CheckpointError, KeptPolicy
-from common.config import from_dict, load_config, to_dict
+from common.config_values import from_dict, load_config, to_dict
 from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
 from common.run_dir import RunDir

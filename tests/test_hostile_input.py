@@ -11,7 +11,7 @@ import pytest
 import zstandard
 
 from actor.runner import Actor, Mailbox, Outbox
-from common.config import load_config
+from common.config_values import load_config
 from common.exploration import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.rejections import Rejections

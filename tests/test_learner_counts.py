@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from common.config import load_config
+from common.config_values import load_config
 from common.wire.frames import FrameStack
 from common.wire.messages import Stats, TraceBatch
 from learner.service import LearnerProcess, RunClock

@@ -18,7 +18,8 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from common.analysis.plotting import trailing_mean
-from common.config import Config, TransportConfig, flat_items, load_config
+from common.config import Config, TransportConfig
+from common.config_values import flat_items, load_config
 from common.run_dir import next_free_path
 from common.transport import Keys, open_session, publisher, request, subscribe
 from common.wire.envelope import decode, encode

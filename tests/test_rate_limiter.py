@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from common.config import load_config
+from common.config_values import load_config
 from common.pacing import RateLimit, rate_limit_from_config
 from replay.rate_limiter import RateLimiter
 

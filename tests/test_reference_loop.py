@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from common.config import load_config
+from common.config_values import load_config
 from common.exploration import bmc_observation_count
 from common.strategies import STRATEGIES
 from learner import reference_loop

@@ -9,7 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from common.config import TransportConfig, load_config
+from common.config import TransportConfig
+from common.config_values import load_config
 from common.transport import Keys, open_session, publisher, request, subscribe
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack

@@ -6,7 +6,7 @@ import threading
 import numpy as np
 import pytest
 
-from common.config import load_config
+from common.config_values import load_config
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
 from replay.service import ReplayService, counters_path, save_counters

@@ -2,7 +2,7 @@
 
 import pytest
 
-from common.config import load_config
+from common.config_values import load_config
 from common.run_dir import RunDir, RunStatus, StatusError, find_checkpoint
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from common.config_values import load_config, to_toml
+from common.run_dir import RunDir
 from deploy import report
 from deploy.run_results import (LEARNER_CSV, TRAINING_CSV, ExportError, collect, export_run, read_exported)
-from common.config import load_config, to_toml
-from common.run_dir import RunDir
 from tests.test_experiments import assert_png, fake_evaluation, learner_report, make_run, record, write_log
 
 

@@ -9,7 +9,7 @@ import pytest
 import deploy.experiments as experiments
 from actor.runner import HoldLog
 from common.checkpoint import save_checkpoint
-from common.config import load_config
+from common.config_values import load_config
 from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus
 from common.wire.messages import EpisodeRecord, Stats

@@ -6,7 +6,8 @@ import dataclasses
 import pytest
 
 from common.analysis.figures import EPSILON_STRATEGIES
-from common.config import ExplorationConfig, load_config
+from common.config import ExplorationConfig
+from common.config_values import load_config
 from common.exploration import STRATEGY_CLASSES, make_strategy
 from common.options import ConfigError
 from common.strategies import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,

@@ -10,7 +10,8 @@ from torch import nn
 
 from torch.utils.flop_counter import FlopCounterMode
 
-from common.config import LearnerConfig, NetworkConfig, load_config
+from common.config import LearnerConfig, NetworkConfig
+from common.config_values import load_config
 from common.exploration import greedy_and_uniform_returns
 from common.options import ConfigError
 from learner.allocator import keep_freed_memory

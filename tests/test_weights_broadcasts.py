@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from actor.runner import Actor
-from common.config import load_config
+from common.config_values import load_config
 from common.network import D3RQN, weights_to_numpy
 from common.options import ConfigError
 from common.transport import loopback_endpoint

@@ -25,7 +25,8 @@ import threading
 import time
 from pathlib import Path
 
-from common.config import Config, add_config_arguments, parse_config_or_exit
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit
 
 MARKER = b"ROGUE-D3RQN"
 PATH = Path(__file__).resolve()  # run it by path: tests/ is not an installed package

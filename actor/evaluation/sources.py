@@ -12,7 +12,9 @@ import numpy as np
 
 from actor.evaluation import EvaluationError
 from common.checkpoint import Checkpoint
-from common.config import Config, config_from_args, from_dict
+from common.config import Config
+from common.config_cli import config_from_args
+from common.config_values import from_dict
 from common.network import D3RQN, load_numpy_weights
 from common.run_dir import RunDir
 from common.transport import Keys, open_session, request

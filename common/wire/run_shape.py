@@ -31,7 +31,7 @@ class RunShape:
 
     @classmethod
     def of(cls, config: Any) -> RunShape:
-        """The shape of a common.config.Config."""
+        """The shape of a run's Config (common/config.py)."""
         network = config.network
         return cls((network.frame_height, network.frame_width, network.frame_channels), network.n_actions,
                    config.env.max_steps, config.replay.reward_limit)

@@ -33,7 +33,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-from common.config import Config, add_config_arguments, parse_config_or_exit
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device, scale_frames
 from common.wire.frames import FrameStack

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from actor.sim import make_env
-from common.config import load_config
+from common.config_values import load_config
 from common.cpu_capability import describe_cpu
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode

@@ -28,7 +28,9 @@ import numpy as np
 import torch
 
 from actor.runner import Actor
-from common.config import Config, TransportConfig, add_config_arguments, parse_config_or_exit, to_toml
+from common.config import Config, TransportConfig
+from common.config_cli import add_config_arguments, parse_config_or_exit
+from common.config_values import to_toml
 from common.cpu_capability import describe_cpu
 from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
 from common.wire.messages import Stats, TraceBatch, TraceBatchRequest

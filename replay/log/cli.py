@@ -20,7 +20,7 @@ import datetime
 import sys
 from pathlib import Path
 
-from common.config import add_config_arguments, parse_config_or_exit, parse_flags
+from common.config_cli import add_config_arguments, parse_config_or_exit, parse_flags
 
 PROG = "d3rqn-log"
 AXES = ("env_steps", "episodes")  # plot --x: the fields of replay.log.scalars.Point

@@ -28,7 +28,8 @@ from mcap.records import Channel, Chunk, ChunkIndex, MetadataIndex, Schema, Stat
 from mcap.stream_reader import MAGIC_SIZE, breakup_chunk
 from mcap.summary import Summary
 
-from common.config import Config, from_dict
+from common.config import Config
+from common.config_values import from_dict
 from common.options import ConfigError
 from common.transport import Keys
 from common.wire.codecs import Message
