@@ -52,7 +52,7 @@ import torch
 from actor.batched_q import BatchedQ, choose_precision
 from actor.sim import make_env
 from common.config import Config
-from common.exploration import make_strategy, same_strategy, strategy_from_state
+from common.exploration.build import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
 from common.network import D3RQN
 from common.rejections import Rejections

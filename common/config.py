@@ -1,7 +1,7 @@
 """One typed configuration for every process, with the paper's values as defaults: the schema.
 
 A config is a tree of dataclasses, one per section (``Config.learner``, ``Config.exploration.bmc``, ...);
-a strategy's section is declared next to its rule (common/exploration.py). Each field is declared with
+a strategy's section is declared next to its rule (common/exploration/). Each field is declared with
 ``option()`` (common/options.py), whose one documentation string (with the unit and choices) is the
 flag's ``--help`` line, and every section checks its values (``validate``); a bad one raises
 ``ConfigError`` whose one-line message names the key.
@@ -17,10 +17,12 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.exploration import (BmcConfig, ConstantEpsilonConfig, DecreasingEpsilonConfig, MaxBoltzmannConfig,
-                                SoftmaxConfig, VdbeConfig)
+from common.exploration.bmc import BmcConfig
+from common.exploration.boltzmann import MaxBoltzmannConfig, SoftmaxConfig
+from common.exploration.epsilon_greedy import ConstantEpsilonConfig, DecreasingEpsilonConfig
+from common.exploration.names import STRATEGIES
+from common.exploration.vdbe import VdbeConfig
 from common.options import ConfigError, check, check_positive, option
-from common.strategies import STRATEGIES
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 
 
@@ -185,7 +187,7 @@ INFERENCE_PRECISIONS = ("float32", "bfloat16", "auto")  # actor.inference
 class ExplorationConfig:
     """The exploration strategy the learner drives and the actors follow, and each one's parameters."""
 
-    strategy: str = option("bmc", "the exploration strategy (the paper's seven; common/exploration.py)",
+    strategy: str = option("bmc", "the exploration strategy (the paper's seven; common/exploration/)",
                            choices=STRATEGIES)
     constant: ConstantEpsilonConfig = field(default_factory=ConstantEpsilonConfig)
     decreasing: DecreasingEpsilonConfig = field(default_factory=DecreasingEpsilonConfig)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.strategies import starts_by_steps
+from common.exploration.names import starts_by_steps
 
 
 @dataclass(frozen=True)

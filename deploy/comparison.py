@@ -27,7 +27,7 @@ from typing import Sequence
 from common.analysis.intervals import Bootstrap, Cell
 from common.analysis.stats import EvaluationEpisode, SetSummary, episode_cell, summarise
 from common.analysis.tables import EPISODES_CSV, bin_labels, summary_columns, with_interval
-from common.strategies import DISPLAY_NAMES, strategy_rank
+from common.exploration.names import DISPLAY_NAMES, strategy_rank
 
 RANDOM = "random"
 PRIVILEGED = "privileged"
@@ -55,7 +55,7 @@ class EvaluatedRun:
 
 @dataclass(frozen=True)
 class ComparisonRow:
-    strategy: str  # a strategy of common.strategies.STRATEGIES, or a baseline (BASELINES)
+    strategy: str  # a strategy of common.exploration.names.STRATEGIES, or a baseline (BASELINES)
     capacity: int
     runs: int  # evaluations pooled in the row
     summary: SetSummary
@@ -114,7 +114,7 @@ def _episode_of(row: dict[str, str], bin_columns: list[str]) -> EvaluationEpisod
 
 def comparison_rows(runs: Sequence[EvaluatedRun], bootstrap: Bootstrap | None = None
                     ) -> tuple[list[ComparisonRow], list[float]]:
-    """Rows by start set, capacity, then strategy in common.strategies order, each pooled row followed by one
+    """Rows by start set, capacity, then strategy in common.exploration.names order, each pooled row followed by one
     row per run (by seed, even when there is only one), the baselines' rows last; and the edges."""
     greedy: dict[tuple[str, int, str], list[tuple[EvaluatedRun, list[EvaluationEpisode]]]] = {}
     baseline_rows: dict[tuple[str, str], list[EvaluationEpisode]] = {}

@@ -60,9 +60,9 @@ from common.analysis.tables import SUMMARY_CSV
 from common.checkpoint import Checkpoint, CheckpointError
 from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time
+from common.exploration.names import STRATEGIES
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
-from common.strategies import STRATEGIES
 from deploy.report import write_report
 from deploy.run_results import collect, export_run, run_name
 

@@ -6,7 +6,7 @@ the learner updates and feeds the exploration strategy (learner/service.py).
 Here it is one loop over env steps built from the same parts, with no copy of
 them: the env of ``actor.sim.make_env``, the D3RQN of common/network.py, the
 episode store of replay/store.py, the learner step of learner/update.py, the
-strategies of common/exploration.py and the evaluation of actor/evaluation/.
+strategies of common/exploration/ and the evaluation of actor/evaluation/.
 Read it to follow the method, run it to check the stack against, and
 benchmark the stack with it (deploy/bench/stack_speed.py).
 
@@ -51,8 +51,9 @@ from actor.runner import actor_seed
 from actor.sim import make_env
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
-from common.exploration import bmc_observation_count, make_strategy, newest_transitions
-from common.strategies import starts_by_steps
+from common.exploration.bmc import bmc_observation_count, newest_transitions
+from common.exploration.build import make_strategy
+from common.exploration.names import starts_by_steps
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
 from learner.update import DoubleQLearner, TraceArrays, UpdateResult

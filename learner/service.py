@@ -36,7 +36,8 @@ from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy, cpu_model
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
-from common.exploration import bmc_observation_count, make_strategy, newest_transitions
+from common.exploration.bmc import bmc_observation_count, newest_transitions
+from common.exploration.build import make_strategy
 from common.logs import Every
 from common.rejections import Rejections
 from common.run_dir import RunDir

@@ -55,7 +55,7 @@ import torch
 
 from common import cpu_capability
 from common.config import LearnerConfig, NetworkConfig
-from common.exploration import greedy_and_uniform_returns
+from common.exploration.bmc import greedy_and_uniform_returns
 from common.network import D3RQN, resolve_device, scale_frames, weights_to_numpy
 from learner.allocator import keep_freed_memory
 

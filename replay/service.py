@@ -36,13 +36,13 @@ from collections import deque
 from pathlib import Path
 
 from common.config import Config
-from common.exploration import strategy_from_state
+from common.exploration.build import strategy_from_state
+from common.exploration.names import starts_by_steps
 from common.logs import Every
 from common.pacing import rate_limit_from_config
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
-from common.strategies import starts_by_steps
 from common.transport import PendingQuery, RateLimitedLog, publisher, serve_deferred, subscribe
 from common.wire.errors import WireError
 from common.wire.messages import Episode, ExplorationState, Stats, TraceBatchRequest

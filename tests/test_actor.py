@@ -5,7 +5,7 @@ import numpy as np
 
 from actor.runner import Actor, Mailbox, actor_seed
 from common.config_values import load_config
-from common.exploration import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire.messages import Stats, Weights
 

@@ -8,10 +8,10 @@ import pytest
 from common.config import CAMERAS, UPDATE_PATHS, Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, parse_flags
 from common.config_values import config_fields, flat_items, load_config, to_toml, toml_value
-from common.exploration import BMC_OBSERVATIONS
+from common.exploration.bmc import BMC_OBSERVATIONS
+from common.exploration.names import STRATEGIES
 from common.options import ConfigError
 from common.presets import PRESETS
-from common.strategies import STRATEGIES
 
 
 def test_paper_preset_holds_the_reference_values():

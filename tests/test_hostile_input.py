@@ -12,7 +12,7 @@ import zstandard
 
 from actor.runner import Actor, Mailbox, Outbox
 from common.config_values import load_config
-from common.exploration import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.rejections import Rejections
 from common.wire.errors import WireError

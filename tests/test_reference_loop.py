@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from common.config_values import load_config
-from common.exploration import bmc_observation_count
-from common.strategies import STRATEGIES
+from common.exploration.bmc import bmc_observation_count
+from common.exploration.names import STRATEGIES
 from learner import reference_loop
 
 HOOKS = ("start", "act", "on_env_steps", "on_update", "on_returns")

@@ -1,4 +1,4 @@
-"""The registry of strategy names (common/strategies.py) agrees with the config, the classes and
+"""The registry of strategy names (common/exploration/names.py) agrees with the config, the classes and
 the tables that use it."""
 
 import dataclasses
@@ -8,10 +8,10 @@ import pytest
 from common.analysis.figures import EPSILON_STRATEGIES
 from common.config import ExplorationConfig
 from common.config_values import load_config
-from common.exploration import STRATEGY_CLASSES, make_strategy
+from common.exploration.build import STRATEGY_CLASSES, make_strategy
+from common.exploration.names import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
+                                      strategy_rank)
 from common.options import ConfigError
-from common.strategies import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
-                               strategy_rank)
 from deploy.comparison import STRATEGY_NAMES
 
 SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}

@@ -12,7 +12,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from common.config import LearnerConfig, NetworkConfig
 from common.config_values import load_config
-from common.exploration import greedy_and_uniform_returns
+from common.exploration.bmc import greedy_and_uniform_returns
 from common.options import ConfigError
 from learner.allocator import keep_freed_memory
 from learner.reference_update import paper_reference_loss, same_history_reference_loss

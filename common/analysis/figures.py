@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from common.analysis.plotting import RETURN_WINDOW, finish_figure, pyplot, trailing_mean
-from common.strategies import DISPLAY_NAMES, STRATEGIES, epsilon_groups, strategy_rank
+from common.exploration.names import DISPLAY_NAMES, STRATEGIES, epsilon_groups, strategy_rank
 
 LOSS_WINDOW = 10  # learner reports (each the mean over learner.log_period_s) per point of the smoothed curve
 EPSILON_PANELS = tuple(epsilon_groups().items())  # (title, strategies) of each panel
