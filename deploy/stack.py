@@ -38,6 +38,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
 from common.eta import Eta
+from common.pacing import updates_paid_for
 from common.run_dir import RunDir, RunStatus
 from common.transport import Keys, free_port, open_session, subscribe
 from common.wire.messages import EpisodeRecord, Stats
@@ -111,7 +112,7 @@ class StackMonitor:
         if not self.env_steps_per_update or start is None or updates is None:
             return
         if self.eta is None:
-            owed = max(self.total_env_steps - start, 0) / self.env_steps_per_update
+            owed = updates_paid_for(max(self.total_env_steps, start), start, self.env_steps_per_update)
             self.eta = Eta(owed, ETA_WINDOW_S, self._clock)
         self.eta.update(updates)
 

@@ -21,9 +21,9 @@ Each env step:
    inside episodes: Bootstrapped Random Updates);
 3. start: updates start the moment the store holds ``learner.start_episodes``
    episodes (decreasing epsilon: at ``learner.start_steps`` env steps), the
-   replay's rate limiter's rule;
+   replay's rate limiter's rule and start mark (common/pacing.py);
 4. sample and update: one update per ``learner.env_steps_per_update`` env steps
-   since that moment, exactly;
+   since the start mark, exactly;
 5. feed the strategy what the learner feeds it: the env step count (decreasing
    epsilon), Q before and after each update (VDBE), and BMC's returns at the
    rate of ``exploration.bmc.observations``.
@@ -53,7 +53,7 @@ from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.exploration.bmc import bmc_observation_count, newest_transitions
 from common.exploration.build import make_strategy
-from common.exploration.names import starts_by_steps
+from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of, updates_paid_for
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
 from learner.update import DoubleQLearner, TraceArrays, UpdateResult
@@ -65,7 +65,7 @@ class LoopResult:
     env_steps: int
     episodes: int
     updates: int
-    start_env_steps: int | None  # env steps when updates started
+    start_env_steps: int | None  # the start mark: env steps when updates started (by steps: start_steps)
     seconds_to_start: float  # wall time of the random phase
     seconds_updating: float  # wall time from the start of updates to the end of training
     mean_return: float  # of the last 100 episodes
@@ -75,7 +75,7 @@ class LoopResult:
 
     @property
     def env_steps_per_update(self) -> float:
-        return (self.env_steps - self.start_env_steps) / self.updates if self.updates else math.nan
+        return achieved_ratio(self.env_steps, self.start_env_steps, self.updates)
 
 
 def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | None = None,
@@ -90,7 +90,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     strategy = make_strategy(config.exploration, config.network.n_actions)
     store = EpisodeStore(config.replay.capacity, int(config.replay.memory_budget_mb * 2**20),
                          learner_config.trace_length, config.replay.seed)
-    start_by_steps = starts_by_steps(config.exploration.strategy, learner_config.start_by)
+    pace = rate_limit_from_config(config)
     log_every = log_period_s if log_period_s is not None else learner_config.log_period_s
     if learner_config.torch_threads:
         torch.set_num_threads(learner_config.torch_threads)
@@ -98,7 +98,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
 
     began = last_log = time.monotonic()
     started_at: float | None = None
-    start_mark: int | None = None  # env steps when updates started
+    start_mark: float | None = None  # env steps when updates started (the rate limiter's start mark)
     acting_version = -1  # the broadcast the acting weights come from; -1: none yet, acts at random
     env_steps = episodes = 0
     returns: deque[float] = deque(maxlen=100)
@@ -140,17 +140,19 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
             returns.append(sum(rewards))
             episode_over = True
 
-        # 3. start (the store counts the steps of the episodes it received, as the replay does)
-        if start_mark is None and len(store) > 0 and (
-                store.env_steps_total >= learner_config.start_steps if start_by_steps
-                else len(store) >= learner_config.start_episodes):
-            start_mark, started_at = env_steps, time.monotonic()
-            strategy.start()
-            acting.load_state_dict(learner.online.state_dict())  # the learner's first broadcast, version 0
-            acting_version = 0
+        # 3. start: the episode just stored may start the updates, by the replay's rate limiter's rule
+        # (common/pacing.py: by episodes, the steps so far are the start mark; by steps, start_steps)
+        if start_mark is None and episode_over:
+            start_mark = start_mark_of(pace, env_steps - len(actions), env_steps, len(store))
+            if start_mark is not None:
+                started_at = time.monotonic()
+                strategy.start()
+                acting.load_state_dict(learner.online.state_dict())  # the learner's first broadcast, version 0
+                acting_version = 0
 
         # 4. sample and update, one update per env_steps_per_update steps since the start
-        while start_mark is not None and learner.updates < (env_steps - start_mark) / learner_config.env_steps_per_update:
+        while start_mark is not None and learner.updates < updates_paid_for(env_steps, start_mark,
+                                                                            pace.env_steps_per_update):
             batch = store.sample(learner_config.batch_size)
             result = learner.update(TraceArrays(batch.observations_array(), np.asarray(batch.actions),
                                                 np.asarray(batch.rewards), np.asarray(batch.terminated)),
@@ -179,7 +181,8 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     env.close()
     finished = time.monotonic()
     outcome = LoopResult(
-        env_steps=env_steps, episodes=episodes, updates=learner.updates, start_env_steps=start_mark,
+        env_steps=env_steps, episodes=episodes, updates=learner.updates,
+        start_env_steps=None if start_mark is None else int(start_mark),
         seconds_to_start=(started_at or finished) - began,
         seconds_updating=finished - started_at if started_at is not None else 0.0,
         mean_return=float(np.mean(returns)) if returns else math.nan, epsilon=float(strategy.epsilon),

@@ -39,6 +39,7 @@ from common.eta import clock_time
 from common.exploration.bmc import bmc_observation_count, newest_transitions
 from common.exploration.build import make_strategy
 from common.logs import Every
+from common.pacing import achieved_ratio, is_unpaced, updates_paid_for
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
@@ -93,19 +94,17 @@ class RunClock:
     def updates_due(self) -> float | None:
         if self.start_env_steps is None:
             return None
-        return (self.env_steps - self.start_env_steps) / self.env_steps_per_update
+        return updates_paid_for(self.env_steps, self.start_env_steps, self.env_steps_per_update)
 
     def env_steps_per_update_achieved(self, updates: int) -> float:
-        if self.start_env_steps is None or updates <= 0:
-            return math.nan
-        return (self.env_steps - self.start_env_steps) / updates
+        return achieved_ratio(self.env_steps, self.start_env_steps, updates)
 
     def finished(self, updates: int, total_env_steps: int) -> bool:
         """The run is closed and its steps paid for (updates >= due). An unpaced run (B at least the updates
         the whole budget pays for: nobody is ever held) ends once closed, at the budget."""
         if not self.closed or self.env_steps < total_env_steps:
             return False
-        if self.error_buffer >= total_env_steps / self.env_steps_per_update:
+        if is_unpaced(self.error_buffer, total_env_steps, self.env_steps_per_update):
             return True
         due = self.updates_due()
         return due is not None and updates >= due

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import math
 
-from common.pacing import RateLimit
+from common.pacing import RateLimit, achieved_ratio, is_unpaced, start_mark_of, updates_paid_for
 
 STATE_VERSION = 1
 
@@ -74,15 +74,8 @@ class RateLimiter:
             self.refill_env_steps += steps
             self.refilling = episodes_stored < self.limit.start_episodes
             return
-        if self.start_mark is not None:
-            return
-        limit = self.limit
-        if limit.start_by_steps:
-            if self.env_steps >= limit.start_steps:
-                # exactly at start_steps: the crossing episode's later steps are owed already
-                self.start_mark = float(max(before, limit.start_steps))
-        elif episodes_stored >= limit.start_episodes:
-            self.start_mark = float(self.env_steps)
+        if self.start_mark is None:
+            self.start_mark = start_mark_of(self.limit, before, self.env_steps, episodes_stored)
 
     def on_served(self) -> None:
         """One trace batch went out (call only after may_serve() said yes)."""
@@ -115,7 +108,7 @@ class RateLimiter:
         """Updates the steps since the start mark pay for (0 in stage 1)."""
         if self.start_mark is None:
             return 0.0
-        return (self.env_steps - self.start_mark) / self.limit.env_steps_per_update
+        return updates_paid_for(self.env_steps, self.start_mark, self.limit.env_steps_per_update)
 
     @property
     def error(self) -> float:
@@ -134,8 +127,7 @@ class RateLimiter:
     @property
     def unpaced(self) -> bool:
         """B holds nobody: at least the updates the whole budget pays for."""
-        total = self.limit.total_env_steps
-        return total is not None and self.limit.error_buffer >= total / self.limit.env_steps_per_update
+        return is_unpaced(self.limit.error_buffer, self.limit.total_env_steps, self.limit.env_steps_per_update)
 
     @property
     def closed(self) -> bool:
@@ -153,9 +145,7 @@ class RateLimiter:
 
     def env_steps_per_update(self) -> float:
         """The achieved ratio since the start mark (nan before the first batch)."""
-        if self.start_mark is None or self.served == 0:
-            return math.nan
-        return (self.env_steps - self.start_mark) / self.served
+        return achieved_ratio(self.env_steps, self.start_mark, self.served)
 
     # --- persistence --------------------------------------------------------------------
 
