@@ -26,7 +26,8 @@ Each env step:
    since the start mark, exactly;
 5. feed the strategy what the learner feeds it: the env step count (decreasing
    epsilon), Q before and after each update (VDBE), and BMC's returns at the
-   rate of ``exploration.bmc.observations``.
+   rate of ``exploration.bmc.observations``, with the learner's own function
+   (learner/feed.py).
 
 Training ends at an episode end once ``learner.total_env_steps`` steps are
 taken; then the greedy policy is evaluated on the evaluation protocol.
@@ -51,12 +52,12 @@ from actor.runner import actor_seed
 from actor.sim import make_env
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
-from common.exploration.bmc import bmc_observation_count, newest_transitions
 from common.exploration.build import make_strategy
 from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of, updates_paid_for
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
-from learner.update import DoubleQLearner, TraceArrays, UpdateResult
+from learner.feed import feed_strategy
+from learner.update import DoubleQLearner, TraceArrays
 from replay.store import EpisodeStore
 
 
@@ -159,11 +160,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
                                     with_q_after=strategy.needs_q_after)
             # 5. feed the strategy, as learner/service.py does after each update (the learner knows
             # the steps of the episodes the replay has received; here every step taken is known)
-            strategy.on_env_steps(env_steps)
-            if strategy.needs_q_after:
-                strategy.on_update(result.q_before, result.q_after)
-            if strategy.needs_returns:
-                strategy.on_returns(*bmc_returns(result, config))
+            feed_strategy(strategy, result, env_steps, config)
             if learner.updates % learner_config.weights_every == 0:  # broadcast: the acting weights catch up
                 acting.load_state_dict(learner.online.state_dict())
                 acting_version = learner.updates
@@ -191,15 +188,6 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
         from actor.evaluation.protocol import evaluate  # spawns the evaluation's worker processes
         outcome.summaries = evaluate(config, learner.online_weights(), policies=("greedy",), show_status=False)[1]
     return outcome
-
-
-def bmc_returns(result: UpdateResult, config: Config) -> tuple[np.ndarray, np.ndarray]:
-    """BMC's observations of one update, at the learner's rate: "per_step" feeds as many transitions as the
-    update's env steps, the newest of each trace first (the authors' rate); "per_transition" every unmasked one."""
-    if config.exploration.bmc.observations == "per_transition":
-        return result.g_greedy, result.g_uniform
-    count = bmc_observation_count(result.update, config.learner.env_steps_per_update)
-    return newest_transitions(result.g_greedy, result.g_uniform, count)
 
 
 def main(argv: list[str] | None = None) -> None:

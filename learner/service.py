@@ -36,7 +36,6 @@ from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy, cpu_model
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
-from common.exploration.bmc import bmc_observation_count, newest_transitions
 from common.exploration.build import make_strategy
 from common.logs import Every
 from common.pacing import achieved_ratio, is_unpaced, updates_paid_for
@@ -47,6 +46,7 @@ from common.transport import Keys, SharedMemory, publisher, request, serve, subs
 from common.wire.errors import WireError
 from common.wire.messages import ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
 from common.wire.run_shape import RunShape, check_trace_batch, stat_number
+from learner.feed import feed_strategy
 from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
 from learner.update import DoubleQLearner, TraceArrays, TraceTensors
@@ -304,22 +304,8 @@ class LearnerProcess:
             log.debug("the failed update", exc_info=True)
             return None
         self._failed_in_a_row = 0
-        self.strategy.on_env_steps(self.clock.env_steps)
-        if self.strategy.needs_q_after:
-            self.strategy.on_update(result.q_before, result.q_after)
-        if self.strategy.needs_returns:
-            g_greedy, g_uniform = self.bmc_transitions(result.g_greedy, result.g_uniform)
-            self.strategy.on_returns(g_greedy, g_uniform)
-            self.bmc_observations += np.size(g_greedy)
+        self.bmc_observations += feed_strategy(self.strategy, result, self.clock.env_steps, self.config)
         return result.loss
-
-    def bmc_transitions(self, g_greedy: np.ndarray, g_uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """exploration.bmc.observations: "per_step" feeds one transition per env step (the authors'
-        rate), the newest of each trace first; "per_transition" every unmasked transition."""
-        if self.config.exploration.bmc.observations == "per_transition":
-            return g_greedy, g_uniform
-        count = bmc_observation_count(self.updates, self.config.learner.env_steps_per_update)
-        return newest_transitions(g_greedy, g_uniform, count)
 
     def make_weights(self) -> Weights:
         """The online network's weights as broadcast and served, in learner.weights_encoding; whole

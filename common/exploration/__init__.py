@@ -10,7 +10,8 @@ Until ``start()`` (updates start) every strategy is (1, 0): uniform random
 actions.
 
 The actor only calls ``act``. The learner calls the hooks after each update
-and sends ``state_dict()`` to the actors, which ``load_state_dict`` it:
+(learner/feed.py) and sends ``state_dict()`` to the actors, which
+``load_state_dict`` it:
 
 - ``on_env_steps(total)``: the step-based schedule of decreasing epsilon-greedy
   (epsilon_greedy);
