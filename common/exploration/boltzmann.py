@@ -1,5 +1,5 @@
-"""The Boltzmann strategies: Softmax (every action a softmax(Q / kappa) sample) and Max-Boltzmann
-(greedy, or with probability epsilon a softmax sample)."""
+"""The Boltzmann strategies, their parameters then their rules: Softmax (every action a softmax(Q / kappa)
+sample) and Max-Boltzmann (greedy, or with probability epsilon a softmax sample)."""
 
 from __future__ import annotations
 
@@ -19,18 +19,6 @@ class SoftmaxConfig:
         check_positive(self, "kappa")
 
 
-class Softmax(ExplorationStrategy):
-    """Every action sampled from softmax(Q / kappa)."""
-
-    name = "softmax"
-
-    def _epsilon(self) -> float:
-        return 1.0
-
-    def _kappa(self) -> float:
-        return self.config.kappa
-
-
 @dataclass
 class MaxBoltzmannConfig:
     """Max-Boltzmann: greedy, or with probability epsilon a softmax(Q / kappa) sample."""
@@ -41,6 +29,18 @@ class MaxBoltzmannConfig:
     def validate(self) -> None:
         check_probability(self, "epsilon")
         check_positive(self, "kappa")
+
+
+class Softmax(ExplorationStrategy):
+    """Every action sampled from softmax(Q / kappa)."""
+
+    name = "softmax"
+
+    def _epsilon(self) -> float:
+        return 1.0
+
+    def _kappa(self) -> float:
+        return self.config.kappa
 
 
 class MaxBoltzmann(ExplorationStrategy):
