@@ -11,7 +11,7 @@ uniformly random policy, and on request the privileged map-reading driver,
 run the same starts for comparison. Results go to ``--out`` (default: the
 run folder's evaluation folder, common/run_dir.py): episodes.csv, summary.csv, summary.md, facts.json,
 config.toml. Mean and IQM length, CFR, progress and reward per step come with
-confidence intervals (actor/evaluation/intervals.py); from one checkpoint they
+confidence intervals (common/analysis/intervals.py); from one checkpoint they
 show the spread of the trials only, not that of other training runs.
 
     evaluate --checkpoint runs/bmc                 # the run's latest checkpoint
@@ -33,12 +33,14 @@ from pathlib import Path
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import CURVE_TRIALS, curve_config, evaluate_curve, summary_lines, write_outputs
 from actor.evaluation.protocol import evaluate
-from actor.evaluation.report import SUMMARY_MD, write_report
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
 from actor.evaluation.workers import torch_threads_per_worker
 from actor.sim import START_SETS
+from common.analysis.tables import SUMMARY_MD, write_evaluation
 from common.checkpoint import CheckpointError
-from common.config import ConfigError, add_config_arguments, config_from_args, parse_flags, to_toml
+from common.config_cli import add_config_arguments, config_from_args, parse_flags
+from common.config_values import to_toml
+from common.options import ConfigError
 from common.run_dir import RunDir
 
 
@@ -136,8 +138,8 @@ def _main(args: argparse.Namespace) -> None:
              "wall time": f"{wall_s:.1f} s",
              "priority": f"nice {nice}",
              "date": datetime.datetime.now().isoformat(timespec="seconds")}
-    paths = write_report(out_dir, episodes, summaries, evaluation.reward_bins, facts, evaluation.episodes_per_start,
-                         to_toml(config), evaluation.confidence)
+    paths = write_evaluation(out_dir, episodes, summaries, evaluation.reward_bins, facts, evaluation.episodes_per_start,
+                             to_toml(config), evaluation.confidence)
     print((out_dir / SUMMARY_MD).read_text())
     print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
 

@@ -52,13 +52,16 @@ import torch
 from actor.batched_q import BatchedQ, choose_precision
 from actor.sim import make_env
 from common.config import Config
-from common.exploration import make_strategy, same_strategy, strategy_from_state
+from common.exploration.build import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
 from common.network import D3RQN
+from common.rejections import Rejections
 from common.service import Service
 from common.transport import Keys, publisher, request, subscribe, watch_liveliness
-from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, Rejections, Stats, Weights,
-                         WireError, stat_number)
+from common.wire.errors import WireError
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, EpisodeRecord, ExplorationState, Stats, Weights
+from common.wire.run_shape import stat_number
 
 MEGABYTE = 1 << 20
 HOLD_REASONS = ("", "behind", "budget")  # what the replay's rate message may say

@@ -7,7 +7,7 @@ far a run got. Only this module knows what the file holds:
     learner      DoubleQLearner.state_dict(): online, target, optimizer, updates
     exploration  the strategy's state_dict()
     clock        RunClock.state_dict(): env_steps (of the whole system), start_env_steps, wall_s
-    config       the run's config as a table (common.config.to_dict)
+    config       the run's config as a table (common.config_values.to_dict)
 
 The policies the learner keeps for greedy learning curves (learner.keep_every,
 <run>/policies/) are files of their own, KeptPolicy: the online weights only.
@@ -115,7 +115,7 @@ class KeptPolicy:
     env_steps: int  # of the whole system
     wall_s: float  # since the run started, summed over the learner's sessions of a resumed run
     cpu: str  # the learner host's CPU model: wall_s is that machine's time
-    config: dict  # the run's config as a table (common.config.to_dict): it rebuilds the network
+    config: dict  # the run's config as a table (common.config_values.to_dict): it rebuilds the network
     online: dict[str, torch.Tensor]  # the online network's state dict
     path: Path | None = None  # the file it was read from
 

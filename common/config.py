@@ -1,47 +1,29 @@
-"""One typed configuration for every process, with the paper's values as defaults.
+"""One typed configuration for every process, with the paper's values as defaults: the schema.
 
-A config is a tree of dataclasses. It is built from a preset, then a TOML file,
-then command-line flags named after the dotted path of a field
-(``--learner.lr 3e-4``, ``--exploration.bmc.alpha0 25``). Every value is
-checked against its field's type and range; a bad one raises ``ConfigError``
-whose one-line message names the key.
+A config is a tree of dataclasses, one per section (``Config.learner``, ``Config.exploration.bmc``, ...);
+a strategy's section is declared next to its rule (common/exploration/). Each field is declared with
+``option()`` (common/options.py), whose one documentation string (with the unit and choices) is the
+flag's ``--help`` line, and every section checks its values (``validate``); a bad one raises
+``ConfigError`` whose one-line message names the key.
 
-Each field is declared with ``option()``, whose one documentation string (with
-the unit and choices) is the flag's ``--help`` line; ``--preset NAME --help``
-shows that preset's defaults. Flags are never abbreviated: an unknown one is an
-error that suggests the nearest known flag.
+A config is built from a preset (common/presets.py), then a TOML file, then dotted keys
+(common/config_values.py), which the command line's flags (``--learner.lr 3e-4``,
+``--exploration.bmc.alpha0 25``) set (common/config_cli.py).
 """
 
 from __future__ import annotations
 
-import argparse
-import copy
 import dataclasses
-import difflib
-import math
-import sys
-import textwrap
-import tomllib
-import typing
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-from common.strategies import STRATEGIES  # re-exported: the config's choices of exploration.strategy
-from common.wire import WEIGHTS_ENCODINGS
-
-
-def option(default: Any, doc: str, unit: str = "", choices: tuple[str, ...] = ()) -> Any:
-    """A config field with its one documentation string, which `--help` shows: what the value
-    means, its unit (if it has one) and, for a closed set of words, its choices."""
-    metadata = {"doc": doc, "unit": unit, "choices": choices}
-    if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata=metadata)
-    return field(default=default, metadata=metadata)
-
-
-class ConfigError(ValueError):
-    """A configuration value, file or flag is wrong; the message names the key."""
+from common.exploration.bmc import BmcConfig
+from common.exploration.boltzmann import MaxBoltzmannConfig, SoftmaxConfig
+from common.exploration.epsilon_greedy import ConstantEpsilonConfig, DecreasingEpsilonConfig
+from common.exploration.names import STRATEGIES
+from common.exploration.vdbe import VdbeConfig
+from common.options import ConfigError, check, check_positive, option
+from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 
 
 @dataclass
@@ -59,12 +41,12 @@ class NetworkConfig:
                          choices=("auto", "cpu", "cuda[:N]"))
 
     def validate(self) -> None:
-        _positive(self, "frame_height", "frame_width", "frame_channels", "n_actions")
+        check_positive(self, "frame_height", "frame_width", "frame_channels", "n_actions")
         # The three VALID convolutions (8/4, 4/2, 3/1) need at least 36 pixels per side.
-        _check(self.frame_height >= 36, "frame_height", f"must be >= 36 for the convolutions, got {self.frame_height}")
-        _check(self.frame_width >= 36, "frame_width", f"must be >= 36 for the convolutions, got {self.frame_width}")
-        _check(self.lstm_units > 0 and self.lstm_units % 2 == 0, "lstm_units", "must be a positive even number (it is split in two dueling halves)")
-        _check(self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda"), "device", "must be 'auto', 'cpu' or 'cuda[:N]'")
+        check(self.frame_height >= 36, "frame_height", f"must be >= 36 for the convolutions, got {self.frame_height}")
+        check(self.frame_width >= 36, "frame_width", f"must be >= 36 for the convolutions, got {self.frame_width}")
+        check(self.lstm_units > 0 and self.lstm_units % 2 == 0, "lstm_units", "must be a positive even number (it is split in two dueling halves)")
+        check(self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda"), "device", "must be 'auto', 'cpu' or 'cuda[:N]'")
 
 
 @dataclass
@@ -100,11 +82,11 @@ class ReplayConfig:
               "snapshots off", "s")
 
     def validate(self) -> None:
-        _positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
-                  "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
-        _check(self.error_buffer_updates >= 1, "error_buffer_updates",
-               f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
-        _check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
+        check_positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
+                       "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
+        check(self.error_buffer_updates >= 1, "error_buffer_updates",
+              f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
+        check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
 
 
 UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
@@ -178,123 +160,34 @@ class LearnerConfig:
     seed: int = option(0, "seed of the network's initial weights")
 
     def validate(self) -> None:
-        _check(self.precision in LEARNER_PRECISIONS, "precision", f"must be one of {', '.join(LEARNER_PRECISIONS)}")
-        _check(not (self.precision == "bfloat16" and self.update_path == "autograd"), "precision",
-               "bfloat16 runs on the trace paths only: set learner.update_path to trace, trace-split or auto")
-        _positive(self, "lr", "batch_size", "trace_length", "env_steps_per_update",
-                  "total_env_steps", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
-        _check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
-        _check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
-        _check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
-        _check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
-        _check(self.start_steps >= 0, "start_steps", "must be >= 0")
-        _check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")
-        _check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
-        _check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
-        _check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
-        _check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
-        _check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
-        _check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
-               f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
-
-
-@dataclass
-class ConstantEpsilonConfig:
-    """Constant epsilon-greedy."""
-
-    epsilon: float = option(0.05, "probability of a uniformly random action, in [0, 1]")
-
-    def validate(self) -> None:
-        _probability(self, "epsilon")
-
-
-@dataclass
-class DecreasingEpsilonConfig:
-    """Decreasing epsilon-greedy: epsilon by env steps, two linear slopes (docs/method.md, "Decreasing
-    epsilon-greedy")."""
-
-    eps_start: float = option(1.0, "epsilon until n_start env steps, in [0, 1]")
-    eps_last: float = option(0.1, "epsilon reached at n_start + n_ann env steps, the end of the first slope, "
-                                  "in [0, 1]")
-    eps_end: float = option(0.01, "epsilon reached at n_max env steps and held after, in [0, 1]")
-    n_start: int = option(50_000, "env steps at eps_start before epsilon starts to fall", "env steps")
-    n_ann: int = option(400_000, "length of the first slope, from eps_start to eps_last", "env steps")
-    n_max: int = option(1_000_000, "end of the second slope, at eps_end; must exceed n_start + n_ann", "env steps")
-
-    def validate(self) -> None:
-        _probability(self, "eps_start", "eps_last", "eps_end")
-        _check(self.n_start >= 0, "n_start", "must be >= 0")
-        _check(self.n_ann > 0, "n_ann", "must be > 0")
-        _check(self.n_max > self.n_start + self.n_ann, "n_max", "must exceed n_start + n_ann")
-
-
-@dataclass
-class VdbeConfig:
-    """VDBE: epsilon follows how much each update changes Q (also VDBE-Softmax's epsilon)."""
-
-    lam: float = option(0.2, "lambda, the weight of each update's f(Delta) in epsilon (1 / number of actions), "
-                             "in [0, 1]")
-    nu: float = option(1.0, "inverse sensitivity: f = (1 - e^(-|Delta|/nu)) / (1 + e^(-|Delta|/nu))")
-    eps0: float = option(1.0, "epsilon when updates start, in [0, 1]")
-
-    def validate(self) -> None:
-        _probability(self, "lam", "eps0")
-        _positive(self, "nu")
+        check(self.precision in LEARNER_PRECISIONS, "precision", f"must be one of {', '.join(LEARNER_PRECISIONS)}")
+        check(not (self.precision == "bfloat16" and self.update_path == "autograd"), "precision",
+              "bfloat16 runs on the trace paths only: set learner.update_path to trace, trace-split or auto")
+        check_positive(self, "lr", "batch_size", "trace_length", "env_steps_per_update",
+                       "total_env_steps", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
+        check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
+        check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
+        check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
+        check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
+        check(self.start_steps >= 0, "start_steps", "must be >= 0")
+        check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")
+        check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
+        check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
+        check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
+        check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
+        check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
+        check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
+              f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
 
 
 INFERENCE_PRECISIONS = ("float32", "bfloat16", "auto")  # actor.inference
-BMC_OBSERVATIONS = ("per_step", "per_transition")
-
-
-@dataclass
-class BmcConfig:
-    """epsilon-BMC: epsilon = alpha / (alpha + beta), a Beta posterior over a greedy and a uniform model."""
-
-    alpha0: float = option(25.0, "alpha of the Beta prior (the uniform model's weight)")
-    beta0: float = option(25.01, "beta of the Beta prior (the greedy model's weight); 25.01 is the authors' code, "
-                                 "the paper says 25")
-    a0: float = option(250.0, "shape a of the Normal-Gamma prior on the returns")
-    b0: float = option(250.0, "rate b of the Normal-Gamma prior on the returns")
-    mu0: float = option(0.0, "prior mean of the returns")
-    tau0: float = option(1.0, "prior precision scale of the returns' mean")
-    observations: str = option(
-        "per_step", "which transitions of each batch the posterior observes: per_step (the authors' rate: as many "
-                    "per update as env steps per update, the newest step of each trace first) or per_transition "
-                    "(every unmasked transition of the batch: 30 per update, 7.5 per env step)",
-        choices=BMC_OBSERVATIONS)
-
-    def validate(self) -> None:
-        _positive(self, "alpha0", "beta0", "a0", "b0", "tau0")
-        _check(self.observations in BMC_OBSERVATIONS, "observations", f"must be one of {', '.join(BMC_OBSERVATIONS)}")
-
-
-@dataclass
-class SoftmaxConfig:
-    """Softmax (Boltzmann) exploration: every action is sampled from softmax(Q / kappa)."""
-
-    kappa: float = option(0.1, "temperature of softmax(Q / kappa); also VDBE-Softmax's")
-
-    def validate(self) -> None:
-        _positive(self, "kappa")
-
-
-@dataclass
-class MaxBoltzmannConfig:
-    """Max-Boltzmann: greedy, or with probability epsilon a softmax(Q / kappa) sample."""
-
-    epsilon: float = option(0.05, "probability of a softmax sample instead of the greedy action, in [0, 1]")
-    kappa: float = option(0.1, "temperature of the softmax sample")
-
-    def validate(self) -> None:
-        _probability(self, "epsilon")
-        _positive(self, "kappa")
 
 
 @dataclass
 class ExplorationConfig:
     """The exploration strategy the learner drives and the actors follow, and each one's parameters."""
 
-    strategy: str = option("bmc", "the exploration strategy (the paper's seven; common/exploration.py)",
+    strategy: str = option("bmc", "the exploration strategy (the paper's seven; common/exploration/)",
                            choices=STRATEGIES)
     constant: ConstantEpsilonConfig = field(default_factory=ConstantEpsilonConfig)
     decreasing: DecreasingEpsilonConfig = field(default_factory=DecreasingEpsilonConfig)
@@ -304,7 +197,7 @@ class ExplorationConfig:
     max_boltzmann: MaxBoltzmannConfig = field(default_factory=MaxBoltzmannConfig)
 
     def validate(self) -> None:
-        _check(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
+        check(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
 
 
 CAMERAS = ("front", "topdown")
@@ -356,25 +249,25 @@ class EnvConfig:
     traffic_speed_max: float = option(9.0, "fastest speed a traffic vehicle is given (drawn uniformly)", "m/s")
 
     def validate(self) -> None:
-        _positive(self, "speed", "max_steer_deg", "policy_frequency", "simulation_frequency",
-                  "reward_beta", "offroad_distance", "max_steps", "camera_height_m",
-                  "camera_hfov_deg", "camera_range_m", "topdown_ahead_m", "topdown_width_m",
-                  "render_scale", "stall_window_s", "progress_memory_s", "traffic_speed_min")
-        _check(self.camera in CAMERAS, "camera", f"must be one of {', '.join(CAMERAS)}")
-        _check(self.simulation_frequency % self.policy_frequency == 0, "simulation_frequency",
-               "must be a multiple of policy_frequency")
-        _check(0 <= self.lane_offset_m < self.offroad_distance, "lane_offset_m", "must lie in [0, offroad_distance)")
-        _check(self.topdown_behind_m >= 0, "topdown_behind_m", "must be >= 0")
-        _check(self.max_steer_deg < 90, "max_steer_deg", "must be < 90")
-        _check(-45 < self.camera_pitch_deg < 45, "camera_pitch_deg", "must lie in (-45, 45)")
-        _check(self.camera_hfov_deg < 170, "camera_hfov_deg", "must be < 170")
-        _check(0 <= self.start_jitter_m < self.offroad_distance, "start_jitter_m", "must lie in [0, offroad_distance)")
-        _check(0 <= self.start_jitter_deg < 45, "start_jitter_deg", "must lie in [0, 45)")
-        _check(self.stall_min_progress_m >= 0, "stall_min_progress_m", "must be >= 0")
+        check_positive(self, "speed", "max_steer_deg", "policy_frequency", "simulation_frequency",
+                       "reward_beta", "offroad_distance", "max_steps", "camera_height_m",
+                       "camera_hfov_deg", "camera_range_m", "topdown_ahead_m", "topdown_width_m",
+                       "render_scale", "stall_window_s", "progress_memory_s", "traffic_speed_min")
+        check(self.camera in CAMERAS, "camera", f"must be one of {', '.join(CAMERAS)}")
+        check(self.simulation_frequency % self.policy_frequency == 0, "simulation_frequency",
+              "must be a multiple of policy_frequency")
+        check(0 <= self.lane_offset_m < self.offroad_distance, "lane_offset_m", "must lie in [0, offroad_distance)")
+        check(self.topdown_behind_m >= 0, "topdown_behind_m", "must be >= 0")
+        check(self.max_steer_deg < 90, "max_steer_deg", "must be < 90")
+        check(-45 < self.camera_pitch_deg < 45, "camera_pitch_deg", "must lie in (-45, 45)")
+        check(self.camera_hfov_deg < 170, "camera_hfov_deg", "must be < 170")
+        check(0 <= self.start_jitter_m < self.offroad_distance, "start_jitter_m", "must lie in [0, offroad_distance)")
+        check(0 <= self.start_jitter_deg < 45, "start_jitter_deg", "must lie in [0, 45)")
+        check(self.stall_min_progress_m >= 0, "stall_min_progress_m", "must be >= 0")
         # 20 cars always found room to start in tests (seeds 0-4); 30 did for only 2 seeds of 5.
-        _check(0 <= self.traffic_vehicles <= 20, "traffic_vehicles", "must lie in [0, 20]")
-        _check(self.traffic_speed_min <= self.traffic_speed_max, "traffic_speed_max",
-               "must be >= traffic_speed_min")
+        check(0 <= self.traffic_vehicles <= 20, "traffic_vehicles", "must lie in [0, 20]")
+        check(self.traffic_speed_min <= self.traffic_speed_max, "traffic_speed_max",
+              "must be >= traffic_speed_min")
 
 
 @dataclass
@@ -401,11 +294,11 @@ class ActorConfig:
                                     "for a replay", "MB")
 
     def validate(self) -> None:
-        _check(self.num_actors >= 0, "num_actors", "must be >= 0")
-        _check(self.actor_id >= 0, "actor_id", "must be >= 0")
-        _positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb")
-        _check(self.inference in INFERENCE_PRECISIONS, "inference",
-               f"must be one of {', '.join(INFERENCE_PRECISIONS)}")
+        check(self.num_actors >= 0, "num_actors", "must be >= 0")
+        check(self.actor_id >= 0, "actor_id", "must be >= 0")
+        check_positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb")
+        check(self.inference in INFERENCE_PRECISIONS, "inference",
+              f"must be one of {', '.join(INFERENCE_PRECISIONS)}")
 
 
 @dataclass
@@ -420,19 +313,19 @@ class EvaluationConfig:
                                                                    "are counted in; must cover [0, 1]")
     seed: int = option(0, "root of every trial's seed (env reset, random baseline, privileged driver's turns) and "
                           "of the bootstrap")
-    progress_period_s: float = option(1.0, "how often the progress line on stderr is refreshed", "s")
+    progress_period_s: float = option(1.0, "how often the status line on stderr is refreshed", "s")
     live_timeout_s: float = option(30.0, "--live: how long to wait for the learner's latest weights", "s")
     bootstrap_replicates: int = option(2000, "replicates of the tables' intervals: a stratified bootstrap over "
-                                             "runs and trials (actor/evaluation/intervals.py)", "replicates")
+                                             "runs and trials (common/analysis/intervals.py)", "replicates")
     confidence: float = option(0.95, "level of the tables' percentile intervals, in (0, 1)")
 
     def validate(self) -> None:
-        _positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
-                  "progress_period_s", "live_timeout_s", "bootstrap_replicates")
-        _check(self.seed >= 0, "seed", "must be >= 0")
-        _check(0.0 < self.confidence < 1.0, "confidence", "must lie in (0, 1)")
+        check_positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
+                       "progress_period_s", "live_timeout_s", "bootstrap_replicates")
+        check(self.seed >= 0, "seed", "must be >= 0")
+        check(0.0 < self.confidence < 1.0, "confidence", "must lie in (0, 1)")
         bins = self.reward_bins
-        _check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
+        check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")
 
 
 TRANSPORT_MODES = ("peer", "client", "router")
@@ -475,32 +368,32 @@ class TransportConfig:
                                                     "everything and write nothing")
 
     def validate(self) -> None:
-        _check(self.mode in TRANSPORT_MODES, "mode", "must be 'peer', 'client' or 'router'")
-        _positive(self, "connect_timeout_s")
+        check(self.mode in TRANSPORT_MODES, "mode", "must be 'peer', 'client' or 'router'")
+        check_positive(self, "connect_timeout_s")
         for key in ("listen", "connect"):
             for endpoint in getattr(self, key):
-                _check("/" in endpoint, key, f"endpoint {endpoint!r} must look like 'tcp/127.0.0.1:7447'")
-        _check(_is_key_chunk(self.namespace), "namespace", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+                check("/" in endpoint, key, f"endpoint {endpoint!r} must look like 'tcp/127.0.0.1:7447'")
+        check(_is_key_chunk(self.namespace), "namespace", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
         self._validate_security()
 
     def _validate_security(self) -> None:
-        _check(bool(self.tls_certificate) == bool(self.tls_key), "tls_key",
-               "tls_certificate and tls_key go together: give both or neither")
+        check(bool(self.tls_certificate) == bool(self.tls_key), "tls_key",
+              "tls_certificate and tls_key go together: give both or neither")
         if any(endpoint.startswith("tls/") for endpoint in self.listen):
-            _check(bool(self.tls_certificate), "tls_certificate", "a tls/ listener needs a certificate and key")
+            check(bool(self.tls_certificate), "tls_certificate", "a tls/ listener needs a certificate and key")
         if any(endpoint.startswith("tls/") for endpoint in self.listen + self.connect):
-            _check(bool(self.tls_ca), "tls_ca", "tls/ endpoints need the run's CA certificate")
+            check(bool(self.tls_ca), "tls_ca", "tls/ endpoints need the run's CA certificate")
         if self.tls_mtls:
-            _check(bool(self.tls_certificate and self.tls_ca), "tls_mtls", "needs tls_ca, tls_certificate and tls_key")
+            check(bool(self.tls_certificate and self.tls_ca), "tls_mtls", "needs tls_ca, tls_certificate and tls_key")
             for key in ("listen", "connect"):
                 for endpoint in getattr(self, key):
-                    _check(endpoint.startswith("tls/"), key,
-                           f"endpoint {endpoint!r}: with tls_mtls every endpoint must be tls/ (another would admit peers without a certificate)")
+                    check(endpoint.startswith("tls/"), key,
+                          f"endpoint {endpoint!r}: with tls_mtls every endpoint must be tls/ (another would admit peers without a certificate)")
         if self.acl:
-            _check(self.tls_mtls, "acl", "needs tls_mtls: the access rules tell peers apart by their certificates")
+            check(self.tls_mtls, "acl", "needs tls_mtls: the access rules tell peers apart by their certificates")
         for key in ("acl_learners", "acl_actors", "acl_replays", "acl_observers"):
             for name in getattr(self, key):
-                _check(bool(name.strip()), key, "common names must not be empty")
+                check(bool(name.strip()), key, "common names must not be empty")
 
 
 @dataclass
@@ -513,7 +406,7 @@ class RunConfig:
     runs_dir: str = option("runs", "folder that holds the run folders")
 
     def validate(self) -> None:
-        _check(_is_key_chunk(self.name), "name", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
+        check(_is_key_chunk(self.name), "name", "must be a non-empty key chunk without '/', '*', '$', '?' or '#'")
 
 
 IMAGE_FORMATS = ("png", "jpeg")
@@ -521,7 +414,7 @@ IMAGE_FORMATS = ("png", "jpeg")
 
 @dataclass
 class RecorderConfig:
-    """The flight recorder (replay/log): what it keeps of a run's traffic and how it writes the MCAP file."""
+    """The flight recorder (replay/log): what it keeps of a run's messages and how it writes the MCAP file."""
 
     enabled: bool = option(True, "the local stack starts a recorder writing <runs_dir>/<run>/traffic.mcap")
     # A paper run has ~250,000 weight versions of 48 MB each.
@@ -544,9 +437,9 @@ class RecorderConfig:
                                    "s")
 
     def validate(self) -> None:
-        _positive(self, "weights_every_versions", "flush_period_s", "chunk_mb", "queue_messages", "queue_mb",
-                  "stats_period_s")
-        _check(self.image_format in IMAGE_FORMATS, "image_format", "must be 'png' or 'jpeg'")
+        check_positive(self, "weights_every_versions", "flush_period_s", "chunk_mb", "queue_messages", "queue_mb",
+                       "stats_period_s")
+        check(self.image_format in IMAGE_FORMATS, "image_format", "must be 'png' or 'jpeg'")
 
 
 @dataclass
@@ -563,394 +456,25 @@ class Config:
     record: RecorderConfig = field(default_factory=RecorderConfig)
 
     def validate(self) -> "Config":
-        for path, section in _sections(self):
+        for path, section in sections(self):
             if section is self:
                 continue
             try:
                 section.validate()
             except ConfigError as error:
                 raise ConfigError(f"{path}.{error}" if path else str(error)) from None
-        _check(self.learner.start_episodes <= self.replay.capacity, "learner.start_episodes",
-               f"{self.learner.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
+        check(self.learner.start_episodes <= self.replay.capacity, "learner.start_episodes",
+              f"{self.learner.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
         return self
 
 
-# --- presets -----------------------------------------------------------------
-
-class Preset(dict):
-    """Values over the dataclass defaults, by dotted key, and what the preset is for (shown by --help)."""
-
-    def __init__(self, doc: str, values: dict[str, Any]) -> None:
-        super().__init__(values)
-        self.doc = doc
-
-
-PRESETS: dict[str, Preset] = {
-    "paper": Preset("the paper's values, which are the defaults", {}),
-    "local": Preset(
-        "the main job on a 2-core CPU machine (about 30 minutes): the paper's agent, buffer and ratio, with the run "
-        "cut to 60,000 steps and the decreasing schedule scaled to that length", {
-            "learner.total_env_steps": 60_000,
-            "learner.start_steps": 10_000,
-            "learner.checkpoint_every": 1_000,
-            "learner.keep_every": 1_000,  # about 12 policies a run for its greedy curve
-            "exploration.decreasing.n_start": 10_000,
-            "exploration.decreasing.n_ann": 20_000,
-            "exploration.decreasing.n_max": 60_000,
-        }),
-    "smoke": Preset(
-        "seconds-long runs for tests: tiny buffer, short episodes, early updates", {
-            "replay.capacity": 50,
-            "replay.stats_period_s": 0.5,
-            "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
-            "learner.batch_size": 4,
-            "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
-            "learner.start_episodes": 2,
-            "learner.start_steps": 100,
-            "learner.total_env_steps": 20_000,
-            "learner.weights_every": 5,
-            "learner.checkpoint_every": 50,
-            "learner.keep_every": 100,
-            "learner.log_period_s": 1.0,
-            "exploration.decreasing.n_start": 100,
-            "exploration.decreasing.n_ann": 800,
-            "exploration.decreasing.n_max": 2_000,
-            "env.max_steps": 60,
-            "actor.log_period_s": 1.0,
-            "evaluation.episodes_per_start": 1,
-            "evaluation.max_steps": 60,
-            "evaluation.workers": 1,
-            "evaluation.envs_per_worker": 2,
-        }),
-}
-
-# --- building a config ---------------------------------------------------------
-
-def load_config(preset: str = "paper", toml_path: str | Path | None = None,
-                overrides: dict[str, Any] | None = None, base: Config | None = None) -> Config:
-    """Preset (or a copy of `base`, such as a checkpoint's config), then TOML file, then
-    overrides (dotted keys); validated."""
-    if base is not None:
-        config = copy.deepcopy(base)
-    elif preset in PRESETS:
-        config = Config()
-        for key, value in PRESETS[preset].items():
-            set_value(config, key, value)
-    else:
-        raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    if toml_path is not None:
-        for key, value in _flatten(_read_toml(Path(toml_path))).items():
-            set_value(config, key, value)
-    for key, value in (overrides or {}).items():
-        set_value(config, key, value)
-    return config.validate()
-
-
-# Keys of earlier versions; a checkpoint's or log's config that holds one still loads (from_dict).
-RETIRED_KEYS = {
-    "learner.ratio_tolerance": "replaced by replay.error_buffer_updates (a number of updates)",
-    "actor.pace_with_learner": "the replay's rate limiter paces the actors; replay.error_buffer_updates 1e9 lets them run free",
-}
-
-
-def set_value(config: Config, dotted_key: str, value: Any) -> None:
-    """Set one field by its dotted path, converting and type-checking the value."""
-    if dotted_key in RETIRED_KEYS:
-        raise ConfigError(f"{dotted_key}: retired key; {RETIRED_KEYS[dotted_key]}")
-    *parents, name = dotted_key.split(".")
-    target: Any = config
-    for part in parents:
-        if not dataclasses.is_dataclass(target) or part not in _field_types(target):
-            raise ConfigError(f"{dotted_key}: unknown key")
-        target = getattr(target, part)
-    types = _field_types(target) if dataclasses.is_dataclass(target) else {}
-    if name not in types or dataclasses.is_dataclass(types[name]):
-        raise ConfigError(f"{dotted_key}: unknown key")
-    setattr(target, name, _coerce(dotted_key, types[name], value))
-
-
-def flat_items(config: Any, prefix: str = "") -> dict[str, Any]:
-    """Every leaf field as {dotted key: value}."""
-    items: dict[str, Any] = {}
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        key = f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(value):
-            items.update(flat_items(value, key + "."))
-        else:
-            items[key] = value
-    return items
-
-
-def to_toml(config: Config) -> str:
-    """The config as a TOML document that load_config reads back unchanged."""
-    lines: list[str] = []
-    for path, section in _sections(config):
-        leaves = {f.name: getattr(section, f.name) for f in dataclasses.fields(section)
-                  if not dataclasses.is_dataclass(getattr(section, f.name))}
-        if not path or not leaves:
-            continue
-        lines.append(f"[{path}]")
-        lines.extend(f"{name} = {_toml_value(value)}" for name, value in leaves.items())
-        lines.append("")
-    return "\n".join(lines)
-
-
-def from_dict(nested: dict[str, Any]) -> Config:
-    """A config from the nested dict of a TOML document or a checkpoint."""
-    config = Config()
-    for key, value in _flatten(nested).items():
-        if key not in RETIRED_KEYS:
-            set_value(config, key, value)
-    return config.validate()
-
-
-def to_dict(config: Config) -> dict[str, Any]:
-    return dataclasses.asdict(config)
-
-
-# --- command line ------------------------------------------------------------------
-
-def config_fields() -> dict[str, dataclasses.Field]:
-    """Every leaf field by dotted key; its metadata holds the doc, unit and choices of option()."""
-    fields: dict[str, dataclasses.Field] = {}
-    for path, section in _sections(Config()):
-        for f in dataclasses.fields(section):
-            if not dataclasses.is_dataclass(getattr(section, f.name)):
-                fields[f"{path}.{f.name}" if path else f.name] = f
-    return fields
-
-
-def add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    """Adds --preset, --config, --dump-config and one flag per config field, whose help is the
-    field's documentation with the defaults of the preset given before --help."""
-    parser.allow_abbrev = False  # a mistyped prefix (--run.nam) must not set another key
-    _shorten_usage(parser)
-    flags: dict[str, argparse.Action] = {}
-    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS), action=_PresetAction, flags=flags,
-                        help="base values, listed below (default: paper); `--preset NAME --help` shows its defaults")
-    parser.add_argument("--config", metavar="FILE.toml", help="TOML file applied over the preset")
-    parser.add_argument("--dump-config", action="store_true", help="print the resolved config as TOML and exit")
-    for name, preset in PRESETS.items():
-        parser.add_argument_group(f"preset {name}", _preset_description(preset))
-    group = parser.add_argument_group("configuration (dotted keys; applied over preset and file)")
-    defaults = flat_items(Config())
-    for key, f in config_fields().items():
-        choices = f.metadata["choices"]
-        metavar = "{" + ",".join(choices) + "}" if choices else _metavar(defaults[key])
-        flags[key] = group.add_argument(f"--{key}", dest=_dest(key), default=None, metavar=metavar)
-    _show_defaults(flags, "paper")
-
-
-def parse_flags(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> argparse.Namespace:
-    """parser.parse_args(argv), but the error for an unknown flag suggests the nearest known one."""
-    args, unknown = parser.parse_known_args(argv)
-    if unknown:
-        parser.error(f"unrecognized arguments: {' '.join(unknown)}{_suggestions(parser, unknown)}")
-    return args
-
-
-def config_from_args(args: argparse.Namespace, base: Config | None = None) -> Config:
-    """The flags of add_config_arguments applied over the preset, or over `base` if given."""
-    overrides = {key: getattr(args, _dest(key)) for key in flat_items(Config())
-                 if getattr(args, _dest(key), None) is not None}
-    return load_config(args.preset, args.config, overrides, base)
-
-
-def parse_config_or_exit(parser: argparse.ArgumentParser, argv: list[str] | None = None
-                         ) -> tuple[argparse.Namespace, Config]:
-    """Parses argv; a config error is one line on stderr and exit code 2, not a traceback.
-
-    With --dump-config, prints the TOML and exits 0.
-    """
-    args = parse_flags(parser, argv)
-    try:
-        config = config_from_args(args)
-    except ConfigError as error:
-        print(f"{parser.prog}: config error: {error}", file=sys.stderr)
-        raise SystemExit(2) from None
-    if args.dump_config:
-        print(to_toml(config), end="")
-        raise SystemExit(0)
-    return args, config
-
-
-def print_config(prog: str, config: Config) -> None:
-    """The resolved config on stderr, so every process's log starts with what it ran with."""
-    body = "\n".join(f"  {line}" for line in to_toml(config).splitlines() if line)
-    print(f"{prog}: resolved config\n{body}", file=sys.stderr, flush=True)
-
-
-def _shorten_usage(parser: argparse.ArgumentParser) -> None:
-    """One placeholder for the config flags in the usage line: a hundred would bury an error message."""
-    if parser.usage is None:
-        own = parser.format_usage().removeprefix("usage: ").rstrip().replace("%", "%%")
-        indent = " " * len(f"usage: {parser.prog} ")
-        parser.usage = f"{own}\n{indent}[--preset NAME] [--config FILE.toml] [--dump-config] [--SECTION.KEY VALUE ...]"
-
-
-class _PresetAction(argparse.Action):
-    """Stores --preset and shows its defaults in the help of the config flags."""
-
-    def __init__(self, option_strings: list[str], dest: str, flags: dict[str, argparse.Action], **kwargs: Any) -> None:
-        super().__init__(option_strings, dest, **kwargs)
-        self.flags = flags
-
-    def __call__(self, parser, namespace, values, option_string=None) -> None:
-        setattr(namespace, self.dest, values)
-        _show_defaults(self.flags, values)
-
-
-def _show_defaults(flags: dict[str, argparse.Action], preset: str) -> None:
-    defaults = flat_items(load_config(preset))
-    fields = config_fields()
-    for key, flag in flags.items():
-        f = fields[key]
-        unit = f" [{f.metadata['unit']}]" if f.metadata["unit"] else ""
-        source = f" of preset {preset}" if key in PRESETS[preset] else ""
-        text = f"{f.metadata['doc']}{unit} (default{source}: {_toml_value(defaults[key])})"
-        flag.help = text.replace("%", "%%")  # argparse expands %-formats in help
-
-
-def _preset_description(preset: Preset) -> str:
-    changes = ", ".join(f"{key} = {_toml_value(value)}" for key, value in preset.items())
-    text = f"{preset.doc}; sets {changes}" if changes else f"{preset.doc}"
-    return textwrap.fill(text, width=100)  # pre-wrapped for parsers with a raw description formatter
-
-
-def _suggestions(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
-    # argparse lists a parser's own flags only in this attribute; the config flags may sit in a subparser
-    known = [f"--{key}" for key in config_fields()] + list(parser._option_string_actions)
-    hints = []
-    for token in unknown:
-        flag = token.split("=", 1)[0]
-        if flag.startswith("--"):
-            hints += [f"; {flag}: did you mean {match}?" for match in difflib.get_close_matches(flag, known, n=1)]
-    return "".join(hints)
-
-
-# --- helpers -------------------------------------------------------------------------
-
-def _sections(config: Any, path: str = ""):
+def sections(config: Any, path: str = ""):
+    """Every section of a config with its dotted path, the config itself ("") first."""
     yield path, config
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         if dataclasses.is_dataclass(value):
-            yield from _sections(value, f"{path}.{f.name}" if path else f.name)
-
-
-def _field_types(instance: Any) -> dict[str, Any]:
-    return typing.get_type_hints(type(instance))
-
-
-def _coerce(key: str, kind: Any, value: Any) -> Any:
-    origin = typing.get_origin(kind)
-    if origin is list:
-        (item_kind,) = typing.get_args(kind)
-        if isinstance(value, str):
-            value = [part for part in (p.strip() for p in value.split(",")) if part]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key}: expected a list, got {value!r}")
-        return [_coerce(key, item_kind, item) for item in value]
-    if kind is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
-            return value.lower() in ("true", "1", "yes", "on")
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
-    if kind is int:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        if isinstance(value, int):
-            return value
-        if isinstance(value, str):
-            try:
-                return int(value.replace("_", ""))
-            except ValueError:
-                pass
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-        raise ConfigError(f"{key}: expected an integer, got {value!r}")
-    if kind is float:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected a number, got {value!r}")
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{key}: expected a number, got {value!r}") from None
-        if not math.isfinite(number):
-            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
-        return number
-    if kind is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{key}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{key}: unsupported field type {kind!r}")
-
-
-def _flatten(nested: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in nested.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
-def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        with path.open("rb") as handle:
-            return tomllib.load(handle)
-    except FileNotFoundError:
-        raise ConfigError(f"config file {path}: not found") from None
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"config file {path}: invalid TOML ({error})") from None
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
-    raise TypeError(f"cannot write {value!r} as TOML")
-
-
-def _dest(key: str) -> str:
-    return "cfg__" + key.replace(".", "__")
-
-
-def _metavar(default: Any) -> str:
-    if isinstance(default, bool):
-        return "BOOL"
-    if isinstance(default, int):
-        return "INT"
-    if isinstance(default, float):
-        return "FLOAT"
-    if isinstance(default, list):
-        return "A,B,..."
-    return "STR"
-
-
-def _check(condition: bool, key: str, message: str) -> None:
-    if not condition:
-        raise ConfigError(f"{key}: {message}")
-
-
-def _positive(section: Any, *names: str) -> None:
-    for name in names:
-        value = getattr(section, name)
-        _check(value > 0, name, f"must be > 0, got {value!r}")
-
-
-def _probability(section: Any, *names: str) -> None:
-    for name in names:
-        value = getattr(section, name)
-        _check(0.0 <= value <= 1.0, name, f"must lie in [0, 1], got {value!r}")
+            yield from sections(value, f"{path}.{f.name}" if path else f.name)
 
 
 def _is_key_chunk(text: str) -> bool:

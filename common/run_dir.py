@@ -97,12 +97,13 @@ class RunDir:
         return self.root / "replay" / "snapshot"
 
     @property
-    def traffic(self) -> Path:
-        """The first recorder's log; the next recorders of the run write numbered ones (next_free_path)."""
+    def wire_log(self) -> Path:
+        """The first recorder's log of the run's messages (named traffic.mcap, as every run folder has it); the
+        next recorders of the run write numbered ones (next_free_path)."""
         return self.root / "traffic.mcap"
 
-    def traffic_segments(self) -> list[Path]:
-        return log_segments(self.traffic)
+    def wire_log_segments(self) -> list[Path]:
+        return log_segments(self.wire_log)
 
     @property
     def evaluation(self) -> Path:

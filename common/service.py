@@ -28,7 +28,8 @@ from typing import Callable, Iterator
 
 import zenoh
 
-from common.config import Config, add_config_arguments, parse_config_or_exit, print_config
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.logs import setup_logging
 from common.transport import Keys, declare_liveliness, open_session
 

@@ -1,6 +1,6 @@
 """Zenoh in one place: the session, the key names, and typed put/subscribe/query helpers.
 
-Roles never touch payload bytes: what goes out is encoded with ``common.wire``
+Roles never touch payload bytes: what goes out is encoded with ``common.wire.envelope``
 and what comes in is decoded and checked. Malformed input is logged (rate-limited)
 and counted, and never raises into Zenoh's threads, so a bad sender cannot stop
 a service.
@@ -32,7 +32,9 @@ import zenoh
 
 from common.access import acl_config
 from common.config import TransportConfig
-from common.wire import Message, WireError, decode, encode
+from common.wire.codecs import Message
+from common.wire.envelope import decode, encode
+from common.wire.errors import WireError
 
 log = logging.getLogger(__name__)
 

@@ -33,7 +33,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from common.checkpoint import Checkpoint
-from common.config import config_from_args, load_config, parse_flags
+from common.config_cli import config_from_args, parse_flags
+from common.config_values import load_config
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy import soak
 from deploy.stack import build_parser
@@ -197,7 +198,7 @@ def check_ratio(chaos: Chaos) -> bool:
 
 def check_log(chaos: Chaos) -> bool:
     segments = {}
-    for path in chaos.run.traffic_segments():
+    for path in chaos.run.wire_log_segments():
         try:
             with LogFile(path, unfinished_ok=True) as log:
                 segments[path.name] = sum(1 for _ in log.records())

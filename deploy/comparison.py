@@ -3,9 +3,9 @@
 Each run's ``episodes.csv`` (written by ``evaluate``) is read back into
 EvaluationEpisode records, and the greedy episodes of all runs that share a
 strategy and a replay capacity (the seeds of one grid cell) are pooled into one
-row by ``actor.evaluation.stats.summarise``, so a row weighs every episode once; its
+row by ``common.analysis.stats.summarise``, so a row weighs every episode once; its
 intervals resample the runs whole, then each run's trials within each start
-(actor/evaluation/intervals.py). Each run also gets a row of its own. One
+(common/analysis/intervals.py). Each run also gets a row of its own. One
 table per start set and capacity: Strategy | Seeds | Updates (of every run) |
 Episodes | Average | IQM | Standard Deviation | Min | CFR | Ends (collision /
 off-road / stalled) | Progress | Reward/step | the last reward bin's share;
@@ -24,10 +24,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from actor.evaluation.intervals import Bootstrap, Cell
-from actor.evaluation.report import EPISODES_CSV, bin_labels, summary_columns, with_interval
-from actor.evaluation.stats import EvaluationEpisode, SetSummary, episode_cell, summarise
-from common.strategies import DISPLAY_NAMES, strategy_rank
+from common.analysis.intervals import Bootstrap, Cell
+from common.analysis.stats import EvaluationEpisode, SetSummary, episode_cell, summarise
+from common.analysis.tables import EPISODES_CSV, bin_labels, summary_columns, with_interval
+from common.exploration.names import DISPLAY_NAMES, strategy_rank
 
 RANDOM = "random"
 PRIVILEGED = "privileged"
@@ -55,7 +55,7 @@ class EvaluatedRun:
 
 @dataclass(frozen=True)
 class ComparisonRow:
-    strategy: str  # a strategy of common.config.STRATEGIES, or a baseline (BASELINES)
+    strategy: str  # a strategy of common.exploration.names.STRATEGIES, or a baseline (BASELINES)
     capacity: int
     runs: int  # evaluations pooled in the row
     summary: SetSummary
@@ -114,7 +114,7 @@ def _episode_of(row: dict[str, str], bin_columns: list[str]) -> EvaluationEpisod
 
 def comparison_rows(runs: Sequence[EvaluatedRun], bootstrap: Bootstrap | None = None
                     ) -> tuple[list[ComparisonRow], list[float]]:
-    """Rows by start set, capacity, then strategy in common.config order, each pooled row followed by one
+    """Rows by start set, capacity, then strategy in common.exploration.names order, each pooled row followed by one
     row per run (by seed, even when there is only one), the baselines' rows last; and the edges."""
     greedy: dict[tuple[str, int, str], list[tuple[EvaluatedRun, list[EvaluationEpisode]]]] = {}
     baseline_rows: dict[tuple[str, str], list[EvaluationEpisode]] = {}

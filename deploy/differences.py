@@ -4,7 +4,7 @@ For two pooled rows of the comparison (two strategies on one start set and
 replay capacity, or one strategy at two capacities) the difference of a
 statistic, first row minus second, with the percentile interval of the
 differences of bootstrap replicates. Each row is redrawn as in the tables
-(actor/evaluation/intervals.py: its runs whole, then each run's trials within
+(common/analysis/intervals.py: its runs whole, then each run's trials within
 each start), and the two rows independently of each other, because their runs
 are separate trainings; a pairing of trials would narrow the interval by the
 shared evaluation seeds, which is not the question asked. A difference is
@@ -36,7 +36,7 @@ from typing import Sequence
 
 import numpy as np
 
-from actor.evaluation.intervals import Bootstrap, Interval, bootstrap_weights, cell_statistics, percentile_interval
+from common.analysis.intervals import Bootstrap, Interval, bootstrap_weights, cell_statistics, percentile_interval
 from deploy.comparison import BASELINES, STRATEGY_NAMES, ComparisonRow
 
 DIFFERENCES_CSV = "differences.csv"
@@ -48,7 +48,7 @@ class Difference:
     start_set: str
     first: ComparisonRow
     second: ComparisonRow
-    statistic: str  # a statistic of actor.evaluation.intervals.STATISTICS
+    statistic: str  # a statistic of common.analysis.intervals.STATISTICS
     observed: float  # first minus second, on all episodes
     interval: Interval
     runs_apart: bool | None  # every run of one row beyond every run of the other; None with one run a side

@@ -6,7 +6,7 @@ subprocess) in the run folder <runs-dir>/<strategy>-b<capacity>-s<seed>/
 baseline, train and test starts, into the run's evaluation folder). Runs go one
 after the other, or --parallel K at once (each learner then takes its share of
 the cores, learner.torch_threads, unless the flags set it). A line per period
-shows each running run (from the stack's status file, or evaluate's progress
+shows each running run (from the stack's status file, or evaluate's status
 line) and the grid:
 runs done of all, and an ETA from the env steps trained so far in this session.
 Each run, once evaluated, is exported (deploy/run_results.py) to --export,
@@ -16,7 +16,7 @@ receives the report on the exported runs and those of any --merge folder
 (deploy/report.py, which also rebuilds it from committed runs alone): the
 tables of the paper's tables 3-6 with bootstrap confidence intervals over the
 seeds (results.md, results.csv: pooled rows and one row per seed, with every
-run's updates), the figures of replay/log/figures.py and the performance
+run's updates), the figures of common/analysis/figures.py and the performance
 profiles of deploy/performance_profile.py.
 
 Every run keeps its policy now and then for a greedy learning curve
@@ -54,13 +54,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from actor.evaluation.intervals import Bootstrap
-from actor.evaluation.progress import is_progress_line
-from actor.evaluation.protocol import bootstrap_of
-from actor.evaluation.report import SUMMARY_CSV
+from actor.evaluation.status import is_evaluation_line
+from common.analysis.intervals import Bootstrap, bootstrap_of
+from common.analysis.tables import SUMMARY_CSV
 from common.checkpoint import Checkpoint, CheckpointError
-from common.config import STRATEGIES, ConfigError, add_config_arguments, config_from_args, parse_flags
+from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time
+from common.exploration.names import STRATEGIES
+from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.report import write_report
 from deploy.run_results import collect, export_run, run_name
@@ -162,7 +163,7 @@ def set_aside_stale_files(run_dir: Path) -> Path | None:
     figures would read both as one run.
     """
     run = RunDir(run_dir)
-    stale = run.traffic_segments() + [path for path in [run.logs] if path.is_dir()]
+    stale = run.wire_log_segments() + [path for path in [run.logs] if path.is_dir()]
     if not stale:
         return None
     target = run.abandoned(datetime.datetime.now().strftime("%Y%m%d-%H%M%S"))
@@ -224,16 +225,16 @@ def report_bootstrap(options: Options) -> Bootstrap:
 # --- child processes -------------------------------------------------------------------------------------------
 
 class Child:
-    """A subprocess whose output goes to a log file; keeps its latest progress line (those `is_progress`
+    """A subprocess whose output goes to a log file; keeps its latest status line (those `is_status`
     accepts) and echoes the others.
 
     It runs in a session of its own, so a Ctrl-C in the terminal reaches it once, forwarded by the runner.
     """
 
-    def __init__(self, command: list[str], log_path: Path, is_progress: Callable[[str], bool] | None,
+    def __init__(self, command: list[str], log_path: Path, is_status: Callable[[str], bool] | None,
                  echo_prefix: str | None) -> None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
-        self.is_progress = is_progress
+        self.is_status = is_status
         self.echo_prefix = echo_prefix  # None: other lines stay in the log
         self.latest = ""
         self.tail: deque[str] = deque(maxlen=8)  # for the error message when it fails
@@ -255,7 +256,7 @@ class Child:
             self._take(pending.strip())
 
     def _take(self, line: str) -> None:
-        if self.is_progress is not None and self.is_progress(line):
+        if self.is_status is not None and self.is_status(line):
             self.latest = line
             return
         self.tail.append(line)
@@ -324,23 +325,23 @@ class RunJob:
         if step in (TRAIN, RESUME):
             self.phase = "resuming" if step == RESUME else "training"
             self._child(stack_command(self.spec, self.options, resume=step == RESUME), run.log("stack"),
-                        None, "the stack", echo=True)  # its progress is in the status file
+                        None, "the stack", echo=True)  # its figures are in the status file
             reached = checkpoint_env_steps(run.checkpoint)
             if reached < self.options.steps:
                 raise ExperimentError(f"the stack stopped at {reached:,d} of {self.options.steps:,d} env steps")
         self.phase = "evaluating"
         self._child(evaluate_command(self.spec, self.options, privileged=self.number == 1), run.log("evaluate"),
-                    is_progress_line, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
+                    is_evaluation_line, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
         self.phase, self.headline = "done", evaluation_headline(summary)
         self.took_s = time.monotonic() - self.started
         folder = export_run(run, self.options.export_dir)
         print(f"{self.tag}: exported to {folder}", flush=True)
 
-    def _child(self, command: list[str], log_path: Path, is_progress: Callable[[str], bool] | None, what: str,
+    def _child(self, command: list[str], log_path: Path, is_status: Callable[[str], bool] | None, what: str,
                echo: bool) -> None:
         if self.stopping.is_set():
             raise ExperimentError("interrupted")
-        self.child = Child(command, log_path, is_progress, self.tag if echo else None)
+        self.child = Child(command, log_path, is_status, self.tag if echo else None)
         if self.stopping.is_set():  # the interruption came while the child was starting
             self.child.interrupt()
         code = self.child.wait()
@@ -358,11 +359,11 @@ class RunJob:
             return None
         return status if status.time >= self.started_at else None
 
-    def progress_line(self) -> str:
-        """The stack's figures while training, evaluate's progress line while evaluating."""
+    def latest_line(self) -> str:
+        """The stack's figures while training, evaluate's status line while evaluating."""
         if self.phase in ("training", "resuming"):
             status = self.status()
-            return status_line(status) if status is not None else ""
+            return stack_line(status) if status is not None else ""
         return self.child.latest if self.child is not None else ""
 
     def remaining_s(self) -> float | None:
@@ -389,7 +390,7 @@ class RunJob:
         return self.thread is not None and not self.thread.is_alive()
 
 
-def status_line(status: RunStatus) -> str:
+def stack_line(status: RunStatus) -> str:
     """'env steps 12,000/60,000 (20.0%), updates 600, return(100) 3.21, restarts 0, ETA 40:00' of a stack."""
     budget = max(status.total_env_steps, 1)
     mean_return = "–" if status.mean_return is None else f"{status.mean_return:.2f}"
@@ -416,7 +417,7 @@ def evaluation_headline(summary_csv: Path) -> str:
 
 # --- the grid ----------------------------------------------------------------------------------------------------------
 
-class GridProgress:
+class GridStatus:
     """Runs done of all, the share of env steps trained, and an ETA by runs: the running runs' own ETAs
     (their stacks'), then the runs still waiting, `parallel` at a time, each taking as long as the runs
     this session finished took or, before one has finished, as long as the running ones look to take."""
@@ -463,8 +464,8 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
             for number, spec in enumerate(specs, 1)]
     pending, active = deque(jobs), []
     failed = 0
-    grid = GridProgress(jobs, options.steps, parallel)
-    last_progress = time.monotonic()
+    grid = GridStatus(jobs, options.steps, parallel)
+    last_shown = time.monotonic()
 
     def interrupt(*_) -> None:
         stopping.set()
@@ -482,10 +483,10 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
             if stopping.is_set():
                 pending.clear()
             time.sleep(POLL_S)
-            if time.monotonic() - last_progress >= options.progress_s:
-                last_progress = time.monotonic()
+            if time.monotonic() - last_shown >= options.progress_s:
+                last_shown = time.monotonic()
                 for job in active:
-                    if line := job.progress_line():
+                    if line := job.latest_line():
                         print(f"{job.tag} {job.phase} {clock_time(time.monotonic() - job.started)} | {line}",
                               flush=True)
                 print(grid.line(), flush=True)
@@ -545,7 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="where the runs and results/ go (default: runs/experiments)")
     parser.add_argument("--actors", type=int, default=None, help="actors per stack (default: the stack's)")
     parser.add_argument("--progress-s", type=float, default=30.0,
-                        help="seconds between progress lines of a run (default: 30)")
+                        help="seconds between the status lines of the running runs and the grid (default: 30)")
     parser.add_argument("--report-only", action="store_true",
                         help="train and evaluate nothing; export the evaluated runs on disk and rebuild results/")
     parser.add_argument("--export", type=Path, default=None,

@@ -1,10 +1,10 @@
 """The option reference of docs/configuration.md, generated from the config schema (common/config.py).
 
-Every option of the typed configuration is declared with ``option()``, whose documentation string, unit
-and choices are what ``--help`` shows. This script writes the same facts as markdown: the presets and
-the keys each sets, then one table per config section with every flag, its default (the paper's
-values) and its meaning. The reference lives in docs/configuration.md between two marker lines;
-tests/test_docs.py fails when it no longer matches the schema.
+Every option of the typed configuration is declared with ``option()`` (common/options.py), whose
+documentation string, unit and choices are what ``--help`` shows. This script writes the same facts as
+markdown: the presets (common/presets.py) and the keys each sets, then one table per config section with
+every flag, its default (the paper's values) and its meaning. The reference lives in docs/configuration.md
+between two marker lines; tests/test_docs.py fails when it no longer matches the schema.
 
     .venv/bin/python deploy/option_reference.py            # print the reference
     .venv/bin/python deploy/option_reference.py --write    # replace it in docs/configuration.md
@@ -19,7 +19,8 @@ import sys
 from pathlib import Path
 from typing import Any, Iterator
 
-from common.config import PRESETS, Config
+from common.config import Config
+from common.presets import PRESETS
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "configuration.md"

@@ -3,7 +3,7 @@
 One curve per pooled row of the comparison (a strategy's greedy episodes over
 its seeds, and the random policy), one panel per start set and replay
 capacity. The band at each x is the percentile interval of the same two-stage
-bootstrap as the tables (actor/evaluation/intervals.py): runs resampled whole,
+bootstrap as the tables (common/analysis/intervals.py): runs resampled whole,
 then each run's trials within each start. A curve that stays high to the right
 drives long; the value at the cap is the CFR.
 """
@@ -15,9 +15,9 @@ from typing import Sequence
 
 import numpy as np
 
-from actor.evaluation.intervals import Bootstrap, bootstrap_weights, profile_band
+from common.analysis.figures import strategy_colour
+from common.analysis.intervals import Bootstrap, bootstrap_weights, profile_band
 from deploy.comparison import STRATEGY_NAMES, ComparisonRow
-from replay.log.figures import strategy_colour
 
 POINTS = 201  # thresholds per curve, from 0 to the longest episode
 

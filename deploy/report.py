@@ -4,7 +4,7 @@ Each finished run of the grid is exported (deploy/run_results.py): its evaluatio
 training curves, small enough to commit. This report reads exported runs from one or more folders, merged so
 that each strategy, capacity and seed counts once (the first folder listed wins), and writes into --out:
 results.md and results.csv (pooled rows with bootstrap intervals over the seeds, and one row per seed, with
-every run's updates) and the figures of replay/log/figures.py and deploy/performance_profile.py. No run
+every run's updates) and the figures of common/analysis/figures.py and deploy/performance_profile.py. No run
 folder, checkpoint or log is needed: a fresh clone rebuilds the committed tables.
 
     .venv/bin/python deploy/report.py results/comparison/runs [another-machine/runs ...] --out results/comparison
@@ -18,17 +18,16 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from actor.evaluation.intervals import Bootstrap
-from actor.evaluation.protocol import bootstrap_of
-from actor.evaluation.report import bin_labels
+from common.analysis.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences,
+                                     plot_reward_bins, plot_reward_curves)
+from common.analysis.intervals import Bootstrap, bootstrap_of
+from common.analysis.tables import bin_labels
 from deploy.comparison import (PRIVILEGED, RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow,
                                comparison_markdown, comparison_rows, write_comparison_csv)
 from deploy.differences import (DIFFERENCES_CSV, Difference, chances_apart, differences, differences_markdown,
                                 write_differences_csv)
 from deploy.performance_profile import plot_performance_profiles
 from deploy.run_results import ExportedRun, ExportError, collect
-from replay.log.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
-                                plot_reward_curves)
 
 FIGURES = {"reward_curves.png": "mean return of the last 100 training episodes",
            "epsilon.png": "epsilon against env steps (epsilon-based strategies)",
@@ -120,7 +119,7 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
                   f"privileged map-reading driver ({PRIVILEGED!r}), are the same in every table. "
                   f"Brackets hold {level} percentile intervals of {bootstrap.replicates} bootstrap replicates: "
                   "the runs (seeds) of a row drawn again whole, then each run's trials within each start "
-                  "(actor/evaluation/intervals.py). With one seed an interval shows only the spread of the "
+                  "(common/analysis/intervals.py). With one seed an interval shows only the spread of the "
                   "trials; with a few seeds, read it as a guide. Updates lists every run's learner updates, "
                   "in seed order. results.csv has the pooled rows (seed \"all\") and one row per seed.", ""]
     lines += [comparison_markdown(rows, edges, bootstrap.confidence) if rows else "No run has been evaluated yet.", ""]

@@ -24,12 +24,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-from actor.evaluation.report import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
-from common.config import Config, ConfigError, load_config
+from common.analysis.figures import RunCurves
+from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
+from common.config import Config
+from common.config_values import load_config
+from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.comparison import EvaluatedRun
-from replay.log.figures import RunCurves, read_run_curves
 from replay.log.reader import LogError
+from replay.log.run_curves import read_run_curves
 
 CONFIG_TOML = "config.toml"  # evaluate's copy of its config, in evaluation/
 TRAINING_CSV = "training.csv"
@@ -135,7 +138,7 @@ def export_run(run: RunDir, destination: Path) -> Path:
     for name in EVALUATION_FILES:
         if (run.evaluation / name).is_file():
             shutil.copy2(run.evaluation / name, copy.evaluation / name)
-    segments = run.traffic_segments()
+    segments = run.wire_log_segments()
     if segments:
         try:
             write_curves(read_run_curves(segments, folder.name), staging)

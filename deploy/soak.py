@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from common.plotting import finish_figure, pyplot
+from common.analysis.plotting import finish_figure, pyplot
 from common.run_dir import RunDir, RunStatus, StatusError
 
 PARTS = {  # the run folder's parts, by what they are
-    "log": lambda run: run.traffic_segments(),
+    "log": lambda run: run.wire_log_segments(),
     "snapshot": lambda run: [run.replay_snapshot],
     "checkpoints": lambda run: [run.checkpoints],
     "policies": lambda run: [run.policies],

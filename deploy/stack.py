@@ -6,7 +6,7 @@ connect to. This launcher writes everything for the run into its run folder
 (common/run_dir.py), and stops every process on Ctrl-C or when the learner
 reaches its step budget (it exits with code 0). Every second it rewrites the
 run's status file (phase, env steps of the budget, updates, mean return, ETA,
-restarts, pids; RunStatus) and, on a terminal, one live progress line with the
+restarts, pids; RunStatus) and, on a terminal, one live line with the
 same figures.
 
 Any process that dies otherwise is started again after a backoff (RESTART_BACKOFF_S,
@@ -14,7 +14,7 @@ doubled for each death in a row up to RESTART_BACKOFF_MAX_S; a process that live
 STABLE_S starts from the first step again): the replay with --resume (its snapshot
 and counters), the learner with --resume once it has a checkpoint, the recorder
 (into a new numbered log) and actors as they were. The others ride it out: they
-reconnect to a restarted replay on their own. The progress line counts restarts,
+reconnect to a restarted replay on their own. The live line counts restarts,
 and at the end the run's summary file gives env steps, updates and the achieved
 env steps per update of the whole run, from the learner's last metrics, and the
 restarts of each process.
@@ -33,12 +33,16 @@ import threading
 import time
 from collections import deque
 
-from common.config import Config, add_config_arguments, parse_config_or_exit, to_toml
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit
+from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
 from common.eta import Eta
+from common.pacing import updates_paid_for
 from common.run_dir import RunDir, RunStatus
 from common.transport import Keys, free_port, open_session, subscribe
-from common.wire import EpisodeRecord, Stats, stat_number
+from common.wire.messages import EpisodeRecord, Stats
+from common.wire.run_shape import stat_number
 
 STOP_GRACE_S = 20.0
 RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubled for each death in a row
@@ -46,7 +50,7 @@ RESTART_BACKOFF_MAX_S = 30.0
 STABLE_S = 60.0  # a process that lived this long before dying is restarted after RESTART_BACKOFF_S again
 FINAL_METRICS_WAIT_S = 5.0
 STATUS_PERIOD_S = 1.0  # the status file and the live line
-LOGGED_LINE_PERIOD_S = 30.0  # the progress line when stdout is not a terminal
+LOGGED_LINE_PERIOD_S = 30.0  # the live line, logged, when stdout is not a terminal
 ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
 STEP_RATE_WINDOW_S = 60.0  # the line's steps/s: actors held by the rate limiter send episodes in bursts
 
@@ -56,8 +60,8 @@ def default_actor_count() -> int:
     return max(1, (os.cpu_count() or 2) - 1)
 
 
-class Progress:
-    """Collects the system's metrics from Zenoh and renders the live progress line and the status."""
+class StackMonitor:
+    """Collects the system's metrics from Zenoh and renders the live line and the status."""
 
     def __init__(self, total_env_steps: int = 0, clock=time.monotonic, env_steps_per_update: float | None = None
                  ) -> None:
@@ -108,7 +112,7 @@ class Progress:
         if not self.env_steps_per_update or start is None or updates is None:
             return
         if self.eta is None:
-            owed = max(self.total_env_steps - start, 0) / self.env_steps_per_update
+            owed = updates_paid_for(max(self.total_env_steps, start), start, self.env_steps_per_update)
             self.eta = Eta(owed, ETA_WINDOW_S, self._clock)
         self.eta.update(updates)
 
@@ -209,7 +213,7 @@ class Stack:
         client = ["--transport.mode", "client", "--transport.connect", endpoint]
         self.roles: dict[str, Role] = {"replay": Role("replay", "replay.main", [
             "--transport.mode", "router", "--transport.listen", endpoint])}
-        if config.record.enabled:  # the flight recorder writes the run's traffic log
+        if config.record.enabled:  # the flight recorder writes the run's wire log
             curves = ["--tensorboard", str(run.tensorboard)] if tensorboard else []
             self.roles["recorder"] = Role("recorder", "replay.log.cli record", client + curves)
         self.roles["learner"] = Role("learner", "learner.main", client)
@@ -231,24 +235,24 @@ class Stack:
     def pids(self) -> dict[str, int]:
         return {name: process.pid for name, process in self.processes.items() if process.poll() is None}
 
-    def report(self, progress: Progress, phase: str, line: str = "") -> None:
-        """Rewrites the status file (a failure is said once; the run goes on) and prints the progress line:
+    def report(self, monitor: StackMonitor, phase: str, line: str = "") -> None:
+        """Rewrites the status file (a failure is said once; the run goes on) and prints the live line:
         ``line`` "live" rewrites it in place, "logged" prints it on a line of its own, "" not at all."""
         try:
-            progress.status(phase, self.restarts, self.pids).write(self.run.status)
+            monitor.status(phase, self.restarts, self.pids).write(self.run.status)
         except OSError as error:
             if not self.status_failed:
                 print(f"\ncannot write the status file: {error}", file=sys.stderr, flush=True)
             self.status_failed = True
         if line:
-            print("\r" if line == "live" else "", progress.line(sum(self.restarts.values())),
+            print("\r" if line == "live" else "", monitor.line(sum(self.restarts.values())),
                   sep="", end="" if line == "live" else "\n", flush=True)
 
     def start_all(self) -> None:
         for role in self.roles.values():
             self._start(role, first=True)
 
-    def watch(self, stop: threading.Event, progress: Progress) -> int:
+    def watch(self, stop: threading.Event, monitor: StackMonitor) -> int:
         """Returns 0 once the learner has finished (exit code 0); restarts what dies meanwhile."""
         last_report = last_line = 0.0
         terminal = sys.stdout.isatty()
@@ -268,7 +272,7 @@ class Stack:
             if now - last_report >= STATUS_PERIOD_S:
                 # A terminal gets the line rewritten in place; a pipe or file one line per period.
                 line_due = terminal or now - last_line >= LOGGED_LINE_PERIOD_S
-                self.report(progress, "training", "live" if terminal else "logged" if line_due else "")
+                self.report(monitor, "training", "live" if terminal else "logged" if line_due else "")
                 last_report, last_line = now, now if line_due else last_line
             stop.wait(0.2)
         return 0
@@ -369,28 +373,28 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    progress = Progress(config.learner.total_env_steps, env_steps_per_update=config.learner.env_steps_per_update)
+    monitor = StackMonitor(config.learner.total_env_steps, env_steps_per_update=config.learner.env_steps_per_update)
     stack.start_all()
     watcher_config = config.transport
     watcher_config.mode, watcher_config.connect, watcher_config.listen = "client", [endpoint], []
     session = open_session(watcher_config)
     keys = Keys(config.transport.namespace, config.run.name)
-    subscriptions = [subscribe(session, keys.metrics_all, progress.on_metric),
-                     subscribe(session, keys.replay_stats, progress.on_replay_stats)]
+    subscriptions = [subscribe(session, keys.metrics_all, monitor.on_metric),
+                     subscribe(session, keys.replay_stats, monitor.on_replay_stats)]
     try:
-        code = stack.watch(stop, progress)
+        code = stack.watch(stop, monitor)
         if stack.processes["learner"].poll() is not None:
-            progress.learner_final.wait(FINAL_METRICS_WAIT_S)
+            monitor.learner_final.wait(FINAL_METRICS_WAIT_S)
     finally:
-        print("\n" + progress.line(sum(stack.restarts.values())), flush=True)
+        print("\n" + monitor.line(sum(stack.restarts.values())), flush=True)
         print("stopping processes ...", flush=True)
-        stack.report(progress, "stopping")
+        stack.report(monitor, "stopping")
         stack.stop_all()
         for subscription in subscriptions:
             subscription.undeclare()
         session.close()
-    stack.report(progress, "finished" if stack.learner_finished else "stopped")
-    summary = progress.summary(config, stack.restarts)
+    stack.report(monitor, "finished" if stack.learner_finished else "stopped")
+    summary = monitor.summary(config, stack.restarts)
     run.summary.write_text(json.dumps(summary, indent=2) + "\n")
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"

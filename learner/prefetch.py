@@ -9,7 +9,7 @@ import threading
 import time
 from typing import Callable
 
-from common.wire import TraceBatch, TraceBatchRequest
+from common.wire.messages import TraceBatch, TraceBatchRequest
 
 log = logging.getLogger("learner.prefetch")
 

@@ -6,7 +6,7 @@ the learner updates and feeds the exploration strategy (learner/service.py).
 Here it is one loop over env steps built from the same parts, with no copy of
 them: the env of ``actor.sim.make_env``, the D3RQN of common/network.py, the
 episode store of replay/store.py, the learner step of learner/update.py, the
-strategies of common/exploration.py and the evaluation of actor/evaluation/.
+strategies of common/exploration/ and the evaluation of actor/evaluation/.
 Read it to follow the method, run it to check the stack against, and
 benchmark the stack with it (deploy/bench/stack_speed.py).
 
@@ -21,12 +21,13 @@ Each env step:
    inside episodes: Bootstrapped Random Updates);
 3. start: updates start the moment the store holds ``learner.start_episodes``
    episodes (decreasing epsilon: at ``learner.start_steps`` env steps), the
-   replay's rate limiter's rule;
+   replay's rate limiter's rule and start mark (common/pacing.py);
 4. sample and update: one update per ``learner.env_steps_per_update`` env steps
-   since that moment, exactly;
+   since the start mark, exactly;
 5. feed the strategy what the learner feeds it: the env step count (decreasing
    epsilon), Q before and after each update (VDBE), and BMC's returns at the
-   rate of ``exploration.bmc.observations``.
+   rate of ``exploration.bmc.observations``, with the learner's own function
+   (learner/feed.py).
 
 Training ends at an episode end once ``learner.total_env_steps`` steps are
 taken; then the greedy policy is evaluated on the evaluation protocol.
@@ -49,11 +50,14 @@ import torch
 
 from actor.runner import actor_seed
 from actor.sim import make_env
-from common.config import Config, add_config_arguments, parse_config_or_exit, print_config
-from common.exploration import bmc_observation_count, make_strategy, newest_transitions
-from common.strategies import starts_by_steps
-from common.wire import Episode, FrameStack
-from learner.update import DoubleQLearner, TraceBatch as Traces, UpdateResult
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
+from common.exploration.build import make_strategy
+from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of, updates_paid_for
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode
+from learner.feed import feed_strategy
+from learner.update import DoubleQLearner, TraceArrays
 from replay.store import EpisodeStore
 
 
@@ -62,17 +66,17 @@ class LoopResult:
     env_steps: int
     episodes: int
     updates: int
-    start_env_steps: int | None  # env steps when updates started
+    start_env_steps: int | None  # the start mark: env steps when updates started (by steps: start_steps)
     seconds_to_start: float  # wall time of the random phase
     seconds_updating: float  # wall time from the start of updates to the end of training
     mean_return: float  # of the last 100 episodes
     epsilon: float
     loss: float  # of the last update
-    summaries: list | None = None  # the evaluation's rows (actor.evaluation.stats.SetSummary), if evaluated
+    summaries: list | None = None  # the evaluation's rows (common.analysis.stats.SetSummary), if evaluated
 
     @property
     def env_steps_per_update(self) -> float:
-        return (self.env_steps - self.start_env_steps) / self.updates if self.updates else math.nan
+        return achieved_ratio(self.env_steps, self.start_env_steps, self.updates)
 
 
 def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | None = None,
@@ -87,7 +91,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     strategy = make_strategy(config.exploration, config.network.n_actions)
     store = EpisodeStore(config.replay.capacity, int(config.replay.memory_budget_mb * 2**20),
                          learner_config.trace_length, config.replay.seed)
-    start_by_steps = starts_by_steps(config.exploration.strategy, learner_config.start_by)
+    pace = rate_limit_from_config(config)
     log_every = log_period_s if log_period_s is not None else learner_config.log_period_s
     if learner_config.torch_threads:
         torch.set_num_threads(learner_config.torch_threads)
@@ -95,7 +99,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
 
     began = last_log = time.monotonic()
     started_at: float | None = None
-    start_mark: int | None = None  # env steps when updates started
+    start_mark: float | None = None  # env steps when updates started (the rate limiter's start mark)
     acting_version = -1  # the broadcast the acting weights come from; -1: none yet, acts at random
     env_steps = episodes = 0
     returns: deque[float] = deque(maxlen=100)
@@ -137,28 +141,26 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
             returns.append(sum(rewards))
             episode_over = True
 
-        # 3. start (the store counts the steps of the episodes it received, as the replay does)
-        if start_mark is None and len(store) > 0 and (
-                store.env_steps_total >= learner_config.start_steps if start_by_steps
-                else len(store) >= learner_config.start_episodes):
-            start_mark, started_at = env_steps, time.monotonic()
-            strategy.start()
-            acting.load_state_dict(learner.online.state_dict())  # the learner's first broadcast, version 0
-            acting_version = 0
+        # 3. start: the episode just stored may start the updates, by the replay's rate limiter's rule
+        # (common/pacing.py: by episodes, the steps so far are the start mark; by steps, start_steps)
+        if start_mark is None and episode_over:
+            start_mark = start_mark_of(pace, env_steps - len(actions), env_steps, len(store))
+            if start_mark is not None:
+                started_at = time.monotonic()
+                strategy.start()
+                acting.load_state_dict(learner.online.state_dict())  # the learner's first broadcast, version 0
+                acting_version = 0
 
         # 4. sample and update, one update per env_steps_per_update steps since the start
-        while start_mark is not None and learner.updates < (env_steps - start_mark) / learner_config.env_steps_per_update:
+        while start_mark is not None and learner.updates < updates_paid_for(env_steps, start_mark,
+                                                                            pace.env_steps_per_update):
             batch = store.sample(learner_config.batch_size)
-            result = learner.update(Traces(batch.observations_array(), np.asarray(batch.actions),
-                                           np.asarray(batch.rewards), np.asarray(batch.terminated)),
+            result = learner.update(TraceArrays(batch.observations_array(), np.asarray(batch.actions),
+                                                np.asarray(batch.rewards), np.asarray(batch.terminated)),
                                     with_q_after=strategy.needs_q_after)
             # 5. feed the strategy, as learner/service.py does after each update (the learner knows
             # the steps of the episodes the replay has received; here every step taken is known)
-            strategy.on_env_steps(env_steps)
-            if strategy.needs_q_after:
-                strategy.on_update(result.q_before, result.q_after)
-            if strategy.needs_returns:
-                strategy.on_returns(*bmc_returns(result, config))
+            feed_strategy(strategy, result, env_steps, config)
             if learner.updates % learner_config.weights_every == 0:  # broadcast: the acting weights catch up
                 acting.load_state_dict(learner.online.state_dict())
                 acting_version = learner.updates
@@ -176,24 +178,16 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     env.close()
     finished = time.monotonic()
     outcome = LoopResult(
-        env_steps=env_steps, episodes=episodes, updates=learner.updates, start_env_steps=start_mark,
+        env_steps=env_steps, episodes=episodes, updates=learner.updates,
+        start_env_steps=None if start_mark is None else int(start_mark),
         seconds_to_start=(started_at or finished) - began,
         seconds_updating=finished - started_at if started_at is not None else 0.0,
         mean_return=float(np.mean(returns)) if returns else math.nan, epsilon=float(strategy.epsilon),
         loss=result.loss if result is not None else math.nan)
     if evaluate_at_end:
         from actor.evaluation.protocol import evaluate  # spawns the evaluation's worker processes
-        outcome.summaries = evaluate(config, learner.online_weights(), policies=("greedy",), show_progress=False)[1]
+        outcome.summaries = evaluate(config, learner.online_weights(), policies=("greedy",), show_status=False)[1]
     return outcome
-
-
-def bmc_returns(result: UpdateResult, config: Config) -> tuple[np.ndarray, np.ndarray]:
-    """BMC's observations of one update, at the learner's rate: "per_step" feeds as many transitions as the
-    update's env steps, the newest of each trace first (the authors' rate); "per_transition" every unmasked one."""
-    if config.exploration.bmc.observations == "per_transition":
-        return result.g_greedy, result.g_uniform
-    count = bmc_observation_count(result.update, config.learner.env_steps_per_update)
-    return newest_transitions(result.g_greedy, result.g_uniform, count)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -208,7 +202,7 @@ def main(argv: list[str] | None = None) -> None:
           f"{result.start_env_steps} env steps); random phase {result.seconds_to_start:.1f} s, updating "
           f"{result.seconds_updating:.1f} s; mean return of the last 100 episodes {result.mean_return:.2f}")
     if result.summaries:
-        from actor.evaluation.report import markdown_table
+        from common.analysis.tables import markdown_table
         print(markdown_table(result.summaries, config.evaluation.reward_bins, config.evaluation.confidence))
 
 

@@ -33,18 +33,23 @@ import numpy as np
 import torch
 
 from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy, cpu_model
-from common.config import Config, to_dict
+from common.config import Config
+from common.config_values import to_dict
 from common.eta import clock_time
-from common.exploration import bmc_observation_count, make_strategy, newest_transitions
+from common.exploration.build import make_strategy
 from common.logs import Every
+from common.pacing import achieved_ratio, is_unpaced, updates_paid_for
+from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
 from common.transport import Keys, SharedMemory, publisher, request, serve, subscribe
-from common.wire import (ExplorationState, Rejections, RunShape, Stats, TraceBatch, TraceBatchRequest, Weights,
-                         WireError, check_trace_batch, stat_number)
+from common.wire.errors import WireError
+from common.wire.messages import ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
+from common.wire.run_shape import RunShape, check_trace_batch, stat_number
+from learner.feed import feed_strategy
 from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
-from learner.update import DoubleQLearner, TraceBatch as Traces, TraceTensors
+from learner.update import DoubleQLearner, TraceArrays, TraceTensors
 
 log = logging.getLogger("learner")
 
@@ -89,19 +94,17 @@ class RunClock:
     def updates_due(self) -> float | None:
         if self.start_env_steps is None:
             return None
-        return (self.env_steps - self.start_env_steps) / self.env_steps_per_update
+        return updates_paid_for(self.env_steps, self.start_env_steps, self.env_steps_per_update)
 
     def env_steps_per_update_achieved(self, updates: int) -> float:
-        if self.start_env_steps is None or updates <= 0:
-            return math.nan
-        return (self.env_steps - self.start_env_steps) / updates
+        return achieved_ratio(self.env_steps, self.start_env_steps, updates)
 
     def finished(self, updates: int, total_env_steps: int) -> bool:
         """The run is closed and its steps paid for (updates >= due). An unpaced run (B at least the updates
         the whole budget pays for: nobody is ever held) ends once closed, at the budget."""
         if not self.closed or self.env_steps < total_env_steps:
             return False
-        if self.error_buffer >= total_env_steps / self.env_steps_per_update:
+        if is_unpaced(self.error_buffer, total_env_steps, self.env_steps_per_update):
             return True
         due = self.updates_due()
         return due is not None and updates >= due
@@ -122,7 +125,7 @@ class Admitted:
     """A reply to a trace-batch request once checked: its traces (on the learner's device), or why
     it is refused."""
     batch: object
-    traces: Traces | TraceTensors | None
+    traces: TraceArrays | TraceTensors | None
     error: WireError | None
 
 
@@ -272,7 +275,7 @@ class LearnerProcess:
             observations = batch.observations_array()
         except WireError as error:
             return Admitted(batch, None, error)
-        traces = Traces(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated))
+        traces = TraceArrays(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated))
         if self.stager is None:
             return Admitted(batch, traces, None)
         try:
@@ -301,22 +304,8 @@ class LearnerProcess:
             log.debug("the failed update", exc_info=True)
             return None
         self._failed_in_a_row = 0
-        self.strategy.on_env_steps(self.clock.env_steps)
-        if self.strategy.needs_q_after:
-            self.strategy.on_update(result.q_before, result.q_after)
-        if self.strategy.needs_returns:
-            g_greedy, g_uniform = self.bmc_transitions(result.g_greedy, result.g_uniform)
-            self.strategy.on_returns(g_greedy, g_uniform)
-            self.bmc_observations += np.size(g_greedy)
+        self.bmc_observations += feed_strategy(self.strategy, result, self.clock.env_steps, self.config)
         return result.loss
-
-    def bmc_transitions(self, g_greedy: np.ndarray, g_uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """exploration.bmc.observations: "per_step" feeds one transition per env step (the authors'
-        rate), the newest of each trace first; "per_transition" every unmasked transition."""
-        if self.config.exploration.bmc.observations == "per_transition":
-            return g_greedy, g_uniform
-        count = bmc_observation_count(self.updates, self.config.learner.env_steps_per_update)
-        return newest_transitions(g_greedy, g_uniform, count)
 
     def make_weights(self) -> Weights:
         """The online network's weights as broadcast and served, in learner.weights_encoding; whole
@@ -444,17 +433,17 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
              getattr(batch.batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
              getattr(batch.batch, "episodes_stored", "?"))  # perhaps refused: train_on counts that
     _warn_if_bmc_starves(process)
-    report = Report(process, prefetcher)
+    metrics = LearnerMetrics(process, prefetcher)
 
     def idle() -> None:  # while no batch comes: the learner is ahead, or the actors hold
         if heartbeat.due():
-            outputs.metrics(report.values())
+            outputs.metrics(metrics.values())
             outputs.exploration(process.strategy, force=True)  # a late actor holds until it has the state
     try:
         while batch is not None:
             loss = process.train_on(batch)
             if loss is not None:  # None: the batch was refused or its update failed (counted)
-                report.loss(loss)
+                metrics.loss(loss)
                 outputs.exploration(process.strategy)
                 if broadcasts.due(process.updates):
                     outputs.weights(process.make_weights())
@@ -462,14 +451,14 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                     process.checkpoint()
                 process.keep_policy_if_due()
             if heartbeat.due():
-                outputs.metrics(report.values())
+                outputs.metrics(metrics.values())
             batch = _next_batch(process, prefetcher, stop, idle)
     finally:
         prefetcher.close()
         outputs.weights(process.make_weights())
         path = process.checkpoint()
         process.keep_last_policy()
-        outputs.metrics({**report.values(), "final": 1})
+        outputs.metrics({**metrics.values(), "final": 1})
         log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
                  "checkpoint %s", process.updates, process.clock.env_steps, process.env_steps_per_update(),
                  config.env_steps_per_update, path)
@@ -514,7 +503,7 @@ def _warn_if_bmc_starves(process: LearnerProcess) -> None:
                     config.learner.env_steps_per_update, available)
 
 
-class Report:
+class LearnerMetrics:
     """Running figures for the learner's log line and metrics message."""
 
     def __init__(self, process: LearnerProcess, prefetcher: Prefetcher) -> None:

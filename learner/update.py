@@ -55,7 +55,7 @@ import torch
 
 from common import cpu_capability
 from common.config import LearnerConfig, NetworkConfig
-from common.exploration import greedy_and_uniform_returns
+from common.exploration.bmc import greedy_and_uniform_returns
 from common.network import D3RQN, resolve_device, scale_frames, weights_to_numpy
 from learner.allocator import keep_freed_memory
 
@@ -63,7 +63,7 @@ log = logging.getLogger("learner.update")
 
 
 @dataclass(frozen=True)
-class TraceBatch:
+class TraceArrays:
     """B sampled traces as numpy arrays (what the replay sends)."""
 
     observations: np.ndarray  # uint8 (B, T + 1, height, width, channels): s_0..s_T
@@ -74,7 +74,7 @@ class TraceBatch:
 
 @dataclass(frozen=True)
 class TraceTensors:
-    """A TraceBatch on the learner's device."""
+    """The traces of a TraceArrays on the learner's device."""
 
     observations: torch.Tensor  # uint8 (B, T + 1, H, W, C)
     actions: torch.Tensor  # int64 (B, T)
@@ -173,7 +173,7 @@ def trace_pixels(batch: TraceTensors, network: D3RQN) -> torch.Tensor:
     return scale_frames(batch.observations, network.used_frame_size)
 
 
-def to_tensors(batch: TraceBatch, network: NetworkConfig, trace_length: int, device: torch.device) -> TraceTensors:
+def to_tensors(batch: TraceArrays, network: NetworkConfig, trace_length: int, device: torch.device) -> TraceTensors:
     """Checks a batch against the configured sizes (ValueError naming the field) and moves it to device."""
     return _on_device(checked_arrays(batch, network, trace_length), device)
 
@@ -188,7 +188,7 @@ def _on_device(arrays: tuple[np.ndarray, ...], device: torch.device) -> TraceTen
     )
 
 
-def checked_arrays(batch: TraceBatch, network: NetworkConfig, trace_length: int
+def checked_arrays(batch: TraceArrays, network: NetworkConfig, trace_length: int
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The batch's arrays, observations C-contiguous, once they fit the configured sizes (else a ValueError)."""
     observations = np.asarray(batch.observations)
@@ -244,7 +244,7 @@ class BatchStager:
         self._stream = torch.cuda.Stream(self.device) if self.device.type == "cuda" else None
         self._lock = threading.Lock()  # the prefetcher's workers stage concurrently
 
-    def stage(self, batch: TraceBatch) -> TraceTensors:
+    def stage(self, batch: TraceArrays) -> TraceTensors:
         learner = self.learner
         arrays = checked_arrays(batch, learner.network_config, learner.config.trace_length)
         if self._stream is None:
@@ -347,7 +347,7 @@ class DoubleQLearner:
             self.loss_function, self.split_passes = UPDATE_PATHS[name]
         self.update_path = name
 
-    def prepare(self, batch: TraceBatch) -> TraceTensors:
+    def prepare(self, batch: TraceArrays) -> TraceTensors:
         """Checks a batch and moves it to the learner's device (the copy-in part of update())."""
         return to_tensors(batch, self.network_config, self.config.trace_length, self.device)
 
@@ -355,7 +355,7 @@ class DoubleQLearner:
         """A BatchStager for this learner: stage(batch) in the prefetch thread, update(staged) in the loop."""
         return BatchStager(self)
 
-    def update(self, batch: TraceBatch | TraceTensors, with_q_after: bool = False) -> UpdateResult:
+    def update(self, batch: TraceArrays | TraceTensors, with_q_after: bool = False) -> UpdateResult:
         """One soft target update and one gradient step; with_q_after adds VDBE's extra forward pass.
 
         `batch` may come prepared (prepare(), or a BatchStager ahead of time).

@@ -43,46 +43,10 @@ held for the learner.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
-from common.strategies import starts_by_steps
+from common.pacing import RateLimit, achieved_ratio, is_unpaced, start_mark_of, updates_paid_for
 
 STATE_VERSION = 1
-
-
-@dataclass(frozen=True)
-class RateLimit:
-    """The limiter's settings, from learner.env_steps_per_update, learner.start_episodes,
-    learner.start_steps, learner.total_env_steps and replay.error_buffer_updates."""
-
-    env_steps_per_update: float
-    start_episodes: int
-    start_steps: int
-    error_buffer: float  # B, in updates
-    total_env_steps: int | None = None  # actors hold for good once this many steps arrived
-    start_by_steps: bool = False  # decreasing epsilon: start at start_steps, not start_episodes
-
-    def __post_init__(self) -> None:
-        if not self.env_steps_per_update > 0:
-            raise ValueError(f"env_steps_per_update must be > 0, got {self.env_steps_per_update}")
-        if self.start_episodes < 1 or self.start_steps < 0:
-            raise ValueError(f"start_episodes must be >= 1 and start_steps >= 0, got "
-                             f"{self.start_episodes} and {self.start_steps}")
-        if not self.error_buffer >= 1:  # Reverb: narrower buffers can block both sides
-            raise ValueError(f"error_buffer must be >= 1 update, got {self.error_buffer}")
-
-
-def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
-    """The RateLimit of a Config; `strategy` (the learner's, when known) picks the start rule."""
-    learner = config.learner
-    return RateLimit(
-        env_steps_per_update=learner.env_steps_per_update,
-        start_episodes=learner.start_episodes,
-        start_steps=learner.start_steps,
-        error_buffer=config.replay.error_buffer_updates,
-        total_env_steps=learner.total_env_steps,
-        start_by_steps=starts_by_steps(strategy or config.exploration.strategy, learner.start_by),
-    )
 
 
 class RateLimiter:
@@ -111,15 +75,8 @@ class RateLimiter:
             self.refill_env_steps += steps
             self.refilling = episodes_stored < self.limit.start_episodes
             return
-        if self.start_mark is not None:
-            return
-        limit = self.limit
-        if limit.start_by_steps:
-            if self.env_steps >= limit.start_steps:
-                # exactly at start_steps: the crossing episode's later steps are owed already
-                self.start_mark = float(max(before, limit.start_steps))
-        elif episodes_stored >= limit.start_episodes:
-            self.start_mark = float(self.env_steps)
+        if self.start_mark is None:
+            self.start_mark = start_mark_of(self.limit, before, self.env_steps, episodes_stored)
 
     def on_served(self) -> None:
         """One trace batch went out (call only after may_serve() said yes)."""
@@ -162,7 +119,7 @@ class RateLimiter:
         """Updates the steps since the start mark pay for (0 in stage 1)."""
         if self.start_mark is None:
             return 0.0
-        return (self.env_steps - self.start_mark) / self.limit.env_steps_per_update
+        return updates_paid_for(self.env_steps, self.start_mark, self.limit.env_steps_per_update)
 
     @property
     def error(self) -> float:
@@ -181,8 +138,7 @@ class RateLimiter:
     @property
     def unpaced(self) -> bool:
         """B holds nobody: at least the updates the whole budget pays for."""
-        total = self.limit.total_env_steps
-        return total is not None and self.limit.error_buffer >= total / self.limit.env_steps_per_update
+        return is_unpaced(self.limit.error_buffer, self.limit.total_env_steps, self.limit.env_steps_per_update)
 
     @property
     def closed(self) -> bool:
@@ -200,9 +156,7 @@ class RateLimiter:
 
     def env_steps_per_update(self) -> float:
         """The achieved ratio since the start mark (nan before the first batch)."""
-        if self.start_mark is None or self.served == 0:
-            return math.nan
-        return (self.env_steps - self.start_mark) / self.served
+        return achieved_ratio(self.env_steps, self.start_mark, self.served)
 
     # --- persistence --------------------------------------------------------------------
 

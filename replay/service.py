@@ -10,7 +10,7 @@ the store and the limiter holds one lock, and held requests are answered by the
 service's reply threads.
 
 Nothing is taken on trust. An episode is stored only if it fits the run
-(common.wire.check_episode: frame shape, every frame decompressed, actions inside
+(common.wire.run_shape.check_episode: frame shape, every frame decompressed, actions inside
 the action space, rewards finite and within replay.reward_limit, no longer than
 env.max_steps) and was not taken before (replay/ledger.py); a request only if it
 asks for what the replay serves, and while fewer than MAX_PENDING requests are
@@ -36,16 +36,19 @@ from collections import deque
 from pathlib import Path
 
 from common.config import Config
-from common.exploration import strategy_from_state
+from common.exploration.build import strategy_from_state
+from common.exploration.names import starts_by_steps
 from common.logs import Every
+from common.pacing import rate_limit_from_config
+from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
-from common.strategies import starts_by_steps
 from common.transport import PendingQuery, RateLimitedLog, publisher, serve_deferred, subscribe
-from common.wire import Episode, ExplorationState, Rejections, RunShape, Stats, TraceBatchRequest, WireError, \
-    check_episode
+from common.wire.errors import WireError
+from common.wire.messages import Episode, ExplorationState, Stats, TraceBatchRequest
+from common.wire.run_shape import RunShape, check_episode
 from replay.ledger import EpisodeLedger
-from replay.rate_limiter import RateLimiter, rate_limit_from_config
+from replay.rate_limiter import RateLimiter
 from replay.snapshot import Restored, SnapshotError, Snapshotter, SnapshotView
 from replay.store import EpisodeStore, full_episodes_fit
 

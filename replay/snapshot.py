@@ -33,7 +33,8 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from common.wire import FrameStack, WireError
+from common.wire.errors import WireError
+from common.wire.frames import FrameStack
 from replay.store import StoredEpisode
 
 log = logging.getLogger("replay.snapshot")

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.wire import Episode, FrameStack, TraceBatch
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, TraceBatch
 
 
 # actions (int64), rewards (float32) and weights versions (int64) of one stored step

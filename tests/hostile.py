@@ -9,10 +9,13 @@ import msgpack
 import numpy as np
 
 from common.config import Config
-from common.exploration import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
-from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, Heartbeat, Message, Stats,
-                         TraceBatch, TraceBatchRequest, Weights, encode)
+from common.wire.codecs import Message
+from common.wire.envelope import encode
+from common.wire.frames import FrameStack
+from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, Heartbeat, Stats, TraceBatch,
+                                  TraceBatchRequest, Weights)
 
 FLOOD_ACTOR = 77  # the actor id of flooded episodes
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from common.config import TransportConfig
 from common.transport import Keys, open_session, subscribe
-from common.wire import Episode, EpisodeRecord, Stats
+from common.wire.messages import Episode, EpisodeRecord, Stats
 from tests.processes import children, free_port, kill_tree
 
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"

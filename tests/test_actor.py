@@ -3,11 +3,11 @@ import threading
 
 import numpy as np
 
-from common.config import load_config
-from common.exploration import exploration_message, make_strategy
-from common.network import D3RQN, weights_to_numpy
-from common.wire import Stats, Weights
 from actor.runner import Actor, Mailbox, actor_seed
+from common.config_values import load_config
+from common.exploration.build import exploration_message, make_strategy
+from common.network import D3RQN, weights_to_numpy
+from common.wire.messages import Stats, Weights
 
 
 def small_config():

@@ -10,10 +10,12 @@ import torch
 from actor.batched_q import BatchedQ
 from actor.runner import Actor, EpisodeGate, HoldLog, Outbox, _drive, actor_seed, env_seed
 from actor.sim import make_env
-from common.config import ConfigError, load_config
-from common.exploration import exploration_message, make_strategy
+from common.config_values import load_config
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
-from common.wire import Episode, Stats, Weights, decode, encode
+from common.options import ConfigError
+from common.wire.envelope import decode, encode
+from common.wire.messages import Episode, Stats, Weights
 from replay.service import ReplayService
 
 

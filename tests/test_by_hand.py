@@ -10,7 +10,7 @@ from pathlib import Path
 
 from common.config import TransportConfig
 from common.transport import Keys, open_session, subscribe
-from common.wire import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from tests.processes import loopback_endpoint, start, stop
 
 README = Path(__file__).resolve().parents[1] / "README.md"

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from common.checkpoint import Checkpoint, CheckpointError, save_checkpoint
-from common.config import load_config, to_dict
+from common.config_values import load_config, to_dict
 from common.run_dir import RunDir
 from learner.update import DoubleQLearner
 

@@ -12,9 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from common.config import TransportConfig, load_config
+from common.config import TransportConfig
+from common.config_values import load_config
 from common.transport import Keys, open_session, subscribe
-from common.wire import Stats
+from common.wire.messages import Stats
 from tests.processes import loopback_endpoint, start, stop
 
 CONFIGS = Path(__file__).resolve().parents[1] / "deploy" / "configs"

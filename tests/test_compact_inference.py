@@ -11,10 +11,11 @@ import actor.batched_q as batched_q_module
 from actor.batched_q import BatchedQ, choose_precision
 from actor.runner import Actor
 from common import cpu_capability
-from common.config import ConfigError, load_config
-from common.exploration import exploration_message, make_strategy
+from common.config_values import load_config
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
-from common.wire import Weights
+from common.options import ConfigError
+from common.wire.messages import Weights
 from tests.cpu_support import needs_bfloat16
 
 SLOTS = 4

@@ -5,11 +5,13 @@ from pathlib import Path
 
 import pytest
 
-from common.config import (
-    BMC_OBSERVATIONS, CAMERAS, STRATEGIES, UPDATE_PATHS, Config, ConfigError, PRESETS, add_config_arguments,
-    config_fields, flat_items, load_config, parse_config_or_exit, parse_flags, to_toml,
-)
-from common.config import _toml_value as to_toml_value
+from common.config import CAMERAS, UPDATE_PATHS, Config
+from common.config_cli import add_config_arguments, parse_config_or_exit, parse_flags
+from common.config_values import config_fields, flat_items, load_config, to_toml, toml_value
+from common.exploration.bmc import BMC_OBSERVATIONS
+from common.exploration.names import STRATEGIES
+from common.options import ConfigError
+from common.presets import PRESETS
 
 
 def test_paper_preset_holds_the_reference_values():
@@ -87,7 +89,7 @@ def test_bad_values_name_their_key(key, value, message):
 
 
 def test_a_saved_config_with_retired_pacing_keys_still_loads():
-    from common.config import from_dict, to_dict
+    from common.config_values import from_dict, to_dict
     saved = to_dict(load_config("smoke"))
     saved["learner"]["ratio_tolerance"] = 0.1  # a checkpoint of an earlier version
     saved["actor"]["pace_with_learner"] = True
@@ -207,7 +209,7 @@ def test_help_shows_each_options_doc_unit_choices_and_default(capsys):
         entry = entries[f"--{key}"]
         first_words = " ".join(f.metadata["doc"].split()[:3])
         assert first_words in entry, (key, entry)
-        assert entry.endswith(f"(default: {to_toml_value(defaults[key])})"), (key, entry)
+        assert entry.endswith(f"(default: {toml_value(defaults[key])})"), (key, entry)
         if f.metadata["unit"]:
             assert f"[{f.metadata['unit']}]" in entry, (key, entry)
     assert entries["--exploration.strategy"].startswith("--exploration.strategy {" + ",".join(STRATEGIES) + "}")
@@ -227,7 +229,7 @@ def test_help_lists_the_presets_and_what_each_changes(capsys):
     for name, preset in PRESETS.items():
         assert f"preset {name}: {preset.doc}" in text
         for key, value in preset.items():
-            assert f"{key} = {to_toml_value(value)}" in text
+            assert f"{key} = {toml_value(value)}" in text
 
 
 def test_the_stack_help_follows_its_preset():

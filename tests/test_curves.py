@@ -11,17 +11,20 @@ from pathlib import Path
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from common.config import TransportConfig, load_config
+from common.config import TransportConfig
+from common.config_values import load_config
 from common.transport import Keys, open_session, publisher
-from common.wire import EpisodeRecord, ExplorationState, Message, Stats, encode
+from common.wire.codecs import Message
+from common.wire.envelope import encode
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from deploy.stack import main as stack_main
+from replay.log.arrival import Arrival, peek
 from replay.log.cli import main as log_main
 from replay.log.plot import updates_start
 from replay.log.reader import LogError, LogFile
 from replay.log.recorder import Recorder
 from replay.log.scalars import RETURN_MEAN, read_series
 from replay.log.tensorboard_events import EventsWriter
-from replay.log.traffic import Arrival, peek
 from replay.log.writer import LogWriter
 from tests.processes import loopback_endpoint, start, stop, wait_for
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from actor.evaluation.intervals import Bootstrap
-from actor.evaluation.stats import EvaluationEpisode, episode_cell, summarise
+from common.analysis.intervals import Bootstrap
+from common.analysis.stats import EvaluationEpisode, episode_cell, summarise
 from deploy.comparison import ComparisonRow
 from deploy.differences import (chance_apart, chances_apart, compared_pairs, differences, differences_markdown, lie_apart,
                                 observed_statistics)

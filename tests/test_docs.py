@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from common.config import config_fields
+from common.config_values import config_fields
 from deploy import option_reference
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -10,21 +10,22 @@ import torch
 
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
-from actor.evaluation.progress import Progress, progress_line
-from actor.evaluation.sources import check_weights, checkpoint_config, live_source
-from actor.evaluation.workers import run_jobs
 from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
                                        evaluation_env_config, progress_of, run_lockstep)
-from actor.evaluation.report import bin_labels, markdown_table
-from actor.evaluation.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts,
-                                    summarise, summarise_all)
+from actor.evaluation.sources import check_weights, checkpoint_config, live_source
+from actor.evaluation.status import EvaluationStatus, evaluation_line
+from actor.evaluation.workers import run_jobs
 from actor.sim import make_env
+from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
+                                   summarise_all)
+from common.analysis.tables import bin_labels, markdown_table
 from common.checkpoint import save_checkpoint
-from common.config import TransportConfig, load_config, to_dict
+from common.config import TransportConfig
+from common.config_values import load_config, to_dict
 from common.transport import Keys, open_session, serve
-from tests.processes import loopback_endpoint
-from common.wire import Weights
+from common.wire.messages import Weights
 from learner.update import DoubleQLearner
+from tests.processes import loopback_endpoint
 
 EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]
 
@@ -123,10 +124,10 @@ def test_progress_is_the_last_steps_and_nan_when_not_reported():
     assert math.isnan(progress_of({"collision": False}))
 
 
-def test_progress_line():
-    assert progress_line(30, 120, 600, 10.0) == ("evaluate: 30/120 episodes (25.0%), 3.00 episodes/s, "
-                                                 "60 steps/s, elapsed 0:10, ETA 0:30")
-    assert progress_line(0, 120, 0, 0.0).endswith("ETA ?")
+def test_evaluation_line():
+    assert evaluation_line(30, 120, 600, 10.0) == ("evaluate: 30/120 episodes (25.0%), 3.00 episodes/s, "
+                                                   "60 steps/s, elapsed 0:10, ETA 0:30")
+    assert evaluation_line(0, 120, 0, 0.0).endswith("ETA ?")
 
 
 def test_jobs_cover_every_start_and_trial_with_distinct_seeds():
@@ -202,7 +203,7 @@ def test_starting_an_episode_zeroes_only_its_slot_state(network):
 def test_a_failing_worker_is_an_evaluation_error(small_config):
     jobs = [EpisodeJob("greedy", "test", 0, 0, 0)]  # no weights, so the worker has no greedy policy
     with pytest.raises(EvaluationError, match="no 'greedy' policy"):
-        run_jobs(small_config, None, jobs, Progress(len(jobs), 0.2, stream=None))
+        run_jobs(small_config, None, jobs, EvaluationStatus(len(jobs), 0.2, stream=None))
 
 
 # --- end to end ------------------------------------------------------------------------------------

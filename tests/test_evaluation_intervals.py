@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.stats import trim_mean
 
-from actor.evaluation.intervals import (Bootstrap, Cell, bootstrap_weights, cell_intervals, cell_statistics,
-                                        percentile_interval, profile_band, weighted_iqm)
+from common.analysis.intervals import (Bootstrap, Cell, bootstrap_weights, cell_intervals, cell_statistics,
+                                       percentile_interval, profile_band, weighted_iqm)
 
 REPLICATES = 20_000
 

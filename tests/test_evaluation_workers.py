@@ -16,11 +16,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PARENT = """
 import multiprocessing
 from actor.evaluation.episodes import episode_jobs
-from actor.evaluation.progress import Progress
+from actor.evaluation.status import EvaluationStatus
 from actor.evaluation.workers import run_jobs
-from common.config import load_config
+from common.config_values import load_config
 
-class SayPids(Progress):  # after 20 episodes the workers are driving: say who they are
+class SayPids(EvaluationStatus):  # after 20 episodes the workers are driving: say who they are
     senders = 0
     def add(self, episode):
         super().add(episode)

@@ -15,21 +15,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from actor.evaluation.intervals import Bootstrap
-from actor.evaluation.report import EPISODES_CSV, write_report
-from actor.evaluation.stats import EvaluationEpisode, summarise_all
+from common.analysis.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
+                                     plot_reward_curves, seed_band)
+from common.analysis.intervals import Bootstrap
+from common.analysis.stats import EvaluationEpisode, summarise_all
+from common.analysis.tables import EPISODES_CSV, write_evaluation
 from common.checkpoint import save_checkpoint
-from common.config import load_config, to_toml
+from common.config_values import load_config, to_toml
 from common.run_dir import log_segments
+from common.transport import Keys
+from common.wire.envelope import encode
+from common.wire.messages import EpisodeRecord, Stats
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
 from deploy.performance_profile import plot_performance_profiles
-from common.transport import Keys
-from common.wire import EpisodeRecord, Stats, encode
-from replay.log.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
-                                plot_reward_curves, read_run_curves, seed_band)
+from replay.log.arrival import Arrival, peek
 from replay.log.reader import LogError
-from replay.log.traffic import Arrival, peek
+from replay.log.run_curves import read_run_curves
 from replay.log.writer import LogWriter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -160,8 +162,8 @@ def episode(policy: str, start_set: str, length: int, end: str, bins: tuple[int,
                              actions_digest=f"d{length}", progress_m=progress_m)
 
 
-def write_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4, updates: int | None = None,
-                     progress: bool = False, privileged_length: int | None = None) -> Path:
+def fake_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4, updates: int | None = None,
+                    progress: bool = False, privileged_length: int | None = None) -> Path:
     """Greedy episodes of the given lengths on both sets (a length of 100 reaches the cap, 50 stalls), one
     random each (and one of the privileged driver if given); with progress, each greedy episode drove 0.9 m
     per step."""
@@ -175,12 +177,12 @@ def write_evaluation(directory: Path, greedy_lengths: list[int], random_length: 
         if privileged_length is not None:
             episodes.append(episode("privileged", start_set, privileged_length, "cap", (0, 0, 0, privileged_length)))
     facts = {} if updates is None else {"updates": str(updates)}
-    write_report(directory, episodes, summarise_all(episodes), EDGES, facts, 1, "")
+    write_evaluation(directory, episodes, summarise_all(episodes), EDGES, facts, 1, "")
     return directory
 
 
 def test_episodes_csv_reads_back_as_written(tmp_path):
-    write_evaluation(tmp_path, [100, 50], progress=True)
+    fake_evaluation(tmp_path, [100, 50], progress=True)
     episodes, edges = read_episodes_csv(tmp_path / EPISODES_CSV)
     assert edges == EDGES
     assert episodes[0] == episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0, 90.0)
@@ -190,7 +192,7 @@ def test_episodes_csv_reads_back_as_written(tmp_path):
 
 
 def test_an_episodes_csv_from_before_progress_reads_back_without_it(tmp_path):
-    write_evaluation(tmp_path, [100, 10])
+    fake_evaluation(tmp_path, [100, 10])
     lines = (tmp_path / EPISODES_CSV).read_text().splitlines()
     column = lines[0].split(",").index("progress_m")
     old = "\n".join(",".join(cell for number, cell in enumerate(line.split(",")) if number != column)
@@ -209,10 +211,10 @@ def test_a_file_that_is_not_an_episodes_csv_is_a_comparison_error(tmp_path):
 
 
 def test_seeds_are_pooled_and_the_random_row_comes_once_per_table(tmp_path):
-    runs = [EvaluatedRun("softmax", 1000, write_evaluation(tmp_path / "softmax-s0", [100, 100]), 0, 3500),
-            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s1", [100, 40], random_length=6), 1, 3580),
-            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s0", [100, 20]), 0, 3600),
-            EvaluatedRun("bmc", 2000, write_evaluation(tmp_path / "bmc-b2000", [30, 30]), 0, None)]
+    runs = [EvaluatedRun("softmax", 1000, fake_evaluation(tmp_path / "softmax-s0", [100, 100]), 0, 3500),
+            EvaluatedRun("bmc", 1000, fake_evaluation(tmp_path / "bmc-s1", [100, 40], random_length=6), 1, 3580),
+            EvaluatedRun("bmc", 1000, fake_evaluation(tmp_path / "bmc-s0", [100, 20]), 0, 3600),
+            EvaluatedRun("bmc", 2000, fake_evaluation(tmp_path / "bmc-b2000", [30, 30]), 0, None)]
     rows, edges = comparison_rows(runs, Bootstrap(replicates=4000))
     assert edges == EDGES
     layout = [("bmc", None, 2), ("bmc", 0, 1), ("bmc", 1, 1), ("softmax", None, 1), ("softmax", 0, 1),
@@ -255,9 +257,9 @@ def test_seeds_are_pooled_and_the_random_row_comes_once_per_table(tmp_path):
 
 
 def test_the_privileged_driver_is_a_baseline_row_after_the_random_one(tmp_path):
-    runs = [EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "bmc-s0", [100, 20]), 0, 10),
-            EvaluatedRun("softmax", 1000, write_evaluation(tmp_path / "softmax-s0", [30], privileged_length=100), 0, 10),
-            EvaluatedRun("vdbe", 1000, write_evaluation(tmp_path / "vdbe-s0", [30], privileged_length=7), 0, 10)]
+    runs = [EvaluatedRun("bmc", 1000, fake_evaluation(tmp_path / "bmc-s0", [100, 20]), 0, 10),
+            EvaluatedRun("softmax", 1000, fake_evaluation(tmp_path / "softmax-s0", [30], privileged_length=100), 0, 10),
+            EvaluatedRun("vdbe", 1000, fake_evaluation(tmp_path / "vdbe-s0", [30], privileged_length=7), 0, 10)]
     rows, edges = comparison_rows(runs, Bootstrap(replicates=50))
     train = [row for row in rows if row.start_set == "train"]
     assert [row.strategy for row in train if row.pooled] == ["vdbe", "bmc", "softmax", "random", "privileged"]
@@ -266,14 +268,14 @@ def test_the_privileged_driver_is_a_baseline_row_after_the_random_one(tmp_path):
 
 
 def test_a_runs_headline_gives_its_intervals(tmp_path):
-    write_evaluation(tmp_path, [100, 100])
+    fake_evaluation(tmp_path, [100, 100])
     assert experiments.evaluation_headline(tmp_path / "summary.csv") == (
         "train: mean length 100.0 [100.0, 100.0], CFR 100.0% [100.0, 100.0]; "
         "test: mean length 100.0 [100.0, 100.0], CFR 100.0% [100.0, 100.0]")
 
 
 def test_progress_and_stalls_reach_the_tables(tmp_path):
-    runs = [EvaluatedRun("vdbe", 1000, write_evaluation(tmp_path / "a", [100, 50], progress=True), 0, 10)]
+    runs = [EvaluatedRun("vdbe", 1000, fake_evaluation(tmp_path / "a", [100, 50], progress=True), 0, 10)]
     rows, edges = comparison_rows(runs, Bootstrap(replicates=200))
     s = rows[0].summary
     assert (s.stalled_share, s.cfr, s.mean_progress_m) == (0.5, 0.5, pytest.approx(67.5))
@@ -282,8 +284,8 @@ def test_progress_and_stalls_reach_the_tables(tmp_path):
 
 
 def test_the_performance_profile_is_drawn_from_the_pooled_rows(tmp_path):
-    runs = [EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "s0", [100, 20]), 0, 1),
-            EvaluatedRun("bmc", 1000, write_evaluation(tmp_path / "s1", [100, 40]), 1, 1)]
+    runs = [EvaluatedRun("bmc", 1000, fake_evaluation(tmp_path / "s0", [100, 20]), 0, 1),
+            EvaluatedRun("bmc", 1000, fake_evaluation(tmp_path / "s1", [100, 40]), 1, 1)]
     rows, _ = comparison_rows(runs, Bootstrap(replicates=200))
     plot_performance_profiles(rows, tmp_path / "profile.png", Bootstrap(replicates=200))
     assert_png(tmp_path / "profile.png")
@@ -292,10 +294,10 @@ def test_the_performance_profile_is_drawn_from_the_pooled_rows(tmp_path):
 
 
 def test_evaluations_with_other_reward_bins_are_not_pooled(tmp_path):
-    first = write_evaluation(tmp_path / "a", [100])
+    first = fake_evaluation(tmp_path / "a", [100])
     other = tmp_path / "b"
     episodes = [episode("greedy", "test", 10, "collision", (5, 5))]
-    write_report(other, episodes, summarise_all(episodes), [0.0, 0.5, 1.0], {}, 1, "")
+    write_evaluation(other, episodes, summarise_all(episodes), [0.0, 0.5, 1.0], {}, 1, "")
     with pytest.raises(ComparisonError, match="reward bins"):
         comparison_rows([EvaluatedRun("bmc", 1000, first), EvaluatedRun("vdbe", 1000, other)])
     with pytest.raises(ComparisonError, match="no evaluated runs"):
@@ -318,7 +320,7 @@ def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = Fals
     if env_steps is not None:
         save_checkpoint(run_dir / "checkpoints", {"clock": {"env_steps": env_steps}, "learner": {"updates": 7}})
     if evaluated:
-        write_evaluation(run_dir / "evaluation", [100, 50], updates=updates)
+        fake_evaluation(run_dir / "evaluation", [100, 50], updates=updates)
     return run_dir
 
 

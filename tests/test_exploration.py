@@ -6,13 +6,17 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from common.config import STRATEGIES, BmcConfig, DecreasingEpsilonConfig, ExplorationConfig, MaxBoltzmannConfig
-from common.exploration import (
-    BmcPosterior, DecreasingEpsilonGreedy, EpsilonBmc, MaxBoltzmann, decreasing_epsilon,
-    bmc_observation_count, exploration_message, greedy_and_uniform_returns, make_strategy, newest_transitions,
-    same_strategy, softmax_probabilities, strategy_from_state, student_t_pdf, vdbe_f,
-)
-from common.wire import ExplorationState, decode, encode
+from common.config import ExplorationConfig
+from common.exploration.base import softmax_probabilities
+from common.exploration.bmc import (BmcConfig, BmcPosterior, EpsilonBmc, bmc_observation_count,
+                                    greedy_and_uniform_returns, newest_transitions, student_t_pdf)
+from common.exploration.boltzmann import MaxBoltzmann, MaxBoltzmannConfig
+from common.exploration.build import exploration_message, make_strategy, same_strategy, strategy_from_state
+from common.exploration.epsilon_greedy import DecreasingEpsilonConfig, DecreasingEpsilonGreedy, decreasing_epsilon
+from common.exploration.names import STRATEGIES
+from common.exploration.vdbe import vdbe_f
+from common.wire.envelope import decode, encode
+from common.wire.messages import ExplorationState
 
 N_ACTIONS = 5
 

@@ -10,9 +10,11 @@ import time
 import numpy as np
 import zenoh
 
-from common.config import load_config
-from common.wire import Episode, ExplorationState, RunShape, Stats, TraceBatchRequest, Weights, WireError, \
-    check_episode, decode, encode
+from common.config_values import load_config
+from common.wire.envelope import decode, encode
+from common.wire.errors import WireError
+from common.wire.messages import Episode, ExplorationState, Stats, TraceBatchRequest, Weights
+from common.wire.run_shape import RunShape, check_episode
 from replay.snapshot import Snapshotter
 from tests import hostile
 from tests.stack_run import SMALL, StackRun, episode_digest

@@ -13,13 +13,14 @@ import torch
 from actor.evaluate import build_parser, main
 from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, summary_lines
 from common.checkpoint import CheckpointError, KeptPolicy
-from common.config import ConfigError, from_dict, load_config, to_dict
+from common.config_values import from_dict, load_config, to_dict
 from common.network import D3RQN, load_numpy_weights
+from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.experiments import keep_flags
 from learner.service import LearnerProcess
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
-from tests.test_progress import FakeClock
+from tests.test_status_lines import FakeClock
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -11,12 +11,15 @@ import pytest
 import zstandard
 
 from actor.runner import Actor, Mailbox, Outbox
-from common.config import load_config
-from common.exploration import exploration_message, make_strategy
+from common.config_values import load_config
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
-from common.wire import (Episode, ExplorationState, FrameStack, Rejections, RunShape, Stats, TraceBatch,
-                         TraceBatchRequest, Weights, WireError, check_episode, stat_number)
-from deploy.stack import Progress
+from common.rejections import Rejections
+from common.wire.errors import WireError
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
+from common.wire.run_shape import RunShape, check_episode, stat_number
+from deploy.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerProcess
 from replay.service import MAX_PENDING, ReplayService
@@ -379,18 +382,18 @@ def test_the_outbox_holds_episodes_until_a_replay_listens_and_counts_what_it_dro
     assert outbox.drop_rest() == 1 and outbox.dropped == 1
 
 
-# --- the local stack's progress line ---------------------------------------------------------------
+# --- the local stack's live line ---------------------------------------------------------------
 
-def test_the_progress_line_survives_missing_and_wrongly_typed_values():
-    progress = Progress()
-    progress.on_metric(Stats(source="learner", time=0.0, values={"updates": "many", "epsilon": float("nan"),
-                                                                 "final": "yes"}), "d3rqn/r/metrics/learner/0")
-    progress.on_replay_stats(Stats(source="replay", time=0.0, values={"env_steps_total": -3}), "k")
-    progress.on_replay_stats(Weights(version=0, tensors={}), "k")
-    progress.on_metric(ExplorationState(strategy="x", params={}, epsilon=0.5, kappa=0.0, started=False,
-                                        counters={}, state={}), "k")
-    line = progress.line(restarts=2)
+def test_the_stack_line_survives_missing_and_wrongly_typed_values():
+    monitor = StackMonitor()
+    monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": "many", "epsilon": float("nan"),
+                                                                "final": "yes"}), "d3rqn/r/metrics/learner/0")
+    monitor.on_replay_stats(Stats(source="replay", time=0.0, values={"env_steps_total": -3}), "k")
+    monitor.on_replay_stats(Weights(version=0, tensors={}), "k")
+    monitor.on_metric(ExplorationState(strategy="x", params={}, epsilon=0.5, kappa=0.0, started=False,
+                                       counters={}, state={}), "k")
+    line = monitor.line(restarts=2)
     assert "updates       0" in line and "env steps         0" in line and line.endswith("restarts 2")
-    assert not progress.learner_final.is_set()
-    summary = progress.summary(load_config("smoke"), {"replay": 1})
+    assert not monitor.learner_final.is_set()
+    summary = monitor.summary(load_config("smoke"), {"replay": 1})
     assert summary["updates"] == 0 and summary["restarts"] == {"replay": 1} and not summary["learner_finished"]

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from common.config import load_config
-from common.wire import FrameStack, Stats, TraceBatch
+from common.config_values import load_config
+from common.wire.frames import FrameStack
+from common.wire.messages import Stats, TraceBatch
 from learner.service import LearnerProcess, RunClock
 
 SIZE, STEPS, TRACES, MASK = 36, 4, 3, 2  # 3 traces x 2 unmasked steps: 6 transitions per batch

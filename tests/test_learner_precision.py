@@ -14,7 +14,9 @@ import torch
 
 import learner.update as update_module
 from common import cpu_capability
-from common.config import ConfigError, LearnerConfig, load_config
+from common.config import LearnerConfig
+from common.config_values import load_config
+from common.options import ConfigError
 from learner.update import DoubleQLearner, candidate_paths, choose_learner_precision
 from tests.cpu_support import needs_bfloat16
 from tests.test_update import TINY, flat_parameters, paying_action_margin, random_batch

@@ -5,8 +5,9 @@ import pytest
 import torch
 
 from common.checkpoint import SECTIONS as CHECKPOINT_SECTIONS, CheckpointError, load_checkpoint
-from common.config import load_config
-from common.wire import FrameStack, Stats, TraceBatch
+from common.config_values import load_config
+from common.wire.frames import FrameStack
+from common.wire.messages import Stats, TraceBatch
 from learner.service import LearnerProcess
 
 SIZE, STEPS, TRACES = 36, 4, 3

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from common.config import PRESETS
+from common.presets import PRESETS
 from tests.processes import children, kill_tree, wait_for
 
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"

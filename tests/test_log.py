@@ -17,18 +17,20 @@ import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from common.config import Config, TransportConfig, flat_items, load_config
+from common.analysis.plotting import trailing_mean
+from common.config import Config, TransportConfig
+from common.config_values import flat_items, load_config
 from common.run_dir import next_free_path
 from common.transport import Keys, open_session, publisher, request, subscribe
-from common.wire import (Episode, EpisodeRecord, ExplorationState, FrameStack, Stats, TraceBatch,
-                         TraceBatchRequest, Weights, decode, encode)
+from common.wire.envelope import decode, encode
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, EpisodeRecord, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
+from replay.log.arrival import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.log.cli import main as log_main
 from replay.log.export import collect
-from replay.log.plot import trailing_mean
 from replay.log.reader import LogError, LogFile
 from replay.log.recorder import HandOff, Recorder, WeightsSampler
 from replay.log.recover import recover
-from replay.log.traffic import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.log.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns
 from replay.log.writer import LogWriter
 from tests.processes import loopback_endpoint, start, stop, wait_for

@@ -3,10 +3,12 @@ import pytest
 import torch
 
 import common.network as network_module
-from common.config import ConfigError, NetworkConfig, load_config
+from common.config import NetworkConfig
+from common.config_values import load_config
 from common.network import (
     D3RQN, conv_input_extent, conv_output_shape, load_numpy_weights, resolve_device, scale_frames, weights_to_numpy,
 )
+from common.options import ConfigError
 
 TINY = NetworkConfig(frame_height=36, frame_width=40, lstm_units=8, n_actions=5)
 

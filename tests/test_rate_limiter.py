@@ -4,8 +4,9 @@ import math
 
 import pytest
 
-from common.config import load_config
-from replay.rate_limiter import RateLimit, RateLimiter, rate_limit_from_config
+from common.config_values import load_config
+from common.pacing import RateLimit, rate_limit_from_config
+from replay.rate_limiter import RateLimiter
 
 
 def limiter(per_update=4.0, start_episodes=3, start_steps=100, buffer=2.0, total=None, by_steps=False):

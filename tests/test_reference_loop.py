@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from common.config import STRATEGIES, load_config
-from common.exploration import bmc_observation_count
+from common.config_values import load_config
+from common.exploration.bmc import bmc_observation_count
+from common.exploration.names import STRATEGIES
 from learner import reference_loop
 
 HOOKS = ("start", "act", "on_env_steps", "on_update", "on_returns")
@@ -64,15 +65,19 @@ def test_the_loop_trains_and_feeds_every_hook_of_the_strategy(name, spied):
 
     assert result.env_steps >= BUDGET and result.episodes >= 3
     if name == "decreasing":  # starts at learner.start_steps env steps, the others at start_episodes episodes
-        assert result.start_env_steps >= config.learner.start_steps
+        assert result.start_env_steps == config.learner.start_steps
     else:
         assert result.start_env_steps < config.learner.start_steps
     assert result.updates == math.ceil((result.env_steps - result.start_env_steps) / per_update) >= 8
     assert math.isfinite(result.loss)
 
-    # the actor's side: one start, then the strategy's rule at every step after it
+    # the actor's side: one start, at the end of the episode that set the start mark, then the strategy's
+    # rule at every step after it (by steps, the mark is start_steps, inside that episode)
     assert calls["start"] == 1 and strategy.started
-    assert calls["act"] == result.env_steps - result.start_env_steps
+    if name == "decreasing":
+        assert 0 <= result.env_steps - calls["act"] - result.start_env_steps < config.env.max_steps
+    else:
+        assert calls["act"] == result.env_steps - result.start_env_steps
     # the learner's side, once per update, as learner/service.py calls them
     assert calls["on_env_steps"] == result.updates
     # update k comes at the first step that pays for it, k - 1 periods and one step after the start

@@ -10,9 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from common.config import TransportConfig, load_config
+from common.config import TransportConfig
+from common.config_values import load_config
 from common.transport import Keys, open_session, publisher, request, subscribe
-from common.wire import Episode, FrameStack, Stats, TraceBatch, TraceBatchRequest, encode
+from common.wire.envelope import encode
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, Stats, TraceBatch, TraceBatchRequest
 from replay.service import ReplayService, counters_path
 from tests import processes
 from tests.processes import loopback_endpoint, start, stop

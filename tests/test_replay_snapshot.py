@@ -6,8 +6,9 @@ import threading
 import numpy as np
 import pytest
 
-from common.config import load_config
-from common.wire import Episode, FrameStack
+from common.config_values import load_config
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode
 from replay.service import ReplayService, counters_path, save_counters
 from replay.snapshot import MANIFEST, Snapshotter
 

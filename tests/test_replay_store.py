@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
-from common.wire import Episode, FrameStack, TraceBatch, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode, TraceBatch
 from replay.store import EpisodeStore
 
 FRAME = (6, 8, 3)

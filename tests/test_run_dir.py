@@ -2,7 +2,7 @@
 
 import pytest
 
-from common.config import load_config
+from common.config_values import load_config
 from common.run_dir import RunDir, RunStatus, StatusError, find_checkpoint
 
 
@@ -10,7 +10,7 @@ def test_a_run_folder_comes_from_the_config_and_holds_every_path(tmp_path):
     run = RunDir.of(load_config("smoke", overrides={"run.runs_dir": str(tmp_path), "run.name": "bmc"}))
     assert run.root == tmp_path / "bmc"
     paths = [run.config, run.log("learner"), run.checkpoint, run.replay_counters, run.replay_snapshot,
-             run.traffic, run.evaluation, run.status, run.summary, run.abandoned("20250101-000000")]
+             run.wire_log, run.evaluation, run.status, run.summary, run.abandoned("20250101-000000")]
     assert all(path.is_relative_to(run.root) for path in paths)
     assert len(set(paths)) == len(paths)
     assert run.log("learner").parent == run.logs and run.checkpoint.parent == run.checkpoints
@@ -31,13 +31,13 @@ def test_a_checkpoint_is_found_from_its_file_its_folder_or_its_run(tmp_path):
         == run.checkpoint
 
 
-def test_the_traffic_logs_of_a_run_are_its_numbered_segments_in_order(tmp_path):
+def test_the_wire_logs_of_a_run_are_its_numbered_segments_in_order(tmp_path):
     run = RunDir(tmp_path)
-    assert run.traffic_segments() == []
-    second = run.traffic.with_name(run.traffic.stem + "-2" + run.traffic.suffix)
-    for path in (run.traffic, second):
+    assert run.wire_log_segments() == []
+    second = run.wire_log.with_name(run.wire_log.stem + "-2" + run.wire_log.suffix)
+    for path in (run.wire_log, second):
         path.write_bytes(b"")
-    assert run.traffic_segments() == [run.traffic, second]
+    assert run.wire_log_segments() == [run.wire_log, second]
 
 
 def test_a_status_reads_back_as_written_and_leaves_no_temporary_file(tmp_path):

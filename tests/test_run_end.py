@@ -13,8 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from common.pacing import RateLimit
 from learner.service import RunClock
-from replay.rate_limiter import RateLimit, RateLimiter
+from replay.rate_limiter import RateLimiter
 
 TICK_S = 0.05
 MAX_STEPS = 2_000  # env.max_steps: the cap of the paper's episodes

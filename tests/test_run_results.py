@@ -10,18 +10,18 @@ from pathlib import Path
 
 import pytest
 
+from common.config_values import load_config, to_toml
+from common.run_dir import RunDir
 from deploy import report
 from deploy.run_results import (LEARNER_CSV, TRAINING_CSV, ExportError, collect, export_run, read_exported)
-from common.config import load_config, to_toml
-from common.run_dir import RunDir
-from tests.test_experiments import assert_png, learner_report, make_run, record, write_evaluation, write_log
+from tests.test_experiments import assert_png, fake_evaluation, learner_report, make_run, record, write_log
 
 
 def evaluated_run(root, strategy: str = "bmc", seed: int = 0, lengths=(100, 50), updates: int = 120):
     """A run folder of the smoke preset (capacity 50) with a config, an evaluation, a summary and a log."""
     name = f"{strategy}-b50-s{seed}"
     run = make_run(root / name, 1000, evaluated=True, updates=updates, strategy=strategy, seed=seed)
-    write_evaluation(run / "evaluation", list(lengths), updates=updates)
+    fake_evaluation(run / "evaluation", list(lengths), updates=updates)
     evaluation_config = load_config("smoke", overrides={"exploration.strategy": strategy, "run.seed": seed,
                                                         "evaluation.episodes_per_start": 3})
     (run / "evaluation" / "config.toml").write_text(to_toml(evaluation_config))  # as evaluate writes it
@@ -51,7 +51,7 @@ def test_an_export_holds_the_evaluation_config_summary_and_curves_and_nothing_la
 def test_exporting_again_replaces_the_earlier_export(tmp_path):
     run = evaluated_run(tmp_path / "runs", updates=120)
     export_run(run, tmp_path / "exported")
-    write_evaluation(run.evaluation, [100, 100], updates=300)  # evaluated again after more training
+    fake_evaluation(run.evaluation, [100, 100], updates=300)  # evaluated again after more training
     folder = export_run(run, tmp_path / "exported")
     assert read_exported(folder).updates == 300
     assert [path.name for path in (tmp_path / "exported").iterdir()] == ["bmc-b50-s0"]

@@ -7,7 +7,7 @@ import signal
 
 import pytest
 
-from common.config import load_config
+from common.config_values import load_config
 from common.service import Service
 from tests.processes import loopback_endpoint, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines

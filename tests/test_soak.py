@@ -15,8 +15,8 @@ def test_a_sample_reads_the_processes_memory_and_the_folders_parts(tmp_path):
     run = RunDir(tmp_path / "run")
     run.replay_snapshot.mkdir(parents=True)
     (run.replay_snapshot / "episodes-1").write_bytes(b"x" * 3000)
-    run.traffic.write_bytes(b"y" * 500)
-    run.traffic.with_name("traffic-2.mcap").write_bytes(b"z" * 20)  # a recorder restarted
+    run.wire_log.write_bytes(b"y" * 500)
+    run.wire_log.with_name("traffic-2.mcap").write_bytes(b"z" * 20)  # a recorder restarted
     RunStatus("finished", env_steps=1234, updates=300, restarts={"learner": 2, "replay": 1},
               pids={"learner": os.getpid(), "replay": 2**22 + 17}).write(run.status)
     assert soak.main([str(run.root), "--every", "0.01"]) == 0  # one sample: the stack no longer trains

@@ -9,9 +9,10 @@ from collections import defaultdict
 
 import pytest
 
-from common.config import PRESETS, TransportConfig
+from common.config import TransportConfig
+from common.presets import PRESETS
 from common.transport import Keys, open_session, subscribe
-from common.wire import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from tests.processes import loopback_endpoint, start, stop
 
 DEADLINE_S = 240.0

@@ -1,16 +1,18 @@
-"""The registry of strategy names (common/strategies.py) agrees with the config, the classes and
+"""The registry of strategy names (common/exploration/names.py) agrees with the config, the classes and
 the tables that use it."""
 
 import dataclasses
 
 import pytest
 
+from common.analysis.figures import EPSILON_STRATEGIES
+from common.config import ExplorationConfig
+from common.config_values import load_config
+from common.exploration.build import STRATEGY_CLASSES, make_strategy
+from common.exploration.names import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
+                                      strategy_rank)
+from common.options import ConfigError
 from deploy.comparison import STRATEGY_NAMES
-from common.config import ConfigError, ExplorationConfig, load_config
-from common.exploration import STRATEGY_CLASSES, make_strategy
-from common.strategies import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
-                               strategy_rank)
-from replay.log.figures import EPSILON_STRATEGIES
 
 SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}
 

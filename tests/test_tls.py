@@ -17,11 +17,12 @@ import pytest
 
 from common.access import GRANTS, acl_config
 from common.certs import main as certs_main
-from common.config import ConfigError, TransportConfig, load_config
+from common.config import TransportConfig
+from common.config_values import load_config
+from common.options import ConfigError
 from common.transport import zenoh_config
 from tests.processes import free_port, start, stop, wait_for
-from tests.zenoh_peer import PATH as PEER
-from tests.zenoh_peer import read_lines
+from tests.zenoh_peer import PATH as PEER, read_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "deploy" / "configs"

@@ -14,7 +14,8 @@ from common.transport import (
     Keys, RateLimitedLog, alive_keys, declare_liveliness, open_session, publisher, request, serve, subscribe,
     watch_liveliness, zenoh_config,
 )
-from common.wire import Heartbeat, Stats, TraceBatchRequest, Weights, encode
+from common.wire.envelope import encode
+from common.wire.messages import Heartbeat, Stats, TraceBatchRequest, Weights
 from tests.processes import loopback_endpoint
 from wire_examples import assert_messages_equal, example_messages
 

@@ -10,14 +10,16 @@ from torch import nn
 
 from torch.utils.flop_counter import FlopCounterMode
 
-from common.config import ConfigError, LearnerConfig, NetworkConfig, load_config
-from common.exploration import greedy_and_uniform_returns
+from common.config import LearnerConfig, NetworkConfig
+from common.config_values import load_config
+from common.exploration.bmc import greedy_and_uniform_returns
+from common.options import ConfigError
 from learner.allocator import keep_freed_memory
 from learner.reference_update import paper_reference_loss, same_history_reference_loss
 import learner.update as update_module
 from learner.flops import update_flops
 from learner.update import (
-    DoubleQLearner, TraceBatch, TraceTensors, candidate_paths, choose_update_path, double_q_targets,
+    DoubleQLearner, TraceArrays, TraceTensors, candidate_paths, choose_update_path, double_q_targets,
     masked_squared_error,
     one_pass_loss, to_tensors, trace_pass_loss,
 )
@@ -36,11 +38,11 @@ def one_torch_thread():
 
 
 def random_batch(rng: np.random.Generator, config: NetworkConfig = TINY, batch: int = 10, steps: int = 10,
-                 terminal_last: bool = False) -> TraceBatch:
+                 terminal_last: bool = False) -> TraceArrays:
     frames = (batch, steps + 1, config.frame_height, config.frame_width, config.frame_channels)
     terminated = np.zeros((batch, steps), bool)
     terminated[:, -1] = terminal_last
-    return TraceBatch(
+    return TraceArrays(
         observations=rng.integers(0, 256, frames, dtype=np.uint8),
         actions=rng.integers(0, config.n_actions, (batch, steps)),
         rewards=rng.random((batch, steps)).astype(np.float32),

@@ -7,10 +7,10 @@ import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.wire import (
-    MESSAGE_TYPES, SCHEMA_VERSION, Episode, FrameStack, Heartbeat, Stats, TraceBatch, TraceBatchRequest, Weights, WireError,
-    decode, encode,
-)
+from common.wire.envelope import SCHEMA_VERSION, decode, encode
+from common.wire.errors import WireError
+from common.wire.frames import FrameStack
+from common.wire.messages import MESSAGE_TYPES, Episode, Heartbeat, Stats, TraceBatch, TraceBatchRequest, Weights
 from wire_examples import (
     SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_trace_batch, random_frames,
 )

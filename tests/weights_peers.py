@@ -1,4 +1,4 @@
-"""The two ends of a weights broadcast, each run in a spawned process by tests/test_weights_traffic.py
+"""The two ends of a weights broadcast, each run in a spawned process by tests/test_weights_broadcasts.py
 (a Zenoh session lives only in a fresh interpreter); light imports, so they start fast."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 
 from common.config import TransportConfig
 from common.transport import Keys, SharedMemory, open_session, publisher, subscribe
-from common.wire import Weights
+from common.wire.messages import Weights
 
 KEYS = Keys("d3rqn-test", "shm")
 RECEIVE_TIMEOUT_S = 20.0

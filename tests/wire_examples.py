@@ -6,10 +6,10 @@ import dataclasses
 
 import numpy as np
 
-from common.wire import (
-    Episode, EpisodeRecord, ExplorationState, FrameStack, Heartbeat, Message, Stats, TraceBatch,
-    TraceBatchRequest, Weights,
-)
+from common.wire.codecs import Message
+from common.wire.frames import FrameStack
+from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, Heartbeat, Stats, TraceBatch,
+                                  TraceBatchRequest, Weights)
 
 SMALL_FRAME = (6, 8, 3)
 

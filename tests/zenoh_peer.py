@@ -25,7 +25,8 @@ import threading
 import time
 from pathlib import Path
 
-from common.config import Config, add_config_arguments, parse_config_or_exit
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit
 
 MARKER = b"ROGUE-D3RQN"
 PATH = Path(__file__).resolve()  # run it by path: tests/ is not an installed package
@@ -61,7 +62,7 @@ class Lines:
 
 def watch(config: Config, out: Lines, stop: threading.Event) -> None:
     from common.transport import Keys, open_session, subscribe
-    from common.wire import Episode, EpisodeRecord, Stats
+    from common.wire.messages import Episode, EpisodeRecord, Stats
 
     keys = Keys(config.transport.namespace, config.run.name)
 
@@ -131,7 +132,8 @@ def rogue(config: Config, out: Lines, stop: threading.Event, weights_version: in
 
     from common.network import D3RQN, weights_to_numpy
     from common.transport import Keys, open_session
-    from common.wire import Weights, encode
+    from common.wire.envelope import encode
+    from common.wire.messages import Weights
 
     keys = Keys(config.transport.namespace, config.run.name)
     weights = encode(Weights(version=weights_version, tensors=weights_to_numpy(D3RQN(config.network)),

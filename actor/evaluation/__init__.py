@@ -1,12 +1,12 @@
 """The paper's evaluation protocol for one policy, in the modules named for each part.
 
 episodes (which episodes, the policies, lockstep stepping inside a worker),
-workers (the worker processes), progress (the status line), protocol (policies
+workers (the worker processes), status (the status line), protocol (policies
 x start sets -> episodes and table rows), sources (the weights: a checkpoint or
-the live learner), stats and intervals (the tables' figures), report (the
-files written), curve (the greedy learning curve of the policies a run kept).
-The command line is actor/evaluate.py; the comparison across runs is
-deploy/comparison.py.
+the live learner), curve (the greedy learning curve of the policies a run kept).
+The tables' figures and files (stats, intervals, tables) are in common/analysis/,
+which the comparison across runs (deploy/comparison.py) shares. The command
+line is actor/evaluate.py.
 """
 
 

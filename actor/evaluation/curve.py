@@ -25,13 +25,14 @@ from typing import Callable, Sequence
 
 from actor.evaluation import EvaluationError
 from actor.evaluation.protocol import evaluate
-from actor.evaluation.report import summary_columns
 from actor.evaluation.sources import check_weights, checkpoint_config
-from actor.evaluation.stats import SetSummary
+from common.analysis.plotting import finish_figure, pyplot
+from common.analysis.stats import SetSummary
+from common.analysis.tables import summary_columns
 from common.checkpoint import CheckpointError, KeptPolicy, cpu_model
-from common.config import Config, ConfigError
+from common.config import Config
 from common.eta import Eta, clock_time
-from common.plotting import finish_figure, pyplot
+from common.options import ConfigError
 from common.run_dir import RunDir
 
 CURVE_TRIALS = 5  # trials per start: a curve evaluates many policies, so fewer than a table's 30
@@ -53,7 +54,7 @@ def curve_config(saved: dict, args: argparse.Namespace) -> Config:
 
 
 def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],
-                   nice: int, show_progress: bool = True) -> list[dict] | None:
+                   nice: int, show_status: bool = True) -> list[dict] | None:
     """Evaluates the kept policies the CSV lacks, writing it after each; returns all its rows, or None
     when nothing was added (nothing new, or every new file skipped)."""
     kept = run.kept_policies()
@@ -70,7 +71,7 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
     eta, added = Eta(len(todo)), 0
     eta.update(0)
     for number, (updates, file) in enumerate(todo, 1):
-        new = policy_rows(file, updates, start_sets, configure, nice, show_progress)
+        new = policy_rows(file, updates, start_sets, configure, nice, show_status)
         if new:
             rows = write_curve(path, rows + new)
             added += 1
@@ -84,7 +85,7 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
 
 
 def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: Callable[[dict], Config],
-                nice: int, show_progress: bool) -> list[dict]:
+                nice: int, show_status: bool) -> list[dict]:
     """The curve's rows of one kept policy; none, with a log line, when the file cannot be used."""
     try:
         policy = KeptPolicy.load(file)
@@ -96,7 +97,7 @@ def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: 
     except (CheckpointError, ConfigError, EvaluationError) as error:
         log.warning("skipped %s: %s", file, error)
         return []
-    _, summaries = evaluate(config, weights, ["greedy"], start_sets, show_progress)
+    _, summaries = evaluate(config, weights, ["greedy"], start_sets, show_status)
     return [curve_row(policy, summary, config.evaluation.reward_bins, nice) for summary in summaries]
 
 

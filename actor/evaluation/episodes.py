@@ -28,9 +28,9 @@ import numpy as np
 import torch
 
 from actor.batched_q import BatchedQ
-from actor.evaluation.stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
 from actor.sim import START_SETS, make_env, start_poses
 from actor.sim.privileged import PrivilegedDriver
+from common.analysis.stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
 from common.config import Config, EnvConfig
 from common.network import D3RQN, load_numpy_weights
 

@@ -9,16 +9,16 @@ import numpy as np
 
 from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import episode_jobs
-from actor.evaluation.intervals import Bootstrap
-from actor.evaluation.progress import Progress
-from actor.evaluation.stats import EvaluationEpisode, SetSummary, summarise_all
+from actor.evaluation.status import EvaluationStatus
 from actor.evaluation.workers import run_jobs
 from actor.sim import START_SETS
+from common.analysis.intervals import bootstrap_of
+from common.analysis.stats import EvaluationEpisode, SetSummary, summarise_all
 from common.config import Config
 
 
 def evaluate(config: Config, weights: dict[str, np.ndarray] | None, policies: Sequence[str] = ("greedy", "random"),
-             start_sets: Sequence[str] = START_SETS, show_progress: bool = True
+             start_sets: Sequence[str] = START_SETS, show_status: bool = True
              ) -> tuple[list[EvaluationEpisode], list[SetSummary]]:
     """Runs the protocol for each policy on each start set; returns the episodes and one summary row per pair."""
     edges = config.evaluation.reward_bins
@@ -27,12 +27,6 @@ def evaluate(config: Config, weights: dict[str, np.ndarray] | None, policies: Se
     if "greedy" in policies and weights is None:
         raise EvaluationError("the greedy policy needs weights")
     jobs = episode_jobs(policies, start_sets, config.evaluation.episodes_per_start, config.evaluation.seed)
-    progress = Progress(len(jobs), config.evaluation.progress_period_s, sys.stderr if show_progress else None)
-    episodes = run_jobs(config, weights, jobs, progress)
+    status = EvaluationStatus(len(jobs), config.evaluation.progress_period_s, sys.stderr if show_status else None)
+    episodes = run_jobs(config, weights, jobs, status)
     return episodes, summarise_all(episodes, bootstrap_of(config))
-
-
-def bootstrap_of(config: Config) -> Bootstrap:
-    """The intervals' settings; the bootstrap draws from evaluation.seed, so a table is reproducible."""
-    evaluation = config.evaluation
-    return Bootstrap(evaluation.bootstrap_replicates, evaluation.confidence, evaluation.seed)

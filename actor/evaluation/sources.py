@@ -11,12 +11,15 @@ from typing import Any
 import numpy as np
 
 from actor.evaluation import EvaluationError
-from common.config import Config, config_from_args, from_dict
-from common.network import D3RQN, load_numpy_weights
-from common.transport import Keys, open_session, request
-from common.wire import Weights, WireError
 from common.checkpoint import Checkpoint
+from common.config import Config
+from common.config_cli import config_from_args
+from common.config_values import from_dict
+from common.network import D3RQN, load_numpy_weights
 from common.run_dir import RunDir
+from common.transport import Keys, open_session, request
+from common.wire.errors import WireError
+from common.wire.messages import Weights
 
 LIVE_RETRY_S = 0.2
 

@@ -11,8 +11,8 @@ import numpy as np
 
 from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import EpisodeJob, WorkerDone, WorkerFailed, evaluation_worker
-from actor.evaluation.progress import Progress
-from actor.evaluation.stats import EvaluationEpisode
+from actor.evaluation.status import EvaluationStatus
+from common.analysis.stats import EvaluationEpisode
 from common.config import Config
 
 WORKER_EXIT_TIMEOUT_S = 10.0
@@ -23,7 +23,7 @@ def torch_threads_per_worker(workers: int) -> int:
 
 
 def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequence[EpisodeJob],
-             progress: Progress) -> list[EvaluationEpisode]:
+             status: EvaluationStatus) -> list[EvaluationEpisode]:
     """Runs the jobs on min(workers, jobs) spawned processes; the episodes come back in job order."""
     context = multiprocessing.get_context("spawn")
     job_queue, result_queue = context.Queue(), context.Queue()
@@ -39,7 +39,7 @@ def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequen
     for worker in workers:
         worker.start()
     try:
-        episodes = _collect(result_queue, workers, progress)
+        episodes = _collect(result_queue, workers, status)
     finally:
         for worker in workers:
             worker.join(WORKER_EXIT_TIMEOUT_S)
@@ -53,24 +53,24 @@ def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequen
     return episodes
 
 
-def _collect(result_queue, workers: list, progress: Progress) -> list[EvaluationEpisode]:
+def _collect(result_queue, workers: list, status: EvaluationStatus) -> list[EvaluationEpisode]:
     episodes: list[EvaluationEpisode] = []
     finished: set[int] = set()
     while len(finished) < len(workers):
         try:
-            item = result_queue.get(timeout=progress.period_s)
+            item = result_queue.get(timeout=status.period_s)
         except queue.Empty:
             crashed = [worker.name for worker in workers if worker.exitcode not in (None, 0)]
             if crashed:
                 raise EvaluationError(f"worker(s) {', '.join(crashed)} died without a report") from None
-            progress.tick()
+            status.tick()
             continue
         if isinstance(item, EvaluationEpisode):
             episodes.append(item)
-            progress.add(item)
+            status.add(item)
         elif isinstance(item, WorkerDone):
             finished.add(item.worker_id)
         elif isinstance(item, WorkerFailed):
             raise EvaluationError(f"worker {item.worker_id} failed:\n{item.error}")
-    progress.show(final=True)
+    status.show(final=True)
     return episodes

@@ -41,14 +41,15 @@ from highway_env.envs.common.observation import ObservationType, observation_fac
 
 from actor.sim import layout
 from actor.sim.camera import FRAME_SHAPE, TopDownCamera
+from actor.sim.front_camera import PerspectiveCamera
 from actor.sim.geometry import Obstacles
 from actor.sim.neighbourhood import Pose, neighbourhood
 from actor.sim.progress import ProgressMeter
 from actor.sim.road import LaneLocator, neighbourhood_road
 from actor.sim.vehicles import EgoVehicle
-from actor.sim.front_camera import PerspectiveCamera
 from actor.sim.world_image import ground_image, world_image
-from common.config import ConfigError, EnvConfig
+from common.config import EnvConfig
+from common.options import ConfigError
 
 STEERING_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)  # times the maximum angle; positive turns right
 START_SETS = ("train", "test")

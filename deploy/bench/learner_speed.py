@@ -33,13 +33,14 @@ from typing import Callable
 import numpy as np
 import torch
 
-from common.config import Config, add_config_arguments, parse_config_or_exit
+from common.config import Config
+from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device, scale_frames
-from common.wire import FrameStack
+from common.wire.frames import FrameStack
 from learner.flops import conv_features, conv_multiply_adds, update_flops
 from learner.reference_update import paper_reference_loss
-from learner.update import DoubleQLearner, TraceBatch, candidate_paths, one_pass_terms, trace_pass_loss
+from learner.update import DoubleQLearner, TraceArrays, candidate_paths, one_pass_terms, trace_pass_loss
 
 @dataclasses.dataclass(frozen=True)
 class Variant:
@@ -71,16 +72,16 @@ DEFAULT_VARIANTS = "today,new,split,ahead,new+vdbe,paper,new-bf16,split-bf16"
 class Runner:
     """Runs one variant's updates on the wire batch, decoding it inline or staging it ahead on a thread."""
 
-    def __init__(self, variant: Variant, learner: DoubleQLearner, wire_frames: FrameStack, batch: TraceBatch) -> None:
+    def __init__(self, variant: Variant, learner: DoubleQLearner, wire_frames: FrameStack, batch: TraceArrays) -> None:
         self.variant, self.learner = variant, learner
         self.wire_frames, self.batch = wire_frames, batch
         self.stager = learner.stager()
         self.thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage") if variant.ahead else None
         self.pending = None
 
-    def decoded(self) -> TraceBatch:
+    def decoded(self) -> TraceArrays:
         observations = self.wire_frames.decode().reshape(self.batch.observations.shape)
-        return TraceBatch(observations, self.batch.actions, self.batch.rewards, self.batch.terminated)
+        return TraceArrays(observations, self.batch.actions, self.batch.rewards, self.batch.terminated)
 
     def staged(self):
         return self.stager.stage(self.decoded())
@@ -134,7 +135,7 @@ class Clock:
         return (self() - started) / repeat
 
 
-def random_batch(config: Config, seed: int = 0) -> TraceBatch:
+def random_batch(config: Config, seed: int = 0) -> TraceArrays:
     """Blocky random frames (8 x 8 pixel tiles), which compress about as well as camera frames do."""
     rng = np.random.default_rng(seed)
     net, learner = config.network, config.learner
@@ -142,8 +143,8 @@ def random_batch(config: Config, seed: int = 0) -> TraceBatch:
     tiles = rng.integers(0, 256, (*steps[:1], learner.trace_length + 1, net.frame_height // 8 + 1,
                                   net.frame_width // 8 + 1, net.frame_channels), dtype=np.uint8)
     frames = tiles.repeat(8, axis=2).repeat(8, axis=3)[:, :, :net.frame_height, :net.frame_width]
-    return TraceBatch(observations=np.ascontiguousarray(frames), actions=rng.integers(0, net.n_actions, steps),
-                      rewards=rng.random(steps).astype(np.float32), terminated=np.zeros(steps, bool))
+    return TraceArrays(observations=np.ascontiguousarray(frames), actions=rng.integers(0, net.n_actions, steps),
+                       rewards=rng.random(steps).astype(np.float32), terminated=np.zeros(steps, bool))
 
 
 # --- the peak -------------------------------------------------------------------------------
@@ -241,13 +242,13 @@ class PhaseTimer:
         self._last = now
 
 
-def staged_update(learner: DoubleQLearner, wire_frames: FrameStack, batch: TraceBatch, clock: Clock,
+def staged_update(learner: DoubleQLearner, wire_frames: FrameStack, batch: TraceArrays, clock: Clock,
                   with_q_after: bool) -> dict[str, float]:
     """learner.update(batch) step by step, timing each phase; the same arithmetic in the same order."""
     timer = PhaseTimer(clock)
     observations = wire_frames.decode().reshape(batch.observations.shape)
     timer.mark("frame decode (wire)")
-    tensors = learner.prepare(TraceBatch(observations, batch.actions, batch.rewards, batch.terminated))
+    tensors = learner.prepare(TraceArrays(observations, batch.actions, batch.rewards, batch.terminated))
     timer.mark("copy-in and checks")
     traces, steps = batch.actions.shape
     gamma, n_mask = learner.config.gamma, learner.config.n_mask

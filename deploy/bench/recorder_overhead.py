@@ -24,11 +24,12 @@ import tempfile
 import threading
 from pathlib import Path
 
-from common.cpu_capability import describe_cpu
 from common.config import TransportConfig
+from common.cpu_capability import describe_cpu
 from common.run_dir import RunDir
 from common.transport import Keys, free_port, loopback_endpoint, open_session, subscribe
-from common.wire import EpisodeRecord, Stats, decode
+from common.wire.envelope import decode
+from common.wire.messages import EpisodeRecord, Stats
 from replay.log.reader import LogFile
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -95,7 +96,7 @@ def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[s
                   "random": rate(samples, 1, watch.network_from) if watch.network_from > 0 else float("nan"),
                   "updates_per_s": statistics.mean(watch.updates_per_s) if watch.updates_per_s else float("nan")}
     if record:
-        result.update(log_sizes(RunDir(runs_dir / name).traffic, name))
+        result.update(log_sizes(RunDir(runs_dir / name).wire_log, name))
     return result
 
 

@@ -27,9 +27,11 @@ from pathlib import Path
 import numpy as np
 
 from actor.sim import make_env
+from common.config_values import load_config
 from common.cpu_capability import describe_cpu
-from common.config import load_config
-from common.wire import Episode, FrameStack, check_episode
+from common.wire.frames import FrameStack
+from common.wire.messages import Episode
+from common.wire.run_shape import check_episode
 from replay.service import ReplayService
 
 

@@ -28,12 +28,14 @@ import numpy as np
 import torch
 
 from actor.runner import Actor
+from common.config import Config, TransportConfig
+from common.config_cli import add_config_arguments, parse_config_or_exit
+from common.config_values import to_toml
 from common.cpu_capability import describe_cpu
-from common.config import Config, TransportConfig, add_config_arguments, parse_config_or_exit, to_toml
 from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
-from common.wire import Stats, TraceBatch, TraceBatchRequest
+from common.wire.messages import Stats, TraceBatch, TraceBatchRequest
 from learner.reference_loop import train
-from learner.update import DoubleQLearner, TraceBatch as Traces
+from learner.update import DoubleQLearner, TraceArrays
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -54,8 +56,8 @@ def time_update_paths(config: Config) -> None:
     shape = (learner_config.batch_size, learner_config.trace_length + 1, network.frame_height, network.frame_width,
              network.frame_channels)
     steps = shape[:1] + (learner_config.trace_length,)
-    DoubleQLearner(network, learner_config).update(Traces(np.zeros(shape, np.uint8), np.zeros(steps, np.int64),
-                                                          np.zeros(steps, np.float32), np.zeros(steps, bool)))
+    DoubleQLearner(network, learner_config).update(TraceArrays(np.zeros(shape, np.uint8), np.zeros(steps, np.int64),
+                                                               np.zeros(steps, np.float32), np.zeros(steps, bool)))
 
 
 def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, float]:

@@ -1,4 +1,4 @@
-"""Weights traffic at the paper's sizes (~48.6 MB of float32): encodings, shared memory, subscribers.
+"""Weights messages at the paper's sizes (~48.6 MB of float32): encodings, shared memory, subscribers.
 
 In one run, side by side:
   * encode and decode (with the finite check, then widened to float32 as an actor does) per encoding;
@@ -28,7 +28,9 @@ from common.cpu_capability import describe_cpu
 from common.config import NetworkConfig, TransportConfig
 from common.transport import (Keys, SharedMemory, loopback_endpoint, open_session, publisher, request, serve,
                               subscribe)
-from common.wire import WEIGHTS_ENCODINGS, Weights, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.messages import Weights
+from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 from wire_sizes import d3rqn_tensors
 
 TIMEOUT_S = 60.0

@@ -25,11 +25,14 @@ import torch
 from actor.batched_q import BatchedQ
 from actor.sim import make_env
 from actor.sim.privileged import PrivilegedDriver
-from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.checkpoint import Checkpoint
-from common.config import Config, EnvConfig, NetworkConfig, from_dict
+from common.config import Config, EnvConfig, NetworkConfig
+from common.config_values import from_dict
+from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
-from common.wire import WEIGHTS_ENCODINGS, Weights, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.messages import Weights
+from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 
 BFLOAT16_PASS = "bf16 pass"  # float32 weights, the actor's bfloat16 forward pass
 VARIANTS = tuple(encoding for encoding in WEIGHTS_ENCODINGS if encoding != "float32") + (BFLOAT16_PASS,)

@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
-from common.cpu_capability import describe_cpu
 from common.config import NetworkConfig
-from common.wire import (
-    Episode, EpisodeRecord, ExplorationState, FrameStack, Heartbeat, Stats, TraceBatch,
-    TraceBatchRequest, Weights, ZSTD_LEVEL, decode, encode,
-)
+from common.cpu_capability import describe_cpu
+from common.wire.envelope import decode, encode
+from common.wire.frames import ZSTD_LEVEL, FrameStack
+from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, Heartbeat, Stats, TraceBatch,
+                                  TraceBatchRequest, Weights)
 
 
 def synthetic_frames(count: int, height: int, width: int, noise: float, seed: int = 0) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The flight recorder and its log tools: a run's Zenoh traffic in one MCAP file.
+"""The flight recorder and its log tools: a run's Zenoh messages in one MCAP file.
 
 ``recorder`` writes the file while the system runs, ``reader`` and ``recover`` read
 it back (also after a crash), ``play`` puts it back on Zenoh, ``export`` and ``plot``

@@ -1,4 +1,4 @@
-"""`d3rqn-log`: record a run's traffic into an MCAP log, and inspect, replay, export, plot or recover logs.
+"""`d3rqn-log`: record a run's messages into an MCAP log, and inspect, replay, export, plot or recover logs.
 
     d3rqn-log record --config runs/R/config.toml --transport.mode client --transport.connect tcp/127.0.0.1:7447
     d3rqn-log info runs/R/traffic.mcap
@@ -20,7 +20,7 @@ import datetime
 import sys
 from pathlib import Path
 
-from common.config import add_config_arguments, parse_config_or_exit, parse_flags
+from common.config_cli import add_config_arguments, parse_config_or_exit, parse_flags
 
 PROG = "d3rqn-log"
 AXES = ("env_steps", "episodes")  # plot --x: the fields of replay.log.scalars.Point
@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    record = commands.add_parser("record", help="record a run's traffic until stopped (SIGINT/SIGTERM)",
+    record = commands.add_parser("record", help="record a run's messages until stopped (SIGINT/SIGTERM)",
                                  description="Subscribes to <namespace>/<run>/** and writes every message into one "
                                              "MCAP file (record.* settings: weights sampling, flushes, views).")
     record.add_argument("--output", type=Path, default=None,
@@ -112,9 +112,9 @@ def _record(args, config) -> int:
 
 
 def _info(args, config) -> None:
-    from common.wire import EpisodeRecord
+    from common.wire.messages import EpisodeRecord
     from replay.log.reader import LogFile
-    from replay.log.traffic import peek
+    from replay.log.arrival import peek
 
     with LogFile(args.log, unfinished_ok=True) as log:
         keys = log.keys()

@@ -17,9 +17,9 @@ import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.wire import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from replay.log.arrival import relative_key
 from replay.log.reader import LogFile
-from replay.log.traffic import relative_key
 from replay.log.views import ViewMaker, json_safe, message_view
 from replay.log.writer import LogWriter
 

@@ -13,12 +13,10 @@ which the replay served the first batch, or the episodes recorded by then.
 from __future__ import annotations
 
 import bisect
-import math
 from pathlib import Path
 
-import numpy as np
-
-from replay.log.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, RETURN_MEAN, RETURN_WINDOW, UPDATES_START, Series
+from common.analysis.plotting import RETURN_WINDOW
+from replay.log.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, RETURN_MEAN, UPDATES_START, Series
 
 PANELS = (  # tag, title, y label, colour, the paper's x axis
     (RETURN_MEAN, f"mean return of the last {RETURN_WINDOW} episodes", "return", "tab:blue", "episodes"),
@@ -27,25 +25,6 @@ PANELS = (  # tag, title, y label, colour, the paper's x axis
     (LOSS_ABS_DIFF, "|Δloss|", "|Δloss|", "tab:red", "updates"),
 )
 PLOTTED = frozenset(tag for tag, *_ in PANELS) | {UPDATES_START}
-
-
-def trailing_mean(values: list[float], window: int) -> np.ndarray:
-    """Mean of the last `window` values at each position (fewer at the start)."""
-    sums = np.cumsum(np.asarray(values, dtype=np.float64))
-    counts = np.minimum(np.arange(1, len(values) + 1), window)
-    earlier = np.concatenate([np.zeros(window), sums])[: len(values)]
-    return (sums - earlier) / counts
-
-
-def finite_series(rows: list[dict], x_name: str, y_name: str) -> tuple[list[float], list[float]]:
-    """(x, y) pairs of rows where both are finite numbers."""
-    pairs = [(row.get(x_name), row.get(y_name)) for row in rows]
-    kept = [(x, y) for x, y in pairs if _finite(x) and _finite(y)]
-    return [x for x, _ in kept], [y for _, y in kept]
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def updates_start(series: Series) -> dict[str, float] | None:

@@ -28,10 +28,14 @@ from mcap.records import Channel, Chunk, ChunkIndex, MetadataIndex, Schema, Stat
 from mcap.stream_reader import MAGIC_SIZE, breakup_chunk
 from mcap.summary import Summary
 
-from common.config import Config, ConfigError, from_dict
+from common.config import Config
+from common.config_values import from_dict
+from common.options import ConfigError
 from common.transport import Keys
-from common.wire import Message, WireError, decode
-from replay.log.traffic import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING
+from common.wire.codecs import Message
+from common.wire.envelope import decode
+from common.wire.errors import WireError
+from replay.log.arrival import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 # What the mcap library raises on damaged input: its own errors and those of struct, zstd and plain Python.
@@ -48,7 +52,7 @@ class LogError(Exception):
 @dataclass(frozen=True)
 class Record:
     topic: str
-    encoding: str  # "msgpack" for wire traffic, "json" for views
+    encoding: str  # "msgpack" for wire messages, "json" for views
     message_type: str  # the wire type from the channel metadata, or the view's schema name
     data: bytes
     log_ns: int

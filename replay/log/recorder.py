@@ -33,9 +33,9 @@ from common.config import Config, RecorderConfig
 from common.run_dir import RunDir, next_free_path
 from common.service import Service
 from common.transport import Declared, RateLimitedLog, publisher
-from common.wire import Stats, Weights
+from common.wire.messages import Stats, Weights
+from replay.log.arrival import Arrival, Peek, peek
 from replay.log.tensorboard_events import EventsWriter
-from replay.log.traffic import Arrival, Peek, peek
 from replay.log.views import ViewMaker
 from replay.log.writer import MEGABYTE, LogWriter
 
@@ -232,8 +232,8 @@ class Recorder:
 
 
 def default_log_path(config: Config) -> Path:
-    """The run's traffic log; a recorder never overwrites one (next_free_path numbers the next)."""
-    return RunDir.of(config).traffic
+    """The run's wire log; a recorder never overwrites one (next_free_path numbers the next)."""
+    return RunDir.of(config).wire_log
 
 
 def run_recorder(config: Config, output: Path | None = None, tensorboard: Path | None = None) -> int:

@@ -28,13 +28,15 @@ from __future__ import annotations
 from collections import deque
 from typing import Collection, NamedTuple
 
-from common.wire import EpisodeRecord, ExplorationState, Message, Stats, stat_number
+from common.analysis.plotting import RETURN_WINDOW
+from common.wire.codecs import Message
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from common.wire.run_shape import stat_number
+from replay.log.arrival import relative_key
 from replay.log.reader import LogFile
-from replay.log.traffic import relative_key
 
 CURVE_TYPES = (EpisodeRecord, Stats, ExplorationState)
 CURVE_TYPE_NAMES = frozenset(cls.__name__ for cls in CURVE_TYPES)
-RETURN_WINDOW = 100  # episodes, the paper's "average reward per 100 episodes"
 ENV_STEP_VALUES = ("env_steps", "env_steps_total")  # Stats values that count the run's env steps
 METRICS_PREFIX = "metrics/"
 LEARNER_KEY = "metrics/learner/0"  # the learner's Stats, below the run

@@ -16,7 +16,9 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
-from common.wire import Message, WireError, decode
+from common.wire.codecs import Message
+from common.wire.envelope import decode
+from common.wire.errors import WireError
 from replay.log.reader import LogFile
 from replay.log.scalars import CURVE_TYPE_NAMES, CURVE_TYPES, Curves, Point
 

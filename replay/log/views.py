@@ -25,9 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from common.wire import (Episode, EpisodeRecord, ExplorationState, Flag, Integer, Message, NumberDict, PlainDict,
-                         Real, Stats, Text, WireError, decode)
-from replay.log.traffic import relative_key
+from common.wire.codecs import Flag, Integer, Message, NumberDict, PlainDict, Real, Text
+from common.wire.envelope import decode
+from common.wire.errors import WireError
+from common.wire.messages import Episode, EpisodeRecord, ExplorationState, Stats
+from replay.log.arrival import relative_key
 
 VIEW_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"

@@ -15,9 +15,9 @@ from pathlib import Path
 from mcap.well_known import SchemaEncoding
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
-from common.config import Config, to_toml
-from replay.log.traffic import (CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING, Arrival, Peek,
-                                publish_time_ns)
+from common.config import Config
+from common.config_values import to_toml
+from replay.log.arrival import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING, Arrival, Peek, publish_time_ns
 from replay.log.views import VIEW_ENCODING, View, ViewMaker
 
 MEGABYTE = 1 << 20

@@ -1,4 +1,4 @@
-"""Progress you can plan by: the stack's budget, percentage and ETA, its status file, the grid's runs done
+"""Status lines you can plan by: the stack's budget, percentage and ETA, its status file, the grid's runs done
 and ETA, and an actor's held episodes counted once per period."""
 
 import logging
@@ -9,11 +9,11 @@ import pytest
 import deploy.experiments as experiments
 from actor.runner import HoldLog
 from common.checkpoint import save_checkpoint
-from common.config import load_config
+from common.config_values import load_config
 from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus
-from common.wire import EpisodeRecord, Stats
-from deploy.stack import Progress, Stack
+from common.wire.messages import EpisodeRecord, Stats
+from deploy.stack import Stack, StackMonitor
 
 
 class FakeClock:
@@ -56,46 +56,46 @@ def replay_stats(env_steps: int) -> Stats:
 
 def test_the_stacks_line_and_status_show_the_budget_its_share_and_the_eta():
     clock = FakeClock()
-    progress = Progress(20_000, clock=clock)
-    progress.on_replay_stats(replay_stats(1_000), "k")
+    monitor = StackMonitor(20_000, clock=clock)
+    monitor.on_replay_stats(replay_stats(1_000), "k")
     clock.now = 10.0
-    progress.on_replay_stats(replay_stats(2_000), "k")  # 100 steps/s: 18,000 steps in 3 minutes
-    progress.on_metric(EpisodeRecord(actor_id=0, episode_index=0, length=5, episode_return=4.5, collided=True,
-                                     start_set="train", start_index=0, epsilon=1.0, weights_version=0,
-                                     wall_time=0.1, time=1.0), "d3rqn/r/metrics/actor/0")
-    line = progress.line(restarts=1)
+    monitor.on_replay_stats(replay_stats(2_000), "k")  # 100 steps/s: 18,000 steps in 3 minutes
+    monitor.on_metric(EpisodeRecord(actor_id=0, episode_index=0, length=5, episode_return=4.5, collided=True,
+                                    start_set="train", start_index=0, epsilon=1.0, weights_version=0,
+                                    wall_time=0.1, time=1.0), "d3rqn/r/metrics/actor/0")
+    line = monitor.line(restarts=1)
     assert "env steps     2,000/20,000 ( 10.0%, ETA 3:00) |" in line and line.endswith("restarts 1")
-    status = progress.status("training", {"actor-0": 1}, {"learner": 7})
+    status = monitor.status("training", {"actor-0": 1}, {"learner": 7})
     assert (status.env_steps, status.total_env_steps, status.episodes, status.mean_return) == (2_000, 20_000, 1, 4.5)
     assert status.eta_s == pytest.approx(180.0) and status.pids == {"learner": 7}
 
 
 def test_a_paced_runs_eta_follows_the_updates_it_still_owes_not_the_random_phase():
     clock = FakeClock()
-    progress = Progress(20_000, clock=clock, env_steps_per_update=4.0)
+    monitor = StackMonitor(20_000, clock=clock, env_steps_per_update=4.0)
 
     def report(env_steps: int, start: float, updates: int) -> None:
-        progress.on_replay_stats(Stats(source="replay", time=0.0, values={
+        monitor.on_replay_stats(Stats(source="replay", time=0.0, values={
             "env_steps_total": env_steps, "rate_start_env_steps": start}), "k")
-        progress.on_metric(Stats(source="learner", time=0.0, values={"updates": updates}),
-                           "d3rqn/r/metrics/learner/0")
+        monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": updates}),
+                          "d3rqn/r/metrics/learner/0")
 
     report(5_000, -1.0, 0)
     clock.now = 10.0
     report(10_000, -1.0, 0)  # 500 random steps a second: no guide to the learner's pace
-    assert "ETA ?" in progress.line() and progress.status("training", {}, {}).eta_s is None
+    assert "ETA ?" in monitor.line() and monitor.status("training", {}, {}).eta_s is None
     report(10_000, 10_000.0, 0)  # updates start: 2,500 owed to reach 20,000 steps
     clock.now = 60.0
     report(12_000, 10_000.0, 100)  # 2 updates a second
-    assert progress.status("training", {}, {}).eta_s == pytest.approx(2_400 / 2.0)
-    assert "ETA 20:00)" in progress.line()
+    assert monitor.status("training", {}, {}).eta_s == pytest.approx(2_400 / 2.0)
+    assert "ETA 20:00)" in monitor.line()
 
 
 def test_the_stack_writes_its_status_into_the_run_folder(tmp_path):
     config = load_config("smoke", overrides={"run.runs_dir": str(tmp_path), "run.name": "s"})
     run = RunDir.of(config)
     stack = Stack(config, run, "tcp/127.0.0.1:1", actors=1, resume=False)  # nothing started
-    stack.report(Progress(config.learner.total_env_steps), "training")
+    stack.report(StackMonitor(config.learner.total_env_steps), "training")
     status = RunStatus.read(run.status)
     assert (status.phase, status.total_env_steps, status.pids) == ("training", 20_000, {})
     assert status.restarts == {"replay": 0, "recorder": 0, "learner": 0, "actor-0": 0}
@@ -113,14 +113,14 @@ def test_a_training_run_is_followed_by_its_stacks_status_not_an_older_one(tmp_pa
     training = job(tmp_path, "training", trained_at_start=200)
     path = training.options.run(training.spec).status
     RunStatus(phase="stopped", env_steps=900, total_env_steps=1000, time=training.started_at - 60).write(path)
-    assert training.progress_line() == "" and training.trained() == 200  # an earlier stack's
+    assert training.latest_line() == "" and training.trained() == 200  # an earlier stack's
     RunStatus(phase="training", env_steps=400, total_env_steps=1000, updates=20, mean_return=1.5, eta_s=95,
               restarts={"actor-0": 1}, time=time.time()).write(path)
-    assert training.progress_line() == ("env steps 400/1,000 (40.0%), updates 20, return(100) 1.50, restarts 1, "
-                                        "ETA 1:35")
+    assert training.latest_line() == ("env steps 400/1,000 (40.0%), updates 20, return(100) 1.50, restarts 1, "
+                                      "ETA 1:35")
     assert training.trained() == 400
     path.write_text("{")  # a damaged file is no status
-    assert training.progress_line() == "" and training.trained() == 200
+    assert training.latest_line() == "" and training.trained() == 200
 
 
 class Thread:
@@ -134,7 +134,7 @@ class Thread:
 def test_the_grid_line_counts_runs_done_and_the_steps_trained(tmp_path):
     finished, waiting = job(tmp_path, "done"), job(tmp_path / "other", "waiting", trained_at_start=250)
     finished.thread = Thread(alive=False)
-    line = experiments.GridProgress([finished, waiting], 1000).line()
+    line = experiments.GridStatus([finished, waiting], 1000).line()
     assert line.startswith("grid: 1/2 runs done, 62.5% of the env steps trained, elapsed 0:00, ETA ")
 
 
@@ -150,16 +150,16 @@ def training_job(tmp_path, eta_s: float | None, elapsed_s: float) -> "experiment
 def test_the_grid_eta_counts_runs_the_running_ones_own_etas_then_the_waiting_in_waves(tmp_path):
     running = [training_job(tmp_path / "a", 600, 1200), training_job(tmp_path / "b", 300, 1500)]
     waiting = [job(tmp_path / name, "waiting") for name in ("c", "d", "e")]
-    grid = experiments.GridProgress(running + waiting, 1000, parallel=2)
+    grid = experiments.GridStatus(running + waiting, 1000, parallel=2)
     # before any run ended, a run looks to take 1,800 s; 3 waiting runs, 2 at a time, are 2 waves
     assert grid.remaining_s() == pytest.approx(600 + 2 * 1800, abs=2)
     done = job(tmp_path / "f", "done")
     done.thread, done.took_s = Thread(alive=False), 1000.0
-    grid = experiments.GridProgress(running + waiting + [done], 1000, parallel=2)
+    grid = experiments.GridStatus(running + waiting + [done], 1000, parallel=2)
     assert grid.remaining_s() == pytest.approx(600 + 2 * 1000, abs=2)  # the runs that ended set the pace
     unknown = training_job(tmp_path / "g", None, 10)  # its stack has no ETA yet (the random phase)
-    assert experiments.GridProgress([unknown] + waiting, 1000, parallel=2).remaining_s() is None
-    assert "ETA ?" in experiments.GridProgress([unknown] + waiting, 1000, parallel=2).line()
+    assert experiments.GridStatus([unknown] + waiting, 1000, parallel=2).remaining_s() is None
+    assert "ETA ?" in experiments.GridStatus([unknown] + waiting, 1000, parallel=2).line()
 
 
 def test_held_episodes_are_logged_once_per_period_with_their_count(caplog):
@@ -200,19 +200,19 @@ def test_a_status_file_that_cannot_be_written_is_said_once_and_the_stack_goes_on
     stack = Stack(config, RunDir.of(config), "tcp/127.0.0.1:1", actors=1, resume=False)
     RunDir.of(config).status.mkdir()  # a folder where the file should be
     for _ in range(3):
-        stack.report(Progress(), "training")
+        stack.report(StackMonitor(), "training")
     assert capsys.readouterr().err.count("cannot write the status file") == 1
 
 
 def test_the_lines_step_rate_is_over_a_minute_so_bursts_from_held_actors_do_not_read_as_zero():
     clock = FakeClock()
-    progress = Progress(100_000, clock=clock, env_steps_per_update=4.0)
+    monitor = StackMonitor(100_000, clock=clock, env_steps_per_update=4.0)
     env_steps = 30_000
     for second in range(61):  # an actor held by the rate limiter sends a 300-step burst every 10 s
         clock.now = float(second)
         env_steps += 300 if second and second % 10 == 0 else 0
-        progress.on_replay_stats(replay_stats(env_steps), "k")
-    assert "steps/s   30.0 |" in progress.line()  # 1,800 steps in 60 s, though the last second added none
+        monitor.on_replay_stats(replay_stats(env_steps), "k")
+    assert "steps/s   30.0 |" in monitor.line()  # 1,800 steps in 60 s, though the last second added none
 
 
 def test_a_rate_needs_time_between_two_samples():

@@ -1,8 +1,13 @@
-"""matplotlib for the PNG figures: the Agg backend (files only, no display) and the finish every figure shares."""
+"""matplotlib for the PNG figures: the Agg backend (files only, no display), the finish every figure shares,
+and the trailing mean the training curves are smoothed with."""
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import numpy as np
+
+RETURN_WINDOW = 100  # episodes, the paper's "average reward per 100 episodes"
 
 
 def pyplot():
@@ -23,3 +28,11 @@ def finish_figure(plt, figure, axes, path: Path, title: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path)
     plt.close(figure)
+
+
+def trailing_mean(values: list[float], window: int) -> np.ndarray:
+    """Mean of the last `window` values at each position (fewer at the start)."""
+    sums = np.cumsum(np.asarray(values, dtype=np.float64))
+    counts = np.minimum(np.arange(1, len(values) + 1), window)
+    earlier = np.concatenate([np.zeros(window), sums])[: len(values)]
+    return (sums - earlier) / counts

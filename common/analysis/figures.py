@@ -1,8 +1,6 @@
 """The paper's comparison figures, several runs to a figure, as PNGs (matplotlib, Agg backend).
 
-``read_run_curves`` takes what the training figures need from a run's logs (a
-resumed run has several, ``recorder.log_segments``): the actors' EpisodeRecords
-in the order the recorder received them and the learner's metrics reports.
+A run's training curves come from its logs (``RunCurves``, read by replay/log/run_curves.py).
 The figures:
 
 * ``plot_reward_curves``: mean return of the last 100 episodes against episodes,
@@ -29,12 +27,8 @@ from typing import Sequence
 
 import numpy as np
 
-from common.plotting import finish_figure, pyplot
-from common.strategies import DISPLAY_NAMES, STRATEGIES, epsilon_groups, strategy_rank
-from common.wire import EpisodeRecord, Stats
-from replay.log.plot import finite_series, trailing_mean
-from replay.log.reader import LogError, LogFile
-from replay.log.scalars import RETURN_WINDOW
+from common.analysis.plotting import RETURN_WINDOW, finish_figure, pyplot, trailing_mean
+from common.exploration.names import DISPLAY_NAMES, STRATEGIES, epsilon_groups, strategy_rank
 
 LOSS_WINDOW = 10  # learner reports (each the mean over learner.log_period_s) per point of the smoothed curve
 EPSILON_PANELS = tuple(epsilon_groups().items())  # (title, strategies) of each panel
@@ -46,7 +40,7 @@ BAND_NOTE = "\n(a line per strategy: the mean over its runs; band: their range)"
 
 @dataclass
 class RunCurves:
-    """One run's training curves, read from its logs."""
+    """One run's training curves, read from its logs (replay/log/run_curves.py)."""
 
     label: str
     strategy: str
@@ -56,34 +50,6 @@ class RunCurves:
     episode_epsilons: list[float] = field(default_factory=list)
     learner_updates: list[float] = field(default_factory=list)
     loss_abs_diffs: list[float] = field(default_factory=list)  # one per learner report, NaN-free
-
-
-def read_run_curves(paths: Sequence[Path], label: str | None = None) -> RunCurves:
-    """The curves of the logs of one run, in the given (recording) order; the config is the first log's."""
-    if not paths:
-        raise LogError("no log files given")
-    with LogFile(paths[0]) as first:
-        config = first.config()
-    curves = RunCurves(label or config.run.name, config.exploration.strategy, config.replay.capacity)
-    for path in paths:
-        with LogFile(path) as log:
-            _add_log(curves, log)
-    return curves
-
-
-def _add_log(curves: RunCurves, log: LogFile) -> None:
-    learner_key = log.keys().metrics_source("learner", "0")  # learner/progress carries Stats of the same source
-    learner_rows = []
-    for record, message in log.messages(EpisodeRecord, Stats):
-        if isinstance(message, EpisodeRecord):
-            curves.episode_returns.append(message.episode_return)
-            curves.episode_lengths.append(message.length)
-            curves.episode_epsilons.append(message.epsilon)
-        elif record.topic == learner_key:
-            learner_rows.append(message.values)
-    updates, diffs = finite_series(learner_rows, "updates", "loss_abs_diff")
-    curves.learner_updates.extend(updates)
-    curves.loss_abs_diffs.extend(diffs)
 
 
 # --- the figures -------------------------------------------------------------------------------------

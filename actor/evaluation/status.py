@@ -6,13 +6,13 @@ import sys
 import time
 from typing import TextIO
 
-from actor.evaluation.stats import EvaluationEpisode
+from common.analysis.stats import EvaluationEpisode
 from common.eta import clock_time
 
 PREFIX = "evaluate: "
 
 
-class Progress:
+class EvaluationStatus:
     """One status line, silent without a stream.
 
     On a terminal the line is rewritten in place; otherwise one line is written per period.
@@ -37,13 +37,13 @@ class Progress:
         self.shown = self.clock()
         if self.stream is None:
             return
-        line = progress_line(self.episodes, self.total, self.steps, self.shown - self.started)
+        line = evaluation_line(self.episodes, self.total, self.steps, self.shown - self.started)
         end = "\n" if final or not self.rewrite else ""
         self.stream.write(("\r" if self.rewrite else "") + line + end)
         self.stream.flush()
 
 
-def progress_line(done: int, total: int, steps: int, elapsed_s: float) -> str:
+def evaluation_line(done: int, total: int, steps: int, elapsed_s: float) -> str:
     rate = done / elapsed_s if elapsed_s > 0 else 0.0
     eta = clock_time((total - done) / rate) if rate > 0 else "?"
     step_rate = steps / elapsed_s if elapsed_s > 0 else 0.0
@@ -51,7 +51,7 @@ def progress_line(done: int, total: int, steps: int, elapsed_s: float) -> str:
             f"{step_rate:.0f} steps/s, elapsed {clock_time(elapsed_s)}, ETA {eta}")
 
 
-def is_progress_line(line: str) -> bool:
+def is_evaluation_line(line: str) -> bool:
     """Whether a line of evaluate's output is its status line (the experiment runner shows the latest)."""
     counts = line.removeprefix(PREFIX).split(" episodes (", 1)[0] if line.startswith(PREFIX) else ""
     done, _, total = counts.partition("/")

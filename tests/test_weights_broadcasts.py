@@ -1,4 +1,4 @@
-"""Weights traffic that scales: broadcasts by time as well as by updates, compact encodings that
+"""Weights broadcasts that scale: broadcasts by time as well as by updates, compact encodings that
 actors load within a stated tolerance, and Zenoh shared memory between the processes of one host."""
 
 import dataclasses
@@ -10,17 +10,21 @@ import pytest
 import torch
 
 from actor.runner import Actor
-from common.config import ConfigError, load_config
+from common.config_values import load_config
 from common.network import D3RQN, weights_to_numpy
+from common.options import ConfigError
 from common.transport import loopback_endpoint
-from common.wire import WEIGHTS_ENCODINGS, Weights, WireError, decode, encode
+from common.wire.envelope import decode, encode
+from common.wire.errors import WireError
+from common.wire.messages import Weights
+from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 from deploy.bench.weights_encoding import BFLOAT16_PASS, compare, drives
 from learner.service import Cadence, LearnerProcess
+from replay.log.arrival import Arrival, peek
 from replay.log.recorder import WeightsSampler
-from replay.log.traffic import Arrival, peek
 from tests import weights_peers
 from tests.cpu_support import needs_bfloat16
-from tests.test_progress import FakeClock
+from tests.test_status_lines import FakeClock
 
 # What docs/architecture.md states, measured by deploy/bench/weights_encoding.py on 4,000 frames: at most this
 # share of greedy actions changes, and |Q| moves by at most this fraction of the largest |Q|; for the

@@ -1,7 +1,7 @@
-"""What the recorder knows of one wire message without trusting it: its type, times and version.
+"""What the recorder knows of one wire message on arrival, without trusting it: its type, times and version.
 
 A log keeps the exact bytes that travelled, valid or not, so nothing here decodes a
-message fully; it only peeks at the msgpack envelope of ``common.wire``.
+message fully; it only peeks at the msgpack envelope of ``common.wire.envelope``.
 
 Times (nanoseconds since the Unix epoch, as MCAP wants):
 

@@ -23,10 +23,10 @@ Conventions (the paper does not spell them out):
 * Reward bins are half-open [a, b) except the last, which is closed [a, b], so
   a reward of exactly 1 (the car on the centre-line) falls in the top bin.
 * The interquartile mean (IQM) of episode lengths is the mean of the middle half
-  of the lengths (actor/evaluation/intervals.py), robust to a few episodes at
+  of the lengths (common/analysis/intervals.py), robust to a few episodes at
   the cap or a few crashes at the start.
 * Confidence intervals come from the two-stage stratified bootstrap of
-  actor/evaluation/intervals.py: training runs resampled whole, then each
+  common/analysis/intervals.py: training runs resampled whole, then each
   run's trials within each start.
 """
 
@@ -40,7 +40,7 @@ from typing import Hashable, Iterable, Sequence
 
 import numpy as np
 
-from actor.evaluation.intervals import Bootstrap, Cell, Interval, cell_intervals, cell_statistics
+from common.analysis.intervals import Bootstrap, Cell, Interval, cell_intervals, cell_statistics
 
 TERMINAL_REASONS = ("collision", "offroad", "stalled")  # what the simulator's info["end"] may say
 END_REASONS = (*TERMINAL_REASONS, "cap")
@@ -114,7 +114,7 @@ def summarise(episodes: Sequence[EvaluationEpisode], runs: Sequence[Hashable] | 
     """The row of one group of episodes that share a policy and a start set.
 
     runs: the training run (seed) of each episode when the group pools several;
-    the intervals resample them whole (actor/evaluation/intervals.py).
+    the intervals resample them whole (common/analysis/intervals.py).
     """
     if not episodes:
         raise ValueError("cannot summarise an empty group of episodes")

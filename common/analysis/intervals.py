@@ -37,6 +37,8 @@ from typing import Hashable, Sequence
 
 import numpy as np
 
+from common.config import Config
+
 STATISTICS = ("mean_length", "iqm_length", "cfr", "reward_per_step", "progress_m")
 
 
@@ -53,6 +55,12 @@ class Bootstrap:
             raise ValueError(f"bootstrap replicates must be >= 1, got {self.replicates}")
         if not 0.0 < self.confidence < 1.0:
             raise ValueError(f"confidence must lie in (0, 1), got {self.confidence}")
+
+
+def bootstrap_of(config: Config) -> Bootstrap:
+    """The intervals' settings; the bootstrap draws from evaluation.seed, so a table is reproducible."""
+    evaluation = config.evaluation
+    return Bootstrap(evaluation.bootstrap_replicates, evaluation.confidence, evaluation.seed)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,8 @@
 
 Every module that names a strategy takes the name from here: the config's choices, the
 learner's exploration state, the replay's start rule, the grid's runs, the tables' and
-figures' labels. The classes are in common/exploration.py, one per name.
+figures' labels. The classes are in the modules of common/exploration/, one per name, with their
+parameters.
 """
 
 from __future__ import annotations

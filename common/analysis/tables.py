@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from actor.evaluation.stats import EvaluationEpisode, SetSummary
+from common.analysis.stats import EvaluationEpisode, SetSummary
 
 EPISODES_CSV = "episodes.csv"
 SUMMARY_CSV = "summary.csv"
@@ -33,7 +33,7 @@ COLUMN_LEGEND = (
                  "(– where the simulator does not report it)"),
     ("Reward/step", "mean step reward exp(-beta d), pooled over all steps of the set"),
     ("[low, high]", "confidence interval by stratified bootstrap: training runs resampled whole, then each "
-                    "run's trials within each start (actor/evaluation/intervals.py); with one run it shows "
+                    "run's trials within each start (common/analysis/intervals.py); with one run it shows "
                     "only the spread of the trials"),
     ("r in [a, b)", "share of all steps whose reward fell in the bin; the last bin holds the near-optimal steps"),
     ("Distinct/start", "different trajectories among the trials of one start, averaged over starts"),
@@ -128,8 +128,8 @@ def greedy_variety_note(summaries: Sequence[SetSummary], trials: int) -> str:
     return f"Greedy trials from one start differed: distinct trajectories per start (of {trials}): {found}."
 
 
-def markdown_report(summaries: Sequence[SetSummary], edges: Sequence[float], facts: dict[str, str],
-                    trials: int, confidence: float = 0.95) -> str:
+def evaluation_markdown(summaries: Sequence[SetSummary], edges: Sequence[float], facts: dict[str, str],
+                        trials: int, confidence: float = 0.95) -> str:
     lines = ["# Evaluation", ""]
     lines += [f"- {name}: {value}" for name, value in facts.items()]
     lines += ["", markdown_table(summaries, edges, confidence), ""]
@@ -141,16 +141,16 @@ def markdown_report(summaries: Sequence[SetSummary], edges: Sequence[float], fac
     return "\n".join(lines) + "\n"
 
 
-def write_report(out_dir: Path, episodes: Sequence[EvaluationEpisode], summaries: Sequence[SetSummary],
-                 edges: Sequence[float], facts: dict[str, str], trials: int, config_toml: str,
-                 confidence: float = 0.95) -> list[Path]:
+def write_evaluation(out_dir: Path, episodes: Sequence[EvaluationEpisode], summaries: Sequence[SetSummary],
+                     edges: Sequence[float], facts: dict[str, str], trials: int, config_toml: str,
+                     confidence: float = 0.95) -> list[Path]:
     """Writes the five files (the config the evaluation ran with last); returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [out_dir / EPISODES_CSV, out_dir / SUMMARY_CSV, out_dir / SUMMARY_MD, out_dir / FACTS_JSON,
              out_dir / CONFIG_TOML]
     write_episodes_csv(paths[0], episodes, edges)
     write_summary_csv(paths[1], summaries, edges)
-    paths[2].write_text(markdown_report(summaries, edges, facts, trials, confidence))
+    paths[2].write_text(evaluation_markdown(summaries, edges, facts, trials, confidence))
     paths[3].write_text(json.dumps(facts, indent=1) + "\n")
     paths[4].write_text(config_toml)
     return paths

@@ -1,0 +1,73 @@
+"""The pace of a run, as pure arithmetic the replay's rate limiter (replay/rate_limiter.py), the learner
+(learner/service.py) and the reference loop (learner/reference_loop.py) share: the settings of the one
+ratio of env steps to updates, where updates start (the start mark), the updates the steps since then
+pay for, the ratio achieved, and whether the error buffer paces anybody at all.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from common.exploration.names import starts_by_steps
+
+
+@dataclass(frozen=True)
+class RateLimit:
+    """The limiter's settings, from learner.env_steps_per_update, learner.start_episodes,
+    learner.start_steps, learner.total_env_steps and replay.error_buffer_updates."""
+
+    env_steps_per_update: float
+    start_episodes: int
+    start_steps: int
+    error_buffer: float  # B, in updates
+    total_env_steps: int | None = None  # actors hold for good once this many steps arrived
+    start_by_steps: bool = False  # decreasing epsilon: start at start_steps, not start_episodes
+
+    def __post_init__(self) -> None:
+        if not self.env_steps_per_update > 0:
+            raise ValueError(f"env_steps_per_update must be > 0, got {self.env_steps_per_update}")
+        if self.start_episodes < 1 or self.start_steps < 0:
+            raise ValueError(f"start_episodes must be >= 1 and start_steps >= 0, got "
+                             f"{self.start_episodes} and {self.start_steps}")
+        if not self.error_buffer >= 1:  # Reverb: narrower buffers can block both sides
+            raise ValueError(f"error_buffer must be >= 1 update, got {self.error_buffer}")
+
+
+def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
+    """The RateLimit of a Config; `strategy` (the learner's, when known) picks the start rule."""
+    learner = config.learner
+    return RateLimit(
+        env_steps_per_update=learner.env_steps_per_update,
+        start_episodes=learner.start_episodes,
+        start_steps=learner.start_steps,
+        error_buffer=config.replay.error_buffer_updates,
+        total_env_steps=learner.total_env_steps,
+        start_by_steps=starts_by_steps(strategy or config.exploration.strategy, learner.start_by),
+    )
+
+
+def start_mark_of(limit: RateLimit, steps_before: int, steps_after: int, episodes_stored: int) -> float | None:
+    """The start mark an episode sets, if it starts the updates: it took the run from steps_before to
+    steps_after env steps and left episodes_stored episodes in the store. By episodes, the mark is the
+    steps so far; by steps, exactly start_steps (the crossing episode's later steps are owed already)."""
+    if limit.start_by_steps:
+        return float(max(steps_before, limit.start_steps)) if steps_after >= limit.start_steps else None
+    return float(steps_after) if episodes_stored >= limit.start_episodes else None
+
+
+def updates_paid_for(env_steps: float, start_mark: float, env_steps_per_update: float) -> float:
+    """The updates the env steps since the start mark pay for: (env_steps - start_mark) / env_steps_per_update."""
+    return (env_steps - start_mark) / env_steps_per_update
+
+
+def achieved_ratio(env_steps: float, start_mark: float | None, updates: int) -> float:
+    """The env steps since the start mark per update made (nan before the start or the first update)."""
+    if start_mark is None or updates <= 0:
+        return math.nan
+    return (env_steps - start_mark) / updates
+
+
+def is_unpaced(error_buffer: float, total_env_steps: int | None, env_steps_per_update: float) -> bool:
+    """Whether the error buffer holds nobody: it is at least the updates the whole budget pays for."""
+    return total_env_steps is not None and error_buffer >= total_env_steps / env_steps_per_update

@@ -1,0 +1,54 @@
+"""The presets a config is built from (``--preset NAME``): values over the schema's defaults
+(common/config.py), by dotted key, each with what it is for."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class Preset(dict):
+    """Values over the dataclass defaults, by dotted key, and what the preset is for (shown by --help)."""
+
+    def __init__(self, doc: str, values: dict[str, Any]) -> None:
+        super().__init__(values)
+        self.doc = doc
+
+
+PRESETS: dict[str, Preset] = {
+    "paper": Preset("the paper's values, which are the defaults", {}),
+    "local": Preset(
+        "the main job on a 2-core CPU machine (about 30 minutes): the paper's agent, buffer and ratio, with the run "
+        "cut to 60,000 steps and the decreasing schedule scaled to that length", {
+            "learner.total_env_steps": 60_000,
+            "learner.start_steps": 10_000,
+            "learner.checkpoint_every": 1_000,
+            "learner.keep_every": 1_000,  # about 12 policies a run for its greedy curve
+            "exploration.decreasing.n_start": 10_000,
+            "exploration.decreasing.n_ann": 20_000,
+            "exploration.decreasing.n_max": 60_000,
+        }),
+    "smoke": Preset(
+        "seconds-long runs for tests: tiny buffer, short episodes, early updates", {
+            "replay.capacity": 50,
+            "replay.stats_period_s": 0.5,
+            "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
+            "learner.batch_size": 4,
+            "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
+            "learner.start_episodes": 2,
+            "learner.start_steps": 100,
+            "learner.total_env_steps": 20_000,
+            "learner.weights_every": 5,
+            "learner.checkpoint_every": 50,
+            "learner.keep_every": 100,
+            "learner.log_period_s": 1.0,
+            "exploration.decreasing.n_start": 100,
+            "exploration.decreasing.n_ann": 800,
+            "exploration.decreasing.n_max": 2_000,
+            "env.max_steps": 60,
+            "actor.log_period_s": 1.0,
+            "evaluation.episodes_per_start": 1,
+            "evaluation.max_steps": 60,
+            "evaluation.workers": 1,
+            "evaluation.envs_per_worker": 2,
+        }),
+}
