@@ -149,6 +149,10 @@ class LearnerConfig:
                 "trace-split (the same, the target pass on a helper thread with half the torch threads), autograd "
                 "(nn.LSTM under autograd; cuDNN on CUDA), or auto: each timed on the first batch (a second or two at "
                 "the paper's sizes), the fastest kept for the process", choices=UPDATE_PATHS)
+    n_step: int = option(
+        1, "beyond the paper: n-step double-Q targets, the sum of this many discounted rewards before the "
+           "bootstrap (a terminal stops both; the trace's end shortens the window; the 2,000-step cut "
+           "bootstraps). 1 is the paper's one-step target", "steps")
     precision: str = option(
         "float32", "beyond the paper: the number format of the update's convolutions and LSTM input projection, "
                    "forward and backward (the trace paths): float32 (the paper's); bfloat16 (master weights, Adam's "
@@ -168,6 +172,7 @@ class LearnerConfig:
         check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
         check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
         check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
+        check(1 <= self.n_step <= self.trace_length, "n_step", "must lie in [1, trace_length]")
         check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
         check(self.start_steps >= 0, "start_steps", "must be >= 0")
         check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")

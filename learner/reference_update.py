@@ -24,7 +24,7 @@ from learner.update import (
 
 
 def separate_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int,
-                       *, paper_history: bool = True) -> LossTerms:
+                       n_step: int = 1, *, paper_history: bool = True) -> LossTerms:
     trace_length = batch.actions.shape[1]
     q_values, _ = online(batch.observations[:, :trace_length])
     with torch.no_grad():
@@ -34,7 +34,7 @@ def separate_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma:
             next_frames, skip = batch.observations, 1
         next_q_online = online(next_frames)[0][:, skip:]
         next_q_target = target(next_frames)[0][:, skip:]
-    targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma)
+    targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma, n_step)
     loss = masked_squared_error(taken_action_values(q_values, batch.actions), targets, n_mask)
     return LossTerms(loss, q_values.detach(), next_q_online)
 

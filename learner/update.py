@@ -10,7 +10,8 @@ Per step (docs/method.md, "The update"), in this order:
    target <- tau * online + (1 - tau) * target; so the targets of step k
    already use the target net updated k times;
 2. y_t = r_t + gamma * (1 - terminated_t) * Q_target(h_t+1, argmax_a Q_online(h_t+1, a));
-   a truncated episode (the 2,000-step cut) is not terminated, so it bootstraps;
+   a truncated episode (the 2,000-step cut) is not terminated, so it bootstraps
+   (learner.n_step, beyond the paper, sums n rewards before the bootstrap: double_q_targets);
 3. loss = sum over b, t >= n_mask of (y_t - Q_online(h_t, a_t))^2 / (B * T): the
    paper's Algorithm 1, L_j = sum_i w_i (Y_ji - Q_ji)^2 / T with w_i = 0 for the
    first n_mask steps, averaged over the B traces;
@@ -95,7 +96,7 @@ class LossTerms:
     next_q_values: torch.Tensor  # (B, T, A) online Q(h_t+1, .), detached
 
 
-LossFunction = Callable[[D3RQN, D3RQN, TraceTensors, float, int], LossTerms]
+LossFunction = Callable[[D3RQN, D3RQN, TraceTensors, float, int, int], LossTerms]  # ..., gamma, n_mask, n_step
 
 
 @dataclass
@@ -111,11 +112,27 @@ class UpdateResult:
 
 
 def double_q_targets(rewards: torch.Tensor, terminated: torch.Tensor, next_q_online: torch.Tensor,
-                     next_q_target: torch.Tensor, gamma: float) -> torch.Tensor:
-    """y = r + gamma * (1 - terminal) * Q_target(h', argmax_a Q_online(h', a))."""
+                     next_q_target: torch.Tensor, gamma: float, n_step: int = 1) -> torch.Tensor:
+    """y_t = sum_{k<m} gamma^k r_t+k + gamma^m Q_target(h_t+m, argmax_a Q_online(h_t+m, a)), m = min(n_step, T - t).
+
+    The paper's target is n_step 1: y = r + gamma * (1 - terminal) * Q_target(h', argmax_a Q_online(h', a)).
+    With more steps (learner.n_step, beyond the paper) a terminal inside the window stops both the sum and
+    the bootstrap, and the trace's end shortens the window (its last steps bootstrap from s_T); a truncated
+    episode (the 2,000-step cut) is not terminal, so it bootstraps."""
     greedy = next_q_online.argmax(dim=-1, keepdim=True)
-    bootstrap = next_q_target.gather(-1, greedy).squeeze(-1)
-    return rewards + gamma * (1.0 - terminated) * bootstrap
+    bootstrap = next_q_target.gather(-1, greedy).squeeze(-1)  # (B, T): the value of s_t+1
+    if n_step == 1:
+        return rewards + gamma * (1.0 - terminated) * bootstrap
+    steps, columns = rewards.shape[-1], []
+    for t in range(steps):
+        total, alive, discount = torch.zeros_like(rewards[..., t]), torch.ones_like(rewards[..., t]), 1.0
+        last = min(t + n_step, steps) - 1  # the window's last step: its next state is bootstrapped
+        for k in range(t, last + 1):
+            total = total + discount * alive * rewards[..., k]
+            alive = alive * (1.0 - terminated[..., k])
+            discount *= gamma
+        columns.append(total + discount * alive * bootstrap[..., last])
+    return torch.stack(columns, dim=-1)
 
 
 def masked_squared_error(q_taken: torch.Tensor, targets: torch.Tensor, n_mask: int) -> torch.Tensor:
@@ -129,7 +146,8 @@ def taken_action_values(q_values: torch.Tensor, actions: torch.Tensor) -> torch.
     return q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
 
 
-def one_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int) -> LossTerms:
+def one_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int,
+                  n_step: int = 1) -> LossTerms:
     """One online pass (with gradient) and one target pass (without) over s_0..s_T.
 
     s_T goes through the gradient pass too although no loss term differentiates
@@ -140,19 +158,20 @@ def one_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: floa
     q_all, _ = online(batch.observations)
     with torch.no_grad():
         next_q_target = target(batch.observations)[0][:, 1:]
-    return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask)
+    return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask, n_step)
 
 
 def one_pass_terms(q_all: torch.Tensor, next_q_target: torch.Tensor, batch: TraceTensors, gamma: float,
-                   n_mask: int) -> LossTerms:
+                   n_mask: int, n_step: int = 1) -> LossTerms:
     """The loss from the online Q(h_0..h_T, .) (with gradient) and the target Q(h_1..h_T, .)."""
     q_values, next_q_online = q_all[:, :-1], q_all[:, 1:].detach()
-    targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma)
+    targets = double_q_targets(batch.rewards, batch.terminated, next_q_online, next_q_target, gamma, n_step)
     loss = masked_squared_error(taken_action_values(q_values, batch.actions), targets, n_mask)
     return LossTerms(loss, q_values.detach(), next_q_online)
 
 
-def trace_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int) -> LossTerms:
+def trace_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int,
+                    n_step: int = 1) -> LossTerms:
     """one_pass_loss on D3RQN.trace_q_values: the same loss and gradients (within rounding), less work on the CPU.
 
     The frames are scaled once for both networks, and s_T, whose online Q-values
@@ -163,7 +182,7 @@ def trace_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: fl
     q_all = online.trace_q_values(pixels, traces, grad_steps=trace_length)
     with torch.no_grad():
         next_q_target = target.trace_q_values(pixels, traces)[:, 1:]
-    return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask)
+    return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask, n_step)
 
 
 def trace_pixels(batch: TraceTensors, network: D3RQN) -> torch.Tensor:
@@ -373,7 +392,8 @@ class DoubleQLearner:
             terms = self._split_trace_pass_loss(tensors)
         else:
             self.soft_update_target()
-            terms = self.loss_function(self.online, self.target, tensors, self.config.gamma, self.config.n_mask)
+            terms = self.loss_function(self.online, self.target, tensors, self.config.gamma, self.config.n_mask,
+                                       self.config.n_step)
         self.optimizer.zero_grad(set_to_none=True)
         terms.loss.backward()
         self.optimizer.step()
@@ -404,7 +424,7 @@ class DoubleQLearner:
         finally:
             torch.set_num_threads(threads)
             next_q_target = pending.result()
-        return one_pass_terms(q_all, next_q_target, batch, self.config.gamma, self.config.n_mask)
+        return one_pass_terms(q_all, next_q_target, batch, self.config.gamma, self.config.n_mask, self.config.n_step)
 
     def exploration_terms(self, tensors: TraceTensors, terms: LossTerms, with_q_after: bool) -> UpdateResult:
         """What the strategies need from an update whose gradient step is done (the last part of update())."""
