@@ -157,18 +157,6 @@ _POLICY_CHECKS = {
 }
 
 
-def cpu_model() -> str:
-    """The model name /proc/cpuinfo gives for this host's CPU; "unknown" where it says none."""
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown"
-
-
 def _numpy(tensors: dict) -> dict[str, np.ndarray]:
     return {name: tensor.detach().cpu().numpy() for name, tensor in tensors.items()}
 

@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy, cpu_model
+from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy
+from common.cpu_capability import cpu_model
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time

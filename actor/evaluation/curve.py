@@ -29,7 +29,8 @@ from actor.evaluation.sources import check_weights, checkpoint_config
 from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.stats import SetSummary
 from common.analysis.tables import summary_columns
-from common.checkpoint import CheckpointError, KeptPolicy, cpu_model
+from common.checkpoint import CheckpointError, KeptPolicy
+from common.cpu_capability import cpu_model
 from common.config import Config
 from common.eta import Eta, clock_time
 from common.options import ConfigError
