@@ -94,9 +94,9 @@ def slope_per_hour(hours: np.ndarray, values: np.ndarray) -> float:
 
 
 def memory_figures(resident: np.ndarray, hours: np.ndarray, late: np.ndarray) -> dict:
-    """First, last and largest resident MB (nan where the process was never seen), and the late growth."""
+    """First, last and largest resident MB while the process was seen (nan if never), and the late growth."""
     seen = resident[np.isfinite(resident)]
-    return {"first_mb": float(resident[0]), "last_mb": float(resident[-1]),
+    return {"first_mb": float(seen[0]) if seen.size else math.nan, "last_mb": float(seen[-1]) if seen.size else math.nan,
             "max_mb": float(seen.max()) if seen.size else math.nan,
             "second_half_mb_per_hour": slope_per_hour(hours[late], resident[late])}
 
