@@ -29,6 +29,7 @@ from typing import Iterator
 
 CHECKPOINTS = "checkpoints"
 CHECKPOINT_FILE = "latest.pt"
+POLICIES = "policies"
 POLICY_FILE = re.compile(r"policy-u(\d+)\.pt")
 
 
@@ -47,9 +48,10 @@ class RunDir:
 
     @classmethod
     def of_checkpoint(cls, checkpoint: Path) -> RunDir:
-        """The run a checkpoint file belongs to: <run>/checkpoints/latest.pt, else the folder it lies in."""
+        """The run a checkpoint or kept policy file belongs to: <run>/checkpoints/latest.pt or
+        <run>/policies/policy-u<updates>.pt, else the folder it lies in."""
         folder = checkpoint.parent
-        return cls(folder.parent if folder.name == CHECKPOINTS else folder)
+        return cls(folder.parent if folder.name in (CHECKPOINTS, POLICIES) else folder)
 
     @property
     def config(self) -> Path:
@@ -72,7 +74,7 @@ class RunDir:
 
     @property
     def policies(self) -> Path:
-        return self.root / "policies"
+        return self.root / POLICIES
 
     def policy(self, updates: int) -> Path:
         """The kept policy of this many updates; zero-padded, so the names sort by updates."""

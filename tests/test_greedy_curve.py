@@ -252,3 +252,14 @@ def test_a_curve_that_never_drives_says_so():
     assert lines[1] == "first greedy test CFR >= 50%: not reached in 2 kept policies (up to update 2,000)"
     train_only = summary_lines(curve_summary([row(1000, "train", 2000, 1.0)]))
     assert train_only[0] == "first greedy test mean length >= 1,000 steps: the test set was not evaluated"
+
+
+def test_evaluate_checkpoint_takes_a_kept_policy_file(tmp_path):
+    config = tiny_config(tmp_path)
+    keep(config, 30)
+    policy = RunDir.of(config).policy(30)
+    main(["--checkpoint", str(policy), "--sets", "test", "--no-random-baseline", *CURVE_FLAGS])
+    out = RunDir.of(config).evaluation  # the run's evaluation folder, not one under policies/
+    facts = json.loads((out / "facts.json").read_text())
+    assert facts["source"] == f"kept policy {policy}" and (facts["updates"], facts["env steps"]) == ("30", "1200")
+    assert [row["start_set"] for row in read_rows(out / "summary.csv")] == ["test"]
