@@ -19,17 +19,10 @@ from common.config_values import load_config
 from common.options import ConfigError
 from learner.update import DoubleQLearner, candidate_paths, choose_learner_precision
 from tests.cpu_support import needs_bfloat16
-from tests.test_update import TINY, flat_parameters, paying_action_margin, random_batch
+from tests.test_update import (TINY, flat_parameters, one_torch_thread,  # noqa: F401 (an autouse fixture)
+                               paying_action_margin, random_batch)
 
 ABSENT = "this CPU (a test's) lacks the avx512bw+avx512vl+avx512dq or avx_ne_convert instructions"
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def learner(precision: str, path: str = "trace", **overrides) -> DoubleQLearner:
