@@ -30,6 +30,7 @@ import torch
 from common import cpu_capability
 from common.config import INFERENCE_PRECISIONS
 from common.network import CONV_LAYERS, D3RQN, conv_relu, fused_relu_convolution_available, load_numpy_weights
+from common.stored_state import STATE_DTYPE
 
 # auto takes bfloat16 only when it is clearly faster: a near tie is not worth a change in the policy's numbers.
 AUTO_MIN_SPEEDUP = 1.2
@@ -59,6 +60,11 @@ class BatchedQ:
         """The slot starts an episode: its LSTM state is zeroed, the others' are kept."""
         self.hidden[:, slot] = 0.0
         self.cell[:, slot] = 0.0
+
+    def state_rows(self, slots: list[int]) -> np.ndarray:
+        """(len(slots), 2, lstm_units) float16: each slot's state (h, c) now, as learner.stored_state keeps it."""
+        index = torch.tensor(slots)
+        return torch.stack([self.hidden[0, index], self.cell[0, index]], dim=1).numpy().astype(STATE_DTYPE)
 
     @torch.inference_mode()
     def q_values(self, slots: list[int], observations: list[np.ndarray]) -> torch.Tensor:

@@ -57,6 +57,7 @@ from common.logs import Every
 from common.network import D3RQN
 from common.rejections import Rejections
 from common.service import Service
+from common.stored_state import no_states
 from common.transport import Keys, publisher, request, subscribe, watch_liveliness
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
@@ -189,6 +190,7 @@ class EpisodeBuffer:
     actions: list[int] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
     versions: list[int] = field(default_factory=list)
+    states: list[np.ndarray] = field(default_factory=list)  # learner.stored_state: (2, lstm_units) a step
     collided: bool = False
     started: float = field(default_factory=time.monotonic)
 
@@ -268,6 +270,9 @@ class Actor:
             if slot.episode is None and may_start():
                 self._begin(slot)
         running = self.running
+        if running and self.config.learner.stored_state:  # the state each network takes this step's frame in
+            for slot, row in zip(running, self.batched_q.state_rows([slot.index for slot in running])):
+                slot.episode.states.append(row)
         ended = []
         for slot, action in zip(running, self._actions(running)):
             observation, reward, terminated, truncated, info = slot.env.step(action)
@@ -324,6 +329,7 @@ class Actor:
             seed=slot.seed,
             episode_index=self.episode_index,
             incarnation=self.incarnation,
+            recurrent_state=np.stack(buffer.states) if buffer.states else no_states(),
         )
         record = EpisodeRecord(
             actor_id=self.actor_id, episode_index=self.episode_index, length=len(buffer.actions),

@@ -153,6 +153,14 @@ class LearnerConfig:
         1, "beyond the paper: n-step double-Q targets, the sum of this many discounted rewards before the "
            "bootstrap (a terminal stops both; the trace's end shortens the window; the 2,000-step cut "
            "bootstraps). 1 is the paper's one-step target", "steps")
+    stored_state: bool = option(
+        False, "beyond the paper (R2D2): actors record their LSTM state before each step in the episode (h and c "
+               "in float16: 4 x network.lstm_units bytes a step, 2,048 at the paper's sizes), the replay keeps it, "
+               "and the learner starts each trace from the stored state instead of a zero state; the first "
+               "learner.burn_in steps then count no error, in place of n_mask")
+    burn_in: int = option(
+        0, "with stored_state: leading steps of each trace that run from the stored state without gradient and "
+           "count no error (R2D2's burn-in), before the steps that train; must lie in [0, trace_length)", "steps")
     precision: str = option(
         "float32", "beyond the paper: the number format of the update's convolutions and LSTM input projection, "
                    "forward and backward (the trace paths): float32 (the paper's); bfloat16 (master weights, Adam's "
@@ -162,6 +170,12 @@ class LearnerConfig:
         choices=LEARNER_PRECISIONS)
     log_period_s: float = option(10.0, "how often the learner logs and publishes its metrics", "s")
     seed: int = option(0, "seed of the network's initial weights")
+
+    @property
+    def masked_steps(self) -> int:
+        """Leading errors of each trace left out of the loss: n_mask from the zero state (the paper's), burn_in
+        from a stored state."""
+        return self.burn_in if self.stored_state else self.n_mask
 
     def validate(self) -> None:
         check(self.precision in LEARNER_PRECISIONS, "precision", f"must be one of {', '.join(LEARNER_PRECISIONS)}")
@@ -173,6 +187,9 @@ class LearnerConfig:
         check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
         check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
         check(1 <= self.n_step <= self.trace_length, "n_step", "must lie in [1, trace_length]")
+        check(0 <= self.burn_in < self.trace_length, "burn_in", "must lie in [0, trace_length)")
+        check(self.stored_state or self.burn_in == 0, "burn_in",
+              "needs learner.stored_state true (a trace from the zero state masks learner.n_mask steps instead)")
         check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
         check(self.start_steps >= 0, "start_steps", "must be >= 0")
         check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")

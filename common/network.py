@@ -4,7 +4,8 @@ Shapes follow docs/method.md ("The network"): frames are uint8 (batch, time,
 height, width, channels) and are scaled to [0, 1] inside the model, so replay
 and actors only ever hold uint8. The recurrent state is explicit, in and out, as PyTorch's LSTM
 holds it: a pair (h, c), each (1, batch, lstm_units). An actor steps one frame
-at a time carrying the state; a learner runs whole traces from a zero state.
+at a time carrying the state; a learner runs whole traces from a zero state, or
+(learner.stored_state) from the state an actor stored with the episode.
 """
 
 from __future__ import annotations
@@ -102,14 +103,18 @@ class D3RQN(nn.Module):
         q_values = value + advantage - advantage.mean(dim=-1, keepdim=True)
         return q_values, state
 
-    def trace_q_values(self, pixels: torch.Tensor, batch: int, grad_steps: int | None = None) -> torch.Tensor:
-        """Q-values (batch, time, n_actions) of whole traces from a zero state, as forward() computes them.
+    def trace_q_values(self, pixels: torch.Tensor, batch: int, grad_steps: int | None = None,
+                       state: RecurrentState | None = None, burn_in: int = 0) -> torch.Tensor:
+        """Q-values (batch, time, n_actions) of whole traces, as forward() computes them.
 
         `pixels` comes from scale_frames (time-major; whole frames, or cut to
         used_frame_size, which saves the work on pixels nothing reads). With
         autograd on, the gradient flows through the first `grad_steps` steps only
         (default: all); the Q-values of later steps come detached, and their
-        frames are left out of the backward pass. Used by the learner
+        frames are left out of the backward pass. The traces start from `state`
+        (h, c), each (1, batch, lstm_units), or from a zero state. With autograd
+        on, the first `burn_in` steps run without gradient and hand their state
+        on (R2D2's burn-in): their Q-values come detached. Used by the learner
         (learner/update.py); forward() serves the rest.
         """
         frames = pixels.shape[0]
@@ -121,7 +126,17 @@ class D3RQN(nn.Module):
         grad_steps = time if grad_steps is None else grad_steps
         if not 1 <= grad_steps <= time:
             raise ValueError(f"grad_steps must lie in [1, {time}], got {grad_steps}")
-        return self.trace_head(self.trace_features(pixels, batch, grad_steps), batch, grad_steps)
+        if not 0 <= burn_in < grad_steps:
+            raise ValueError(f"burn_in must lie in [0, grad_steps = {grad_steps}), got {burn_in}")
+        if burn_in and torch.is_grad_enabled():
+            rows = burn_in * batch
+            with torch.no_grad():
+                burnt, state = self.trace_head(self.trace_features(pixels[:rows], batch, burn_in), batch, burn_in,
+                                               state, final_state=True)
+            rest = pixels[rows:]
+            steps = grad_steps - burn_in
+            return torch.cat([burnt, self.trace_head(self.trace_features(rest, batch, steps), batch, steps, state)], 1)
+        return self.trace_head(self.trace_features(pixels, batch, grad_steps), batch, grad_steps, state)
 
     def trace_features(self, pixels: torch.Tensor, batch: int, grad_steps: int) -> torch.Tensor:
         """trace_q_values' first part: the convolutions, (frames, n_features), in trace_dtype."""
@@ -136,23 +151,30 @@ class D3RQN(nn.Module):
             features = conv_relu(features, weight, stride, fused)
         return features.flatten(1)
 
-    def trace_head(self, features: torch.Tensor, batch: int, grad_steps: int) -> torch.Tensor:
-        """trace_q_values' second part: the LSTM and the dueling head, (batch, time, n_actions)."""
+    def trace_head(self, features: torch.Tensor, batch: int, grad_steps: int, state: RecurrentState | None = None,
+                   final_state: bool = False) -> torch.Tensor | tuple[torch.Tensor, RecurrentState]:
+        """trace_q_values' second part: the LSTM from `state` (or zero) and the dueling head, (batch, time,
+        n_actions); with final_state (autograd off only), also the state after the last step."""
         time = features.shape[0] // batch
+        initial = None if state is None else (state[0][0].float(), state[1][0].float())
         lstm = self.lstm
         dtype = features.dtype  # the projection in the features' format, the recurrence in float32
         bias, weight_ih = (lstm.bias_ih_l0 + lstm.bias_hh_l0).to(dtype), lstm.weight_ih_l0.to(dtype)
         if torch.is_grad_enabled():
             projected = _Projection.apply(features, weight_ih, bias, grad_steps * batch).float()
-            hidden = _Recurrence.apply(projected.view(time, batch, -1), lstm.weight_hh_l0, grad_steps)
+            hidden = _Recurrence.apply(projected.view(time, batch, -1), lstm.weight_hh_l0, grad_steps, initial)
         else:
             projected = torch.addmm(bias, features, weight_ih.t()).float()
-            hidden = _Recurrence.forward(_NoContext(), projected.view(time, batch, -1), lstm.weight_hh_l0, time)
+            _, cells, _, hidden = lstm_steps(projected.view(time, batch, -1), lstm.weight_hh_l0, initial)
         advantage_stream, value_stream = hidden.transpose(0, 1).chunk(2, dim=-1)
         advantage = self.advantage(advantage_stream)
         q_values = self.value(value_stream) + advantage - advantage.mean(dim=-1, keepdim=True)
         if grad_steps < time and q_values.requires_grad:
             q_values = torch.cat([q_values[:, :grad_steps], q_values[:, grad_steps:].detach()], dim=1)
+        if final_state:
+            if torch.is_grad_enabled():
+                raise RuntimeError("trace_head hands on its final state only with autograd off")
+            return q_values, (hidden[-1:].clone(), cells[-1:].clone())
         return q_values
 
     def _check_frames(self, frames: torch.Tensor) -> None:
@@ -303,42 +325,53 @@ class _Projection(torch.autograd.Function):
         return grad_features, grad_weight, grad_bias, None
 
 
-class _Recurrence(torch.autograd.Function):
-    """The LSTM recurrence from a zero state over projected inputs (steps, B, 4H), PyTorch's gate order i, f, g, o.
+def lstm_steps(projected: torch.Tensor, weight_hh: torch.Tensor,
+               state: tuple[torch.Tensor, torch.Tensor] | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The LSTM recurrence over projected inputs (steps, B, 4H) from `state` (h, c), each (B, H), or from zero;
+    PyTorch's gate order i, f, g, o. Returns the gates after their nonlinearities (steps, B, 4, H), the cells,
+    their tanh and the hidden states, each (steps, B, H)."""
+    steps, batch, four_units = projected.shape
+    units = four_units // 4
+    gates = projected.new_empty(steps, batch, 4, units)
+    cells = projected.new_empty(steps, batch, units)
+    tanh_cells = projected.new_empty(steps, batch, units)
+    hidden = projected.new_empty(steps, batch, units)
+    for t in range(steps):
+        step = gates[t]
+        previous = hidden[t - 1] if t else (None if state is None else state[0])
+        if previous is None:  # the zero state: no recurrent product
+            step.view(batch, four_units).copy_(projected[0])
+        else:
+            # (W_hh h^T)^T: MKL runs this twice as fast at batch 10 as h W_hh^T, nn.LSTM's order.
+            recurrent = torch.mm(weight_hh, previous.t())
+            torch.add(projected[t], recurrent.t(), out=step.view(batch, four_units))
+        step[:, :2].sigmoid_()
+        step[:, 2].tanh_()
+        step[:, 3].sigmoid_()
+        input_gate, forget_gate, candidate, output_gate = step.unbind(1)
+        previous_cell = cells[t - 1] if t else (None if state is None else state[1])
+        if previous_cell is None:
+            torch.mul(input_gate, candidate, out=cells[0])
+        else:
+            torch.mul(forget_gate, previous_cell, out=cells[t]).addcmul_(input_gate, candidate)
+        torch.tanh(cells[t], out=tanh_cells[t])
+        torch.mul(output_gate, tanh_cells[t], out=hidden[t])
+    return gates, cells, tanh_cells, hidden
 
-    Returns the hidden states (steps, B, H). The backward pass (through time, by
-    hand) covers the first `grad_steps` steps; the caller promises that no
-    gradient reaches the later ones (checked).
+
+class _Recurrence(torch.autograd.Function):
+    """lstm_steps under autograd: returns the hidden states (steps, B, H). The backward pass (through time,
+    by hand) covers the first `grad_steps` steps; the caller promises that no gradient reaches the later
+    ones (checked). The initial state, if any, is data: no gradient flows to it.
     """
 
     @staticmethod
-    def forward(ctx, projected, weight_hh, grad_steps):
-        steps, batch, four_units = projected.shape
-        units = four_units // 4
-        gates = projected.new_empty(steps, batch, 4, units)
-        cells = projected.new_empty(steps, batch, units)
-        tanh_cells = projected.new_empty(steps, batch, units)
-        hidden = projected.new_empty(steps, batch, units)
-        for t in range(steps):
-            step = gates[t]
-            if t == 0:
-                step.view(batch, four_units).copy_(projected[0])
-            else:
-                # (W_hh h^T)^T: MKL runs this twice as fast at batch 10 as h W_hh^T, nn.LSTM's order.
-                recurrent = torch.mm(weight_hh, hidden[t - 1].t())
-                torch.add(projected[t], recurrent.t(), out=step.view(batch, four_units))
-            step[:, :2].sigmoid_()
-            step[:, 2].tanh_()
-            step[:, 3].sigmoid_()
-            input_gate, forget_gate, candidate, output_gate = step.unbind(1)
-            if t == 0:
-                torch.mul(input_gate, candidate, out=cells[0])
-            else:
-                torch.mul(forget_gate, cells[t - 1], out=cells[t]).addcmul_(input_gate, candidate)
-            torch.tanh(cells[t], out=tanh_cells[t])
-            torch.mul(output_gate, tanh_cells[t], out=hidden[t])
+    def forward(ctx, projected, weight_hh, grad_steps, state=None):
+        gates, cells, tanh_cells, hidden = lstm_steps(projected, weight_hh, state)
         ctx.save_for_backward(gates, cells, tanh_cells, hidden, weight_hh)
         ctx.grad_steps = grad_steps
+        ctx.initial = state
         return hidden
 
     @staticmethod
@@ -348,7 +381,9 @@ class _Recurrence(torch.autograd.Function):
         n = ctx.grad_steps
         _check_zero_beyond(grad_hidden, n)
         input_gate, forget_gate, candidate, output_gate = gates[:n].unbind(2)
-        previous_cells = torch.cat([torch.zeros_like(cells[:1]), cells[:n - 1]])
+        initial = ctx.initial
+        first_cell = torch.zeros_like(cells[:1]) if initial is None else initial[1][None]
+        previous_cells = torch.cat([first_cell, cells[:n - 1]])
         # Factors that do not depend on the recursion, for all steps at once:
         # dc_t += dh_t * o_t * (1 - tanh(c_t)^2); d(pre i, f, g) = dc_t * factors; d(pre o) = dh_t * factor.
         through_tanh = output_gate * (1.0 - tanh_cells[:n] * tanh_cells[:n])
@@ -371,14 +406,9 @@ class _Recurrence(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             flat = grad_gates.view(n * batch, 4 * units)
             grad_weight_hh = flat[batch:].t().mm(hidden[:n - 1].reshape((n - 1) * batch, units))
-        return grad_projected.view(steps, batch, 4 * units), grad_weight_hh, None
-
-
-class _NoContext:
-    """Stands in for autograd's ctx when _Recurrence.forward runs without autograd."""
-
-    def save_for_backward(self, *tensors) -> None:
-        pass
+            if initial is not None:
+                grad_weight_hh.addmm_(flat[:batch].t(), initial[0])
+        return grad_projected.view(steps, batch, 4 * units), grad_weight_hh, None, None
 
 
 def _check_zero_beyond(grad: torch.Tensor, rows: int) -> None:

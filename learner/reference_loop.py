@@ -54,6 +54,7 @@ from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.exploration.build import make_strategy
 from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of, updates_paid_for
+from common.stored_state import no_states, state_row, stored_units
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
 from learner.feed import feed_strategy
@@ -90,7 +91,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     acting = copy.deepcopy(learner.online).requires_grad_(False)
     strategy = make_strategy(config.exploration, config.network.n_actions)
     store = EpisodeStore(config.replay.capacity, int(config.replay.memory_budget_mb * 2**20),
-                         learner_config.trace_length, config.replay.seed)
+                         learner_config.trace_length, config.replay.seed, stored_units(config))
     pace = rate_limit_from_config(config)
     log_every = log_period_s if log_period_s is not None else learner_config.log_period_s
     if learner_config.torch_threads:
@@ -109,10 +110,12 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
         if episode_over:  # a new episode: reset the env and the LSTM state
             observation, info = env.reset(options={"start_set": "train"})
             state = acting.initial_state(1)
-            frames, actions, rewards, versions = [observation], [], [], []
+            frames, actions, rewards, versions, states = [observation], [], [], [], []
             episode_over = False
 
-        # 1. act
+        # 1. act (learner.stored_state: first record the state the network takes this frame in)
+        if learner_config.stored_state:
+            states.append(state_row(*state))
         if strategy.started:
             torch.set_num_threads(1)  # one frame: more threads only wait for each other
             with torch.inference_mode():
@@ -136,7 +139,8 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
                 rewards=np.asarray(rewards, dtype=np.float32), terminated=bool(terminated),
                 truncated=bool(truncated and not terminated), actor_id=0, start_set=str(info["start_set"]),
                 start_index=int(info["start_index"]), weights_version=np.asarray(versions, dtype=np.int64),
-                epsilon=float(strategy.epsilon), seed=seed, episode_index=episodes))
+                epsilon=float(strategy.epsilon), seed=seed, episode_index=episodes,
+                recurrent_state=np.stack(states) if states else no_states()))
             episodes += 1
             returns.append(sum(rewards))
             episode_over = True
@@ -155,9 +159,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
         while start_mark is not None and learner.updates < updates_paid_for(env_steps, start_mark,
                                                                             pace.env_steps_per_update):
             batch = store.sample(learner_config.batch_size)
-            result = learner.update(TraceArrays(batch.observations_array(), np.asarray(batch.actions),
-                                                np.asarray(batch.rewards), np.asarray(batch.terminated)),
-                                    with_q_after=strategy.needs_q_after)
+            result = learner.update(TraceArrays.from_batch(batch), with_q_after=strategy.needs_q_after)
             # 5. feed the strategy, as learner/service.py does after each update (the learner knows
             # the steps of the episodes the replay has received; here every step taken is known)
             feed_strategy(strategy, result, env_steps, config)

@@ -276,7 +276,7 @@ class LearnerProcess:
             observations = batch.observations_array()
         except WireError as error:
             return Admitted(batch, None, error)
-        traces = TraceArrays(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated))
+        traces = TraceArrays.from_batch(batch, observations)
         if self.stager is None:
             return Admitted(batch, traces, None)
         try:
@@ -497,7 +497,7 @@ def _warn_if_bmc_starves(process: LearnerProcess) -> None:
     config = process.config
     if not process.strategy.needs_returns or config.exploration.bmc.observations != "per_step":
         return
-    available = config.learner.batch_size * (config.learner.trace_length - config.learner.n_mask)
+    available = config.learner.batch_size * (config.learner.trace_length - config.learner.masked_steps)
     if config.learner.env_steps_per_update > available:
         log.warning("exploration.bmc.observations per_step: a batch holds %d unmasked transitions, fewer than "
                     "learner.env_steps_per_update %g; BMC observes %d per update", available,

@@ -2,7 +2,10 @@
 
 A batch holds B traces of T steps: observations s_0..s_T (T + 1 frames), the
 actions a_t taken in s_t, the rewards r_t and the flags ``terminated[t]``
-("s_t+1 ends the episode"). Every trace starts from a zero LSTM state.
+("s_t+1 ends the episode"). Every trace starts from a zero LSTM state (the
+paper's), or, with learner.stored_state (beyond the paper, R2D2's), from the
+state the actor held before s_0: then the first learner.burn_in steps run
+without gradient and are the masked ones (n_mask stands for burn_in below).
 
 Per step (docs/method.md, "The update"), in this order:
 
@@ -57,7 +60,8 @@ import torch
 from common import cpu_capability
 from common.config import LearnerConfig, NetworkConfig
 from common.exploration.bmc import greedy_and_uniform_returns
-from common.network import D3RQN, resolve_device, scale_frames, weights_to_numpy
+from common.network import D3RQN, RecurrentState, resolve_device, scale_frames, weights_to_numpy
+from common.stored_state import lstm_state
 from learner.allocator import keep_freed_memory
 
 log = logging.getLogger("learner.update")
@@ -71,6 +75,15 @@ class TraceArrays:
     actions: np.ndarray  # integers (B, T): a_t taken in s_t
     rewards: np.ndarray  # floats (B, T): r_t received after a_t
     terminated: np.ndarray  # bools (B, T): s_t+1 is terminal (a time-limit cut is not)
+    initial_state: np.ndarray | None = None  # floats (B, 2, lstm_units): (h, c) before s_0 (learner.stored_state)
+
+    @classmethod
+    def from_batch(cls, batch, observations: np.ndarray | None = None) -> "TraceArrays":
+        """The arrays of a TraceBatch message (common/wire/messages.py); its frames decoded unless given."""
+        rows = np.asarray(batch.initial_state)
+        observations = batch.observations_array() if observations is None else observations
+        return cls(observations, np.array(batch.actions), np.array(batch.rewards), np.array(batch.terminated),
+                   rows if rows.size else None)
 
 
 @dataclass(frozen=True)
@@ -81,6 +94,7 @@ class TraceTensors:
     actions: torch.Tensor  # int64 (B, T)
     rewards: torch.Tensor  # float32 (B, T)
     terminated: torch.Tensor  # float32 (B, T), 1.0 where terminal
+    initial_state: torch.Tensor | None = None  # float32 (B, 2, lstm_units), or None: the zero state
     # Prepared ahead by DoubleQLearner.stage: the frames as the trace passes read them
     # (scale_frames(observations, used_frame_size)), and the CUDA event the copies end with.
     pixels: torch.Tensor | None = None
@@ -146,18 +160,40 @@ def taken_action_values(q_values: torch.Tensor, actions: torch.Tensor) -> torch.
     return q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
 
 
+def start_state(batch: TraceTensors) -> RecurrentState | None:
+    """The LSTM state the batch's traces start from: the stored one, or None for the zero state."""
+    return None if batch.initial_state is None else lstm_state(batch.initial_state)
+
+
+def burn_in_steps(batch: TraceTensors, n_mask: int) -> int:
+    """Leading steps that run without gradient: the masked ones of traces from a stored state (R2D2's
+    burn-in); none from the zero state, whose masked steps pass the later errors' gradient on (the paper's)."""
+    return 0 if batch.initial_state is None else n_mask
+
+
+def burnt_in_forward(online: D3RQN, observations: torch.Tensor, state: RecurrentState | None,
+                     burn_in: int) -> torch.Tensor:
+    """Q(h_t, .) from D3RQN.forward with the first burn_in steps run without gradient."""
+    if not burn_in:
+        return online(observations, state)[0]
+    with torch.no_grad():
+        burnt, state = online(observations[:, :burn_in], state)
+    return torch.cat([burnt, online(observations[:, burn_in:], state)[0]], dim=1)
+
+
 def one_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int,
                   n_step: int = 1) -> LossTerms:
-    """One online pass (with gradient) and one target pass (without) over s_0..s_T.
+    """One online pass (with gradient past any burn-in) and one target pass (without) over s_0..s_T.
 
     s_T goes through the gradient pass too although no loss term differentiates
     Q(h_T): running it in a separate no-grad call instead costs more (~10 ms,
     mostly reading the 44 MB LSTM input weights once more) than the backward
     pass spends on it (~6 ms), measured at the paper's sizes on the 2-core CPU.
     """
-    q_all, _ = online(batch.observations)
+    state = start_state(batch)
+    q_all = burnt_in_forward(online, batch.observations, state, burn_in_steps(batch, n_mask))
     with torch.no_grad():
-        next_q_target = target(batch.observations)[0][:, 1:]
+        next_q_target = target(batch.observations, state)[0][:, 1:]
     return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask, n_step)
 
 
@@ -178,10 +214,11 @@ def trace_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: fl
     only enter the loss detached (the argmax), is left out of the backward pass.
     """
     traces, trace_length = batch.actions.shape
-    pixels = trace_pixels(batch, online)
-    q_all = online.trace_q_values(pixels, traces, grad_steps=trace_length)
+    pixels, state = trace_pixels(batch, online), start_state(batch)
+    q_all = online.trace_q_values(pixels, traces, grad_steps=trace_length, state=state,
+                                  burn_in=burn_in_steps(batch, n_mask))
     with torch.no_grad():
-        next_q_target = target.trace_q_values(pixels, traces)[:, 1:]
+        next_q_target = target.trace_q_values(pixels, traces, state=state)[:, 1:]
     return one_pass_terms(q_all, next_q_target, batch, gamma, n_mask, n_step)
 
 
@@ -192,24 +229,32 @@ def trace_pixels(batch: TraceTensors, network: D3RQN) -> torch.Tensor:
     return scale_frames(batch.observations, network.used_frame_size)
 
 
-def to_tensors(batch: TraceArrays, network: NetworkConfig, trace_length: int, device: torch.device) -> TraceTensors:
+def to_tensors(batch: TraceArrays, network: NetworkConfig, learner: LearnerConfig,
+               device: torch.device) -> TraceTensors:
     """Checks a batch against the configured sizes (ValueError naming the field) and moves it to device."""
-    return _on_device(checked_arrays(batch, network, trace_length), device)
+    return _on_device(checked_arrays(batch, network, learner), device)
 
 
-def _on_device(arrays: tuple[np.ndarray, ...], device: torch.device) -> TraceTensors:
-    observations, actions, rewards, terminated = arrays
+def _on_device(arrays: tuple[np.ndarray | None, ...], device: torch.device) -> TraceTensors:
+    observations, actions, rewards, terminated, initial_state = arrays
     return TraceTensors(
         observations=torch.from_numpy(observations).to(device),
         actions=torch.as_tensor(actions, dtype=torch.int64, device=device),
         rewards=torch.as_tensor(rewards, dtype=torch.float32, device=device),
         terminated=torch.as_tensor(terminated, dtype=torch.float32, device=device),
+        initial_state=_state_on(initial_state, device),
     )
 
 
-def checked_arrays(batch: TraceArrays, network: NetworkConfig, trace_length: int
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The batch's arrays, observations C-contiguous, once they fit the configured sizes (else a ValueError)."""
+def _state_on(initial_state: np.ndarray | None, device: torch.device) -> torch.Tensor | None:
+    return None if initial_state is None else torch.as_tensor(initial_state, dtype=torch.float32, device=device)
+
+
+def checked_arrays(batch: TraceArrays, network: NetworkConfig, learner: LearnerConfig
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The batch's arrays, observations C-contiguous, once they fit the configured sizes (else a ValueError);
+    the initial state only where learner.stored_state uses it."""
+    trace_length = learner.trace_length
     observations = np.asarray(batch.observations)
     frame = (network.frame_height, network.frame_width, network.frame_channels)
     if observations.dtype != np.uint8 or observations.ndim != 5 or observations.shape[1:] != (trace_length + 1, *frame):
@@ -226,7 +271,20 @@ def checked_arrays(batch: TraceArrays, network: NetworkConfig, trace_length: int
         raise ValueError("rewards must be finite")
     if not np.isin(terminated, (0, 1)).all():
         raise ValueError("terminated must hold only 0/1 or booleans")
-    return np.ascontiguousarray(observations), actions, rewards, terminated
+    return np.ascontiguousarray(observations), actions, rewards, terminated, _checked_state(batch, network, learner)
+
+
+def _checked_state(batch: TraceArrays, network: NetworkConfig, learner: LearnerConfig) -> np.ndarray | None:
+    if not learner.stored_state:
+        return None
+    rows = None if batch.initial_state is None else np.asarray(batch.initial_state)
+    expected = (len(batch.actions), 2, network.lstm_units)
+    if rows is None or rows.shape != expected or not np.issubdtype(rows.dtype, np.floating):
+        raise ValueError(f"initial_state must be floats {expected} (learner.stored_state), got "
+                         f"{'none' if rows is None else f'{rows.dtype} {rows.shape}'}")
+    if not np.isfinite(rows).all():
+        raise ValueError("initial_state must be finite")
+    return rows
 
 
 class _PinnedSlot:
@@ -265,7 +323,7 @@ class BatchStager:
 
     def stage(self, batch: TraceArrays) -> TraceTensors:
         learner = self.learner
-        arrays = checked_arrays(batch, learner.network_config, learner.config.trace_length)
+        arrays = checked_arrays(batch, learner.network_config, learner.config)
         if self._stream is None:
             tensors = _on_device(arrays, self.device)
             if learner.loss_function is trace_pass_loss:
@@ -278,14 +336,15 @@ class BatchStager:
             slot = self._slot(arrays[0].shape, arrays[1].shape)
             if slot.copied is not None:
                 slot.copied.synchronize()  # the copy that last read this slot is done
-            for pinned, array in zip((slot.observations, slot.actions, slot.rewards, slot.terminated), arrays):
+            for pinned, array in zip((slot.observations, slot.actions, slot.rewards, slot.terminated), arrays[:4]):
                 pinned.numpy()[...] = array
             with torch.cuda.stream(self._stream):
                 copies = [pinned.to(self.device, non_blocking=True)
                           for pinned in (slot.observations, slot.actions, slot.rewards, slot.terminated)]
+                initial_state = _state_on(arrays[4], self.device)
                 slot.copied = torch.cuda.Event()
                 slot.copied.record(self._stream)
-            return TraceTensors(*copies, ready=slot.copied)
+            return TraceTensors(*copies, initial_state=initial_state, ready=slot.copied)
 
     def _slot(self, observations: tuple[int, ...], steps: tuple[int, int]) -> _PinnedSlot:
         if len(self._slots) < self._slot_count:
@@ -368,7 +427,7 @@ class DoubleQLearner:
 
     def prepare(self, batch: TraceArrays) -> TraceTensors:
         """Checks a batch and moves it to the learner's device (the copy-in part of update())."""
-        return to_tensors(batch, self.network_config, self.config.trace_length, self.device)
+        return to_tensors(batch, self.network_config, self.config, self.device)
 
     def stager(self) -> BatchStager:
         """A BatchStager for this learner: stage(batch) in the prefetch thread, update(staged) in the loop."""
@@ -392,8 +451,8 @@ class DoubleQLearner:
             terms = self._split_trace_pass_loss(tensors)
         else:
             self.soft_update_target()
-            terms = self.loss_function(self.online, self.target, tensors, self.config.gamma, self.config.n_mask,
-                                       self.config.n_step)
+            terms = self.loss_function(self.online, self.target, tensors, self.config.gamma,
+                                       self.config.masked_steps, self.config.n_step)
         self.optimizer.zero_grad(set_to_none=True)
         terms.loss.backward()
         self.optimizer.step()
@@ -407,7 +466,8 @@ class DoubleQLearner:
         which keeps them apart on a machine whose cores are busy with other work.
         """
         traces, trace_length = batch.actions.shape
-        pixels = trace_pixels(batch, self.online)
+        pixels, state = trace_pixels(batch, self.online), start_state(batch)
+        burn_in = burn_in_steps(batch, self.config.masked_steps)
         threads = torch.get_num_threads()
         helper_threads = max(1, threads // 2)
 
@@ -415,20 +475,21 @@ class DoubleQLearner:
             torch.set_num_threads(helper_threads)
             self.soft_update_target()
             with torch.no_grad():
-                return self.target.trace_q_values(pixels, traces)[:, 1:]
+                return self.target.trace_q_values(pixels, traces, state=state)[:, 1:]
 
         pending = _helper_thread().submit(soft_update_and_target_pass)
         torch.set_num_threads(max(1, threads - helper_threads))
         try:
-            q_all = self.online.trace_q_values(pixels, traces, grad_steps=trace_length)
+            q_all = self.online.trace_q_values(pixels, traces, grad_steps=trace_length, state=state, burn_in=burn_in)
         finally:
             torch.set_num_threads(threads)
             next_q_target = pending.result()
-        return one_pass_terms(q_all, next_q_target, batch, self.config.gamma, self.config.n_mask, self.config.n_step)
+        return one_pass_terms(q_all, next_q_target, batch, self.config.gamma, self.config.masked_steps,
+                              self.config.n_step)
 
     def exploration_terms(self, tensors: TraceTensors, terms: LossTerms, with_q_after: bool) -> UpdateResult:
         """What the strategies need from an update whose gradient step is done (the last part of update())."""
-        n_mask = self.config.n_mask
+        n_mask = self.config.masked_steps
         q_unmasked = terms.q_values[:, n_mask:]
         greedy = q_unmasked.argmax(dim=-1)
         q_after = self._greedy_q_after(tensors, greedy) if with_q_after else None
@@ -455,12 +516,13 @@ class DoubleQLearner:
     def _greedy_q_after(self, tensors: TraceTensors, greedy: torch.Tensor) -> np.ndarray:
         """Q(h_t, a*_t) under the updated weights, for the unmasked steps (over s_0..s_T-1)."""
         traces, trace_length = tensors.actions.shape
+        state = start_state(tensors)
         if self.loss_function is trace_pass_loss:
             pixels = trace_pixels(tensors, self.online)[:trace_length * traces]  # time-major: s_T is the last rows
-            q_values = self.online.trace_q_values(pixels, traces)
+            q_values = self.online.trace_q_values(pixels, traces, state=state)
         else:
-            q_values, _ = self.online(tensors.observations[:, :-1])
-        return _numpy(taken_action_values(q_values[:, self.config.n_mask:], greedy))
+            q_values, _ = self.online(tensors.observations[:, :-1], state)
+        return _numpy(taken_action_values(q_values[:, self.config.masked_steps:], greedy))
 
     def online_weights(self) -> dict[str, np.ndarray]:
         """The online network as numpy arrays, for the Weights message."""

@@ -43,6 +43,7 @@ from common.pacing import rate_limit_from_config
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
+from common.stored_state import stored_units
 from common.transport import PendingQuery, RateLimitedLog, publisher, serve_deferred, subscribe
 from common.wire.errors import WireError
 from common.wire.messages import Episode, ExplorationState, Stats, TraceBatchRequest
@@ -50,7 +51,7 @@ from common.wire.run_shape import RunShape, check_episode
 from replay.ledger import EpisodeLedger
 from replay.rate_limiter import RateLimiter
 from replay.snapshot import Restored, SnapshotError, Snapshotter, SnapshotView
-from replay.store import EpisodeStore, full_episodes_fit
+from replay.store import EpisodeStore, full_episodes_fit, step_bytes
 
 log = logging.getLogger("replay")
 
@@ -84,6 +85,7 @@ class ReplayService:
             budget_bytes=int(config.replay.memory_budget_mb * MEGABYTE),
             trace_length=config.learner.trace_length,
             seed=config.replay.seed,
+            state_units=stored_units(config),
         )
         self.limiter = RateLimiter(rate_limit_from_config(config))
         self.max_trace_batch = config.replay.max_batch_size
@@ -313,8 +315,9 @@ class ReplayService:
     def budget_report(self, frame_bytes: float, source: str) -> bool:
         """Logs how many full-length episodes the budget holds; a loud warning if fewer than capacity."""
         replay, max_steps = self.config.replay, self.config.env.max_steps
-        fits = full_episodes_fit(self.store.budget_bytes, max_steps, frame_bytes)
-        needed_mb = math.ceil(replay.capacity * ((max_steps + 1) * frame_bytes + max_steps * 20) / MEGABYTE)
+        fits = full_episodes_fit(self.store.budget_bytes, max_steps, frame_bytes, self.store.state_units)
+        needed_mb = math.ceil(replay.capacity * ((max_steps + 1) * frame_bytes
+                                                 + max_steps * step_bytes(self.store.state_units)) / MEGABYTE)
         if fits >= replay.capacity:
             log.info("memory budget %.0f MB holds %d episodes of env.max_steps = %d steps at %.2f KB per frame "
                      "(%s): replay.capacity %d fits", replay.memory_budget_mb, fits, max_steps,

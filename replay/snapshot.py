@@ -5,7 +5,8 @@ Layout of ``<runs_dir>/<run>/replay/snapshot/``:
 - ``segment-<n>.bin``: episodes, each written once, by the first snapshot after it
   arrived. A record is a little-endian header (payload length, CRC-32 of the payload)
   and a msgpack payload (insertion number, frame shape, the compressed frame blobs as
-  they arrived, actions, rewards, weights versions, terminal flag);
+  they arrived, actions, rewards, weights versions, terminal flag, and the LSTM state
+  rows of a run with learner.stored_state: float16 bytes and their unit count);
 - ``manifest.msgpack``: which records are live (insertion number, segment, offset,
   length) and the counters: the store's, the rate limiter's and the episode ledger's.
 
@@ -106,6 +107,8 @@ def encode_record(stored: StoredEpisode) -> bytes:
         "rewards": np.ascontiguousarray(stored.rewards, "<f4").tobytes(),
         "versions": np.ascontiguousarray(stored.weights_version, "<i8").tobytes(),
         "terminated": bool(stored.terminated),
+        **({} if stored.states is None else {"state_units": int(stored.states.shape[2]),
+                                              "states": np.ascontiguousarray(stored.states, "<f2").tobytes()}),
     }, use_bin_type=True)
     return HEADER.pack(len(payload), zlib.crc32(payload)) + payload
 
@@ -125,6 +128,7 @@ def decode_record(data: bytes, frame_shape: tuple[int, ...]) -> StoredEpisode:
         rewards = np.frombuffer(record["rewards"], "<f4")
         versions = np.frombuffer(record["versions"], "<i8")
         seq, terminated = int(record["seq"]), bool(record["terminated"])
+        states = _state_rows(record, len(actions))
     except (KeyError, TypeError, ValueError, msgpack.UnpackException) as error:
         raise ValueError(f"malformed record ({error!r})") from None
     if frames.frame_shape != tuple(frame_shape):
@@ -135,7 +139,18 @@ def decode_record(data: bytes, frame_shape: tuple[int, ...]) -> StoredEpisode:
         frames.check_headers()
     except WireError as error:
         raise ValueError(str(error)) from None
-    return StoredEpisode.of(frames, actions, rewards, versions, terminated, seq)
+    return StoredEpisode.of(frames, actions, rewards, versions, terminated, seq, states)
+
+
+def _state_rows(record: dict, steps: int) -> np.ndarray | None:
+    """A record's LSTM state rows [steps, 2, units], or None if it has none; ValueError if they are damaged."""
+    if "states" not in record:
+        return None
+    units = int(record["state_units"])
+    rows = np.frombuffer(record["states"], "<f2")
+    if units < 1 or rows.size != steps * 2 * units or not np.isfinite(rows).all():
+        raise ValueError(f"state rows of {rows.size} values do not fill {steps} steps of 2 x {units}")
+    return rows.reshape(steps, 2, units)
 
 
 class Snapshotter:

@@ -2,6 +2,7 @@ import logging
 import threading
 
 import numpy as np
+import torch
 
 from actor.runner import Actor, Mailbox, actor_seed
 from common.config_values import load_config
@@ -97,3 +98,30 @@ def test_episode_before_and_after_weights_and_start():
     assert (episode.weights_version == 7).all()
     assert episode.epsilon == config.exploration.constant.epsilon and actor.uses_network()
     assert record.episode_index == 1
+
+
+def test_a_stored_state_actor_records_the_lstm_state_before_each_step():
+    config = small_config()
+    config.learner.stored_state = True
+    actor = Actor(config, actor_id=3)
+    network = D3RQN(config.network)
+    actor.mailbox.offer_weights(Weights(version=1, tensors=weights_to_numpy(network)))
+    learner_side = Actor(config, actor_id=98).strategy
+    learner_side.start()
+    actor.mailbox.offer_exploration(exploration_message(learner_side))
+    episode, _ = actor.run_episode(threading.Event())
+    steps = len(episode.actions)
+    rows = episode.recurrent_state
+    assert rows.shape == (steps, 2, 16) and rows.dtype == np.float16 and steps >= 2
+    assert not rows[0].any()  # an episode starts from the zero state
+    frames = torch.from_numpy(episode.observations.decode()[None, :steps - 1])
+    with torch.no_grad():  # the state after s_0..s_t-1 is the row of step t
+        for t in range(1, steps):
+            _, (hidden, cell) = network(frames[:, :t])
+            np.testing.assert_allclose(rows[t, 0], hidden[0, 0].numpy(), atol=2e-3)
+            np.testing.assert_allclose(rows[t, 1], cell[0, 0].numpy(), atol=2e-3, rtol=2e-3)
+
+
+def test_an_actor_of_the_papers_method_records_no_state():
+    episode, _ = Actor(small_config(), actor_id=4).run_episode(threading.Event())
+    assert episode.recurrent_state.shape == (0, 2, 0)

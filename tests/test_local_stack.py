@@ -65,7 +65,9 @@ def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):
                               # small updates (a small LSTM, 2 traces of 5 steps, one thread on a shared
                               # machine): half a minute, not minutes
                               "--network.lstm_units", "16", "--learner.batch_size", "2",
-                              "--learner.trace_length", "5", "--learner.n_mask", "2", "--learner.torch_threads", "1"],
+                              "--learner.trace_length", "5", "--learner.n_mask", "2", "--learner.torch_threads", "1",
+                              # and the stored recurrent state (beyond the paper) through every role
+                              "--learner.stored_state", "true", "--learner.burn_in", "2"],
                              stdout=output, stderr=subprocess.STDOUT, cwd=tmp_path)
     try:
         assert stack.wait(240) == 0, (tmp_path / "stack.out").read_text()[-3000:]
@@ -81,3 +83,5 @@ def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):
         (summary["env_steps"] - summary["start_env_steps"]) / summary["updates"])
     assert abs(summary["env_steps_per_update"] / configured - 1) < 0.01, summary
     assert "env steps per update (configured 20)" in (tmp_path / "stack.out").read_text()
+    role_logs = " ".join(path.read_text() for path in (tmp_path / "ratio" / "logs").glob("*"))
+    assert "rejected (" not in role_logs  # no episode or batch refused (for its state rows, say)

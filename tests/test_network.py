@@ -251,6 +251,60 @@ def test_trace_gradients_equal_autograd_through_forward(fused, monkeypatch):
     assert all(g.abs().max() > 0 for g in trace_gradients.values())
 
 
+def random_state(net: D3RQN, batch: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(seed)
+    hidden = torch.rand(1, batch, net.lstm_units, generator=generator) * 1.6 - 0.8  # h lies in (-1, 1)
+    return hidden, torch.randn(1, batch, net.lstm_units, generator=generator) * 2.0
+
+
+def test_trace_q_values_from_a_stored_state_equal_forward_from_it():
+    net = lively_net()
+    frames = random_frames(TINY, batch=3, time=5, seed=21)
+    state = random_state(net, 3, seed=22)
+    with torch.no_grad():
+        expected, _ = net(frames, state)
+        zero_start, _ = net(frames)
+        q_values = net.trace_q_values(scale_frames(frames, net.used_frame_size), batch=3, state=state)
+    torch.testing.assert_close(q_values, expected, rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(expected, zero_start, atol=1e-3)  # the state matters
+
+
+@pytest.mark.parametrize("burn_in", [0, 2])
+def test_trace_gradients_from_a_stored_state_with_burn_in_equal_autograd(burn_in):
+    """R2D2's burn-in: the first burn_in steps run from the stored state without gradient; the rest train.
+    The autograd reference: forward() over the burn-in under no_grad, then over the rest from its state."""
+    net = lively_net()
+    frames = random_frames(TINY, batch=4, time=6, seed=23)
+    state = random_state(net, 4, seed=24)
+    weights = torch.randn(4, 5, 5, generator=torch.Generator().manual_seed(25))  # a loss on steps 0..4
+    weights[:, :burn_in] = 0.0
+
+    q_values = net.trace_q_values(scale_frames(frames, net.used_frame_size), batch=4, grad_steps=5, state=state,
+                                  burn_in=burn_in)
+    (q_values[:, :5] * weights).sum().backward()
+    trace_gradients = {name: p.grad.clone() for name, p in net.named_parameters()}
+    net.zero_grad()
+    with torch.no_grad():
+        burnt, later_state = net(frames[:, :burn_in], state) if burn_in else (None, state)
+    rest, _ = net(frames[:, burn_in:], later_state)
+    expected = rest if burnt is None else torch.cat([burnt, rest], dim=1)
+    torch.testing.assert_close(q_values.detach(), expected.detach(), rtol=1e-5, atol=1e-6)
+    (expected[:, :5] * weights).sum().backward()
+    for name, parameter in net.named_parameters():
+        torch.testing.assert_close(trace_gradients[name], parameter.grad, rtol=1e-4, atol=1e-6, msg=name)
+    assert all(g.abs().max() > 0 for g in trace_gradients.values())
+
+
+def test_burnt_in_steps_carry_no_gradient():
+    net = lively_net()
+    frames = random_frames(TINY, batch=2, time=4, seed=26)
+    q_values = net.trace_q_values(scale_frames(frames), batch=2, state=random_state(net, 2, seed=27), burn_in=2)
+    q_values[:, :2].sum().backward()
+    assert all(p.grad is None or not p.grad.any() for p in net.parameters())
+    with pytest.raises(ValueError, match="burn_in"):
+        net.trace_q_values(scale_frames(frames), batch=2, grad_steps=2, burn_in=2)
+
+
 def test_steps_past_grad_steps_carry_no_gradient():
     net = lively_net()
     frames = random_frames(TINY, batch=2, time=4, seed=13)

@@ -106,3 +106,18 @@ def test_the_command_trains_then_evaluates(spied, capsys):
     out = capsys.readouterr().out
     assert "env steps per update since updates started" in out
     assert out.count("| greedy | train |") == 1 and out.count("| greedy | test |") == 1
+
+
+def test_the_loop_with_stored_states_trains_past_the_burn_in(spied, monkeypatch):
+    """learner.stored_state: the loop's episodes carry the acting state, each trace starts from its row, and
+    BMC observes the steps after the burn-in (2), not after n_mask (7)."""
+    stored = []
+    add = reference_loop.EpisodeStore.add
+    monkeypatch.setattr(reference_loop.EpisodeStore, "add",
+                        lambda store, episode: stored.append(episode.recurrent_state.shape) or add(store, episode))
+    config = smoke("bmc", **{"exploration.bmc.observations": "per_transition", "learner.stored_state": True,
+                             "learner.burn_in": 2})
+    result = reference_loop.train(config, evaluate_at_end=False, log_period_s=1e9)
+    assert result.updates >= 8 and math.isfinite(result.loss)
+    assert stored and all(shape[1:] == (2, 64) and shape[0] >= 1 for shape in stored)
+    assert spied[0][1]["observations"] == [config.learner.batch_size * (config.learner.trace_length - 2)] * result.updates

@@ -215,3 +215,31 @@ def test_duplicates_are_refused_only_for_named_episodes(tmp_path, incarnation):
     for _ in range(2):
         service.on_episode(episode(1, incarnation=incarnation))
     assert len(service.store) == (1 if incarnation else 2)
+
+
+def test_a_snapshot_keeps_the_lstm_state_rows_of_a_stored_state_run(tmp_path):
+    config = make_config(tmp_path, **{"learner.stored_state": True, "network.lstm_units": 4})
+    service = ReplayService(config)
+    for index in range(3):
+        with_rows = episode(index)
+        with_rows.recurrent_state = np.full((12, 2, 4), index / 4, np.float16)
+        service.on_episode(with_rows)
+    assert service.write_snapshot()
+    again = restored_service(config)
+    assert [stored.states.tolist() for stored in again.store.episodes()] == \
+           [stored.states.tolist() for stored in service.store.episodes()]
+    assert len(again.store.episodes()) == 3
+    without = ReplayService(make_config(tmp_path))  # a run without stored states keeps the episodes, not the rows
+    restored = without.snapshotter.load(without.shape.frame_shape)
+    without.restore(restored, None)
+    assert len(without.store) == 3 and all(stored.states is None for stored in without.store.episodes())
+
+
+def test_a_stored_state_run_refuses_and_counts_episodes_without_fitting_state_rows(tmp_path):
+    service = ReplayService(make_config(tmp_path, **{"learner.stored_state": True, "network.lstm_units": 4}))
+    service.on_episode(episode(0))  # no rows
+    wrong = episode(1)
+    wrong.recurrent_state = np.zeros((12, 2, 5), np.float16)  # rows of another network
+    service.on_episode(wrong)
+    assert len(service.store) == 0
+    assert service.rejections.values()["rejected_episode_recurrent_state"] == 2

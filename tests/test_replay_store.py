@@ -1,10 +1,12 @@
+import dataclasses
+
 import numpy as np
 import pytest
 
 from common.wire.envelope import decode, encode
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, TraceBatch
-from replay.store import EpisodeStore
+from replay.store import EpisodeStore, StoredEpisode
 
 FRAME = (6, 8, 3)
 
@@ -105,3 +107,32 @@ def test_sample_round_trips_the_wire():
 def test_empty_store_cannot_sample():
     with pytest.raises(LookupError):
         EpisodeStore(capacity=1, budget_bytes=1 << 20, trace_length=2).sample(1)
+
+
+def test_a_stored_state_store_keeps_state_rows_and_hands_each_trace_the_row_of_its_first_step():
+    episode = make_episode(12, first_value=0)
+    rows = np.zeros((12, 2, 3), np.float16)
+    rows[:, 0, 0] = np.arange(12)  # the row of step t holds t: a trace's first frame value names its row
+    rows[:, 1, 2] = -np.arange(12)
+    episode.recurrent_state = rows
+    store = EpisodeStore(capacity=4, budget_bytes=1 << 30, trace_length=4, seed=5, state_units=3)
+    store.add(episode)
+    assert store.bytes == (episode.observations.nbytes + 12 * (8 + 4 + 8) + rows.nbytes)
+    batch = store.sample(50)
+    first = batch.observations_array()[:, 0, 0, 0, 0].astype(np.float16)
+    assert batch.initial_state.shape == (50, 2, 3)
+    np.testing.assert_array_equal(batch.initial_state[:, 0, 0], first)
+    np.testing.assert_array_equal(batch.initial_state[:, 1, 2], -first)
+    again = decode(encode(batch), TraceBatch)
+    np.testing.assert_array_equal(again.initial_state, batch.initial_state)
+
+    plain = EpisodeStore(capacity=4, budget_bytes=1 << 30, trace_length=4)  # the paper's: rows dropped
+    plain.add(episode)
+    assert plain.episodes()[0].states is None and plain.sample(3).initial_state.shape == (0, 2, 0)
+
+
+def test_a_stored_state_store_serves_zero_rows_for_an_episode_kept_without_them():
+    store = EpisodeStore(capacity=4, budget_bytes=1 << 30, trace_length=4, state_units=3)
+    store.restore([dataclasses.replace(StoredEpisode.from_episode(make_episode(6)), seq=0)], {})
+    batch = store.sample(2)
+    assert batch.initial_state.shape == (2, 2, 3) and not batch.initial_state.any()

@@ -38,15 +38,17 @@ def one_torch_thread():
 
 
 def random_batch(rng: np.random.Generator, config: NetworkConfig = TINY, batch: int = 10, steps: int = 10,
-                 terminal_last: bool = False) -> TraceArrays:
+                 terminal_last: bool = False, stored_state: bool = False) -> TraceArrays:
     frames = (batch, steps + 1, config.frame_height, config.frame_width, config.frame_channels)
     terminated = np.zeros((batch, steps), bool)
     terminated[:, -1] = terminal_last
+    states = (rng.random((batch, 2, config.lstm_units)) * 2 - 1).astype(np.float16) if stored_state else None
     return TraceArrays(
         observations=rng.integers(0, 256, frames, dtype=np.uint8),
         actions=rng.integers(0, config.n_actions, (batch, steps)),
         rewards=rng.random((batch, steps)).astype(np.float32),
         terminated=terminated,
+        initial_state=states,
     )
 
 
@@ -123,7 +125,8 @@ def losses_and_gradients(loss_function, seed: int, terminal_last: bool = False):
     with torch.no_grad():  # a target unlike the online net, so that mixing them up would show
         for parameter in learner.target.parameters():
             parameter.mul_(1.5)
-    tensors = to_tensors(random_batch(np.random.default_rng(seed), terminal_last=terminal_last), TINY, 10, learner.device)
+    tensors = to_tensors(random_batch(np.random.default_rng(seed), terminal_last=terminal_last), TINY, LEARNER,
+                         learner.device)
     terms = loss_function(learner.online, learner.target, tensors, LEARNER.gamma, LEARNER.n_mask)
     terms.loss.backward()
     return terms, torch.cat([p.grad.flatten() for p in learner.online.parameters()])
@@ -144,18 +147,23 @@ def test_one_pass_equals_the_separate_passes_with_the_same_history(loss_function
     torch.testing.assert_close(one_grad, reference_grad, rtol=1e-4, atol=1e-7)
 
 
-def learner_on(path: str, network: NetworkConfig = TINY) -> DoubleQLearner:
-    return DoubleQLearner(network, dataclasses.replace(LEARNER, update_path=path))
+STORED = dataclasses.replace(LEARNER, stored_state=True, burn_in=2)  # R2D2's stored state, 2 steps of burn-in
 
 
-@pytest.mark.parametrize("network", [TINY, NetworkConfig(frame_height=44, frame_width=50, lstm_units=24, device="cpu")],
-                         ids=["tiny", "cropped-frames"])
+def learner_on(path: str, network: NetworkConfig = TINY, config: LearnerConfig = LEARNER) -> DoubleQLearner:
+    return DoubleQLearner(network, dataclasses.replace(config, update_path=path))
+
+
+@pytest.mark.parametrize("network, config", [
+    (TINY, LEARNER), (NetworkConfig(frame_height=44, frame_width=50, lstm_units=24, device="cpu"), LEARNER),
+    (TINY, STORED)], ids=["tiny", "cropped-frames", "stored-state"])
 @pytest.mark.parametrize("path", ["trace", "trace-split"])
-def test_the_update_paths_stay_together_over_several_updates(path, network):
+def test_the_update_paths_stay_together_over_several_updates(path, network, config):
     """Five updates from the same weights: the same losses, exploration terms, weights and Adam state as autograd's."""
     rng = np.random.default_rng(7)
-    batches = [random_batch(rng, network, terminal_last=bool(k % 2)) for k in range(5)]
-    trace, plain = learner_on(path, network), learner_on("autograd", network)
+    batches = [random_batch(rng, network, terminal_last=bool(k % 2), stored_state=config.stored_state)
+               for k in range(5)]
+    trace, plain = learner_on(path, network, config), learner_on("autograd", network, config)
     assert (trace.update_path, plain.update_path) == (path, "autograd")
     for k, batch in enumerate(batches):
         with_q_after = k >= 3
@@ -172,7 +180,7 @@ def test_the_update_paths_stay_together_over_several_updates(path, network):
     moments = lambda learner: torch.cat([state[key].flatten() for state in learner.optimizer.state.values()
                                          for key in ("exp_avg", "exp_avg_sq")])
     torch.testing.assert_close(moments(trace), moments(plain), rtol=1e-3, atol=1e-9)
-    assert not torch.equal(flat_parameters(trace.online), flat_parameters(learner_on(path, network).online))
+    assert not torch.equal(flat_parameters(trace.online), flat_parameters(learner_on(path, network, config).online))
 
 
 def test_auto_times_every_path_once_per_process_and_changes_nothing(monkeypatch):
@@ -504,3 +512,49 @@ def test_n_step_is_a_config_choice_within_the_trace():
         load_config("paper", overrides={"learner.n_step": 0})
     with pytest.raises(ConfigError, match="learner.n_step"):
         load_config("paper", overrides={"learner.n_step": 11})
+
+
+# --- stored recurrent state and burn-in (learner.stored_state, beyond the paper) ----------------------
+
+def test_the_masked_steps_are_n_mask_from_the_zero_state_and_burn_in_from_a_stored_one():
+    assert LEARNER.masked_steps == 7 and STORED.masked_steps == 2
+    with pytest.raises(ConfigError, match="burn_in"):
+        dataclasses.replace(LEARNER, burn_in=2).validate()  # burn-in without a stored state
+    with pytest.raises(ConfigError, match="burn_in"):
+        dataclasses.replace(STORED, burn_in=10).validate()
+    dataclasses.replace(STORED, burn_in=0).validate()  # the stored state alone: every error counts
+
+
+def test_a_stored_state_reaches_the_loss_and_a_learner_that_uses_it_refuses_a_batch_without_it():
+    rng = np.random.default_rng(31)
+    batch = random_batch(rng, stored_state=True)
+    learner = DoubleQLearner(TINY, STORED)
+    with_state = one_pass_loss(learner.online, learner.target, learner.prepare(batch), 0.99, 2).loss.item()
+    zero_state = one_pass_loss(learner.online, learner.target,
+                               learner.prepare(dataclasses.replace(batch, initial_state=np.zeros_like(batch.initial_state))),
+                               0.99, 2).loss.item()
+    assert with_state != pytest.approx(zero_state, rel=1e-4)
+    with pytest.raises(ValueError, match="initial_state"):
+        learner.prepare(dataclasses.replace(batch, initial_state=None))
+    with pytest.raises(ValueError, match="initial_state"):
+        learner.prepare(dataclasses.replace(batch, initial_state=batch.initial_state[:, :, :3]))
+    paper = DoubleQLearner(TINY, LEARNER)  # the paper's learner ignores a stored state: every trace from zero
+    assert paper.prepare(batch).initial_state is None
+
+
+def test_burn_in_steps_of_a_stored_state_batch_carry_no_gradient():
+    """The autograd path's burn-in: Q-values of the first burn_in steps have no graph, the later ones do,
+    and they equal one forward pass from the stored state (no gradient changes values)."""
+    learner = DoubleQLearner(TINY, STORED)
+    tensors = learner.prepare(random_batch(np.random.default_rng(32), stored_state=True))
+    state = update_module.start_state(tensors)
+    q_values = update_module.burnt_in_forward(learner.online, tensors.observations, state, 2)
+    assert update_module.burn_in_steps(tensors, 2) == 2 and q_values.requires_grad
+    q_values[:, :2].sum().backward(retain_graph=True)
+    assert all(p.grad is None or not p.grad.any() for p in learner.online.parameters())
+    with torch.no_grad():
+        whole, _ = learner.online(tensors.observations, state)
+    torch.testing.assert_close(q_values.detach(), whole, rtol=1e-5, atol=1e-6)
+    weights = torch.randn(q_values[:, 2:].shape, generator=torch.Generator().manual_seed(33))  # not a plain sum:
+    (q_values[:, 2:] * weights).sum().backward()  # the advantages' mean is subtracted, a sum over actions is 0
+    assert all(p.grad is not None and p.grad.abs().max() > 0 for p in learner.online.parameters())

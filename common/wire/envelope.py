@@ -22,7 +22,8 @@ def _codecs(cls: type[Message]) -> list[tuple[str, Codec]]:
 
 
 def _defaulted(cls: type[Message]) -> set[str]:
-    return {f.name for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+    return {f.name for f in dataclasses.fields(cls)
+            if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING}
 
 
 def encode(message: Message) -> bytes:

@@ -12,12 +12,14 @@ import numpy as np
 
 from common.wire.codecs import (DTYPES, Array, Flag, Frames, Integer, Message, Nullable, NumberDict, PlainDict,
                                 Real, TensorDict, Text, wired)
+from common.stored_state import no_states
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS, decode_tensor, encode_tensor
 
 
 PROBABILITY = Real(0.0, 1.0)
+STATES = Array("float16", 3, finite=True, dtypes=("float16",))  # LSTM state rows (n, 2, lstm_units)
 COUNT = Integer(min_value=0)
 
 
@@ -38,6 +40,9 @@ class Episode(Message):
     # A random number per actor process: (actor_id, incarnation, episode_index) names an episode, so the
     # replay stores none twice and counts the indices that never arrived. 0: unnamed (older senders).
     incarnation: int = wired(COUNT, default=0)
+    # learner.stored_state: the LSTM state (h, c) before each step, [L, 2, lstm_units]; (0, 2, 0) when not
+    # recorded (common/stored_state.py)
+    recurrent_state: np.ndarray = wired(STATES, default_factory=no_states)
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -53,6 +58,14 @@ class Episode(Message):
                 raise WireError(f"Episode.{name}: shape {np.shape(getattr(self, name))}, expected ({steps},)")
         if np.min(self.actions) < 0:
             raise WireError("Episode.actions: negative action index")
+        _check_state_rows(self.recurrent_state, steps, "Episode.recurrent_state")
+
+
+def _check_state_rows(rows: np.ndarray, expected: int, where: str) -> None:
+    """State rows are absent, (0, 2, 0), or one (2, units) row per step or trace."""
+    shape = np.shape(rows)
+    if shape != (0, 2, 0) and (shape[0] != expected or shape[1] != 2 or shape[2] < 1):
+        raise WireError(f"{where}: shape {shape}, expected ({expected}, 2, lstm_units) or (0, 2, 0) for none")
 
 
 @dataclass(eq=False)
@@ -77,6 +90,8 @@ class TraceBatch(Message):
     weights_version: np.ndarray = wired(Array("int64", 2))  # [B, T]
     env_steps_total: int = wired(COUNT)  # frames the replay has received, for the learner's ratio control
     episodes_stored: int = wired(COUNT)
+    # learner.stored_state: each trace's LSTM state before its first step, [B, 2, lstm_units]; (0, 2, 0): none
+    initial_state: np.ndarray = wired(STATES, default_factory=no_states)
 
     @property
     def batch_size(self) -> int:
@@ -105,6 +120,7 @@ class TraceBatch(Message):
         if np.asarray(self.terminated)[:, :-1].any():
             raise WireError("TraceBatch.terminated: a terminal state before a trace's last step "
                             "(traces never cross an episode end)")
+        _check_state_rows(self.initial_state, batch, "TraceBatch.initial_state")
 
 
 @dataclass(eq=False)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from common.stored_state import stored_units
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, TraceBatch
@@ -28,13 +29,14 @@ class RunShape:
     n_actions: int  # actions are indices in [0, n_actions)
     max_steps: int  # no episode is longer (env.max_steps)
     reward_limit: float  # |reward| above this is absurd (the env's rewards lie in [0, 1])
+    state_units: int = 0  # learner.stored_state: episodes carry LSTM state rows of this many units; 0: none used
 
     @classmethod
     def of(cls, config: Any) -> RunShape:
         """The shape of a run's Config (common/config.py)."""
         network = config.network
         return cls((network.frame_height, network.frame_width, network.frame_channels), network.n_actions,
-                   config.env.max_steps, config.replay.reward_limit)
+                   config.env.max_steps, config.replay.reward_limit, stored_units(config))
 
 
 def _misfit(kind: str, text: str) -> WireError:
@@ -58,6 +60,7 @@ def check_episode(episode: Episode, shape: RunShape) -> None:
     if len(episode) > shape.max_steps:
         raise _misfit("length", f"Episode: {len(episode)} steps, more than env.max_steps {shape.max_steps}")
     _check_steps(np.asarray(episode.actions), np.asarray(episode.rewards), episode.observations, shape, "Episode")
+    _check_state_rows(episode.recurrent_state, len(episode), shape, "Episode.recurrent_state")
     if np.min(episode.weights_version) < -1:  # -1: acted before any weights
         raise _misfit("weights_version", "Episode: a weights version below -1")
     try:
@@ -73,6 +76,14 @@ def check_trace_batch(batch: TraceBatch, shape: RunShape, batch_size: int, trace
         raise _misfit("batch_shape", f"TraceBatch: {batch.batch_size} traces of {batch.trace_length} steps, "
                                      f"asked for {batch_size} of {trace_length}")
     _check_steps(np.asarray(batch.actions), np.asarray(batch.rewards), batch.observations, shape, "TraceBatch")
+    _check_state_rows(batch.initial_state, batch_size, shape, "TraceBatch.initial_state")
+
+
+def _check_state_rows(rows: np.ndarray, count: int, shape: RunShape, what: str) -> None:
+    """A run with stored states needs one (2, state_units) row per step or trace; a run without ignores rows."""
+    if shape.state_units and np.shape(rows) != (count, 2, shape.state_units):
+        raise _misfit("recurrent_state", f"{what}: shape {list(np.shape(rows))}, the run stores LSTM states "
+                                         f"(learner.stored_state) as [{count}, 2, {shape.state_units}]")
 
 
 def stat_number(values: Any, name: str, *, integer: bool = False, minimum: float = -math.inf,
