@@ -72,9 +72,11 @@ def backward_flops(network: NetworkConfig, traces: int, steps: int) -> dict[str,
 
 def update_flops(network: NetworkConfig, learner: LearnerConfig, backward_steps: int | None = None,
                  with_q_after: bool = False) -> dict[str, float]:
-    """FLOPs of one update by phase; `backward_steps` defaults to T (what the update needs)."""
+    """FLOPs of one update by phase; `backward_steps` defaults to what the update needs: T, or T - burn_in
+    from a stored state (learner.stored_state: the burn-in steps run forward only)."""
     traces, steps = learner.batch_size, learner.trace_length + 1
-    backward_steps = learner.trace_length if backward_steps is None else backward_steps
+    if backward_steps is None:
+        backward_steps = learner.trace_length - (learner.burn_in if learner.stored_state else 0)
     online = forward_flops(network, traces, steps)
     backward = backward_flops(network, traces, backward_steps)
     phases = {
