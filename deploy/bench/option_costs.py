@@ -1,6 +1,6 @@
 """The cost of each learner option beyond the paper, side by side in one run on one machine.
 
-For the paper's learner and each option alone (and any combination given with --add): the bytes one
+For the paper's learner and each configuration of the study (deploy/study.py CONFIGURATIONS): the bytes one
 stored step takes in the replay (its frame as JPEG, measured on the simulator's own frames, plus actions,
 rewards, versions and any LSTM state row), the GFLOP of one update (learner/flops.py), updates per second
 (every configuration takes its turn in each round, so that noise from other processes hits all alike;
@@ -27,25 +27,16 @@ from actor.sim import make_env
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import load_config
-from common.cpu_capability import describe_cpu
+from common.cpu_capability import PrecisionUnavailable, describe_cpu
 from common.eta import Eta
 from common.stored_state import STATE_DTYPE, stored_units
 from common.wire.frames import FrameStack
 from deploy.bench.learner_speed import random_batch
+from deploy.study import CONFIGURATIONS
 from learner.flops import update_flops
 from learner.update import DoubleQLearner, TraceArrays
 from replay.store import step_bytes
 
-# name: overrides of the run's config; "paper" is the config as given
-CONFIGURATIONS = {
-    "paper": {},
-    "n-step 3": {"learner.n_step": 3},
-    "stored state, burn-in 2": {"learner.stored_state": True, "learner.burn_in": 2},
-    "stored state, no burn-in": {"learner.stored_state": True, "learner.burn_in": 0},
-    "batch 20": {"learner.batch_size": 20},
-    "batch 32": {"learner.batch_size": 32},
-    "2 env steps per update": {"learner.env_steps_per_update": 2.0},
-}
 
 
 def frame_bytes(config: Config, steps: int, seed: int = 0) -> float:
@@ -73,7 +64,13 @@ def batch_for(config: Config, seed: int = 0) -> TraceArrays:
 
 def measure(configs: dict[str, Config], rounds: int, updates: int, warmup: int) -> dict[str, list[float]]:
     """Seconds per update of each configuration, one figure per round."""
-    learners = {name: DoubleQLearner(config.network, config.learner) for name, config in configs.items()}
+    learners = {}
+    for name, config in list(configs.items()):
+        try:
+            learners[name] = DoubleQLearner(config.network, config.learner)
+        except PrecisionUnavailable as error:  # bfloat16 on a CPU that cannot run it
+            print(f"skipping {name}: {error}", file=sys.stderr, flush=True)
+            del configs[name]
     batches = {name: learners[name].prepare(batch_for(config)) for name, config in configs.items()}
     for name, learner in learners.items():
         for _ in range(warmup):
@@ -99,6 +96,7 @@ def table(configs: dict[str, Config], seconds: dict[str, list[float]], frame: fl
         per_update = statistics.median(seconds[name])
         rows.append({
             "configuration": name,
+            "description": CONFIGURATIONS[name][0],
             "bytes_per_stored_step": round(frame + step_bytes(stored_units(config))),
             "gflop_per_update": sum(update_flops(config.network, learner).values()) / 1e9,
             "updates_per_s": 1.0 / per_update,
@@ -112,7 +110,7 @@ def markdown(rows: list[dict], header: str) -> str:
     lines = [header, "", "| Configuration | Bytes per stored step | GFLOP per update | Updates/s, median (best) | "
              "Learner s per 1,000 env steps |", "|---|---:|---:|---:|---:|"]
     for row in rows:
-        lines.append(f"| {row['configuration']} | {row['bytes_per_stored_step']:,d} | {row['gflop_per_update']:.2f} | "
+        lines.append(f"| {row['configuration']}: {row['description']} | {row['bytes_per_stored_step']:,d} | {row['gflop_per_update']:.2f} | "
                      f"{row['updates_per_s']:.2f} ({row['updates_per_s_best']:.2f}) | "
                      f"{row['learner_s_per_1000_env_steps']:.0f} |")
     return "\n".join(lines) + "\n"
@@ -136,7 +134,7 @@ def main(argv: list[str] | None = None) -> None:
     if unknown:
         parser.error(f"unknown configurations {unknown}; choose from {list(CONFIGURATIONS)}")
     torch.set_num_threads(args.threads)
-    configs = {name: load_config(base=config, overrides=CONFIGURATIONS[name]) for name in names}
+    configs = {name: load_config(base=config, overrides=CONFIGURATIONS[name][1]) for name in names}
     header = (f"CPU: {describe_cpu()}; torch {torch.__version__}, {args.threads} thread(s); {args.rounds} rounds x "
               f"{args.updates} updates after {args.warmup} warm-up; LSTM {config.network.lstm_units}, frames "
               f"{config.network.frame_height}x{config.network.frame_width}")

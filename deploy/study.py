@@ -1,0 +1,304 @@
+"""The study at a fixed budget (issue 24): the paper's learner and each option beyond it, 2 seeds each, read on
+greedy learning curves.
+
+Every configuration trains the main job's setting (the `local` preset: BMC, buffer 1,000, 1 update per 4 env
+steps unless the configuration changes it) for the same number of updates once updates start, keeps a policy
+every 1,000 updates, and is read on its greedy test curve (`evaluate --curve`). The CPU differs between
+sessions, so wall time is derived: the updates a configuration needs times its seconds per update, from one
+run of deploy/bench/option_costs.py on one machine.
+
+    .venv/bin/python deploy/study.py run nstep3 --seed 1                 # train, then evaluate its greedy curve
+    .venv/bin/python deploy/study.py export runs/study-nstep3-s1         # its small files into results/study/runs/
+    .venv/bin/python deploy/study.py report results/study/runs results/time-to-drive \\
+        --costs results/option-costs/option_costs.json --out results/study
+
+A run's configuration is read from its config.toml (the options below that it sets), not from its name, so
+runs trained before the study (results/time-to-drive) count where their config puts them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from actor.evaluation.curve import CURVE_CSV, CURVE_PNG, DRIVE_LENGTH, SUMMARY_JSON, first_reaching, read_curve
+from common.analysis.plotting import finish_figure, pyplot
+from common.config_values import flat_items, load_config
+from deploy.differences import chance_apart, lie_apart
+
+ROOT = Path(__file__).resolve().parents[1]
+PRESET = "local"
+KEEP_EVERY = 1000  # updates between kept policies: the curve's resolution
+START_MARGIN_ENV_STEPS = 32_000  # env steps before updates start (the local preset's 999 random episodes: ~28,000)
+
+# name: (what it is, its options). "paper" is the local preset as it is. Names are folder-safe.
+CONFIGURATIONS: dict[str, tuple[str, dict[str, Any]]] = {
+    "paper": ("the paper's learner", {}),
+    "nstep3": ("3-step double-Q targets", {"learner.n_step": 3}),
+    "stored-burnin2": ("stored LSTM state, 2 steps of burn-in", {"learner.stored_state": True, "learner.burn_in": 2}),
+    "stored": ("stored LSTM state, no burn-in", {"learner.stored_state": True, "learner.burn_in": 0}),
+    "batch20": ("20 traces per batch", {"learner.batch_size": 20}),
+    "ratio2": ("1 update per 2 env steps", {"learner.env_steps_per_update": 2.0}),
+    "bfloat16": ("bfloat16 learner (same math)", {"learner.precision": "bfloat16"}),
+}
+STUDY_KEYS = sorted({key for _, options in CONFIGURATIONS.values() for key in options})
+
+
+def configuration_of(config_items: dict[str, Any]) -> str | None:
+    """The configuration whose options a run's config sets, every other study option at the preset's value;
+    None for a run that fits none (a combination not in CONFIGURATIONS)."""
+    baseline = flat_items(load_config(PRESET))
+    for name, (_, options) in CONFIGURATIONS.items():
+        wanted = {key: options.get(key, baseline[key]) for key in STUDY_KEYS}
+        if all(_same(config_items.get(key), value) for key, value in wanted.items()):
+            return name
+    return None
+
+
+def _same(found: Any, wanted: Any) -> bool:
+    if isinstance(wanted, float) and isinstance(found, (int, float)):
+        return math.isclose(found, wanted)
+    return found == wanted
+
+
+# --- run --------------------------------------------------------------------------------------------------
+
+def run_name(name: str, seed: int) -> str:
+    return f"study-{name}-s{seed}"
+
+
+def stack_command(name: str, seed: int, updates: int, runs_dir: Path, extra: Sequence[str]) -> list[str]:
+    """The stack's command line for one configuration and seed: its options, the budget and the curve's policies."""
+    options = {**CONFIGURATIONS[name][1]}
+    ratio = options.get("learner.env_steps_per_update", load_config(PRESET).learner.env_steps_per_update)
+    flags = {"run.name": run_name(name, seed), "run.seed": seed, "run.runs_dir": runs_dir,
+             "learner.total_env_steps": int(START_MARGIN_ENV_STEPS + updates * ratio),
+             "learner.keep_every": KEEP_EVERY, "learner.torch_threads": 1, **options}
+    command = [sys.executable, str(ROOT / "deploy" / "stack.py"), "--preset", PRESET, "--actors", "1"]
+    for key, value in flags.items():
+        command += [f"--{key}", str(value).lower() if isinstance(value, bool) else str(value)]
+    return command + list(extra)
+
+
+def run(name: str, seed: int, updates: int, runs_dir: Path, sets: str, extra: Sequence[str]) -> int:
+    folder = runs_dir / run_name(name, seed)
+    resume = ["--resume"] if (folder / "checkpoints").exists() else []
+    code = subprocess.call(stack_command(name, seed, updates, runs_dir, extra) + resume, cwd=ROOT)
+    if code != 0:
+        return code
+    return subprocess.call([sys.executable, "-m", "actor.evaluate", "--curve", str(folder), "--sets", sets], cwd=ROOT)
+
+
+# --- export -------------------------------------------------------------------------------------------------
+
+# a run folder's file: its name in the export (the layout of results/time-to-drive)
+EXPORTED = {"config.toml": "config.toml", "summary.json": "run_summary.json", f"curve/{CURVE_CSV}": CURVE_CSV,
+            f"curve/{SUMMARY_JSON}": SUMMARY_JSON, f"curve/{CURVE_PNG}": CURVE_PNG}
+
+
+def export(folder: Path, into: Path) -> Path:
+    """A trained run's small files (config, run summary, greedy curve) into `into`/<run name>/."""
+    target = into / folder.name
+    target.mkdir(parents=True, exist_ok=True)
+    for relative, name in EXPORTED.items():
+        if (folder / relative).exists():
+            shutil.copy2(folder / relative, target / name)
+    if not (target / CURVE_CSV).exists():
+        raise SystemExit(f"study: {folder} has no greedy curve yet; run `evaluate --curve {folder}` first")
+    return target
+
+
+# --- report -------------------------------------------------------------------------------------------------
+
+@dataclass
+class StudyRun:
+    folder: Path
+    configuration: str
+    seed: int
+    test_rows: list[dict] = field(default_factory=list)  # the greedy test curve, by updates
+
+    def at(self, updates: int) -> dict | None:
+        """The last kept policy's row at or before `updates`."""
+        rows = [row for row in self.test_rows if int(row["updates"]) <= updates]
+        return rows[-1] if rows else None
+
+
+def find_runs(folders: Sequence[Path]) -> list[StudyRun]:
+    """Every run folder (holding config.toml and curve.csv) under the given folders, by configuration and seed;
+    a configuration and seed found twice counts once (the first folder listed wins)."""
+    found: dict[tuple[str, int], StudyRun] = {}
+    for top in folders:
+        for config_path in sorted(top.glob("*/config.toml")) + sorted(top.glob("config.toml")):
+            folder = config_path.parent
+            curve = folder / CURVE_CSV if (folder / CURVE_CSV).exists() else folder / "curve" / CURVE_CSV
+            if not curve.exists():
+                continue
+            items = flat_items(load_config(PRESET, config_path))
+            name = configuration_of(items)
+            if name is None:
+                print(f"study: {folder} fits no configuration of the study; left out", file=sys.stderr)
+                continue
+            rows = sorted((row for row in read_curve(curve) if row["start_set"] == "test"),
+                          key=lambda row: int(row["updates"]))
+            found.setdefault((name, int(items["run.seed"])), StudyRun(folder, name, int(items["run.seed"]), rows))
+    return sorted(found.values(), key=lambda run: (list(CONFIGURATIONS).index(run.configuration), run.seed))
+
+
+def seconds_per_update(costs: Path | None) -> dict[str, float]:
+    """Each configuration's median seconds per update from option_costs.json (deploy/bench/option_costs.py)."""
+    if costs is None:
+        return {}
+    rows = json.loads(costs.read_text())["rows"]
+    return {row["configuration"]: 1.0 / row["updates_per_s"] for row in rows}
+
+
+def study_rows(runs: Sequence[StudyRun], budget: int, per_update: dict[str, float]) -> list[dict]:
+    rows = []
+    for run in runs:
+        end = run.at(budget)
+        drive = first_reaching(run.test_rows, "mean_length", DRIVE_LENGTH)
+        seconds = per_update.get(run.configuration)
+        rows.append({
+            "configuration": run.configuration, "seed": run.seed, "run": run.folder.name,
+            "updates_at_budget": int(end["updates"]) if end else "",
+            "test_mean_length": float(end["mean_length"]) if end else math.nan,
+            "test_mean_length_low": float(end["mean_length_low"]) if end else math.nan,
+            "test_mean_length_high": float(end["mean_length_high"]) if end else math.nan,
+            "test_cfr": float(end["cfr"]) if end else math.nan,
+            "updates_to_drive": drive["updates"] if drive and drive["updates"] <= budget else "",
+            "derived_hours_to_drive": (round(drive["updates"] * seconds / 3600, 2)
+                                       if drive and seconds and drive["updates"] <= budget else ""),
+            "seconds_per_update": round(seconds, 4) if seconds else "",
+        })
+    return rows
+
+
+def supported(rows: Sequence[dict], baseline: str = "paper") -> list[str]:
+    """For each configuration against the baseline: do its seeds lie apart at the budget, and by how much."""
+    by_name: dict[str, np.ndarray] = {}
+    for row in rows:
+        by_name.setdefault(row["configuration"], []).append(row["test_mean_length"])
+    if baseline not in by_name:
+        return [f"no {baseline} run: nothing to compare against"]
+    lines = []
+    base = np.asarray(by_name[baseline], dtype=float)
+    for name, values in by_name.items():
+        if name == baseline:
+            continue
+        values = np.asarray(values, dtype=float)
+        apart = lie_apart(values, base)
+        gap = float(np.nanmean(values) - np.nanmean(base))
+        if apart is None:
+            verdict = f"not asked ({len(values)} vs {len(base)} seeds; 2 each needed)"
+        elif apart:
+            verdict = (f"seeds apart (by chance alone 1 time in {round(1 / chance_apart(len(values), len(base)))}): "
+                       "supported as a lean")
+        else:
+            verdict = "seeds interleave: not supported"
+        lines.append(f"{name} against {baseline}: mean {gap:+,.0f} steps; {verdict}")
+    return lines
+
+
+def plot_study(runs: Sequence[StudyRun], per_update: dict[str, float], path: Path, budget: int) -> None:
+    """Greedy test mean length and CFR against updates and derived wall time: a thin line per seed, a thick
+    one through the seeds' mean where every seed has the policy."""
+    plt = pyplot()
+    figure, axes = plt.subplots(2, 2, figsize=(11, 7), dpi=90)
+    colours = dict(zip(CONFIGURATIONS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    for name in CONFIGURATIONS:
+        seeds = [run for run in runs if run.configuration == name]
+        if not seeds:
+            continue
+        for row_axes, (column, scale, label) in zip(axes, (("mean_length", 1.0, "greedy test mean length (steps)"),
+                                                          ("cfr", 100.0, "greedy test CFR (%)"))):
+            for ax, x_scale in zip(row_axes, (1.0, per_update.get(name, math.nan) / 3600)):
+                if not math.isfinite(x_scale):
+                    continue
+                for run in seeds:
+                    points = [row for row in run.test_rows if int(row["updates"]) <= budget]
+                    ax.plot([x_scale * int(r["updates"]) for r in points], [scale * float(r[column]) for r in points],
+                            color=colours[name], alpha=0.35, linewidth=1)
+                common = sorted(set.intersection(*({int(r["updates"]) for r in run.test_rows} for run in seeds)))
+                common = [u for u in common if u <= budget]
+                mean = [scale * np.mean([float(next(r for r in run.test_rows if int(r["updates"]) == u)[column])
+                                         for run in seeds]) for u in common]
+                ax.plot([x_scale * u for u in common], mean, color=colours[name], linewidth=2.2,
+                        label=f"{name} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})")
+                ax.set(ylabel=label)
+    for ax in axes[:, 0]:
+        ax.set(xlabel="updates")
+    for ax in axes[:, 1]:
+        ax.set(xlabel="derived wall time (h): updates x the configuration's s/update (option_costs)")
+    axes[0, 0].axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
+    finish_figure(plt, figure, axes.flat, path, "the study: greedy test curves, thin lines seeds, thick their mean")
+
+
+def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out: Path) -> Path:
+    per_update = seconds_per_update(costs)
+    rows = study_rows(runs, budget, per_update)
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "study.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    plot_study(runs, per_update, out / "study.png", budget)
+    lines = [f"# The study at {budget:,d} updates", "",
+             f"Greedy test curves (K = 5 trials per start) of each configuration; wall time derived from "
+             f"{costs if costs else 'no cost measurement'}.", "",
+             "| Configuration | Seed | Updates read | Test mean length [95% CI] | Test CFR | Updates to drive | "
+             "Derived hours to drive | s/update |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in rows:
+        lines.append(f"| {row['configuration']} | {row['seed']} | {row['updates_at_budget']} | "
+                     f"{row['test_mean_length']:,.0f} [{row['test_mean_length_low']:,.0f}, "
+                     f"{row['test_mean_length_high']:,.0f}] | {100 * row['test_cfr']:.0f}% | "
+                     f"{row['updates_to_drive'] or 'not reached'} | {row['derived_hours_to_drive'] or '–'} | "
+                     f"{row['seconds_per_update'] or '–'} |")
+    lines += ["", "Which differences the seeds support, at the budget:", ""]
+    lines += [f"- {line}" for line in supported(rows)]
+    (out / "study.md").write_text("\n".join(lines) + "\n")
+    return out / "study.md"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="study", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    train = commands.add_parser("run", help="train one configuration and seed, then evaluate its greedy curve")
+    train.add_argument("configuration", choices=list(CONFIGURATIONS))
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--updates", type=int, default=20_000, help="the budget in updates (default 20,000)")
+    train.add_argument("--runs-dir", type=Path, default=Path("runs"))
+    train.add_argument("--sets", default="test", help="start sets of the curve (default test)")
+    copy = commands.add_parser("export", help="copy a run's config, summary and greedy curve to commit")
+    copy.add_argument("folder", type=Path)
+    copy.add_argument("--into", type=Path, default=ROOT / "results" / "study" / "runs")
+    report = commands.add_parser("report", help="the study's table, figure and verdicts from exported runs")
+    report.add_argument("folders", type=Path, nargs="+")
+    report.add_argument("--budget", type=int, default=20_000, help="read each curve at this many updates")
+    report.add_argument("--costs", type=Path, help="option_costs.json of deploy/bench/option_costs.py")
+    report.add_argument("--out", type=Path, default=ROOT / "results" / "study")
+    args, extra = parser.parse_known_args(argv)
+    if args.command == "run":
+        raise SystemExit(run(args.configuration, args.seed, args.updates, args.runs_dir, args.sets, extra))
+    if extra:
+        parser.error(f"unrecognised arguments: {' '.join(extra)}")
+    if args.command == "export":
+        print(export(args.folder, args.into))
+        return
+    runs = find_runs(args.folders)
+    if not runs:
+        raise SystemExit("study: no run with a greedy curve in " + ", ".join(map(str, args.folders)))
+    print(write_report(runs, args.budget, args.costs, args.out).read_text())
+
+
+if __name__ == "__main__":
+    main()

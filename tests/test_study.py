@@ -1,0 +1,80 @@
+"""The study at a fixed budget (deploy/study.py): which configuration a run is, its command, its table and verdicts."""
+
+import csv
+import json
+
+import pytest
+
+from common.config_values import flat_items, load_config, to_toml
+from deploy import study
+
+
+def items(**overrides):
+    return flat_items(load_config("local", overrides=overrides))
+
+
+def test_a_run_is_the_configuration_its_config_sets():
+    assert study.configuration_of(items()) == "paper"
+    assert study.configuration_of(items(**{"learner.n_step": 3})) == "nstep3"
+    assert study.configuration_of(items(**{"learner.stored_state": True, "learner.burn_in": 2})) == "stored-burnin2"
+    assert study.configuration_of(items(**{"learner.stored_state": True})) == "stored"
+    assert study.configuration_of(items(**{"learner.env_steps_per_update": 2})) == "ratio2"
+    assert study.configuration_of(items(**{"learner.n_step": 3, "learner.batch_size": 20})) is None  # no such one
+    assert study.configuration_of(items(**{"exploration.strategy": "softmax"})) == "paper"  # not a study option
+
+
+def test_the_run_command_sets_the_options_the_budget_and_the_curves_policies(tmp_path):
+    command = study.stack_command("ratio2", 1, 20_000, tmp_path, ["--env.traffic_vehicles", "0"])
+    flags = dict(zip(command[2::2], command[3::2]))
+    assert flags["--preset"] == "local" and flags["--run.name"] == "study-ratio2-s1" and flags["--run.seed"] == "1"
+    assert flags["--learner.env_steps_per_update"] == "2.0"
+    assert int(flags["--learner.total_env_steps"]) == study.START_MARGIN_ENV_STEPS + 40_000  # 20,000 updates x 2
+    assert flags["--learner.keep_every"] == "1000" and command[-2:] == ["--env.traffic_vehicles", "0"]
+    stored = study.stack_command("stored-burnin2", 0, 100, tmp_path, [])
+    assert stored[stored.index("--learner.stored_state") + 1] == "true"
+
+
+def write_run(top, name, seed, overrides, lengths):
+    """A run folder with a config and a greedy test curve of the given mean lengths at 1,000, 2,000, ... updates."""
+    folder = top / f"{name}-s{seed}"
+    folder.mkdir(parents=True)
+    folder.joinpath("config.toml").write_text(to_toml(load_config("local", overrides={"run.seed": seed, **overrides})))
+    columns = ["updates", "env_steps", "wall_s", "kept_file", "trained_on", "start_set", "mean_length",
+               "mean_length_low", "mean_length_high", "cfr"]
+    with folder.joinpath("curve.csv").open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for k, length in enumerate(lengths, start=1):
+            writer.writerow([1000 * k, 4000 * k, 100 * k, f"policy-u{1000 * k:07d}.pt", "cpu", "test", length,
+                             length - 10, length + 10, min(length / 2000, 1.0)])
+
+
+def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the_seeds_support(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, "a", 0, {}, [50, 100, 300])
+    write_run(runs, "b", 1, {}, [60, 120, 400])
+    write_run(runs, "c", 0, {"learner.n_step": 3}, [80, 1_200, 1_500])  # drives at 2,000 updates
+    write_run(runs, "d", 1, {"learner.n_step": 3}, [90, 900, 1_100])  # at 3,000
+    write_run(runs, "e", 0, {"learner.stored_state": True}, [90, 200, 350])  # one seed only
+    costs = tmp_path / "costs.json"
+    costs.write_text(json.dumps({"rows": [{"configuration": "nstep3", "updates_per_s": 2.0},
+                                          {"configuration": "paper", "updates_per_s": 2.5}]}))
+    found = study.find_runs([runs])
+    assert [(run.configuration, run.seed) for run in found] == [("paper", 0), ("paper", 1), ("nstep3", 0),
+                                                                ("nstep3", 1), ("stored", 0)]
+    report = study.write_report(found, 2_500, costs, tmp_path / "out").read_text()
+    with (tmp_path / "out" / "study.csv").open() as handle:
+        rows = {(row["configuration"], row["seed"]): row for row in csv.DictReader(handle)}
+    assert rows[("paper", "0")]["updates_at_budget"] == "2000" and float(rows[("paper", "0")]["test_mean_length"]) == 100
+    assert rows[("nstep3", "0")]["updates_to_drive"] == "2000"
+    assert float(rows[("nstep3", "0")]["derived_hours_to_drive"]) == pytest.approx(round(2000 * 0.5 / 3600, 2))
+    assert rows[("nstep3", "1")]["updates_to_drive"] == ""  # at 3,000, past the budget
+    assert "nstep3 against paper: mean +940 steps; seeds apart (by chance alone 1 time in 3)" in report
+    assert "stored against paper" in report and "not asked (1 vs 2 seeds" in report
+    assert (tmp_path / "out" / "study.png").stat().st_size > 0
+
+
+def test_a_run_of_no_configuration_is_left_out_with_a_line(tmp_path, capsys):
+    write_run(tmp_path, "x", 0, {"learner.n_step": 3, "learner.batch_size": 20}, [10])
+    assert study.find_runs([tmp_path]) == []
+    assert "fits no configuration" in capsys.readouterr().err
