@@ -115,8 +115,9 @@ def command_flags(line: str) -> tuple[str, frozenset[str] | None]:
         return "", every_flag()
     by_subcommand = parser_flags(source)
     flags = set(by_subcommand.get(None, frozenset({"--help"})))
-    if word == "d3rqn-log" and len(words) > 1:
-        flags |= by_subcommand.get(words[1], frozenset())
+    subcommand = next((later for later in words[1:] if later in by_subcommand), None)
+    if subcommand is not None:  # `d3rqn-log info ...`, `deploy/study.py run ...`: that subcommand's flags too
+        flags |= by_subcommand[subcommand]
     return word, frozenset(flags)
 
 
