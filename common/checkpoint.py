@@ -11,10 +11,14 @@ far a run got. Only this module knows what the file holds:
 
 The policies the learner keeps for greedy learning curves (learner.keep_every,
 <run>/policies/) are files of their own, KeptPolicy: the online weights only.
+A policy shipped with the project (deploy/ship_policy.py) is a KeptPolicy too,
+its weights in 16 bits (POLICY_ENCODINGS), half the size; reading it widens
+them to float32.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass
@@ -46,7 +50,10 @@ class Checkpoint:
     def load(cls, path: Path, complete: bool = False) -> Checkpoint:
         """A checkpoint file, a run folder or its checkpoints folder; complete: every section must be there."""
         file = _locate(path)
-        payload = _read(file, SECTIONS if complete else ())
+        return cls._of(_read(file, SECTIONS if complete else ()), file)
+
+    @classmethod
+    def _of(cls, payload: dict[str, Any], file: Path) -> Checkpoint:
         return cls(**{name: payload.get(name) for name in SECTIONS}, path=file)
 
     def save(self, directory: Path) -> Path:
@@ -102,13 +109,17 @@ class Checkpoint:
 
 
 POLICY_FORMAT = "d3rqn kept policy"  # a kept policy's "format" entry: tells it from a checkpoint or a stranger
+# how a policy file may hold its weights: as trained (the learner's), or in 16 bits (a shipped policy)
+POLICY_ENCODINGS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 
 
 @dataclass(frozen=True)
 class KeptPolicy:
     """A policy the learner kept: the online weights and where the run stood when it kept them.
 
-    The file is one dict: format (POLICY_FORMAT) and the fields below but path.
+    The file is one dict: format (POLICY_FORMAT) and the fields below but path. The learner keeps the
+    weights in float32; compact() narrows them to one of the 16-bit POLICY_ENCODINGS, and weights()
+    widens them back to float32 on any CPU.
     """
 
     updates: int
@@ -131,13 +142,50 @@ class KeptPolicy:
         if payload.get("format") != POLICY_FORMAT:
             raise CheckpointError(f"{path} is not a kept policy (a learner checkpoint? `evaluate --checkpoint` "
                                   "reads those)")
+        return cls._of(payload, path)
+
+    @classmethod
+    def _of(cls, payload: dict[str, Any], path: Path, kind: str = "kept policy") -> KeptPolicy:
         wrong = [name for name, check in _POLICY_CHECKS.items() if not check(payload.get(name))]
         if wrong:
-            raise CheckpointError(f"kept policy {path}: {', '.join(wrong)} missing or malformed")
+            raise CheckpointError(f"{kind} {path}: {', '.join(wrong)} missing or malformed")
         return cls(**{name: payload[name] for name in _POLICY_CHECKS}, path=path)
 
+    @classmethod
+    def of_checkpoint(cls, checkpoint: Checkpoint) -> KeptPolicy:
+        """The greedy policy of a learner checkpoint, with its updates, env steps and wall time; a checkpoint
+        does not name the learner's CPU ("unknown")."""
+        fields = {"updates": checkpoint.updates, "env_steps": checkpoint.env_steps,
+                  "wall_s": checkpoint.clock.get("wall_s", 0.0),  # 0: a checkpoint from before the clock kept it
+                  "cpu": "unknown", "config": checkpoint.config, "online": checkpoint.learner.get("online")}
+        return cls._of(fields, checkpoint.path, "checkpoint")
+
+    @property
+    def encoding(self) -> str:
+        """How the file holds the weights: float32 (as trained) or a 16-bit encoding (shipped); "mixed" for
+        weights of several dtypes, which no file read back holds."""
+        return next((name for name, dtype in POLICY_ENCODINGS.items() if dtype == _dtype(self.online)), "mixed")
+
+    def compact(self, encoding: str) -> KeptPolicy:
+        """The same policy with its weights rounded to a 16-bit encoding (to nearest, ties to even). A weight
+        beyond the encoding's range is a CheckpointError that names it: float16's is +-65,504 (bfloat16's
+        is float32's); so is a NaN or an infinity."""
+        dtype = POLICY_ENCODINGS.get(encoding)
+        if dtype is None or dtype == torch.float32:
+            raise CheckpointError(f"a compact policy is {' or '.join(_COMPACT)}, not {encoding!r}")
+        online = {}
+        for name, tensor in self.online.items():
+            wide = tensor.detach().cpu().float()
+            if not torch.isfinite(wide).all():
+                raise CheckpointError(f"weights {name!r} hold NaN or infinity")
+            online[name] = wide.to(dtype)
+            if not torch.isfinite(online[name]).all():
+                raise CheckpointError(f"weights {name!r}: a magnitude of {wide.abs().max().item():.6g} is beyond "
+                                      f"{encoding}'s {torch.finfo(dtype).max:.6g}; bfloat16 has float32's range")
+        return dataclasses.replace(self, online=online, path=None)
+
     def weights(self) -> dict[str, np.ndarray]:
-        """The online network's tensors as numpy arrays by parameter name, as evaluate takes them."""
+        """The online network's tensors as float32 numpy arrays by parameter name, as evaluate takes them."""
         return _numpy(self.online)
 
 
@@ -153,12 +201,20 @@ _POLICY_CHECKS = {
     "cpu": lambda value: isinstance(value, str),
     "config": lambda value: isinstance(value, dict),
     "online": lambda value: isinstance(value, dict) and bool(value)
-    and all(isinstance(tensor, torch.Tensor) for tensor in value.values()),
+    and all(isinstance(tensor, torch.Tensor) for tensor in value.values()) and _dtype(value) is not None,
 }
+_COMPACT = [name for name, dtype in POLICY_ENCODINGS.items() if dtype != torch.float32]
+
+
+def _dtype(tensors: dict[str, torch.Tensor]) -> torch.dtype | None:
+    """The one dtype of POLICY_ENCODINGS all the tensors have; None for a mix or another."""
+    dtypes = {tensor.dtype for tensor in tensors.values()}
+    return dtypes.pop() if len(dtypes) == 1 and next(iter(dtypes)) in POLICY_ENCODINGS.values() else None
 
 
 def _numpy(tensors: dict) -> dict[str, np.ndarray]:
-    return {name: tensor.detach().cpu().numpy() for name, tensor in tensors.items()}
+    """float32 numpy arrays; 16-bit floats are widened exactly (numpy has no bfloat16)."""
+    return {name: tensor.detach().cpu().float().numpy() for name, tensor in tensors.items()}
 
 
 def save_checkpoint(directory: Path, payload: dict[str, Any]) -> Path:
@@ -182,6 +238,14 @@ def load_checkpoint(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any
     return _read(_locate(path), required)
 
 
+def load_checkpoint_or_policy(path: Path) -> Checkpoint | KeptPolicy:
+    """What a path holds, read once: a kept (or shipped) policy file, or a learner checkpoint (a file, a run
+    folder or its checkpoints folder). A damaged file, or one of neither kind, is a CheckpointError."""
+    file = _locate(path)
+    payload = _read(file, (), "checkpoint or policy")
+    return KeptPolicy._of(payload, file) if payload.get("format") == POLICY_FORMAT else Checkpoint._of(payload, file)
+
+
 def _locate(path: Path) -> Path:
     file = find_checkpoint(path)
     if file is None:
@@ -194,7 +258,8 @@ def _read(file: Path, required: tuple[str, ...], kind: str = "checkpoint") -> di
     try:
         payload = torch.load(file, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a damaged file
-        raise CheckpointError(f"cannot read {kind} {file}: {error}") from None
+        raise CheckpointError(f"cannot read {kind} {file} (damaged, cut short or not a torch file): "
+                              f"{error}") from None
     if not isinstance(payload, dict):
         raise CheckpointError(f"{kind} {file} is not a d3rqn {kind}")
     missing = [name for name in required if name not in payload]

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from actor.evaluation import EvaluationError
-from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy
+from common.checkpoint import KeptPolicy, load_checkpoint_or_policy
 from common.config import Config
 from common.config_cli import config_from_args
 from common.config_values import from_dict
@@ -35,30 +35,20 @@ class PolicySource:
 
 
 def checkpoint_source(path: Path, args: argparse.Namespace) -> PolicySource:
-    """A checkpoint file, a run folder or its checkpoints folder, or a policy the learner kept."""
-    kept = _kept_policy(path)
-    if kept is not None:
-        config = checkpoint_config(kept.config, args)
-        facts = {"source": f"kept policy {kept.path}", "updates": str(kept.updates),
-                 "env steps": str(kept.env_steps), "strategy": config.exploration.strategy}
-        return PolicySource(kept.weights(), config, RunDir.of_checkpoint(kept.path), facts)
-    checkpoint = Checkpoint.load(path)
-    weights = checkpoint.policy_weights()
-    config = checkpoint_config(checkpoint.config, args)
-    facts = {"source": f"checkpoint {checkpoint.path}", "updates": _known(checkpoint.updates),
-             "env steps": _known(checkpoint.env_steps), "strategy": config.exploration.strategy}
-    return PolicySource(weights, config, RunDir.of_checkpoint(checkpoint.path), facts)
-
-
-def _kept_policy(path: Path) -> KeptPolicy | None:
-    """The kept policy a file holds (policies/policy-u<updates>.pt, or one shipped under results/); None for
-    anything else, which Checkpoint.load then reads or refuses."""
-    if not path.is_file():
-        return None
-    try:
-        return KeptPolicy.load(path)
-    except CheckpointError:
-        return None
+    """A checkpoint file, a run folder or its checkpoints folder, or a policy the learner kept
+    (policies/policy-u<updates>.pt) or that was shipped in 16 bits (deploy/ship_policy.py)."""
+    saved = load_checkpoint_or_policy(path)
+    if isinstance(saved, KeptPolicy):
+        config = checkpoint_config(saved.config, args)
+        shipped = "" if saved.encoding == "float32" else f" ({saved.encoding} weights, widened to float32)"
+        facts = {"source": f"kept policy {saved.path}{shipped}", "updates": str(saved.updates),
+                 "env steps": str(saved.env_steps), "strategy": config.exploration.strategy}
+        return PolicySource(saved.weights(), config, RunDir.of_checkpoint(saved.path), facts)
+    weights = saved.policy_weights()
+    config = checkpoint_config(saved.config, args)
+    facts = {"source": f"checkpoint {saved.path}", "updates": _known(saved.updates),
+             "env steps": _known(saved.env_steps), "strategy": config.exploration.strategy}
+    return PolicySource(weights, config, RunDir.of_checkpoint(saved.path), facts)
 
 
 def _known(count: int | None) -> str:

@@ -52,9 +52,9 @@ def map_picture(env_config: EnvConfig) -> np.ndarray:
             tip = centre + 7 * MAP_SCALE * np.array([math.cos(pose.heading), math.sin(pose.heading)])
             cv2.arrowedLine(picture, _point(centre), _point(tip), colour, 2, cv2.LINE_AA, tipLength=0.35)
             cv2.circle(picture, _point(centre), 5, colour, -1, cv2.LINE_AA)
-            _label(picture, str(index), centre + (-4, -10), colour)
-    _label(picture, "train starts", (12, 24), START_COLOURS["train"])
-    _label(picture, "test starts", (12, 48), START_COLOURS["test"])
+            label(picture, str(index), centre + (-4, -10), colour)
+    label(picture, "train starts", (12, 24), START_COLOURS["train"])
+    label(picture, "test starts", (12, 48), START_COLOURS["test"])
     return picture
 
 
@@ -105,8 +105,8 @@ def strip(fronts: list[np.ndarray], topdowns: list[np.ndarray], rows: list[int])
         return cv2.copyMakeBorder(big, 2, 2, 2, 2, cv2.BORDER_CONSTANT, value=(255, 255, 255))
     lines = [np.hstack([tile(fronts[i]), tile(topdowns[i])]) for i in rows]
     header = np.full((24, lines[0].shape[1], 3), 255, dtype=np.uint8)
-    _label(header, "front camera (the observation)", (8, 17), (0, 0, 0))
-    _label(header, "top-down camera, same pose", (lines[0].shape[1] // 2 + 8, 17), (0, 0, 0))
+    label(header, "front camera (the observation)", (8, 17), (0, 0, 0))
+    label(header, "top-down camera, same pose", (lines[0].shape[1] // 2 + 8, 17), (0, 0, 0))
     return np.vstack([header, *lines])
 
 
@@ -136,7 +136,7 @@ def _point(xy) -> tuple[int, int]:
     return int(round(float(xy[0]))), int(round(float(xy[1])))
 
 
-def _label(picture: np.ndarray, text: str, origin, colour) -> None:
+def label(picture: np.ndarray, text: str, origin, colour) -> None:
     for thickness, ink in ((4, (255, 255, 255)), (1, colour)):
         cv2.putText(picture, text, _point(origin), cv2.FONT_HERSHEY_SIMPLEX, 0.55, ink, thickness + 1,
                     cv2.LINE_AA)
