@@ -530,6 +530,20 @@ def test_crossing_a_junction_visits_it_and_not_the_cross_street():
     assert info["streets_visited"] == ("A2-B2", "B2", "B2-C2")
 
 
+def test_the_right_turning_driver_loops_one_block():
+    env = NeighbourhoodEnv(TOPDOWN)
+    env.reset(seed=0, options={"start_set": "test", "start_index": 0})  # on B1-C1 heading east
+    driver = PrivilegedDriver(TOPDOWN, turns="right")
+    driver.reset(env.pose)
+    for _ in range(600):  # twice round the block of 290 m: right at C1, C2, B2, B1, C1, ...
+        _, _, terminated, _, info = env.step(driver.act(env.pose))
+        assert not terminated
+    assert info["streets_visited"] == ("B1", "B1-B2", "B1-C1", "B2", "B2-C2", "C1", "C1-C2", "C2")
+    assert place_counts(info["streets_visited"]) == (4, 4)
+    with pytest.raises(ValueError, match="turns"):
+        PrivilegedDriver(TOPDOWN, turns="u-turn")
+
+
 # --- feasibility -------------------------------------------------------------------------------
 
 def test_driving_straight_ends_in_a_crash_or_off_the_road_from_every_start(env):
