@@ -40,6 +40,9 @@ CURVE_TRIALS = 5  # trials per start: a curve evaluates many policies, so fewer 
 DRIVE_LENGTH = 1000.0  # steps: a greedy test mean length this long is driving
 CURVE_CSV, CURVE_PNG = "curve.csv", "curve.png"
 SUMMARY_JSON, SUMMARY_MD = "curve_summary.json", "curve_summary.md"
+# Columns evaluate's summary gained after curves were first written: a row of an older curve.csv reads
+# them as "nan" (not measured), so that a rerun adds rows with them to a file without them.
+LATER_COLUMNS = ("mean_streets", "streets_low", "streets_high", "mean_junctions", "junctions_low", "junctions_high")
 # name, column, threshold, what it means: the first kept policy whose test row reaches the threshold
 MILESTONES = (("drive", "mean_length", DRIVE_LENGTH, "greedy test mean length >= 1,000 steps"),
               ("half_cfr", "cfr", 0.5, "greedy test CFR >= 50%"))
@@ -117,7 +120,7 @@ def headline(rows: list[dict]) -> str:
 # --- the CSV ----------------------------------------------------------------------------------------------
 
 def read_curve(path: Path) -> list[dict]:
-    """The rows of a curve CSV, [] when there is none yet."""
+    """The rows of a curve CSV, [] when there is none yet; a LATER_COLUMNS column it lacks reads "nan"."""
     if not path.exists():
         return []
     try:
@@ -128,13 +131,14 @@ def read_curve(path: Path) -> list[dict]:
     except (OSError, csv.Error, KeyError, TypeError, ValueError) as error:
         raise EvaluationError(f"{path} is not a curve of evaluate --curve ({type(error).__name__}: {error}); "
                               "move it away or give another --out") from None
-    return rows
+    return [{**row, **{column: "nan" for column in LATER_COLUMNS if column not in row}} for row in rows]
 
 
 def write_curve(path: Path, rows: list[dict]) -> list[dict]:
-    """All rows, by updates, atomically: an interruption leaves the previous file whole."""
-    columns = list(rows[0])
-    if any(list(row) != columns for row in rows):
+    """All rows, by updates, atomically: an interruption leaves the previous file whole. The columns are in
+    the order of the last row, the newest evaluation's."""
+    columns = list(rows[-1])
+    if any(set(row) != set(columns) for row in rows):
         raise EvaluationError(f"{path} has other columns than this evaluation writes (other reward bins?); "
                               "give another --out")
     rows = sorted(rows, key=lambda row: int(row["updates"]))  # stable: a policy's start sets stay in order
