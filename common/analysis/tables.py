@@ -109,8 +109,8 @@ def markdown_table(summaries: Sequence[SetSummary], edges: Sequence[float], conf
     rows = [[s.policy, s.start_set, str(s.episodes), with_interval(s, "mean_length"), with_interval(s, "iqm_length"),
              f"{s.std_length:.2f}", str(s.min_length), with_interval(s, "cfr", percent=True),
              _percent(s.collision_share), _percent(s.offroad_share), _percent(s.stalled_share),
-             with_interval(s, "progress_m", digits=1), with_interval(s, "streets", digits=1),
-             with_interval(s, "junctions", digits=1), with_interval(s, "reward_per_step", digits=3),
+             with_interval(s, "progress_m", digits=1), with_interval(s, "streets"),
+             with_interval(s, "junctions"), with_interval(s, "reward_per_step", digits=3),
              *(_percent(share) for share in s.reward_shares), f"{s.distinct_per_start:.2f}"] for s in summaries]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
