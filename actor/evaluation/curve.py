@@ -28,7 +28,7 @@ from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import check_weights, checkpoint_config
 from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.stats import SetSummary
-from common.analysis.tables import summary_columns
+from common.analysis.tables import COVERAGE_COLUMNS, summary_columns
 from common.checkpoint import CheckpointError, KeptPolicy
 from common.cpu_capability import cpu_model
 from common.config import Config
@@ -40,9 +40,6 @@ CURVE_TRIALS = 5  # trials per start: a curve evaluates many policies, so fewer 
 DRIVE_LENGTH = 1000.0  # steps: a greedy test mean length this long is driving
 CURVE_CSV, CURVE_PNG = "curve.csv", "curve.png"
 SUMMARY_JSON, SUMMARY_MD = "curve_summary.json", "curve_summary.md"
-# Columns evaluate's summary gained after curves were first written: a row of an older curve.csv reads
-# them as "nan" (not measured), so that a rerun adds rows with them to a file without them.
-LATER_COLUMNS = ("mean_streets", "streets_low", "streets_high", "mean_junctions", "junctions_low", "junctions_high")
 # name, column, threshold, what it means: the first kept policy whose test row reaches the threshold
 MILESTONES = (("drive", "mean_length", DRIVE_LENGTH, "greedy test mean length >= 1,000 steps"),
               ("half_cfr", "cfr", 0.5, "greedy test CFR >= 50%"))
@@ -120,7 +117,8 @@ def headline(rows: list[dict]) -> str:
 # --- the CSV ----------------------------------------------------------------------------------------------
 
 def read_curve(path: Path) -> list[dict]:
-    """The rows of a curve CSV, [] when there is none yet; a LATER_COLUMNS column it lacks reads "nan"."""
+    """The rows of a curve CSV, [] when there is none yet. A curve written before the coverage columns
+    reads them as "nan" (not measured), so that a rerun can add rows with them to it."""
     if not path.exists():
         return []
     try:
@@ -131,7 +129,7 @@ def read_curve(path: Path) -> list[dict]:
     except (OSError, csv.Error, KeyError, TypeError, ValueError) as error:
         raise EvaluationError(f"{path} is not a curve of evaluate --curve ({type(error).__name__}: {error}); "
                               "move it away or give another --out") from None
-    return [{**row, **{column: "nan" for column in LATER_COLUMNS if column not in row}} for row in rows]
+    return [{**row, **{column: "nan" for column in COVERAGE_COLUMNS if column not in row}} for row in rows]
 
 
 def write_curve(path: Path, rows: list[dict]) -> list[dict]:

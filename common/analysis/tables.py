@@ -21,6 +21,11 @@ FACTS_JSON = "facts.json"  # where the weights came from (updates, env steps, st
 INTERVAL_FIELDS = {"mean_length": "mean_length", "iqm_length": "iqm_length", "cfr": "cfr",
                    "progress_m": "mean_progress_m", "streets": "mean_streets", "junctions": "mean_junctions",
                    "reward_per_step": "mean_reward_per_step"}
+# The statistics of an episode's coverage, which evaluations gained after the others (files written before
+# have none), and their summary columns.
+COVERAGE = ("streets", "junctions")
+COVERAGE_COLUMNS = tuple(column for statistic in COVERAGE
+                         for column in (INTERVAL_FIELDS[statistic], f"{statistic}_low", f"{statistic}_high"))
 
 COLUMN_LEGEND = (
     ("Episodes", "episodes run: episodes_per_start trials from each start of the set"),
