@@ -7,10 +7,12 @@ the train set and of the test set, episodes capped at ``evaluation.max_steps``.
 Episodes are spread over ``evaluation.workers`` processes (multiprocessing,
 'spawn'), each stepping ``evaluation.envs_per_worker`` simulators in lockstep
 with one batched forward pass per step (actor/evaluation/episodes.py). A
-uniformly random policy, and on request the privileged map-reading driver,
-run the same starts for comparison. Results go to ``--out`` (default: the
+uniformly random policy, and on request the privileged map-reading driver
+(and the same driver turning right wherever it can, which loops), run the
+same starts for comparison. Results go to ``--out`` (default: the
 run folder's evaluation folder, common/run_dir.py): episodes.csv, summary.csv, summary.md, facts.json,
-config.toml. Mean and IQM length, CFR, progress and reward per step come with
+config.toml. Mean and IQM length, CFR, progress, the streets and junctions
+visited and reward per step come with
 confidence intervals (common/analysis/intervals.py); from one checkpoint they
 show the spread of the trials only, not that of other training runs.
 
@@ -75,6 +77,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also run a uniformly random policy from the same starts (default: on)")
     parser.add_argument("--privileged", action="store_true",
                         help="also run the privileged map-reading driver, an upper bound (long episodes)")
+    parser.add_argument("--right-turns", action="store_true",
+                        help="also run the map-reading driver turning right wherever it can: it goes round one "
+                             "loop of the grid, full length over few streets, the reference for the coverage "
+                             "columns (long episodes)")
     add_config_arguments(parser)
     return parser
 
@@ -120,7 +126,8 @@ def _main(args: argparse.Namespace) -> None:
         return
     source = source if source is not None else live_source(config)
     check_weights(config, source.weights)
-    policies = ["greedy", *(["random"] if args.random_baseline else []), *(["privileged"] if args.privileged else [])]
+    policies = ["greedy", *(["random"] if args.random_baseline else []), *(["privileged"] if args.privileged else []),
+                *(["right-turns"] if args.right_turns else [])]
     started = time.monotonic()
     episodes, summaries = evaluate(config, source.weights, policies, sets)
     wall_s = time.monotonic() - started

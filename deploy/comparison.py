@@ -106,8 +106,10 @@ def _episode_of(row: dict[str, str], bin_columns: list[str]) -> EvaluationEpisod
                              trial=int(row["trial"]), seed=int(row["seed"]), length=int(row["length"]),
                              end=row["end"], episode_return=float(row["episode_return"]),
                              reward_bin_counts=tuple(int(row[name]) for name in bin_columns),
-                             actions_digest=row["actions_digest"],
-                             progress_m=float(row.get("progress_m") or math.nan))  # older files have none
+                             actions_digest=row["actions_digest"],  # older files lack the last three
+                             progress_m=float(row.get("progress_m") or math.nan),
+                             streets=float(row.get("streets") or math.nan),
+                             junctions=float(row.get("junctions") or math.nan))
 
 
 # --- pooling ------------------------------------------------------------------------------------------------

@@ -15,7 +15,8 @@ from deploy.differences import (chance_apart, chances_apart, compared_pairs, dif
 def episode(length: int, start_set: str = "train", start_index: int = 0, trial: int = 0) -> EvaluationEpisode:
     return EvaluationEpisode(policy="greedy", start_set=start_set, start_index=start_index, trial=trial, seed=0,
                              length=length, end="collision", episode_return=0.5 * length, reward_bin_counts=(length,),
-                             actions_digest=str(length), progress_m=float(length))
+                             actions_digest=str(length), progress_m=float(length), streets=length // 4,
+                             junctions=length // 8)
 
 
 def row(strategy: str, lengths_by_run: list[list[int]], capacity: int = 1000, start_set: str = "train"

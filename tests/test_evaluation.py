@@ -10,8 +10,9 @@ import torch
 
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
-from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, RandomPolicy, end_reason, episode_jobs,
-                                       evaluation_env_config, progress_of, run_lockstep)
+from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, PrivilegedPolicy, RandomPolicy, coverage_of,
+                                       end_reason, episode_jobs, evaluation_env_config, progress_of, run_lockstep,
+                                       trial_seed)
 from actor.evaluation.sources import check_weights, checkpoint_config, live_source
 from actor.evaluation.status import EvaluationStatus, evaluation_line
 from actor.evaluation.workers import run_jobs
@@ -31,10 +32,10 @@ EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]
 
 
 def episode(length, end, episode_return, bins, start_index=0, digest="a", policy="greedy", start_set="test",
-            progress_m=math.nan):
+            progress_m=math.nan, streets=math.nan, junctions=math.nan):
     return EvaluationEpisode(policy=policy, start_set=start_set, start_index=start_index, trial=0, seed=0,
                              length=length, end=end, episode_return=episode_return, reward_bin_counts=bins,
-                             actions_digest=digest, progress_m=progress_m)
+                             actions_digest=digest, progress_m=progress_m, streets=streets, junctions=junctions)
 
 
 # --- statistics ----------------------------------------------------------------------------------
@@ -54,10 +55,10 @@ def test_a_reward_outside_the_bins_is_an_error(reward):
 
 def test_summary_of_hand_made_episodes():
     episodes = [
-        episode(2, "collision", 1.0, (1, 0, 0, 1), start_index=0, digest="a", progress_m=2.0),
-        episode(4, "offroad", 2.0, (0, 2, 2, 0), start_index=0, digest="a", progress_m=3.5),
-        episode(6, "stalled", 3.0, (0, 0, 3, 3), start_index=1, digest="b", progress_m=0.5),
-        episode(8, "cap", 4.0, (2, 2, 2, 2), start_index=1, digest="c", progress_m=8.0),
+        episode(2, "collision", 1.0, (1, 0, 0, 1), start_index=0, digest="a", progress_m=2.0, streets=1, junctions=0),
+        episode(4, "offroad", 2.0, (0, 2, 2, 0), start_index=0, digest="a", progress_m=3.5, streets=1, junctions=0),
+        episode(6, "stalled", 3.0, (0, 0, 3, 3), start_index=1, digest="b", progress_m=0.5, streets=2, junctions=1),
+        episode(8, "cap", 4.0, (2, 2, 2, 2), start_index=1, digest="c", progress_m=8.0, streets=4, junctions=4),
     ]
     row = summarise(episodes)
     assert (row.policy, row.start_set, row.runs, row.episodes) == ("greedy", "test", 1, 4)
@@ -68,6 +69,12 @@ def test_summary_of_hand_made_episodes():
     assert row.cfr == 0.25  # only the one that reached the cap: stalling is no success
     assert (row.collision_share, row.offroad_share, row.stalled_share) == (0.25, 0.25, 0.25)
     assert row.mean_progress_m == pytest.approx(14.0 / 4)
+    assert (row.mean_streets, row.mean_junctions) == (8 / 4, 5 / 4)
+    # the row's mean is that of its two starts' means: start 0's two trials always give 1 street and 0
+    # junctions; start 1's draw 2 of its trials of 2 and 4 streets (1 and 4 junctions) again: its mean is 2,
+    # 3 or 4 streets (1, 2.5 or 4 junctions), with chances 1/4, 1/2, 1/4
+    streets, junctions = row.intervals["streets"], row.intervals["junctions"]
+    assert (streets.low, streets.high) == (1.5, 2.5) and (junctions.low, junctions.high) == (0.5, 2.0)
     assert row.mean_reward_per_step == pytest.approx(10.0 / 20)  # pooled over the 20 steps
     assert row.reward_shares == pytest.approx((3 / 20, 4 / 20, 7 / 20, 6 / 20))
     assert row.distinct_per_start == 1.5  # start 0: one trajectory, start 1: two
@@ -80,7 +87,8 @@ def test_summary_of_hand_made_episodes():
 def test_without_progress_the_row_says_so():
     row = summarise([episode(3, "cap", 3.0, (0, 0, 0, 3)), episode(5, "cap", 5.0, (0, 0, 0, 5))])
     assert math.isnan(row.mean_progress_m) and math.isnan(row.intervals["progress_m"].low)
-    assert "| – |" in markdown_table([row], EDGES)
+    assert math.isnan(row.mean_streets) and math.isnan(row.intervals["junctions"].low)
+    assert "| – | – | – |" in markdown_table([row], EDGES)  # progress, streets, junctions
 
 
 def test_summaries_group_by_policy_and_set_and_refuse_mixed_or_empty_groups():
@@ -122,6 +130,11 @@ def test_end_reasons():
 def test_progress_is_the_last_steps_and_nan_when_not_reported():
     assert progress_of({"progress_m": 12.5}) == 12.5
     assert math.isnan(progress_of({"collision": False}))
+
+
+def test_coverage_counts_the_places_and_is_nan_when_not_reported():
+    assert coverage_of(("A1-B1", "B1", "B1-B2", "B2", "B2-C2")) == (3, 2)
+    assert all(math.isnan(count) for count in coverage_of(None))
 
 
 def test_evaluation_line():
@@ -191,6 +204,23 @@ def test_batched_lockstep_gives_the_episodes_of_one_env_at_a_time(small_config, 
     assert len(lengths) > 1  # episodes of different lengths: slots were refilled mid-batch
 
 
+def test_an_episode_record_counts_the_streets_and_junctions_it_visited():
+    config = load_config("smoke", overrides={"evaluation.max_steps": 80})
+    env_config = evaluation_env_config(config)
+    # Test start 5 is on D2-D3 15 m from D2, 55 m before the corner D3, where the only way on is to C3;
+    # test start 0 is on B1-C1 12 m from B1, 58 m before C1, where turning right is to C2. The corner
+    # curves begin 12 m before the junctions and are 19 m long, so 80 steps of 1 m end 15 m into C3-D3 /
+    # C1-C2: two streets and the junction between them.
+    jobs = [EpisodeJob("privileged", "test", 5, 0, trial_seed(0, "test", 5, 0)),
+            EpisodeJob("right-turns", "test", 0, 0, trial_seed(0, "test", 0, 0))]
+    policies = {"privileged": PrivilegedPolicy(env_config, 1),
+                "right-turns": PrivilegedPolicy(env_config, 1, turns="right")}
+    episodes = []
+    run_lockstep(jobs, [make_env(env_config)], policies, 80, EDGES, episodes.append)
+    assert [(e.policy, e.length, e.end, e.streets, e.junctions) for e in episodes] == [
+        ("privileged", 80, "cap", 2, 1), ("right-turns", 80, "cap", 2, 1)]
+
+
 def test_starting_an_episode_zeroes_only_its_slot_state(network):
     policy = GreedyPolicy(network, 3)
     policy.hidden.fill_(1.0)
@@ -237,12 +267,16 @@ def test_evaluate_a_checkpoint_end_to_end(tmp_path, capsys):
                for row in episodes)
     progress = [float(row["progress_m"]) for row in episodes]  # NaN from a simulator that does not report it
     assert all(math.isnan(value) for value in progress) or all(value >= 0 for value in progress)
+    # 30 steps of 1 m cannot pass two junctions (streets are 70 m or more): the start street, at most one
+    # junction and the street beyond it
+    assert all(int(row["streets"]) in (1, 2) and int(row["junctions"]) in (0, 1) for row in episodes)
     summary = read_csv(out / "summary.csv")
     assert [(row["policy"], row["start_set"], row["episodes"]) for row in summary] == [
         ("greedy", "train", "10"), ("greedy", "test", "10"), ("random", "train", "10"), ("random", "test", "10")]
     for row in summary:
         for statistic, value in (("mean_length", "mean_length"), ("cfr", "cfr"),
-                                 ("reward_per_step", "mean_reward_per_step"), ("iqm_length", "iqm_length")):
+                                 ("reward_per_step", "mean_reward_per_step"), ("iqm_length", "iqm_length"),
+                                 ("streets", "mean_streets"), ("junctions", "mean_junctions")):
             low, point, high = (float(row[key]) for key in (f"{statistic}_low", value, f"{statistic}_high"))
             assert low - 1e-9 <= point <= high + 1e-9  # equal up to rounding where every draw agrees
     assert json.loads((out / "facts.json").read_text())["updates"] == "0"

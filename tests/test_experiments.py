@@ -156,23 +156,25 @@ def test_figures_refuse_what_they_cannot_draw(tmp_path):
 # --- evaluations pooled into the paper's tables --------------------------------------------------------------
 
 def episode(policy: str, start_set: str, length: int, end: str, bins: tuple[int, ...], start_index: int = 0,
-            progress_m: float = math.nan) -> EvaluationEpisode:
+            progress_m: float = math.nan, streets: float = math.nan, junctions: float = math.nan) -> EvaluationEpisode:
     return EvaluationEpisode(policy=policy, start_set=start_set, start_index=start_index, trial=0, seed=7,
                              length=length, end=end, episode_return=0.5 * length, reward_bin_counts=bins,
-                             actions_digest=f"d{length}", progress_m=progress_m)
+                             actions_digest=f"d{length}", progress_m=progress_m, streets=streets, junctions=junctions)
 
 
 def fake_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4, updates: int | None = None,
                     progress: bool = False, privileged_length: int | None = None) -> Path:
     """Greedy episodes of the given lengths on both sets (a length of 100 reaches the cap, 50 stalls), one
     random each (and one of the privileged driver if given); with progress, each greedy episode drove 0.9 m
-    per step."""
+    per step and visited a street per 25 steps (at least one) and a junction fewer."""
     episodes = []
     for start_set in ("train", "test"):
         for number, length in enumerate(greedy_lengths):
             end = {100: "cap", 50: "stalled"}.get(length, "collision")
+            streets = max(1, length // 25)
+            coverage = (streets, streets - 1) if progress else (math.nan, math.nan)
             episodes.append(episode("greedy", start_set, length, end, (0, 0, 0, length), number,
-                                    0.9 * length if progress else math.nan))
+                                    0.9 * length if progress else math.nan, *coverage))
         episodes.append(episode("random", start_set, random_length, "offroad", (random_length, 0, 0, 0)))
         if privileged_length is not None:
             episodes.append(episode("privileged", start_set, privileged_length, "cap", (0, 0, 0, privileged_length)))
@@ -185,21 +187,24 @@ def test_episodes_csv_reads_back_as_written(tmp_path):
     fake_evaluation(tmp_path, [100, 50], progress=True)
     episodes, edges = read_episodes_csv(tmp_path / EPISODES_CSV)
     assert edges == EDGES
-    assert episodes[0] == episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0, 90.0)
-    assert (episodes[1].end, episodes[1].progress_m) == ("stalled", 45.0)
+    assert episodes[0] == episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0, 90.0, 4, 3)
+    assert (episodes[1].end, episodes[1].progress_m, episodes[1].streets, episodes[1].junctions) == (
+        "stalled", 45.0, 2, 1)
     assert math.isnan(episodes[2].progress_m)  # the random episodes did not report progress
+    assert math.isnan(episodes[2].streets) and math.isnan(episodes[2].junctions)  # nor the places
     assert [e.policy for e in episodes] == ["greedy", "greedy", "random"] * 2
 
 
-def test_an_episodes_csv_from_before_progress_reads_back_without_it(tmp_path):
-    fake_evaluation(tmp_path, [100, 10])
+def test_an_episodes_csv_from_before_progress_and_coverage_reads_back_without_them(tmp_path):
+    fake_evaluation(tmp_path, [100, 10], progress=True)
     lines = (tmp_path / EPISODES_CSV).read_text().splitlines()
-    column = lines[0].split(",").index("progress_m")
-    old = "\n".join(",".join(cell for number, cell in enumerate(line.split(",")) if number != column)
+    columns = {lines[0].split(",").index(name) for name in ("progress_m", "streets", "junctions")}
+    old = "\n".join(",".join(cell for number, cell in enumerate(line.split(",")) if number not in columns)
                     for line in lines)
     (tmp_path / EPISODES_CSV).write_text(old + "\n")
     episodes, _ = read_episodes_csv(tmp_path / EPISODES_CSV)
-    assert len(episodes) == 6 and all(math.isnan(e.progress_m) for e in episodes)
+    assert len(episodes) == 6
+    assert all(math.isnan(e.progress_m) and math.isnan(e.streets) and math.isnan(e.junctions) for e in episodes)
 
 
 def test_a_file_that_is_not_an_episodes_csv_is_a_comparison_error(tmp_path):
@@ -279,6 +284,7 @@ def test_progress_and_stalls_reach_the_tables(tmp_path):
     rows, edges = comparison_rows(runs, Bootstrap(replicates=200))
     s = rows[0].summary
     assert (s.stalled_share, s.cfr, s.mean_progress_m) == (0.5, 0.5, pytest.approx(67.5))
+    assert (s.mean_streets, s.mean_junctions) == (3.0, 2.0)  # 4 and 2 streets, 3 and 1 junctions
     assert "| VDBE | 0 | 10 | 2 | 75.00" in comparison_markdown(rows, edges)
     assert "| 50.00% [50.00, 50.00] | 0% / 0% / 50% | 67.5 |" in comparison_markdown(rows, edges)
 

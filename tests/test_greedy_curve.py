@@ -5,13 +5,16 @@ import csv
 import json
 import logging
 import math
+import shutil
 import time
+from pathlib import Path
 
 import pytest
 import torch
 
 from actor.evaluate import build_parser, main
-from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, summary_lines
+from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, read_curve, summary_lines
+from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
 from common.config_values import from_dict, load_config, to_dict
 from common.network import D3RQN, load_numpy_weights
@@ -23,6 +26,8 @@ from tests.test_learner_resume import batches, config, train  # noqa: F401 (conf
 from tests.test_status_lines import FakeClock
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# a curve committed before evaluate counted the streets and junctions of an episode
+OLD_CURVE = Path(__file__).resolve().parents[1] / "results" / "time-to-drive" / "ttd-float32-s0" / "curve.csv"
 
 
 def learner(config, clock=time.monotonic, keep_every=0, keep_every_s=0.0) -> LearnerProcess:
@@ -208,6 +213,27 @@ def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_p
     main(["--curve", str(run.root), *CURVE_FLAGS])
     assert "nothing new: all 2 kept policies are in" in capsys.readouterr().err
     assert (run.curve / "curve.csv").stat().st_mtime_ns == written
+
+
+def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_path, capsys):
+    old_rows = read_rows(OLD_CURVE)
+    assert not set(COVERAGE_COLUMNS) & set(old_rows[0])
+    rows = read_curve(OLD_CURVE)
+    assert len(rows) == len(old_rows) and {row[column] for row in rows for column in COVERAGE_COLUMNS} == {"nan"}
+    assert (rows[0]["updates"], rows[0]["start_set"], rows[0]["mean_length"]) == ("1000", "train", "70.18")
+
+    config = tiny_config(tmp_path)
+    run = RunDir.of(config)
+    run.curve.mkdir(parents=True)
+    shutil.copy(OLD_CURVE, run.curve / "curve.csv")
+    keep(config, 30)  # a kept policy the old curve lacks (its first is at 1,000 updates)
+    main(["--curve", str(run.root), *CURVE_FLAGS])
+    assert "curve: 1/1 kept policies" in capsys.readouterr().err
+    after = read_rows(run.curve / "curve.csv")
+    assert after[2:] == [{**row, **{column: "nan" for column in COVERAGE_COLUMNS}} for row in old_rows]
+    assert [(row["updates"], row["start_set"]) for row in after[:2]] == [("30", "train"), ("30", "test")]
+    for row in after[:2]:  # 8 steps of 1 m stay on the start street, 20 m or more from the junction ahead
+        assert [float(row[column]) for column in COVERAGE_COLUMNS] == [1.0, 1.0, 1.0, 0.0, 0.0, 0.0]
 
 
 def test_a_run_without_kept_policies_is_a_clear_error(tmp_path, capsys):

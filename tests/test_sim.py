@@ -16,7 +16,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from actor.sim.camera import FRAME_SHAPE
 from actor.sim.env import NeighbourhoodEnv
 from actor.sim.geometry import Obstacles, Segments
-from actor.sim.neighbourhood import neighbourhood
+from actor.sim.neighbourhood import crossed_junction, is_street, neighbourhood, place_counts, places_reached
 from actor.sim.privileged import PrivilegedDriver
 from actor.sim.progress import ProgressMeter
 from actor.sim.road import LaneLocator, road_network
@@ -479,6 +479,69 @@ def test_info_reports_progress_street_and_streets_visited():
     assert 180 <= info["progress_m"] <= 200  # about a metre of new road per step of 1 m
     assert info["street"] in info["streets_visited"] and len(info["streets_visited"]) >= 3
     assert info["streets_visited"][0] == "A1-B1" or "A1-B1" in info["streets_visited"]
+
+
+def test_place_names_count_as_streets_or_junctions():
+    # the streets A1-B1, B2-C2 (twice) and C1-C2, the junctions B2, C2 and D3
+    assert place_counts(("A1-B1", "B2", "B2-C2", "C2", "C1-C2", "D3", "B2-C2")) == (3, 3)
+    assert place_counts(()) == (0, 0)
+    hood = neighbourhood()
+    assert all(is_street(name) for name in hood.centre_line_places[:len(hood.streets)])
+    assert not any(is_street(name) for name in hood.junctions)
+    # 16 streets; 11 of the 12 junctions have corner curves: C3 is a straight run (C2-C3 is left out)
+    assert place_counts(hood.centre_line_places) == (16, 11)
+
+
+def test_a_junction_is_crossed_between_two_streets_that_end_at_it():
+    assert crossed_junction("B3-C3", "C3-D3") == "C3"  # straight over C3
+    assert crossed_junction("A2-B2", "B1-B2") == "B2"  # a corner cut short of its curve
+    assert crossed_junction("A2-B2", "B2") is None  # onto the corner curve: the junction is the place itself
+    assert crossed_junction("A1-B1", "A1-B1") is None and crossed_junction("A1-B1", "C1-D1") is None
+
+
+def test_a_street_is_reached_away_from_its_junctions():
+    hood = neighbourhood()
+    segment = hood.centre_line_places.index("A2-B2")  # 75 m from A2 (0, 70) to B2 (75, 70)
+    assert places_reached(hood, segment, 30 / 75, 3.7) == ("A2-B2",)
+    assert places_reached(hood, segment, 72 / 75, 3.7) == ()  # 3 m from B2: maybe only crossing it
+    assert places_reached(hood, segment, 2 / 75, 3.7, before="A1-A2") == ("A2",)
+    assert places_reached(hood, segment, 10 / 75, 3.7, before="A2-A3") == ("A2-B2", "A2")
+    corner = hood.centre_line_places.index("D3")  # the first of the 12 chords of its curve, 18.8 m in all
+    assert places_reached(hood, corner, 0.5, 3.7, before="D2-D3") == ()  # 0.8 m into the curve
+    assert places_reached(hood, corner + 6, 0.0, 3.7, before="D3") == ("D3",)  # half way round
+
+
+def test_crossing_a_junction_visits_it_and_not_the_cross_street():
+    env = NeighbourhoodEnv(EnvConfig(camera="topdown", start_jitter_m=0.0, start_jitter_deg=0.0))
+    env.reset(options={"start_set": "train", "start_index": 7})  # on C3-D3, 50 m east of C3, heading west
+    for _ in range(60):  # straight on over C3 (no corner curve there), 10 m into B3-C3
+        _, _, terminated, _, info = env.step(STRAIGHT)
+        assert not terminated
+    assert info["streets_visited"] == ("B3-C3", "C3", "C3-D3")
+    env.reset(options={"start_set": "test", "start_index": 3})  # on A2-B2, 20 m west of B2, heading east
+    x, y, heading = env.pose
+    env.place(x, y - 2.0, heading)  # 2 m north of the line: nearest the end of B1-B2 for 2 m in the junction
+    streets_on_the_way = set()
+    for _ in range(40):  # straight over the X-junction B2, 20 m into B2-C2
+        _, _, terminated, _, info = env.step(STRAIGHT)
+        streets_on_the_way.add(info["street"])
+        assert not terminated
+    assert "B1-B2" in streets_on_the_way
+    assert info["streets_visited"] == ("A2-B2", "B2", "B2-C2")
+
+
+def test_the_right_turning_driver_loops_one_block():
+    env = NeighbourhoodEnv(TOPDOWN)
+    env.reset(seed=0, options={"start_set": "test", "start_index": 0})  # on B1-C1 heading east
+    driver = PrivilegedDriver(TOPDOWN, turns="right")
+    driver.reset(env.pose)
+    for _ in range(600):  # twice round the block of 290 m: right at C1, C2, B2, B1, C1, ...
+        _, _, terminated, _, info = env.step(driver.act(env.pose))
+        assert not terminated
+    assert info["streets_visited"] == ("B1", "B1-B2", "B1-C1", "B2", "B2-C2", "C1", "C1-C2", "C2")
+    assert place_counts(info["streets_visited"]) == (4, 4)
+    with pytest.raises(ValueError, match="turns"):
+        PrivilegedDriver(TOPDOWN, turns="u-turn")
 
 
 # --- feasibility -------------------------------------------------------------------------------

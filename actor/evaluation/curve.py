@@ -28,7 +28,7 @@ from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import check_weights, checkpoint_config
 from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.stats import SetSummary
-from common.analysis.tables import summary_columns
+from common.analysis.tables import COVERAGE_COLUMNS, summary_columns
 from common.checkpoint import CheckpointError, KeptPolicy
 from common.cpu_capability import cpu_model
 from common.config import Config
@@ -117,7 +117,8 @@ def headline(rows: list[dict]) -> str:
 # --- the CSV ----------------------------------------------------------------------------------------------
 
 def read_curve(path: Path) -> list[dict]:
-    """The rows of a curve CSV, [] when there is none yet."""
+    """The rows of a curve CSV, [] when there is none yet. A curve written before the coverage columns
+    reads them as "nan" (not measured), so that a rerun can add rows with them to it."""
     if not path.exists():
         return []
     try:
@@ -128,13 +129,14 @@ def read_curve(path: Path) -> list[dict]:
     except (OSError, csv.Error, KeyError, TypeError, ValueError) as error:
         raise EvaluationError(f"{path} is not a curve of evaluate --curve ({type(error).__name__}: {error}); "
                               "move it away or give another --out") from None
-    return rows
+    return [{**row, **{column: "nan" for column in COVERAGE_COLUMNS if column not in row}} for row in rows]
 
 
 def write_curve(path: Path, rows: list[dict]) -> list[dict]:
-    """All rows, by updates, atomically: an interruption leaves the previous file whole."""
-    columns = list(rows[0])
-    if any(list(row) != columns for row in rows):
+    """All rows, by updates, atomically: an interruption leaves the previous file whole. The columns are in
+    the order of the last row, the newest evaluation's."""
+    columns = list(rows[-1])
+    if any(set(row) != set(columns) for row in rows):
         raise EvaluationError(f"{path} has other columns than this evaluation writes (other reward bins?); "
                               "give another --out")
     rows = sorted(rows, key=lambda row: int(row["updates"]))  # stable: a policy's start sets stay in order

@@ -5,7 +5,10 @@ lockstep: at every step the greedy network sees all its running episodes in
 one batched forward pass, each with its own LSTM state, which is zeroed when
 that slot starts a new episode. A slot whose episode ends takes the next job
 at once, so slow and fast episodes mix freely. Episodes of the random and
-privileged baselines run in the same loop without the network.
+privileged baselines run in the same loop without the network, and so does
+the privileged driver that turns right wherever it can ("right-turns"), which
+goes round one loop of the grid: it reaches the cap over few streets, the
+reference for the coverage columns (streets and junctions visited).
 
 The simulator is deterministic: a start pose and an action sequence fix the
 whole episode. Each trial still resets its env with its own seed, and the
@@ -29,12 +32,13 @@ import torch
 
 from actor.batched_q import BatchedQ
 from actor.sim import START_SETS, make_env, start_poses
+from actor.sim.neighbourhood import place_counts
 from actor.sim.privileged import PrivilegedDriver
 from common.analysis.stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
 from common.config import Config, EnvConfig
 from common.network import D3RQN, load_numpy_weights
 
-POLICIES = ("greedy", "random", "privileged")
+POLICIES = ("greedy", "random", "privileged", "right-turns")
 
 Pose = tuple[float, float, float]
 
@@ -103,14 +107,16 @@ class RandomPolicy:
 
 
 class PrivilegedPolicy:
-    """The map-reading driver of actor.sim.privileged: an upper bound, not a learner."""
+    """The map-reading driver of actor.sim.privileged: an upper bound, not a learner; with turns "right"
+    (or "left") a route that goes round one loop of the grid."""
 
-    def __init__(self, env_config: EnvConfig, n_slots: int) -> None:
+    def __init__(self, env_config: EnvConfig, n_slots: int, turns: str = "random") -> None:
         self.env_config = env_config
+        self.turns = turns
         self.drivers: list[PrivilegedDriver | None] = [None] * n_slots
 
     def begin(self, slot: int, job: EpisodeJob, pose: Pose) -> None:
-        driver = PrivilegedDriver(self.env_config, seed=job.seed)
+        driver = PrivilegedDriver(self.env_config, seed=job.seed, turns=self.turns)
         driver.reset(pose)
         self.drivers[slot] = driver
 
@@ -123,6 +129,7 @@ def make_policies(config: Config, weights: dict[str, np.ndarray] | None, n_slots
     policies: dict[str, Policy] = {
         "random": RandomPolicy(config.network.n_actions, n_slots),
         "privileged": PrivilegedPolicy(evaluation_env_config(config), n_slots),
+        "right-turns": PrivilegedPolicy(evaluation_env_config(config), n_slots, turns="right"),
     }
     if weights is not None:
         network = D3RQN(config.network)
@@ -141,14 +148,17 @@ class RunningEpisode:
     actions: list[int] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
     progress_m: float = math.nan  # the simulator's info["progress_m"] after the latest step
+    places: tuple[str, ...] | None = None  # its info["streets_visited"] after the latest step
 
     def finish(self, end: str, reward_edges: list[float]) -> EvaluationEpisode:
         job = self.job
+        streets, junctions = coverage_of(self.places)
         return EvaluationEpisode(
             policy=job.policy, start_set=job.start_set, start_index=job.start_index, trial=job.trial,
             seed=job.seed, length=len(self.actions), end=end, episode_return=float(sum(self.rewards)),
             reward_bin_counts=reward_bin_counts(self.rewards, reward_edges),
-            actions_digest=digest_of_actions(self.actions), progress_m=self.progress_m)
+            actions_digest=digest_of_actions(self.actions), progress_m=self.progress_m,
+            streets=streets, junctions=junctions)
 
 
 def end_reason(info: dict, terminated: bool, length: int, max_steps: int) -> str | None:
@@ -173,6 +183,14 @@ def progress_of(info: dict) -> float:
     """Metres of progress along the road this episode, NaN when the simulator does not report it."""
     value = info.get("progress_m")
     return math.nan if value is None else float(value)
+
+
+def coverage_of(places: tuple[str, ...] | None) -> tuple[float, float]:
+    """(distinct streets, distinct junctions) an episode visited, from the simulator's
+    info["streets_visited"]; NaN for both when the simulator does not report it."""
+    if places is None:
+        return math.nan, math.nan
+    return place_counts(places)
 
 
 def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Policy], max_steps: int,
@@ -202,6 +220,7 @@ def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Pol
             episode.actions.append(action)
             episode.rewards.append(float(reward))
             episode.progress_m = progress_of(info)
+            episode.places = info.get("streets_visited")
             episode.observation, episode.pose = observation, envs[slot].unwrapped.pose
             end = end_reason(info, terminated, len(episode.actions), max_steps)
             if end is not None:

@@ -43,7 +43,7 @@ from actor.sim import layout
 from actor.sim.camera import FRAME_SHAPE, TopDownCamera
 from actor.sim.front_camera import PerspectiveCamera
 from actor.sim.geometry import Obstacles
-from actor.sim.neighbourhood import Pose, neighbourhood
+from actor.sim.neighbourhood import Pose, neighbourhood, places_reached
 from actor.sim.progress import ProgressMeter
 from actor.sim.road import LaneLocator, neighbourhood_road
 from actor.sim.vehicles import EgoVehicle
@@ -206,7 +206,8 @@ class NeighbourhoodEnv(AbstractEnv):
         self.vehicle.place = None
         self._move_to(*self._jittered(start))
         self.progress.reset(self.segment, self.along)
-        self.streets_visited = {self.place_name}
+        self.streets_visited = set()
+        self._visit(None)
         self.stalled = False
         if self.traffic is not None:
             self.traffic.reset(self.np_random)
@@ -246,11 +247,12 @@ class NeighbourhoodEnv(AbstractEnv):
             if self._collided():  # a frame's contact counts even if the car moves on
                 break
         self.vehicle.refresh_lane()
+        before = self.place_name
         self._locate()
         self.steps += 1
         self.time += 1.0 / self.env_config.policy_frequency
         self.progress.update(self.segment, self.along)
-        self.streets_visited.add(self.place_name)
+        self._visit(before)
         self.stalled = self.progress.stalled
         observation = self.observation_type.observe()
         return (observation, self._reward(), self._is_terminated(), self._is_truncated(), self._info())
@@ -274,6 +276,13 @@ class NeighbourhoodEnv(AbstractEnv):
         x, y, _ = self.pose
         self.segment, self.along, self.distance = self.hood.centre_lines.nearest(x, y)
         self.place_name = self.hood.centre_line_places[self.segment]
+
+    def _visit(self, before: str | None) -> None:
+        """Adds the places this step reached (neighbourhood.places_reached) to the episode's: a place
+        counts once the car is on it farther than offroad_distance, the most it can be off its line,
+        from both its ends; a junction also when the car crosses it from street to street."""
+        self.streets_visited.update(places_reached(self.hood, self.segment, self.along,
+                                                   self.env_config.offroad_distance, before))
 
     def _collided(self) -> bool:
         """Takes the ego car's pose and tests it against every obstacle and traffic vehicle."""

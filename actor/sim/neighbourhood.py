@@ -25,6 +25,7 @@ TREE_RADII_M = (1.6, 2.1, 1.8)
 TREE_CLEARANCE_M = 5.0  # a tree's canopy keeps this far from every centre-line
 HOUSE_SETBACK_M = 14.0  # from the centre-lines around a block
 HOUSE_GAP_M = 4.0
+STREET_SEPARATOR = "-"  # joins a street's junctions into its name ("A1-B1"); no junction's name holds it
 
 
 class LayoutError(ValueError):
@@ -126,6 +127,9 @@ class Neighbourhood:
 @functools.cache
 def neighbourhood() -> Neighbourhood:
     """The one neighbourhood of the simulator (built once per process)."""
+    named = [name for name in layout.JUNCTIONS if STREET_SEPARATOR in name]
+    if named:
+        raise LayoutError(f"junction names {named} hold {STREET_SEPARATOR!r}, which marks a street's name")
     junctions = {name: np.array(xy, dtype=np.float64) for name, xy in layout.JUNCTIONS.items()}
     streets = tuple(Street(a, b, junctions[a], junctions[b]) for a, b in layout.STREETS)
     neighbours = _neighbours(junctions, streets)
@@ -148,7 +152,61 @@ def neighbourhood() -> Neighbourhood:
 
 def street_name(first: str, second: str) -> str:
     """A street's name, the same for both directions: its junctions in sorted order."""
-    return "-".join(sorted((first, second)))
+    return STREET_SEPARATOR.join(sorted((first, second)))
+
+
+# --- the places an episode visits ---------------------------------------------------------------------
+
+def is_street(place: str) -> bool:
+    """A place name of ``centre_line_places`` is a street's ("B2-C2") or a junction's ("C2")."""
+    return STREET_SEPARATOR in place
+
+
+def place_counts(places) -> tuple[int, int]:
+    """(distinct streets, distinct junctions) among place names."""
+    distinct = set(places)
+    streets = sum(1 for place in distinct if is_street(place))
+    return streets, len(distinct) - streets
+
+
+def crossed_junction(before: str, after: str) -> str | None:
+    """The junction a car crossed when its place changed from street ``before`` to another street
+    ``after`` with no corner curve between (straight over a junction, or a corner cut): the one
+    junction both streets end at; None unless both are streets that share one."""
+    if before == after or not (is_street(before) and is_street(after)):
+        return None
+    shared = set(before.split(STREET_SEPARATOR)) & set(after.split(STREET_SEPARATOR))
+    return shared.pop() if len(shared) == 1 else None
+
+
+def places_reached(hood: Neighbourhood, segment: int, along: float, reach_m: float, before: str | None = None
+                   ) -> tuple[str, ...]:
+    """The places a car visits at a step that leaves it nearest to centre-line ``segment``, ``along``
+    (0 to 1) of the way along it, coming from place ``before`` (None at the start).
+
+    A place counts when the car is on it more than ``reach_m`` (the most it can be off its line)
+    from both its ends: near an end the car may be nearest to a place it does not drive on, as to
+    the end of the cross street while it crosses a junction off the centre-line, or to the end of a
+    corner curve on the street it leaves or starts from. A junction counts when its corner curve
+    does, and when the car crosses it from street to street (straight on, or a corner cut short).
+    """
+    place = hood.centre_line_places[segment]
+    metres, length = _place_extent(hood, segment, along)
+    reached = [place] if reach_m < metres < length - reach_m else []
+    crossed = None if before is None else crossed_junction(before, place)
+    if crossed is not None:
+        reached.append(crossed)
+    return tuple(reached)
+
+
+def _place_extent(hood: Neighbourhood, segment: int, along: float) -> tuple[float, float]:
+    """(metres from the start of the place of centre-line ``segment``, the place's length): a street is
+    one segment, a corner curve ARC_PIECES equal chords in a row (centre-lines: streets, then curves)."""
+    chord = float(np.linalg.norm(hood.centre_lines.deltas[segment]))
+    if segment < len(hood.streets):
+        return along * chord, chord
+    piece = (segment - len(hood.streets)) % ARC_PIECES
+    return (piece + along) * chord, ARC_PIECES * chord
 
 
 def oriented_street(streets, first: str, second: str) -> Street:

@@ -2,7 +2,9 @@
 
 It knows the road geometry and where every parked car is (privileged state no
 learning agent gets). It plans a route junction by junction (a random turn
-from a seeded RNG at each junction, never a U-turn), lays a reference path
+from a seeded RNG at each junction, never a U-turn; or, with ``turns`` "right"
+or "left", always the way furthest to that side, which goes round one loop of
+the grid for ever), lays a reference path
 along the centre-lines and corner curves, shifts that path sideways around
 parked cars that reach into the driving line, and follows it with pure
 pursuit. Given the traffic cars' rectangles, it also moves over, by up to
@@ -22,7 +24,7 @@ import numpy as np
 
 from actor.sim import layout
 from actor.sim.env import STEERING_LEVELS
-from actor.sim.geometry import Segments, rectangle_corners
+from actor.sim.geometry import Segments, rectangle_corners, right_of
 from actor.sim.neighbourhood import Neighbourhood, Street, neighbourhood
 from common.config import EnvConfig
 
@@ -37,11 +39,15 @@ TRAFFIC_CLEARANCE_M = 0.6  # kept between the car's side and a traffic car besid
 TRAFFIC_SHIFT_M = 0.6  # the most the path moves over for traffic
 TRAFFIC_AHEAD_M = 20.0  # traffic this far along the path ahead is looked at
 TRAFFIC_RAMP_M = 6.0  # over which the move for traffic fades in and out
+TURNS = ("random", "right", "left")  # how the route goes on at a junction
 
 
 class PrivilegedDriver:
-    def __init__(self, env_config: EnvConfig, seed: int = 0) -> None:
+    def __init__(self, env_config: EnvConfig, seed: int = 0, turns: str = "random") -> None:
+        if turns not in TURNS:
+            raise ValueError(f"turns: one of {TURNS}, got {turns!r}")
         self.config = env_config
+        self.turns = turns
         self.hood: Neighbourhood = neighbourhood()
         self.rng = np.random.default_rng(seed)
         self.max_steering = math.radians(env_config.max_steer_deg)
@@ -125,7 +131,17 @@ class PrivilegedDriver:
 
     def _next_junction(self, previous: str, junction: str) -> str:
         choices = [j for j in self.hood.neighbours[junction] if j != previous]
-        return choices[int(self.rng.integers(len(choices)))]
+        if self.turns == "random":
+            return choices[int(self.rng.integers(len(choices)))]
+        side = 1.0 if self.turns == "right" else -1.0
+        return max(choices, key=lambda choice: side * self._turn_angle(previous, junction, choice))
+
+    def _turn_angle(self, previous: str, junction: str, following: str) -> float:
+        """How far the way from ``junction`` to ``following`` turns right of the way there from ``previous``
+        (radians, negative to the left)."""
+        coming = self.hood.street(previous, junction)
+        going = self.hood.street(junction, following).direction
+        return math.atan2(float(going @ np.array(right_of(coming.heading))), float(going @ coming.direction))
 
     def _extend(self) -> None:
         """Appends the current leg (with the corner that ends it) to the path; plans one more."""

@@ -39,7 +39,7 @@ import numpy as np
 
 from common.config import Config
 
-STATISTICS = ("mean_length", "iqm_length", "cfr", "reward_per_step", "progress_m")
+STATISTICS = ("mean_length", "iqm_length", "cfr", "reward_per_step", "progress_m", "streets", "junctions")
 
 
 @dataclass(frozen=True)
@@ -83,15 +83,23 @@ class Cell:
     capped: np.ndarray  # float64 1.0 where the episode reached the step cap (collision-free)
     returns: np.ndarray  # float64 sum of step rewards
     progress_m: np.ndarray  # float64 metres along the road; NaN where the simulator did not report it
+    streets: np.ndarray  # float64 distinct streets visited; NaN where the simulator did not report them
+    junctions: np.ndarray  # float64 distinct junctions visited; NaN likewise
 
     @classmethod
     def of(cls, runs: Sequence[Hashable], starts: Sequence[Hashable], lengths: Sequence[float],
-           capped: Sequence[bool], returns: Sequence[float], progress_m: Sequence[float]) -> "Cell":
-        arrays = [np.asarray(values, dtype=np.float64) for values in (lengths, capped, returns, progress_m)]
+           capped: Sequence[bool], returns: Sequence[float], progress_m: Sequence[float],
+           streets: Sequence[float] | None = None, junctions: Sequence[float] | None = None) -> "Cell":
+        """streets, junctions: NaN for every episode when not given."""
+        unknown = [math.nan] * len(lengths)
+        arrays = [np.asarray(values, dtype=np.float64) for values in
+                  (lengths, capped, returns, progress_m, unknown if streets is None else streets,
+                   unknown if junctions is None else junctions)]
         cell = cls(_codes(runs), _codes(starts), *arrays)
         sizes = {len(array) for array in (cell.runs, cell.starts, *arrays)}
         if len(sizes) != 1 or not sizes.pop():
-            raise ValueError("a cell needs the same positive number of runs, starts, lengths, flags, returns, progress")
+            raise ValueError("a cell needs the same positive number of runs, starts, lengths, flags, returns, "
+                             "progress, streets, junctions")
         if (cell.lengths <= 0).any():
             raise ValueError("every episode must have at least one step")
         return cell
@@ -141,14 +149,17 @@ def weighted_iqm(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
 def cell_statistics(cell: Cell, weights: np.ndarray) -> dict[str, np.ndarray]:
     """Every statistic of STATISTICS under weights (N,) or (B, N)."""
     total = weights.sum(axis=-1)
-    with np.errstate(invalid="ignore"):  # NaN progress stays NaN
-        progress = weights @ cell.progress_m / total
+    with np.errstate(invalid="ignore"):  # NaN progress or coverage stays NaN
+        progress, streets, junctions = (weights @ values / total
+                                        for values in (cell.progress_m, cell.streets, cell.junctions))
     return {
         "mean_length": weights @ cell.lengths / total,
         "iqm_length": weighted_iqm(cell.lengths, weights),
         "cfr": weights @ cell.capped / total,
         "reward_per_step": (weights @ cell.returns) / (weights @ cell.lengths),
         "progress_m": progress,
+        "streets": streets,
+        "junctions": junctions,
     }
 
 

@@ -15,6 +15,13 @@ Conventions (the paper does not spell them out):
   step: metres driven along the road network in the direction of travel. A
   simulator that does not report it gives NaN, not 0 (0 would claim that the
   car did not move); a row whose episodes have no progress shows "–".
+* Coverage is the number of distinct streets and of distinct junctions an
+  episode visited, from the simulator's ``info["streets_visited"]`` after its
+  last step (a street counts once driven along, a junction once turned at or
+  crossed: actor/sim/neighbourhood.py, ``places_reached``). A driver that
+  loops one block reaches the cap with full progress over 4 streets and 4
+  junctions; these columns tell it from one that explores. NaN where the
+  simulator does not report the places.
 * The standard deviation of episode lengths is the population one (ddof = 0,
   numpy's default).
 * Mean reward per step and the reward-bin shares pool every step of every
@@ -61,6 +68,8 @@ class EvaluationEpisode:
     reward_bin_counts: tuple[int, ...]  # steps whose reward fell in each bin
     actions_digest: str  # equal digests mean the same action sequence, hence the same trajectory
     progress_m: float = math.nan  # metres along the road network; NaN when the simulator does not say
+    streets: float = math.nan  # distinct streets visited (a count); NaN when the simulator does not say
+    junctions: float = math.nan  # distinct junctions visited (a count); NaN when the simulator does not say
 
     @property
     def collision_free(self) -> bool:
@@ -85,6 +94,8 @@ class SetSummary:
     offroad_share: float  # share of episodes ended by leaving the road
     stalled_share: float  # share of episodes ended for making no progress
     mean_progress_m: float  # metres along the road per episode; NaN when the simulator does not report it
+    mean_streets: float  # distinct streets visited per episode; NaN when the simulator does not report them
+    mean_junctions: float  # distinct junctions visited per episode; NaN likewise
     mean_reward_per_step: float
     reward_shares: tuple[float, ...]  # share of all steps whose reward fell in each bin
     distinct_per_start: float  # distinct trajectories among the trials of a start, averaged over starts
@@ -145,6 +156,8 @@ def summarise(episodes: Sequence[EvaluationEpisode], runs: Sequence[Hashable] | 
         offroad_share=_share(episodes, lambda episode: episode.end == "offroad"),
         stalled_share=_share(episodes, lambda episode: episode.end == "stalled"),
         mean_progress_m=float(point["progress_m"]),
+        mean_streets=float(point["streets"]),
+        mean_junctions=float(point["junctions"]),
         mean_reward_per_step=float(point["reward_per_step"]),
         reward_shares=tuple(float(count / steps) for count in bin_totals),
         distinct_per_start=distinct_trajectories_per_start(episodes),
@@ -156,7 +169,9 @@ def episode_cell(episodes: Sequence[EvaluationEpisode], runs: Sequence[Hashable]
     """The arrays the bootstrap resamples: runs whole, trials within (run, start)."""
     return Cell.of(runs, [(episode.start_set, episode.start_index) for episode in episodes],
                    [episode.length for episode in episodes], [episode.collision_free for episode in episodes],
-                   [episode.episode_return for episode in episodes], [episode.progress_m for episode in episodes])
+                   [episode.episode_return for episode in episodes], [episode.progress_m for episode in episodes],
+                   streets=[episode.streets for episode in episodes],
+                   junctions=[episode.junctions for episode in episodes])
 
 
 def summarise_all(episodes: Iterable[EvaluationEpisode], bootstrap: Bootstrap | None = None) -> list[SetSummary]:

@@ -19,7 +19,13 @@ FACTS_JSON = "facts.json"  # where the weights came from (updates, env steps, st
 
 # The SetSummary field of each statistic that has an interval (intervals.STATISTICS).
 INTERVAL_FIELDS = {"mean_length": "mean_length", "iqm_length": "iqm_length", "cfr": "cfr",
-                   "progress_m": "mean_progress_m", "reward_per_step": "mean_reward_per_step"}
+                   "progress_m": "mean_progress_m", "streets": "mean_streets", "junctions": "mean_junctions",
+                   "reward_per_step": "mean_reward_per_step"}
+# The statistics of an episode's coverage, which evaluations gained after the others (files written before
+# have none), and their summary columns.
+COVERAGE = ("streets", "junctions")
+COVERAGE_COLUMNS = tuple(column for statistic in COVERAGE
+                         for column in (INTERVAL_FIELDS[statistic], f"{statistic}_low", f"{statistic}_high"))
 
 COLUMN_LEGEND = (
     ("Episodes", "episodes run: episodes_per_start trials from each start of the set"),
@@ -31,6 +37,8 @@ COLUMN_LEGEND = (
                                        "progress along the road over the simulator's window"),
     ("Progress", "metres driven along the road network per episode, in the direction of travel "
                  "(– where the simulator does not report it)"),
+    ("Streets / Junctions", "distinct streets driven along / junctions turned at or crossed per episode, "
+                            "the mean: a driver looping one block reaches the cap over 4 of each"),
     ("Reward/step", "mean step reward exp(-beta d), pooled over all steps of the set"),
     ("[low, high]", "confidence interval by stratified bootstrap: training runs resampled whole, then each "
                     "run's trials within each start (common/analysis/intervals.py); with one run it shows "
@@ -101,11 +109,13 @@ def markdown_table(summaries: Sequence[SetSummary], edges: Sequence[float], conf
     level = f"{100 * confidence:g}% CI"
     header = ["Policy", "Set", "Episodes", f"Mean length [{level}]", f"IQM [{level}]", "Std", "Min",
               f"CFR [{level}]", "Collision", "Off-road", "Stalled", f"Progress m [{level}]",
+              f"Streets [{level}]", f"Junctions [{level}]",
               f"Reward/step [{level}]", *(f"r in {label}" for label in bin_labels(edges)), "Distinct/start"]
     rows = [[s.policy, s.start_set, str(s.episodes), with_interval(s, "mean_length"), with_interval(s, "iqm_length"),
              f"{s.std_length:.2f}", str(s.min_length), with_interval(s, "cfr", percent=True),
              _percent(s.collision_share), _percent(s.offroad_share), _percent(s.stalled_share),
-             with_interval(s, "progress_m", digits=1), with_interval(s, "reward_per_step", digits=3),
+             with_interval(s, "progress_m", digits=1), with_interval(s, "streets"),
+             with_interval(s, "junctions"), with_interval(s, "reward_per_step", digits=3),
              *(_percent(share) for share in s.reward_shares), f"{s.distinct_per_start:.2f}"] for s in summaries]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
