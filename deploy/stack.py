@@ -33,6 +33,8 @@ import threading
 import time
 from collections import deque
 
+import zenoh
+
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
@@ -49,6 +51,7 @@ RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubl
 RESTART_BACKOFF_MAX_S = 30.0
 STABLE_S = 60.0  # a process that lived this long before dying is restarted after RESTART_BACKOFF_S again
 FINAL_METRICS_WAIT_S = 5.0
+WATCHER_CONNECT_S = 180.0  # how long the stack waits for its replay's router: a loaded machine starts it slowly
 STATUS_PERIOD_S = 1.0  # the status file and the live line
 LOGGED_LINE_PERIOD_S = 30.0  # the live line, logged, when stdout is not a terminal
 ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
@@ -355,6 +358,23 @@ def stack_precisions(config: Config) -> dict[str, str]:
     return precisions
 
 
+def open_watcher(transport, stop: threading.Event):
+    """The stack's own session to its replay's router, retried while the replay starts (each try waits
+    transport.connect_timeout_s) for WATCHER_CONNECT_S; None, with a line, if it never answers or the stack
+    is stopped first."""
+    deadline = time.monotonic() + WATCHER_CONNECT_S
+    while not stop.is_set():
+        try:
+            return open_session(transport)
+        except zenoh.ZError as error:
+            if time.monotonic() >= deadline:
+                print(f"the replay's router at {transport.connect[0]} did not answer within {WATCHER_CONNECT_S:.0f} s "
+                      f"({error}); stopping the run", file=sys.stderr, flush=True)
+                return None
+            print(f"waiting for the replay's router at {transport.connect[0]} ...", file=sys.stderr, flush=True)
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     args, config = parse_config_or_exit(build_parser(), argv)
     exit_if_unrunnable("deploy/run.sh", stack_precisions(config))
@@ -377,11 +397,14 @@ def main(argv: list[str] | None = None) -> int:
     stack.start_all()
     watcher_config = config.transport
     watcher_config.mode, watcher_config.connect, watcher_config.listen = "client", [endpoint], []
-    session = open_session(watcher_config)
+    session, subscriptions, code = None, [], 1
     keys = Keys(config.transport.namespace, config.run.name)
-    subscriptions = [subscribe(session, keys.metrics_all, monitor.on_metric),
-                     subscribe(session, keys.replay_stats, monitor.on_replay_stats)]
-    try:
+    try:  # from here on, whatever happens, the processes are stopped
+        session = open_watcher(watcher_config, stop)
+        if session is None:
+            return 1
+        subscriptions = [subscribe(session, keys.metrics_all, monitor.on_metric),
+                         subscribe(session, keys.replay_stats, monitor.on_replay_stats)]
         code = stack.watch(stop, monitor)
         if stack.processes["learner"].poll() is not None:
             monitor.learner_final.wait(FINAL_METRICS_WAIT_S)
@@ -392,7 +415,8 @@ def main(argv: list[str] | None = None) -> int:
         stack.stop_all()
         for subscription in subscriptions:
             subscription.undeclare()
-        session.close()
+        if session is not None:
+            session.close()
     stack.report(monitor, "finished" if stack.learner_finished else "stopped")
     summary = monitor.summary(config, stack.restarts)
     run.summary.write_text(json.dumps(summary, indent=2) + "\n")

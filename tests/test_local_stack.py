@@ -85,3 +85,24 @@ def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):
     assert "env steps per update (configured 20)" in (tmp_path / "stack.out").read_text()
     role_logs = " ".join(path.read_text() for path in (tmp_path / "ratio" / "logs").glob("*"))
     assert "rejected (" not in role_logs  # no episode or batch refused (for its state rows, say)
+
+
+def test_the_stacks_watcher_waits_for_a_slow_router_then_gives_up_with_a_line(monkeypatch, capsys):
+    """On a loaded machine the replay may take longer than one connect timeout to listen: the stack retries
+    (and, its session opened inside the block that stops the processes, never leaves them behind)."""
+    import threading
+
+    from common.config import TransportConfig
+    from common.transport import free_port
+    from deploy import stack
+
+    monkeypatch.setattr(stack, "WATCHER_CONNECT_S", 1.0)
+    transport = TransportConfig(mode="client", connect=[f"tcp/127.0.0.1:{free_port()}"], connect_timeout_s=0.3)
+    started = time.monotonic()
+    assert stack.open_watcher(transport, threading.Event()) is None
+    assert time.monotonic() - started >= 1.0
+    err = capsys.readouterr().err
+    assert "waiting for the replay's router" in err and "did not answer within 1 s" in err
+    stopped = threading.Event()
+    stopped.set()
+    assert stack.open_watcher(transport, stopped) is None
