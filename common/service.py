@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import re
 import signal
 import threading
@@ -48,6 +49,30 @@ def parse_service_args(parser: argparse.ArgumentParser, argv: list[str] | None =
     return args, config
 
 
+PARENT_ENV = "D3RQN_STOP_WITH_PARENT"  # set by deploy/stack.py to its pid: its roles stop when it is gone
+PARENT_POLL_S = 1.0
+
+
+def stop_with_parent(stop: threading.Event, expected: int | None = None) -> threading.Thread | None:
+    """Sets `stop` (with a log line) once the process that started this one is gone, when that process asked
+    for it (PARENT_ENV holds its pid): a stack killed or crashed leaves no role running on its own."""
+    if expected is None:
+        value = os.environ.get(PARENT_ENV, "")
+        expected = int(value) if value.isdigit() else None
+    if expected is None:
+        return None
+
+    def watch() -> None:
+        while not stop.wait(PARENT_POLL_S):
+            if os.getppid() != expected:
+                log.warning("the stack that started this process (pid %d) is gone: stopping", expected)
+                stop.set()
+
+    thread = threading.Thread(target=watch, name="parent-watch", daemon=True)
+    thread.start()
+    return thread
+
+
 def stop_on_signals() -> threading.Event:
     """An event that SIGINT and SIGTERM set: the process finishes what it does and stops cleanly."""
     stop = threading.Event()
@@ -69,6 +94,7 @@ class Service:
         self.process_id = "0" if process_id is None else str(process_id)
         setup_logging(role if process_id is None else f"{role}-{process_id}")
         self.stop = stop_on_signals()
+        stop_with_parent(self.stop)
         self.keys = Keys(config.transport.namespace, config.run.name)
         self._closing: contextlib.ExitStack | None = None
 

@@ -42,6 +42,7 @@ from common.cpu_capability import exit_if_unrunnable
 from common.eta import Eta
 from common.pacing import updates_paid_for
 from common.run_dir import RunDir, RunStatus
+from common.service import PARENT_ENV
 from common.transport import Keys, free_port, open_session, subscribe
 from common.wire.messages import EpisodeRecord, Stats
 from common.wire.run_shape import stat_number
@@ -313,8 +314,8 @@ class Stack:
         log = open(self.run.log(role.name), "ab")
         command = [sys.executable, "-m", *role.module.split(), *self.base, *role.flags,
                    *self._resume_flags(role, first)]  # module, then any subcommand
-        role.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
+        role.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                        start_new_session=True, env={**os.environ, PARENT_ENV: str(os.getpid())})
         role.started = time.monotonic()
         log.close()
 

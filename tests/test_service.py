@@ -3,15 +3,21 @@ token gone, a session that cannot open is one clear line and exit code 1, and le
 session by an error still closes everything, in order. Every session lives in its own process."""
 
 import multiprocessing
+import os
 import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
 
 import pytest
 
 from common.config_values import load_config
-from common.service import Service
+from common.service import PARENT_ENV, Service, stop_with_parent
 from tests.processes import loopback_endpoint, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines
 
+ROOT = Path(__file__).resolve().parents[1]
 RUN = "shell"
 ROLES = {"replay": ["-m", "replay.main"], "recorder": ["-m", "replay.log.cli", "record"]}
 
@@ -81,3 +87,22 @@ def test_leaving_by_an_error_sets_stop_runs_the_callbacks_newest_first_then_clos
             child.kill()
     assert seen == [("second", True, False), ("first", True, False), ("after", True, True)]
     assert child.exitcode == 0
+
+
+def test_a_role_started_by_a_stack_stops_when_the_stack_is_killed(tmp_path):
+    """The stack sets D3RQN_STOP_WITH_PARENT to its pid: a role whose stack dies (SIGKILL, a crash) stops by
+    itself instead of running on alone. A shell stands in for the stack, a small Python process for the role."""
+    role = ("import threading; from common.service import stop_with_parent; stop = threading.Event(); "
+            "stop_with_parent(stop); print('up', flush=True); stop.wait(60); print('stopped', flush=True)")
+    out = tmp_path / "role.out"
+    stack = subprocess.Popen(["/bin/sh", "-c", f'{PARENT_ENV}=$$ "{sys.executable}" -c "{role}" > "{out}" & wait'],
+                             cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    wait_for(lambda: out.exists() and "up" in out.read_text(), "the role's start", 60)
+    stack.kill()
+    stack.wait()
+    wait_for(lambda: "stopped" in out.read_text(), "the role to stop after its stack", 5)
+
+
+def test_without_a_stack_a_role_watches_no_parent(monkeypatch):
+    monkeypatch.delenv(PARENT_ENV, raising=False)
+    assert stop_with_parent(threading.Event()) is None
