@@ -128,8 +128,9 @@ class StudyRun:
     test_rows: list[dict] = field(default_factory=list)  # the greedy test curve, by updates
 
     def at(self, updates: int) -> dict | None:
-        """The last kept policy's row at or before `updates`."""
-        rows = [row for row in self.test_rows if int(row["updates"]) <= updates]
+        """The row of the last kept policy at or before `updates`, if it was kept less than KEEP_EVERY updates
+        before (a curve evaluated only in parts has no reading at the budget)."""
+        rows = [row for row in self.test_rows if updates - KEEP_EVERY < int(row["updates"]) <= updates]
         return rows[-1] if rows else None
 
 
@@ -196,12 +197,16 @@ def supported(rows: Sequence[dict], baseline: str = "paper") -> list[str]:
         if name == baseline:
             continue
         values = np.asarray(values, dtype=float)
-        apart = lie_apart(values, base)
-        gap = float(np.nanmean(values) - np.nanmean(base))
+        values, base_here = values[~np.isnan(values)], base[~np.isnan(base)]
+        if not len(values) or not len(base_here):
+            lines.append(f"{name} against {baseline}: not asked (no reading at the budget on one side)")
+            continue
+        gap = float(values.mean() - base_here.mean())
+        apart = lie_apart(values, base_here)
         if apart is None:
-            verdict = f"not asked ({len(values)} vs {len(base)} seeds; 2 each needed)"
+            verdict = f"not asked ({len(values)} vs {len(base_here)} seeds; 2 each needed)"
         elif apart:
-            verdict = (f"seeds apart (by chance alone 1 time in {round(1 / chance_apart(len(values), len(base)))}): "
+            verdict = (f"seeds apart (by chance alone 1 time in {round(1 / chance_apart(len(values), len(base_here)))}): "
                        "supported as a lean")
         else:
             verdict = "seeds interleave: not supported"
@@ -238,7 +243,7 @@ def plot_study(runs: Sequence[StudyRun], per_update: dict[str, float], path: Pat
     for ax in axes[:, 0]:
         ax.set(xlabel="updates")
     for ax in axes[:, 1]:
-        ax.set(xlabel="derived wall time (h): updates x the configuration's s/update (option_costs)")
+        ax.set(xlabel="derived wall time (h) = updates x s/update (option_costs)")
     axes[0, 0].axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
     finish_figure(plt, figure, axes.flat, path, "the study: greedy test curves, thin lines seeds, thick their mean")
 
@@ -258,9 +263,11 @@ def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out:
              "| Configuration | Seed | Updates read | Test mean length [95% CI] | Test CFR | Updates to drive | "
              "Derived hours to drive | s/update |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
-        lines.append(f"| {row['configuration']} | {row['seed']} | {row['updates_at_budget']} | "
-                     f"{row['test_mean_length']:,.0f} [{row['test_mean_length_low']:,.0f}, "
-                     f"{row['test_mean_length_high']:,.0f}] | {100 * row['test_cfr']:.0f}% | "
+        length = ("no policy kept within 1,000 updates of the budget" if math.isnan(row["test_mean_length"]) else
+                  f"{row['test_mean_length']:,.0f} [{row['test_mean_length_low']:,.0f}, "
+                  f"{row['test_mean_length_high']:,.0f}]")
+        cfr = "–" if math.isnan(row["test_cfr"]) else f"{100 * row['test_cfr']:.0f}%"
+        lines.append(f"| {row['configuration']} | {row['seed']} | {row['updates_at_budget'] or '–'} | {length} | {cfr} | "
                      f"{row['updates_to_drive'] or 'not reached'} | {row['derived_hours_to_drive'] or '–'} | "
                      f"{row['seconds_per_update'] or '–'} |")
     lines += ["", "Which differences the seeds support, at the budget:", ""]

@@ -78,3 +78,14 @@ def test_a_run_of_no_configuration_is_left_out_with_a_line(tmp_path, capsys):
     write_run(tmp_path, "x", 0, {"learner.n_step": 3, "learner.batch_size": 20}, [10])
     assert study.find_runs([tmp_path]) == []
     assert "fits no configuration" in capsys.readouterr().err
+
+
+def test_a_curve_without_a_policy_near_the_budget_has_no_reading_there(tmp_path):
+    """A curve evaluated only in parts (1,000 to 3,000, then 9,000) is not read at 6,000 from its 3,000 policy."""
+    write_run(tmp_path, "a", 0, {}, [50, 60, 70, 0, 0, 0, 0, 0, 900])
+    write_run(tmp_path, "b", 0, {"learner.n_step": 3}, [50, 60, 70, 80, 90, 100])
+    runs = study.find_runs([tmp_path])
+    runs[0].test_rows = [row for row in runs[0].test_rows if int(row["updates"]) in (1000, 2000, 3000, 9000)]
+    report = study.write_report(runs, 6_000, None, tmp_path / "out").read_text()
+    assert "| paper | 0 | – | no policy kept within 1,000 updates of the budget | – |" in report
+    assert "nstep3 against paper: not asked (no reading at the budget on one side)" in report
