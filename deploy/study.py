@@ -248,7 +248,11 @@ def plot_study(runs: Sequence[StudyRun], per_update: dict[str, float], path: Pat
     finish_figure(plt, figure, axes.flat, path, "the study: greedy test curves, thin lines seeds, thick their mean")
 
 
-def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out: Path) -> Path:
+REPORT_ARGS = "study.json"  # what the report was built from, so that a test can rebuild it
+
+
+def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out: Path,
+                 folders: Sequence[Path] = ()) -> Path:
     per_update = seconds_per_update(costs)
     rows = study_rows(runs, budget, per_update)
     out.mkdir(parents=True, exist_ok=True)
@@ -273,6 +277,8 @@ def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out:
     lines += ["", "Which differences the seeds support, at the budget:", ""]
     lines += [f"- {line}" for line in supported(rows)]
     (out / "study.md").write_text("\n".join(lines) + "\n")
+    (out / REPORT_ARGS).write_text(json.dumps({"folders": [str(folder) for folder in folders], "budget": budget,
+                                               "costs": str(costs) if costs else None}, indent=1) + "\n")
     return out / "study.md"
 
 
@@ -304,7 +310,7 @@ def main(argv: list[str] | None = None) -> None:
     runs = find_runs(args.folders)
     if not runs:
         raise SystemExit("study: no run with a greedy curve in " + ", ".join(map(str, args.folders)))
-    print(write_report(runs, args.budget, args.costs, args.out).read_text())
+    print(write_report(runs, args.budget, args.costs, args.out, args.folders).read_text())
 
 
 if __name__ == "__main__":

@@ -130,7 +130,9 @@ def test_a_report_of_nothing_is_an_error(tmp_path, capsys):
     assert "no exported run" in capsys.readouterr().err
 
 
-COMMITTED = sorted(path.parent for path in (Path(__file__).resolve().parents[1] / "results").glob("*/runs"))
+# the comparison's folders (their report is results.md); results/study has its own test (tests/test_study.py)
+COMMITTED = sorted(path.parent for path in (Path(__file__).resolve().parents[1] / "results").glob("*/runs")
+                   if (path.parent / "results.md").exists())
 
 
 def csv_rows(path: Path) -> list[dict[str, str]]:

@@ -2,6 +2,7 @@
 
 import csv
 import json
+from pathlib import Path
 
 import pytest
 
@@ -89,3 +90,14 @@ def test_a_curve_without_a_policy_near_the_budget_has_no_reading_there(tmp_path)
     report = study.write_report(runs, 6_000, None, tmp_path / "out").read_text()
     assert "| paper | 0 | – | no policy kept within 1,000 updates of the budget | – |" in report
     assert "nstep3 against paper: not asked (no reading at the budget on one side)" in report
+
+
+def test_the_committed_study_rebuilds_from_its_committed_runs(tmp_path, monkeypatch):
+    root = study.ROOT
+    monkeypatch.chdir(root)  # the report names its folders as given, relative to the clone
+    args = json.loads((root / "results" / "study" / study.REPORT_ARGS).read_text())
+    costs = Path(args["costs"]) if args["costs"] else None
+    study.write_report(study.find_runs([Path(folder) for folder in args["folders"]]), args["budget"], costs, tmp_path,
+                       [Path(folder) for folder in args["folders"]])
+    for name in ("study.md", "study.csv"):
+        assert (tmp_path / name).read_text() == (root / "results" / "study" / name).read_text(), name
