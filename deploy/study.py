@@ -31,9 +31,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from actor.evaluation import EvaluationError
 from actor.evaluation.curve import CURVE_CSV, CURVE_PNG, DRIVE_LENGTH, SUMMARY_JSON, first_reaching, read_curve
 from common.analysis.plotting import finish_figure, pyplot
 from common.config_values import flat_items, load_config
+from common.options import ConfigError
 from deploy.differences import chance_apart, lie_apart
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,12 +146,17 @@ def find_runs(folders: Sequence[Path]) -> list[StudyRun]:
             curve = folder / CURVE_CSV if (folder / CURVE_CSV).exists() else folder / "curve" / CURVE_CSV
             if not curve.exists():
                 continue
-            items = flat_items(load_config(PRESET, config_path))
+            try:
+                items = flat_items(load_config(PRESET, config_path))
+                curve_rows = read_curve(curve)
+            except (ConfigError, EvaluationError) as error:
+                print(f"study: {folder} left out: {error}", file=sys.stderr)
+                continue
             name = configuration_of(items)
             if name is None:
                 print(f"study: {folder} fits no configuration of the study; left out", file=sys.stderr)
                 continue
-            rows = sorted((row for row in read_curve(curve) if row["start_set"] == "test"),
+            rows = sorted((row for row in curve_rows if row["start_set"] == "test"),
                           key=lambda row: int(row["updates"]))
             found.setdefault((name, int(items["run.seed"])), StudyRun(folder, name, int(items["run.seed"]), rows))
     return sorted(found.values(), key=lambda run: (list(CONFIGURATIONS).index(run.configuration), run.seed))

@@ -80,6 +80,7 @@ class EpisodeStore:
         self._rng = np.random.default_rng(seed)
         self.bytes = 0
         self.frames = 0
+        self.state_bytes = 0  # of the held episodes' LSTM state rows
         self.inserted = 0
         self.evicted = 0
         self.evicted_for_budget = 0  # evictions while fewer than `capacity` episodes were held
@@ -104,6 +105,7 @@ class EpisodeStore:
         self._episodes.append(stored)
         self.bytes += stored.nbytes
         self.frames += len(stored.frames)
+        self.state_bytes += 0 if stored.states is None else stored.states.nbytes
 
     def _evict_to_fit(self) -> None:
         while len(self._episodes) > self.capacity or (self.bytes > self.budget_bytes and len(self._episodes) > 1):
@@ -149,8 +151,7 @@ class EpisodeStore:
         if not self.frames:
             return float("nan")
         steps = self.frames - len(self._episodes)
-        states = sum(stored.states.nbytes for stored in self._episodes if stored.states is not None)
-        return (self.bytes - steps * STEP_METADATA_BYTES - states) / self.frames
+        return (self.bytes - steps * STEP_METADATA_BYTES - self.state_bytes) / self.frames
 
     def sample(self, batch_size: int, request_id: int = 0) -> TraceBatch:
         """B traces of T steps: an episode uniformly, then a start uniformly inside it."""
@@ -189,4 +190,5 @@ class EpisodeStore:
         oldest = self._episodes.popleft()
         self.bytes -= oldest.nbytes
         self.frames -= len(oldest.frames)
+        self.state_bytes -= 0 if oldest.states is None else oldest.states.nbytes
         self.evicted += 1

@@ -101,3 +101,10 @@ def test_the_committed_study_rebuilds_from_its_committed_runs(tmp_path, monkeypa
                        [Path(folder) for folder in args["folders"]])
     for name in ("study.md", "study.csv"):
         assert (tmp_path / name).read_text() == (root / "results" / "study" / name).read_text(), name
+
+
+def test_a_damaged_run_folder_is_left_out_with_a_line(tmp_path, capsys):
+    write_run(tmp_path, "a", 0, {}, [50])
+    (tmp_path / "a-s0" / "config.toml").write_text("[learner\nbroken")
+    assert study.find_runs([tmp_path]) == []
+    assert "left out" in capsys.readouterr().err
