@@ -132,6 +132,10 @@ class LearnerConfig:
                    "48.6 MB at the paper's sizes), or half the size as float16 or bfloat16, whose greedy actions "
                    "differ from float32's within the tolerance docs/architecture.md states", choices=tuple(WEIGHTS_ENCODINGS))
     checkpoint_every: int = option(5_000, "write checkpoints/latest.pt every this many updates", "updates")
+    checkpoint_every_s: float = option(
+        600.0, "also write checkpoints/latest.pt once this long has passed since the last one (after an update), "
+               "whichever of this and checkpoint_every comes first: bounds the updates a killed learner loses and "
+               "makes again; 0: by updates only", "s")
     keep_every: int = option(
         0, "keep the policy (the online weights, with the run's updates, env steps and wall time) in the run folder's "
            "policies/ every this many updates, and at the end, for greedy learning curves (`evaluate --curve`); "
@@ -196,6 +200,7 @@ class LearnerConfig:
         check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
         check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
         check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
+        check(self.checkpoint_every_s >= 0, "checkpoint_every_s", "must be >= 0 (0: by updates only)")
         check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
         check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
         check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",

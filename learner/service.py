@@ -131,9 +131,9 @@ class Admitted:
 
 
 class Cadence:
-    """When the weights go out, or a policy is kept: after every `every`-th update (every > 0), and
-    (period_s > 0) after the first update once period_s has passed since the last time, whichever
-    comes first."""
+    """When the weights go out, a checkpoint is written or a policy is kept: after every `every`-th
+    update (every > 0), and (period_s > 0) after the first update once period_s has passed since the
+    last time, whichever comes first."""
 
     def __init__(self, every: int, period_s: float, clock=time.monotonic) -> None:
         self.every = every
@@ -162,6 +162,7 @@ class LearnerProcess:
         self.stager = self.learner.stager() if self.learner.device.type == "cuda" else None
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
         self.clock = RunClock(config.learner.env_steps_per_update, config.replay.error_buffer_updates, clock)
+        self.checkpoints = Cadence(config.learner.checkpoint_every, config.learner.checkpoint_every_s, clock)
         keeping = config.learner.keep_every > 0 or config.learner.keep_every_s > 0
         self.keeper = PolicyKeeper(RunDir.of(config), Cadence(config.learner.keep_every, config.learner.keep_every_s,
                                                               clock) if keeping else None)
@@ -328,6 +329,10 @@ class LearnerProcess:
         return Checkpoint(learner=self.learner.state_dict(), exploration=self.strategy.state_dict(), clock=clock,
                           config=to_dict(self.config)).save(self.checkpoint_dir)
 
+    def checkpoint_if_due(self) -> None:
+        if self.checkpoints.due(self.updates):
+            self.checkpoint()
+
     def keep_policy(self) -> None:
         """Keeps the online weights with the run's updates, env steps and wall time (written in the background)."""
         with self._lock:
@@ -448,8 +453,7 @@ def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, ses
                 outputs.exploration(process.strategy)
                 if broadcasts.due(process.updates):
                     outputs.weights(process.make_weights())
-                if process.updates % config.checkpoint_every == 0:
-                    process.checkpoint()
+                process.checkpoint_if_due()
                 process.keep_policy_if_due()
             if heartbeat.due():
                 outputs.metrics(metrics.values())

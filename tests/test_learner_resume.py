@@ -6,9 +6,11 @@ import torch
 
 from common.checkpoint import SECTIONS as CHECKPOINT_SECTIONS, CheckpointError, load_checkpoint
 from common.config_values import load_config
+from common.options import ConfigError
 from common.wire.frames import FrameStack
 from common.wire.messages import Stats, TraceBatch
 from learner.service import LearnerProcess
+from tests.test_status_lines import FakeClock
 
 SIZE, STEPS, TRACES = 36, 4, 3
 
@@ -88,3 +90,25 @@ def test_damaged_or_missing_checkpoint_is_a_clear_error(config, tmp_path):
     path.write_bytes(path.read_bytes()[:1000])
     with pytest.raises(CheckpointError, match="cannot read checkpoint"):
         LearnerProcess(config).resume()
+
+
+def test_the_learner_checkpoints_every_n_updates_or_every_period_by_its_clock(config):
+    clock = FakeClock()
+    config.learner.checkpoint_every, config.learner.checkpoint_every_s = 5, 10.0
+    process = LearnerProcess(config, clock=clock)
+    process.start_updates()
+    written = []
+    for batch in batches(10):
+        clock.now += 3.0  # an update takes 3 s
+        train(process, batch)
+        process.checkpoint_if_due()
+        if process.checkpoint_dir.joinpath("latest.pt").exists():
+            updates = load_checkpoint(process.checkpoint_dir, CHECKPOINT_SECTIONS)["learner"]["updates"]
+            written += [] if written and written[-1] == updates else [updates]
+    # 12 s at update 4 (by time), the 5th (by count), 27 s at update 9 (12 s after 15 s), the 10th
+    assert written == [4, 5, 9, 10]
+
+
+def test_checkpoint_period_must_not_be_negative():
+    with pytest.raises(ConfigError, match="learner.checkpoint_every_s"):
+        load_config("paper", overrides={"learner.checkpoint_every_s": -1})
