@@ -223,6 +223,19 @@ def supported(rows: Sequence[dict], baseline: str = "paper") -> list[str]:
     return lines
 
 
+def broken_at_gaps(updates: Sequence[int], values: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The points as arrays, with a NaN between two that lie more than KEEP_EVERY updates apart: a line does
+    not bridge policies that were kept but never evaluated."""
+    xs, ys = [], []
+    for index, (update, value) in enumerate(zip(updates, values)):
+        if index and update - updates[index - 1] > KEEP_EVERY:
+            xs.append(math.nan)
+            ys.append(math.nan)
+        xs.append(float(update))
+        ys.append(float(value))
+    return np.asarray(xs), np.asarray(ys)
+
+
 def plot_study(runs: Sequence[StudyRun], per_update: dict[str, float], path: Path, budget: int) -> None:
     """Greedy test mean length and CFR against updates and derived wall time: a thin line per seed, a thick
     one through the seeds' mean where every seed has the policy."""
@@ -240,13 +253,14 @@ def plot_study(runs: Sequence[StudyRun], per_update: dict[str, float], path: Pat
                     continue
                 for run in seeds:
                     points = [row for row in run.test_rows if int(row["updates"]) <= budget]
-                    ax.plot([x_scale * int(r["updates"]) for r in points], [scale * float(r[column]) for r in points],
-                            color=colours[name], alpha=0.35, linewidth=1)
+                    xs, ys = broken_at_gaps([int(r["updates"]) for r in points], [float(r[column]) for r in points])
+                    ax.plot(x_scale * xs, scale * ys, color=colours[name], alpha=0.35, linewidth=1)
                 common = sorted(set.intersection(*({int(r["updates"]) for r in run.test_rows} for run in seeds)))
                 common = [u for u in common if u <= budget]
-                mean = [scale * np.mean([float(next(r for r in run.test_rows if int(r["updates"]) == u)[column])
-                                         for run in seeds]) for u in common]
-                ax.plot([x_scale * u for u in common], mean, color=colours[name], linewidth=2.2,
+                mean = [np.mean([float(next(r for r in run.test_rows if int(r["updates"]) == u)[column])
+                                 for run in seeds]) for u in common]
+                xs, ys = broken_at_gaps(common, mean)
+                ax.plot(x_scale * xs, scale * ys, color=colours[name], linewidth=2.2, marker=".",
                         label=f"{name} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})")
                 ax.set(ylabel=label)
     for ax in axes[:, 0]:

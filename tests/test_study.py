@@ -4,6 +4,7 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from common.config_values import flat_items, load_config, to_toml
@@ -108,3 +109,9 @@ def test_a_damaged_run_folder_is_left_out_with_a_line(tmp_path, capsys):
     (tmp_path / "a-s0" / "config.toml").write_text("[learner\nbroken")
     assert study.find_runs([tmp_path]) == []
     assert "left out" in capsys.readouterr().err
+
+
+def test_a_curves_line_does_not_bridge_policies_that_were_not_evaluated():
+    xs, ys = study.broken_at_gaps([1000, 2000, 5000, 5400, 6000], [1.0, 2.0, 5.0, 5.4, 6.0])
+    assert xs[:2].tolist() == [1000.0, 2000.0] and xs[3:].tolist() == [5000.0, 5400.0, 6000.0]
+    assert np.isnan(xs[2]) and np.isnan(ys[2]) and ys[3:].tolist() == [5.0, 5.4, 6.0]
