@@ -28,8 +28,10 @@ versions from there.
 
 Finished episodes go to an outbox that one thread sends from, in order, while a
 replay is alive (its liveliness token) and subscribed. While none is (a replay
-restart) they wait there; when it holds actor.queue_episodes episodes or
-actor.queue_mb MB, all of the actor's simulators wait for room. Episodes still waiting when
+restart) they wait there, and no simulator begins an episode until a replay's rate
+message comes again: no rate limiter counts the steps meanwhile. When the outbox
+holds actor.queue_episodes episodes or actor.queue_mb MB, all of the actor's
+simulators wait for room. Episodes still waiting when
 the actor stops are counted as dropped. Each episode carries this process's
 random incarnation, so the replay never stores one twice and counts the ones that
 never arrived.
@@ -170,6 +172,11 @@ class Mailbox:
             self.hold_reason = reason
             self.updates_started = start >= 0 and not refilling
         self.heard_rate.set()
+
+    def replay_gone(self) -> None:
+        """No replay is alive, so none counts the steps: hold until a replay's word comes again."""
+        with self._lock:
+            self.hold_reason = "replay"
 
     def must_hold(self, has_policy: bool = True) -> str:
         """Why the next episode must wait ("" when it may start); no word from a replay: go. Without
@@ -420,15 +427,20 @@ class Outbox:
 
 
 class ReplayWatch:
-    """Whether the run's replay is alive, from its liveliness token (gone when it dies, back when it returns)."""
+    """Whether the run's replay is alive, from its liveliness token (gone when it dies, back when it returns);
+    calls on_gone when the last one goes."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_gone: Callable[[], None] = lambda: None) -> None:
         self._alive: set[str] = set()
         self._lock = threading.Lock()
+        self.on_gone = on_gone
 
     def on_change(self, key: str, alive: bool) -> None:
         with self._lock:
             (self._alive.add if alive else self._alive.discard)(key)
+            gone = not self._alive
+        if gone:
+            self.on_gone()
 
     @property
     def alive(self) -> bool:
@@ -448,7 +460,7 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
              config.exploration.strategy)
     keys = service.keys
     outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE))
-    replay = ReplayWatch()
+    replay = ReplayWatch(actor.mailbox.replay_gone)  # a restarted replay's rate limiter must see every step
     sending = threading.Event()  # the sender and the stats thread stop once driving is over
     with service.session() as session:
         service.on_close(sending.set)

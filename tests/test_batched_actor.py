@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from actor.batched_q import BatchedQ
-from actor.runner import Actor, EpisodeGate, HoldLog, Outbox, _drive, actor_seed, env_seed
+from actor.runner import Actor, EpisodeGate, HoldLog, Outbox, ReplayWatch, _drive, actor_seed, env_seed
 from actor.sim import make_env
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
@@ -189,6 +189,26 @@ def test_a_held_env_waits_while_the_others_finish_their_episodes():
     rate("")
     actor.step(gate)
     assert actor.episodes_started == 6
+
+
+def test_while_no_replay_is_alive_no_episode_begins_until_a_replays_word_comes_again():
+    # a killed replay's rate limiter counts nothing: episodes begun meanwhile would run past the ratio
+    actor = Actor(config_with(1), actor_id=0)
+    gate = EpisodeGate(actor.mailbox, HoldLog(10.0), lambda: True)
+    watch = ReplayWatch(actor.mailbox.replay_gone)
+    go = Stats(source="rate_limiter", time=0.0, values={"hold_reason": ""})
+    watch.on_change("replay/a", True)
+    actor.mailbox.offer_rate(go)
+    assert gate()
+    watch.on_change("replay/b", True)
+    watch.on_change("replay/a", False)
+    assert watch.alive and gate()  # another replay is still there
+    watch.on_change("replay/b", False)
+    assert not watch.alive and not gate() and actor.mailbox.must_hold() == "replay"
+    watch.on_change("replay/c", True)
+    assert not gate()  # alive again, but its limiter has not spoken
+    actor.mailbox.offer_rate(go)
+    assert gate()
 
 
 def test_once_updates_have_started_an_actor_without_the_learners_policy_starts_no_episode():
