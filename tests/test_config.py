@@ -224,6 +224,15 @@ def test_help_shows_the_defaults_of_the_chosen_preset(capsys):
     assert local["--learner.lr"].endswith("(default: 0.0001)")  # local keeps the paper's
 
 
+def test_the_fast_preset_is_local_but_for_the_deviations_its_help_names(capsys):
+    local, fast = flat_items(load_config("local")), flat_items(load_config("fast"))
+    changed = sorted(key for key in fast if fast[key] != local[key])
+    assert changed == ["learner.precision", "learner.total_env_steps"]
+    assert all(key in PRESETS["fast"].doc for key in ("learner.precision auto", "112,000 env steps"))
+    entries = help_entries(config_help(capsys, "--preset", "fast"))
+    assert entries["--learner.precision"].endswith(f"(default of preset fast: {toml_value('auto')})")
+
+
 def test_help_lists_the_presets_and_what_each_changes(capsys):
     text = " ".join(config_help(capsys).split())
     for name, preset in PRESETS.items():
