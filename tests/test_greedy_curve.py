@@ -271,11 +271,22 @@ def test_the_time_to_drive_is_the_first_test_row_that_reaches_it():
                                                 "8,000 env steps, 3:20 of wall time, trained on Test CPU")
 
 
+def test_a_drive_is_held_from_the_first_policy_after_which_none_falls_below():
+    lengths = {1000: 300, 2000: 1230, 3000: 744, 4000: 1069, 5000: 1323, 6000: 1368}  # a swinging curve
+    rows = [row(updates, "test", length, 0.0) for updates, length in lengths.items()] + [row(2000, "train", 0, 0)]
+    assert first_reaching(rows, "mean_length", 1000)["updates"] == 2000
+    assert first_reaching(rows, "mean_length", 1000, held=True)["updates"] == 4000
+    assert first_reaching(rows + [row(7000, "test", 503, 0.0)], "mean_length", 1000, held=True) is None
+    lines = summary_lines(curve_summary(rows))
+    assert lines[1].startswith("first greedy test mean length >= 1,000 steps at every kept policy from there on: "
+                               "update 4,000")
+
+
 def test_a_curve_that_never_drives_says_so():
     rows = [row(1000, "test", 400, 0.1), row(2000, "test", 999, 0.49)]
     assert first_reaching(rows, "mean_length", 1000) is None and first_reaching(rows, "cfr", 0.5) is None
     lines = summary_lines(curve_summary(rows))
-    assert lines[1] == "first greedy test CFR >= 50%: not reached in 2 kept policies (up to update 2,000)"
+    assert lines[2] == "first greedy test CFR >= 50%: not reached in 2 kept policies (up to update 2,000)"
     train_only = summary_lines(curve_summary([row(1000, "train", 2000, 1.0)]))
     assert train_only[0] == "first greedy test mean length >= 1,000 steps: the test set was not evaluated"
 

@@ -58,12 +58,13 @@ def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the
     write_run(runs, "c", 0, {"learner.n_step": 3}, [80, 1_200, 1_500])  # drives at 2,000 updates
     write_run(runs, "d", 1, {"learner.n_step": 3}, [90, 900, 1_100])  # at 3,000
     write_run(runs, "e", 0, {"learner.stored_state": True}, [90, 200, 350])  # one seed only
+    write_run(runs, "f", 1, {"learner.env_steps_per_update": 2.0}, [1_100, 900, 1_300])  # drives, swings, drives
     costs = tmp_path / "costs.json"
     costs.write_text(json.dumps({"rows": [{"configuration": "nstep3", "updates_per_s": 2.0},
                                           {"configuration": "paper", "updates_per_s": 2.5}]}))
     found = study.find_runs([runs])
     assert [(run.configuration, run.seed) for run in found] == [("paper", 0), ("paper", 1), ("nstep3", 0),
-                                                                ("nstep3", 1), ("stored", 0)]
+                                                                ("nstep3", 1), ("stored", 0), ("ratio2", 1)]
     report = study.write_report(found, 2_500, costs, tmp_path / "out").read_text()
     with (tmp_path / "out" / "study.csv").open() as handle:
         rows = {(row["configuration"], row["seed"]): row for row in csv.DictReader(handle)}
@@ -71,6 +72,9 @@ def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the
     assert rows[("nstep3", "0")]["updates_to_drive"] == "2000"
     assert float(rows[("nstep3", "0")]["derived_hours_to_drive"]) == pytest.approx(round(2000 * 0.5 / 3600, 2))
     assert rows[("nstep3", "1")]["updates_to_drive"] == ""  # at 3,000, past the budget
+    assert rows[("nstep3", "0")]["updates_drive_held_from"] == "2000"
+    # it fell back under 1,000 at 2,000; read at the budget (2,000), it has not held driving
+    assert rows[("ratio2", "1")]["updates_to_drive"] == "1000" and rows[("ratio2", "1")]["updates_drive_held_from"] == ""
     assert "nstep3 against paper: mean +940 steps; seeds apart (by chance alone 1 time in 3)" in report
     assert "stored against paper" in report and "not asked (1 vs 2 seeds" in report
     assert (tmp_path / "out" / "study.png").stat().st_size > 0
