@@ -20,6 +20,7 @@ show the spread of the trials only, not that of other training runs.
     evaluate --checkpoint backup/bmc-early.pt --evaluation.workers 2
     evaluate --live --run.name bmc --transport.mode client --transport.connect tcp/127.0.0.1:7447
     evaluate --curve runs/bmc --nice 10            # every policy the run kept (actor/evaluation/curve.py)
+    evaluate --curve runs/bmc --nice 15 --follow   # and those it keeps, until its stack stops training
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ import time
 from pathlib import Path
 
 from actor.evaluation import EvaluationError
-from actor.evaluation.curve import CURVE_TRIALS, curve_config, evaluate_curve, summary_lines, write_outputs
+from actor.evaluation.curve import (CURVE_CSV, CURVE_TRIALS, curve_config, evaluate_curve, read_curve,
+                                    summary_lines, write_outputs)
 from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
 from actor.evaluation.workers import torch_threads_per_worker
@@ -43,7 +45,9 @@ from common.checkpoint import CheckpointError
 from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.config_values import to_toml
 from common.options import ConfigError
-from common.run_dir import RunDir
+from common.run_dir import RunDir, RunStatus, StatusError
+
+FOLLOW_EVERY_S = 60.0  # --follow: how often to look for new kept policies
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,6 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
                              f"not yet in the curve, greedy only, {CURVE_TRIALS} trials per start unless "
                              "--evaluation.episodes_per_start says; writes curve.csv, curve.png, "
                              "curve_summary.json and .md (the time to drive)")
+    parser.add_argument("--follow", type=float, nargs="?", const=FOLLOW_EVERY_S, metavar="SECONDS",
+                        help="with --curve, beside a training run: evaluate the policies it keeps as they come, "
+                             f"looking every SECONDS (default {FOLLOW_EVERY_S:g}), until its stack stops training "
+                             "(then once more, for the policy it stops with); give it --nice")
     parser.add_argument("--out", type=Path, metavar="DIR",
                         help="output directory (default: <run dir>/evaluation, with --curve <run dir>/curve)")
     parser.add_argument("--nice", type=int, default=0, metavar="N",
@@ -158,12 +166,31 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
     logging.basicConfig(format="evaluate: %(levelname)s %(message)s")  # the log lines of skipped files
     run = RunDir(args.curve)
     out_dir = args.out if args.out is not None else run.curve
-    rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice)
-    if rows is None:
-        return
-    summary, paths = write_outputs(out_dir, rows, run.root.name)
-    print("\n".join(summary_lines(summary)))
-    print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
+    if args.follow is not None and args.follow <= 0:
+        raise EvaluationError(f"--follow: seconds must be > 0, got {args.follow:g}")
+    while True:
+        training = args.follow is not None and _stack_training(run)
+        if training and not run.kept_policies():
+            time.sleep(args.follow)  # no policy kept yet
+            continue
+        rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice)
+        if rows is None and not training:
+            rows = read_curve(out_dir / CURVE_CSV) or None  # nothing new: the figure and summary redrawn whole
+        if rows is not None:
+            summary, paths = write_outputs(out_dir, rows, run.root.name)
+            print("\n".join(summary_lines(summary)))
+            print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
+        if not training:
+            return
+        time.sleep(args.follow)
+
+
+def _stack_training(run: RunDir) -> bool:
+    try:
+        return RunStatus.read(run.status).training()
+    except StatusError as error:  # written atomically, so missing or damaged: no stack to follow
+        print(f"curve: no stack to follow ({error})", file=sys.stderr)
+        return False
 
 
 if __name__ == "__main__":

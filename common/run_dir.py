@@ -186,6 +186,11 @@ class RunStatus:
         temporary.write_text(json.dumps(dataclasses.asdict(self), indent=2) + "\n")
         os.replace(temporary, path)
 
+    def training(self) -> bool:
+        """Whether the stack still trains: its phase says so and one of its processes lives (a stack killed
+        outright leaves "training" behind). The pids are this machine's."""
+        return self.phase == "training" and any(_alive(pid) for pid in self.pids.values())
+
     @classmethod
     def read(cls, path: Path) -> RunStatus:
         try:
@@ -199,6 +204,16 @@ class RunStatus:
         if wrong:
             raise StatusError(f"{path}: {', '.join(wrong)} of the wrong type")
         return cls(**values)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
 
 
 def _fits(name: str, value) -> bool:

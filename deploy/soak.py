@@ -156,7 +156,7 @@ def report(run: RunDir) -> dict:
 
 
 def watch(run: RunDir, every_s: float, until_s: float) -> None:
-    """Samples until the stack's status leaves "training" (after one more sample) or until_s passes."""
+    """Samples until the stack stops training (after one more sample; RunStatus.training) or until_s passes."""
     started = time.monotonic()
     while time.monotonic() - started < until_s:
         try:
@@ -166,7 +166,7 @@ def watch(run: RunDir, every_s: float, until_s: float) -> None:
         else:
             append(run.soak / "soak.csv", sample(run, status))
             print(f"soak: {status.phase}, {status.env_steps:,} env steps, {status.updates:,} updates", flush=True)
-            if status.phase != "training":
+            if not status.training():
                 return
         time.sleep(every_s)
 

@@ -5,6 +5,7 @@ import csv
 import json
 import logging
 import math
+import os
 import shutil
 import time
 from pathlib import Path
@@ -19,7 +20,7 @@ from common.checkpoint import CheckpointError, KeptPolicy
 from common.config_values import from_dict, load_config, to_dict
 from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
-from common.run_dir import RunDir
+from common.run_dir import RunDir, RunStatus
 from deploy.experiments import keep_flags
 from learner.service import LearnerProcess
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
@@ -210,9 +211,35 @@ def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_p
 
     run.policy(20).unlink()
     written = (run.curve / "curve.csv").stat().st_mtime_ns
+    (run.curve / "curve_summary.json").unlink()  # an evaluation stopped before its summary
     main(["--curve", str(run.root), *CURVE_FLAGS])
     assert "nothing new: all 2 kept policies are in" in capsys.readouterr().err
     assert (run.curve / "curve.csv").stat().st_mtime_ns == written
+    assert json.loads((run.curve / "curve_summary.json").read_text())["policies"] == 2  # redrawn from the CSV
+
+
+def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stops(tmp_path, monkeypatch):
+    config = tiny_config(tmp_path)
+    run = RunDir.of(config)
+    run.root.mkdir(parents=True)
+    RunStatus(phase="training", pids={"learner": os.getpid()}).write(run.status)
+    keep(config, 10)
+    waits = []
+
+    def the_run_goes_on(seconds):  # while the follower waits: one more policy, then the stack finishes
+        waits.append(seconds)
+        keep(config, 30)
+        RunStatus(phase="finished").write(run.status)
+
+    monkeypatch.setattr("actor.evaluate.time.sleep", the_run_goes_on)
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--follow", "5"])
+    assert waits == [5.0]
+    assert [row["updates"] for row in read_rows(run.curve / "curve.csv")] == ["10", "30"]
+    # a stack killed outright leaves "training" with dead pids: nothing to follow, one pass
+    RunStatus(phase="training", pids={"learner": 2**22 + 17}).write(run.status)
+    keep(config, 40)
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--follow"])
+    assert waits == [5.0] and read_rows(run.curve / "curve.csv")[-1]["updates"] == "40"
 
 
 def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_path, capsys):
