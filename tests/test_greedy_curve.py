@@ -309,6 +309,20 @@ def test_a_drive_is_held_from_the_first_policy_after_which_none_falls_below():
                                "update 4,000")
 
 
+def test_the_policy_to_ship_is_chosen_on_the_training_starts_not_the_test_starts():
+    rows = [row(1000, "train", 1500, 0.7), row(1000, "test", 1900, 0.95),  # the test set's best
+            row(2000, "train", 1600, 0.8), row(2000, "test", 1400, 0.6),
+            row(3000, "train", 1700, 0.8), row(3000, "test", 1200, 0.5)]  # ties on train CFR: the longer
+    chosen = curve_summary(rows)["chosen_on_train"]
+    assert (chosen["updates"], chosen["train_cfr"], chosen["test_cfr"], chosen["test_mean_length"]) == (
+        3000, 0.8, 0.5, 1200.0)
+    assert summary_lines(curve_summary(rows))[-2] == (
+        "chosen on the training starts (highest train CFR, then mean length): update 3,000 (u3000): train CFR 80%, "
+        "mean length 1,700; test CFR 50%, mean length 1,200")
+    assert curve_summary([row(1000, "test", 400, 0.1)])["chosen_on_train"] is None
+    assert curve_summary([row(1000, "train", 400, 0.1)])["chosen_on_train"]["test_cfr"] is None
+
+
 def test_a_curve_that_never_drives_says_so():
     rows = [row(1000, "test", 400, 0.1), row(2000, "test", 999, 0.49)]
     assert first_reaching(rows, "mean_length", 1000) is None and first_reaching(rows, "cfr", 0.5) is None

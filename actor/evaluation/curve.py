@@ -174,9 +174,25 @@ def first_reaching(rows: Sequence[dict], column: str, threshold: float, start_se
             "trained_on": found["trained_on"], "kept_file": found["kept_file"], column: float(found[column])}
 
 
+def chosen_on_train(rows: Sequence[dict]) -> dict | None:
+    """The kept policy to ship, chosen on the training starts alone (highest greedy train CFR, then mean
+    length, then the later policy), with its train and test readings: choosing on the test starts would make
+    its test reading the best of many draws, biased upwards. None without train rows."""
+    train = [row for row in rows if row["start_set"] == "train"]
+    if not train:
+        return None
+    best = max(train, key=lambda row: (float(row["cfr"]), float(row["mean_length"]), int(row["updates"])))
+    test = next((row for row in rows if row["start_set"] == "test" and row["updates"] == best["updates"]), None)
+    return {"updates": int(best["updates"]), "kept_file": best["kept_file"],
+            **{f"{name}_{column}": float(row[column]) if row is not None else None
+               for name, row in (("train", best), ("test", test)) for column in ("cfr", "mean_length")}}
+
+
 def curve_summary(rows: Sequence[dict]) -> dict:
-    """The milestones of a curve's rows, and what they were measured from."""
+    """The milestones of a curve's rows, the policy chosen on the training starts, and what they were
+    measured from."""
     return {
+        "chosen_on_train": chosen_on_train(rows),
         "policies": len({row["updates"] for row in rows}),
         "last_updates": max(int(row["updates"]) for row in rows),
         "test_set": any(row["start_set"] == "test" for row in rows),
@@ -201,6 +217,13 @@ def summary_lines(summary: dict) -> list[str]:
         else:
             lines.append(f"first {criterion}: not reached in {summary['policies']} kept policies "
                          f"(up to update {summary['last_updates']:,d})")
+    chosen = summary.get("chosen_on_train")
+    if chosen is not None:
+        test = ("not evaluated on the test starts" if chosen["test_cfr"] is None else
+                f"test CFR {100 * chosen['test_cfr']:.0f}%, mean length {chosen['test_mean_length']:,.0f}")
+        lines.append(f"chosen on the training starts (highest train CFR, then mean length): update "
+                     f"{chosen['updates']:,d} ({chosen['kept_file']}): train CFR {100 * chosen['train_cfr']:.0f}%, "
+                     f"mean length {chosen['train_mean_length']:,.0f}; {test}")
     nice = ", ".join(str(value) for value in summary["nice"])
     lines.append(f"evaluated on {summary['evaluated_on']} at nice {nice}")
     return lines
