@@ -242,7 +242,7 @@ def broken_at_gaps(updates: Sequence[int], values: Sequence[float]) -> tuple[np.
 
 def plot_study(runs: Sequence[StudyRun], per_update: dict[str, float], path: Path, budget: int) -> None:
     """Greedy test mean length and CFR against updates and derived wall time: a thin line per seed, a thick
-    one through the seeds' mean where every seed has the policy."""
+    one through the seeds' mean where every seed has the policy, and a band from the lowest seed to the highest."""
     plt = pyplot()
     figure, axes = plt.subplots(2, 2, figsize=(11, 7), dpi=90)
     colours = dict(zip(CONFIGURATIONS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
@@ -261,18 +261,23 @@ def plot_study(runs: Sequence[StudyRun], per_update: dict[str, float], path: Pat
                     ax.plot(x_scale * xs, scale * ys, color=colours[name], alpha=0.35, linewidth=1)
                 common = sorted(set.intersection(*({int(r["updates"]) for r in run.test_rows} for run in seeds)))
                 common = [u for u in common if u <= budget]
-                mean = [np.mean([float(next(r for r in run.test_rows if int(r["updates"]) == u)[column])
-                                 for run in seeds]) for u in common]
-                xs, ys = broken_at_gaps(common, mean)
+                values = np.asarray([[float(next(r for r in run.test_rows if int(r["updates"]) == u)[column])
+                                      for run in seeds] for u in common]).reshape(len(common), len(seeds))
+                xs, ys = broken_at_gaps(common, values.mean(axis=1))
                 ax.plot(x_scale * xs, scale * ys, color=colours[name], linewidth=2.2, marker=".",
                         label=f"{name} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})")
+                if len(seeds) > 1:  # the seed band: from the lowest seed to the highest
+                    _, low = broken_at_gaps(common, values.min(axis=1))
+                    _, high = broken_at_gaps(common, values.max(axis=1))
+                    ax.fill_between(x_scale * xs, scale * low, scale * high, color=colours[name], alpha=0.12,
+                                    linewidth=0)
                 ax.set(ylabel=label)
     for ax in axes[:, 0]:
         ax.set(xlabel="updates")
     for ax in axes[:, 1]:
         ax.set(xlabel="derived wall time (h) = updates x s/update (option_costs)")
     axes[0, 0].axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
-    finish_figure(plt, figure, axes.flat, path, "the study: greedy test curves, thin lines seeds, thick their mean")
+    finish_figure(plt, figure, axes.flat, path, "the study: greedy test curves, thin lines seeds, thick their mean, bands lowest to highest seed")
 
 
 REPORT_ARGS = "study.json"  # what the report was built from, so that a test can rebuild it
