@@ -20,6 +20,7 @@ from tests.processes import loopback_endpoint, start, stop
 
 CONFIGS = Path(__file__).resolve().parents[1] / "deploy" / "configs"
 EPISODES = 3
+ROUTER_WAIT_S = 60.0
 
 
 @pytest.mark.parametrize("name", ["hub-replay.toml", "hub-learner.toml", "remote-actor.toml"])
@@ -38,12 +39,14 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
         processes.append(process)
         return process
 
-    fast_stats = ("--replay.stats_period_s", "0.2", "--run.runs_dir", str(tmp_path / "runs"))
+    # a loaded machine starts the hub's router slowly: the clients wait for it as the stack's own session does
+    fast_stats = ("--replay.stats_period_s", "0.2", "--run.runs_dir", str(tmp_path / "runs"),
+                  "--transport.connect_timeout_s", str(ROUTER_WAIT_S))
     start_logged("hub", "replay.main", "--config", str(CONFIGS / "hub-replay.toml"), "--transport.listen", endpoint,
           *fast_stats)
     start_logged("other", "replay.main", "--run.name", "other", "--transport.mode", "client",
           "--transport.connect", endpoint, *fast_stats)
-    session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+    session = open_session(TransportConfig(mode="client", connect=[endpoint], connect_timeout_s=ROUTER_WAIT_S))
     latest: dict[str, dict] = {}
     lock = threading.Lock()
 
@@ -57,7 +60,8 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
                      for run in ("cluster", "other")]
     try:
         actor = start_logged("actor", "actor.main", "--config", str(CONFIGS / "remote-actor.toml"),
-                      "--transport.connect", endpoint, "--actor.actor_id", "7", "--env.max_steps", "50",
+                      "--transport.connect", endpoint, "--transport.connect_timeout_s", str(ROUTER_WAIT_S),
+                      "--actor.actor_id", "7", "--env.max_steps", "50",
                       "--max-episodes", str(EPISODES))
         assert actor.wait(120) == 0, (tmp_path / "actor.log").read_text()
         deadline = time.monotonic() + 30
