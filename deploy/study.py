@@ -7,7 +7,7 @@ every 1,000 updates, and is read on its greedy test curve (`evaluate --curve`). 
 sessions, so wall time is derived: the updates a configuration needs times its seconds per update, from one
 run of deploy/bench/option_costs.py on one machine.
 
-    .venv/bin/python deploy/study.py run nstep3 --seed 1                 # train, then evaluate its greedy curve
+    .venv/bin/python deploy/study.py run nstep3 --seed 1                 # train, its greedy curve evaluated beside
     .venv/bin/python deploy/study.py export runs/study-nstep3-s1         # its small files into results/study/runs/
     .venv/bin/python deploy/study.py report results/study/runs results/time-to-drive \\
         --costs results/option-costs/option_costs.json --out results/study
@@ -25,6 +25,7 @@ import math
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -36,6 +37,7 @@ from actor.evaluation.curve import CURVE_CSV, CURVE_PNG, DRIVE_LENGTH, SUMMARY_J
 from common.analysis.plotting import finish_figure, pyplot
 from common.config_values import flat_items, load_config
 from common.options import ConfigError
+from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.differences import chance_apart, lie_apart
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,6 +46,8 @@ KEEP_EVERY = 1000  # updates between kept policies: the curve's resolution
 START_MARGIN_ENV_STEPS = 28_000  # env steps before updates start (the local preset's 999 random episodes: 27,945 at seed 0)
 # The budget: both seed-0 runs of the paper's learner first drove at about 21,000 updates (results/time-to-drive).
 BUDGET_UPDATES = 21_000
+FOLLOW_NICE = 15  # the curve evaluated beside the training run yields to it
+FOLLOW_START_POLL_S = 5.0  # how often `run` looks for the stack's first "training" status
 
 # name: (what it is, its options). "paper" is the local preset as it is. Names are folder-safe.
 CONFIGURATIONS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -94,13 +98,41 @@ def stack_command(name: str, seed: int, updates: int, runs_dir: Path, extra: Seq
     return command + list(extra)
 
 
+def curve_command(folder: Path, sets: str, follow: bool) -> list[str]:
+    """evaluate --curve of a run: beside its training (follow), at FOLLOW_NICE on one worker; or after it."""
+    command = [sys.executable, "-m", "actor.evaluate", "--curve", str(folder), "--sets", sets]
+    return command + (["--follow", "--nice", str(FOLLOW_NICE), "--evaluation.workers", "1"] if follow else [])
+
+
+def trains_since(folder: Path, since: float) -> bool:
+    """Whether the run's stack, started at `since` (time.time()), has said it trains: a resumed run's old
+    status.json says "stopped" until the new stack rewrites it."""
+    try:
+        status = RunStatus.read(RunDir(folder).status)
+    except StatusError:
+        return False
+    return status.time >= since and status.training()
+
+
 def run(name: str, seed: int, updates: int, runs_dir: Path, sets: str, extra: Sequence[str]) -> int:
+    """Trains one cell with its greedy curve evaluated beside it as policies are kept, then evaluates what the
+    follower missed (nothing, as a rule: it makes a last pass for the policy the learner stops with)."""
     folder = runs_dir / run_name(name, seed)
     resume = ["--resume"] if (folder / "checkpoints").exists() else []
-    code = subprocess.call(stack_command(name, seed, updates, runs_dir, extra) + resume, cwd=ROOT)
+    started = time.time()
+    stack = subprocess.Popen(stack_command(name, seed, updates, runs_dir, extra) + resume, cwd=ROOT)
+    follower = None
+    while stack.poll() is None and follower is None:
+        if trains_since(folder, started):
+            follower = subprocess.Popen(curve_command(folder, sets, follow=True), cwd=ROOT)
+        else:
+            time.sleep(FOLLOW_START_POLL_S)
+    code = stack.wait()
+    if follower is not None:
+        follower.wait()
     if code != 0:
         return code
-    return subprocess.call([sys.executable, "-m", "actor.evaluate", "--curve", str(folder), "--sets", sets], cwd=ROOT)
+    return subprocess.call(curve_command(folder, sets, follow=False), cwd=ROOT)
 
 
 # --- export -------------------------------------------------------------------------------------------------
@@ -320,7 +352,8 @@ def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="study", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
-    train = commands.add_parser("run", help="train one configuration and seed, then evaluate its greedy curve")
+    train = commands.add_parser("run", help="train one configuration and seed, its greedy curve evaluated beside "
+                                "it at nice 15 as the learner keeps policies (evaluate --curve --follow)")
     train.add_argument("configuration", choices=list(CONFIGURATIONS))
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--updates", type=int, default=BUDGET_UPDATES,

@@ -2,12 +2,14 @@
 
 import csv
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from common.config_values import flat_items, load_config, to_toml
+from common.run_dir import RunStatus
 from deploy import study
 
 
@@ -34,6 +36,27 @@ def test_the_run_command_sets_the_options_the_budget_and_the_curves_policies(tmp
     assert flags["--learner.keep_every"] == "1000" and command[-2:] == ["--env.traffic_vehicles", "0"]
     stored = study.stack_command("stored-burnin2", 0, 100, tmp_path, [])
     assert stored[stored.index("--learner.stored_state") + 1] == "true"
+
+
+def test_run_trains_with_the_curve_followed_beside_it_then_evaluates_what_it_missed(tmp_path, monkeypatch):
+    folder = tmp_path / "study-paper-s0"
+    folder.mkdir()
+    RunStatus(phase="stopped", time=1.0).write(folder / "status.json")  # a resumed run's old status
+    calls = tmp_path / "calls.txt"
+    stack = ("import os, sys, time; from pathlib import Path; from common.run_dir import RunStatus; "
+             f"path = Path({str(folder / 'status.json')!r}); "
+             "RunStatus(phase='training', pids={'stack': os.getpid()}, time=time.time()).write(path); "
+             "time.sleep(1.5); RunStatus(phase='finished', time=time.time()).write(path)")
+    monkeypatch.setattr(study, "stack_command", lambda *args: [sys.executable, "-c", stack])
+    monkeypatch.setattr(study, "curve_command", lambda folder, sets, follow: [
+        sys.executable, "-c", f"open({str(calls)!r}, 'a').write('{sets} {follow}\\n')"])
+    monkeypatch.setattr(study, "FOLLOW_START_POLL_S", 0.05)
+    assert study.run("paper", 0, 100, tmp_path, "test", []) == 0
+    assert calls.read_text().splitlines() == ["test True", "test False"]  # the follower, then the last pass
+    assert not study.trains_since(folder, 0.0)  # finished
+    monkeypatch.undo()
+    command = study.curve_command(folder, "train,test", follow=True)
+    assert command[-5:] == ["--follow", "--nice", "15", "--evaluation.workers", "1"] and "--curve" in command
 
 
 def write_run(top, name, seed, overrides, lengths):
