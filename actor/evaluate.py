@@ -174,10 +174,11 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
             time.sleep(args.follow)  # no policy kept yet
             continue
         rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice)
+        evaluated_now = rows is not None
         if rows is None and not training:
             rows = read_curve(out_dir / CURVE_CSV) or None  # nothing new: the figure and summary redrawn whole
         if rows is not None:
-            summary, paths = write_outputs(out_dir, rows, run.root.name)
+            summary, paths = write_outputs(out_dir, rows, run.root.name, evaluated_now)
             print("\n".join(summary_lines(summary)))
             print("wrote " + ", ".join(str(path) for path in paths), file=sys.stderr)
         if not training:

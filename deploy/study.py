@@ -33,7 +33,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from actor.evaluation import EvaluationError
-from actor.evaluation.curve import CURVE_CSV, CURVE_PNG, DRIVE_LENGTH, SUMMARY_JSON, first_reaching, read_curve
+from actor.evaluation.curve import (CURVE_CSV, CURVE_PNG, DRIVE_LENGTH, SUMMARY_JSON, SUMMARY_MD, first_reaching,
+                                    read_curve)
 from common.analysis.plotting import finish_figure, pyplot
 from common.config_values import flat_items, load_config
 from common.options import ConfigError
@@ -139,7 +140,7 @@ def run(name: str, seed: int, updates: int, runs_dir: Path, sets: str, extra: Se
 
 # a run folder's file: its name in the export (the layout of results/time-to-drive)
 EXPORTED = {"config.toml": "config.toml", "summary.json": "run_summary.json", f"curve/{CURVE_CSV}": CURVE_CSV,
-            f"curve/{SUMMARY_JSON}": SUMMARY_JSON, f"curve/{CURVE_PNG}": CURVE_PNG}
+            f"curve/{SUMMARY_JSON}": SUMMARY_JSON, f"curve/{SUMMARY_MD}": SUMMARY_MD, f"curve/{CURVE_PNG}": CURVE_PNG}
 
 
 def export(folder: Path, into: Path) -> Path:

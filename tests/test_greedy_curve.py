@@ -211,11 +211,16 @@ def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_p
 
     run.policy(20).unlink()
     written = (run.curve / "curve.csv").stat().st_mtime_ns
-    (run.curve / "curve_summary.json").unlink()  # an evaluation stopped before its summary
+    summary_path = run.curve / "curve_summary.json"
+    summary_path.write_text(json.dumps({"evaluated_on": "Another CPU", "policies": 1}))  # stopped before its summary
     main(["--curve", str(run.root), *CURVE_FLAGS])
     assert "nothing new: all 2 kept policies are in" in capsys.readouterr().err
     assert (run.curve / "curve.csv").stat().st_mtime_ns == written
-    assert json.loads((run.curve / "curve_summary.json").read_text())["policies"] == 2  # redrawn from the CSV
+    redrawn = json.loads(summary_path.read_text())  # from the CSV, naming the CPU that evaluated, not this one
+    assert redrawn["policies"] == 2 and redrawn["evaluated_on"] == "Another CPU"
+    summary_path.unlink()
+    main(["--curve", str(run.root), *CURVE_FLAGS])
+    assert json.loads(summary_path.read_text())["evaluated_on"] == "not recorded"
 
 
 def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stops(tmp_path, monkeypatch):
@@ -320,6 +325,9 @@ def test_the_policy_to_ship_is_chosen_on_the_training_starts_not_the_test_starts
         "chosen on the training starts (highest train CFR, then mean length): update 3,000 (u3000): train CFR 80%, "
         "mean length 1,700; test CFR 50%, mean length 1,200")
     assert curve_summary([row(1000, "test", 400, 0.1)])["chosen_on_train"] is None
+    partly = curve_summary(rows + [row(4000, "test", 1900, 0.9)])  # the later policy only on the test starts
+    assert partly["chosen_on_train"] is None
+    assert "chosen on the training starts: not every kept policy was evaluated on them" in summary_lines(partly)[-2]
     assert curve_summary([row(1000, "train", 400, 0.1)])["chosen_on_train"]["test_cfr"] is None
 
 

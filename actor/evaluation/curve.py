@@ -177,9 +177,10 @@ def first_reaching(rows: Sequence[dict], column: str, threshold: float, start_se
 def chosen_on_train(rows: Sequence[dict]) -> dict | None:
     """The kept policy to ship, chosen on the training starts alone (highest greedy train CFR, then mean
     length, then the later policy), with its train and test readings: choosing on the test starts would make
-    its test reading the best of many draws, biased upwards. None without train rows."""
+    its test reading the best of many draws, biased upwards. None unless every kept policy of the curve was
+    evaluated on the training starts (a choice among some would pass over the others)."""
     train = [row for row in rows if row["start_set"] == "train"]
-    if not train:
+    if not train or {row["updates"] for row in train} != {row["updates"] for row in rows}:
         return None
     best = max(train, key=lambda row: (float(row["cfr"]), float(row["mean_length"]), int(row["updates"])))
     test = next((row for row in rows if row["start_set"] == "test" and row["updates"] == best["updates"]), None)
@@ -188,16 +189,16 @@ def chosen_on_train(rows: Sequence[dict]) -> dict | None:
                for name, row in (("train", best), ("test", test)) for column in ("cfr", "mean_length")}}
 
 
-def curve_summary(rows: Sequence[dict]) -> dict:
+def curve_summary(rows: Sequence[dict], evaluated_on: str | None = None) -> dict:
     """The milestones of a curve's rows, the policy chosen on the training starts, and what they were
-    measured from."""
+    measured from (evaluated_on: the CPU of the evaluation, this one's unless given)."""
     return {
         "chosen_on_train": chosen_on_train(rows),
         "policies": len({row["updates"] for row in rows}),
         "last_updates": max(int(row["updates"]) for row in rows),
         "test_set": any(row["start_set"] == "test" for row in rows),
         "nice": sorted({int(row["nice"]) for row in rows}),
-        "evaluated_on": cpu_model(),
+        "evaluated_on": evaluated_on if evaluated_on is not None else cpu_model(),
         **{name: {"criterion": criterion, "reached": first_reaching(rows, column, threshold, held=held)}
            for name, column, threshold, held, criterion in MILESTONES},
     }
@@ -218,6 +219,8 @@ def summary_lines(summary: dict) -> list[str]:
             lines.append(f"first {criterion}: not reached in {summary['policies']} kept policies "
                          f"(up to update {summary['last_updates']:,d})")
     chosen = summary.get("chosen_on_train")
+    if chosen is None and "chosen_on_train" in summary:
+        lines.append("chosen on the training starts: not every kept policy was evaluated on them (--sets train,test)")
     if chosen is not None:
         test = ("not evaluated on the test starts" if chosen["test_cfr"] is None else
                 f"test CFR {100 * chosen['test_cfr']:.0f}%, mean length {chosen['test_mean_length']:,.0f}")
@@ -227,6 +230,14 @@ def summary_lines(summary: dict) -> list[str]:
     nice = ", ".join(str(value) for value in summary["nice"])
     lines.append(f"evaluated on {summary['evaluated_on']} at nice {nice}")
     return lines
+
+
+def previous_evaluation_cpu(path: Path) -> str:
+    try:
+        named = json.loads(path.read_text()).get("evaluated_on")
+    except (OSError, ValueError, AttributeError):
+        named = None
+    return named if isinstance(named, str) else "not recorded"
 
 
 def write_summary(out_dir: Path, summary: dict, run_name: str) -> list[Path]:
@@ -267,9 +278,10 @@ def plot_curve(rows: Sequence[dict], path: Path, title: str) -> None:
     finish_figure(plt, figure, axes.flat, path, title)
 
 
-def write_outputs(out_dir: Path, rows: list[dict], run_name: str) -> tuple[dict, list[Path]]:
-    """The figure and the summary of all the curve's rows."""
+def write_outputs(out_dir: Path, rows: list[dict], run_name: str, evaluated_now: bool = True) -> tuple[dict, list[Path]]:
+    """The figure and the summary of all the curve's rows. Redrawn without evaluating (evaluated_now False),
+    the summary keeps the evaluation CPU it named: this machine may not be the one that evaluated."""
     figure = out_dir / CURVE_PNG
     plot_curve(rows, figure, f"greedy learning curve of {run_name} (bands: intervals over the trials)")
-    summary = curve_summary(rows)
+    summary = curve_summary(rows, None if evaluated_now else previous_evaluation_cpu(out_dir / SUMMARY_JSON))
     return summary, [out_dir / CURVE_CSV, figure, *write_summary(out_dir, summary, run_name)]
