@@ -69,7 +69,8 @@ from common.wire.run_shape import stat_number
 MEGABYTE = 1 << 20
 HOLD_REASONS = ("", "behind", "budget")  # what the replay's rate message may say
 HOLD_WHY = {"budget": "the run's step budget is spent",
-            "policy": "updates have started and the learner's weights and exploration state have not come"}
+            "policy": "updates have started and the learner's weights and exploration state have not come",
+            "replay": "no replay is alive to count the steps (a restart): waiting for its word"}
 
 log = logging.getLogger("actor")
 
