@@ -46,7 +46,6 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
           *fast_stats)
     start_logged("other", "replay.main", "--run.name", "other", "--transport.mode", "client",
           "--transport.connect", endpoint, *fast_stats)
-    session = open_session(TransportConfig(mode="client", connect=[endpoint], connect_timeout_s=ROUTER_WAIT_S))
     latest: dict[str, dict] = {}
     lock = threading.Lock()
 
@@ -56,9 +55,11 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
                 latest[run] = dict(message.values)
         return on_stats
 
-    subscriptions = [subscribe(session, Keys("d3rqn", run).replay_stats, keep(run), expected=Stats)
-                     for run in ("cluster", "other")]
-    try:
+    session, subscriptions = None, []
+    try:  # from here on the replays stop whatever fails, the session's opening too
+        session = open_session(TransportConfig(mode="client", connect=[endpoint], connect_timeout_s=ROUTER_WAIT_S))
+        subscriptions = [subscribe(session, Keys("d3rqn", run).replay_stats, keep(run), expected=Stats)
+                         for run in ("cluster", "other")]
         actor = start_logged("actor", "actor.main", "--config", str(CONFIGS / "remote-actor.toml"),
                       "--transport.connect", endpoint, "--transport.connect_timeout_s", str(ROUTER_WAIT_S),
                       "--actor.actor_id", "7", "--env.max_steps", "50",
@@ -77,5 +78,6 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
     finally:
         for subscription in subscriptions:
             subscription.undeclare()
-        session.close()
+        if session is not None:
+            session.close()
         stop(*processes)
