@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from actor.evaluate import build_parser, main
+from actor.evaluation import EvaluationError
 from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, read_curve, summary_lines
 from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
@@ -266,6 +267,13 @@ def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_p
     assert [(row["updates"], row["start_set"]) for row in after[:2]] == [("30", "train"), ("30", "test")]
     for row in after[:2]:  # 8 steps of 1 m stay on the start street, 20 m or more from the junction ahead
         assert [float(row[column]) for column in COVERAGE_COLUMNS] == [1.0, 1.0, 1.0, 0.0, 0.0, 0.0]
+
+
+def test_a_curve_with_a_damaged_cell_is_a_clear_error(tmp_path):
+    path = tmp_path / "curve.csv"
+    path.write_text("updates,env_steps,wall_s,start_set,mean_length,cfr\n1000,4000,10.0,test,abc,0.0\n")
+    with pytest.raises(EvaluationError, match="is not a curve of evaluate --curve.*abc"):
+        read_curve(path)
 
 
 def test_a_run_without_kept_policies_is_a_clear_error(tmp_path, capsys):

@@ -136,6 +136,11 @@ def test_a_damaged_run_folder_is_left_out_with_a_line(tmp_path, capsys):
     (tmp_path / "a-s0" / "config.toml").write_text("[learner\nbroken")
     assert study.find_runs([tmp_path]) == []
     assert "left out" in capsys.readouterr().err
+    write_run(tmp_path, "b", 1, {}, [50])
+    curve = tmp_path / "b-s1" / "curve.csv"
+    curve.write_text(curve.read_text().replace(",50,", ",fifty,"))  # a damaged cell
+    assert study.find_runs([tmp_path]) == []
+    assert "b-s1 left out" in capsys.readouterr().err
 
 
 def test_a_curves_line_does_not_bridge_policies_that_were_not_evaluated():

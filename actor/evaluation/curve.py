@@ -128,8 +128,9 @@ def read_curve(path: Path) -> list[dict]:
     try:
         with path.open(newline="") as handle:
             rows = list(csv.DictReader(handle))
-        for row in rows:
-            int(row["updates"])
+        for row in rows:  # what the milestones and the study read: a damaged cell is this error, not a crash later
+            int(row["updates"]), int(row["env_steps"])
+            float(row["wall_s"]), float(row["mean_length"]), float(row["cfr"])
     except (OSError, csv.Error, KeyError, TypeError, ValueError) as error:
         raise EvaluationError(f"{path} is not a curve of evaluate --curve ({type(error).__name__}: {error}); "
                               "move it away or give another --out") from None
