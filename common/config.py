@@ -340,7 +340,9 @@ class EvaluationConfig:
                                                                    "are counted in; must cover [0, 1]")
     seed: int = option(0, "root of every trial's seed (env reset, random baseline, privileged driver's turns) and "
                           "of the bootstrap")
-    progress_period_s: float = option(1.0, "how often the status line on stderr is refreshed", "s")
+    progress_period_s: float = option(1.0, "how often the status line on stderr is refreshed on a terminal", "s")
+    progress_log_period_s: float = option(30.0, "how often a status line is written when stderr is a file or a "
+                                                "pipe (a log), not a terminal", "s")
     live_timeout_s: float = option(30.0, "--live: how long to wait for the learner's latest weights", "s")
     bootstrap_replicates: int = option(2000, "replicates of the tables' intervals: a stratified bootstrap over "
                                              "runs and trials (common/analysis/intervals.py)", "replicates")
@@ -348,7 +350,7 @@ class EvaluationConfig:
 
     def validate(self) -> None:
         check_positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
-                       "progress_period_s", "live_timeout_s", "bootstrap_replicates")
+                       "progress_period_s", "progress_log_period_s", "live_timeout_s", "bootstrap_replicates")
         check(self.seed >= 0, "seed", "must be >= 0")
         check(0.0 < self.confidence < 1.0, "confidence", "must lie in (0, 1)")
         bins = self.reward_bins

@@ -1,5 +1,6 @@
 """The evaluate command: statistics by hand, lockstep batching against one env at a time, end to end."""
 
+import io
 import csv
 import json
 import math
@@ -141,6 +142,24 @@ def test_evaluation_line():
     assert evaluation_line(30, 120, 600, 10.0) == ("evaluate: 30/120 episodes (25.0%), 3.00 episodes/s, "
                                                    "60 steps/s, elapsed 0:10, ETA 0:30")
     assert evaluation_line(0, 120, 0, 0.0).endswith("ETA ?")
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+@pytest.mark.parametrize("stream, lines_by_second", [(io.StringIO(), {1: 0, 29: 0, 30: 1, 45: 1, 60: 2}),
+                                                     (_Terminal(), {1: 1, 29: 29, 30: 30})])
+def test_the_status_line_is_written_each_second_on_a_terminal_and_each_log_period_into_a_log(stream, lines_by_second):
+    now = [0.0]
+    status = EvaluationStatus(10, 1.0, stream=stream, clock=lambda: now[0], log_period_s=30.0)
+    for second in range(1, max(lines_by_second) + 1):
+        now[0] = float(second)
+        status.tick()
+        if second in lines_by_second:
+            written = stream.getvalue().count("\r" if isinstance(stream, _Terminal) else "\n")
+            assert written == lines_by_second[second], second
 
 
 def test_jobs_cover_every_start_and_trial_with_distinct_seeds():

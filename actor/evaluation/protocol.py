@@ -27,6 +27,7 @@ def evaluate(config: Config, weights: dict[str, np.ndarray] | None, policies: Se
     if "greedy" in policies and weights is None:
         raise EvaluationError("the greedy policy needs weights")
     jobs = episode_jobs(policies, start_sets, config.evaluation.episodes_per_start, config.evaluation.seed)
-    status = EvaluationStatus(len(jobs), config.evaluation.progress_period_s, sys.stderr if show_status else None)
+    status = EvaluationStatus(len(jobs), config.evaluation.progress_period_s, sys.stderr if show_status else None,
+                              log_period_s=config.evaluation.progress_log_period_s)
     episodes = run_jobs(config, weights, jobs, status)
     return episodes, summarise_all(episodes, bootstrap_of(config))

@@ -15,14 +15,17 @@ PREFIX = "evaluate: "
 class EvaluationStatus:
     """One status line, silent without a stream.
 
-    On a terminal the line is rewritten in place; otherwise one line is written per period.
+    On a terminal the line is rewritten in place every `period_s`; into a file or a pipe (a log) one line is
+    written every `log_period_s`, since an evaluation beside a long run would otherwise fill its log.
     """
 
-    def __init__(self, total: int, period_s: float, stream: TextIO | None = sys.stderr, clock=time.monotonic) -> None:
+    def __init__(self, total: int, period_s: float, stream: TextIO | None = sys.stderr, clock=time.monotonic,
+                 log_period_s: float | None = None) -> None:
         self.total, self.period_s, self.stream, self.clock = total, period_s, stream, clock
         self.started = self.shown = clock()
         self.episodes = self.steps = 0
         self.rewrite = stream is not None and stream.isatty()
+        self.line_period_s = period_s if self.rewrite or log_period_s is None else max(period_s, log_period_s)
 
     def add(self, episode: EvaluationEpisode) -> None:
         self.episodes += 1
@@ -30,7 +33,7 @@ class EvaluationStatus:
         self.tick()
 
     def tick(self) -> None:
-        if self.clock() - self.shown >= self.period_s:
+        if self.clock() - self.shown >= self.line_period_s:
             self.show()
 
     def show(self, final: bool = False) -> None:
