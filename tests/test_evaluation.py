@@ -1,7 +1,7 @@
 """The evaluate command: statistics by hand, lockstep batching against one env at a time, end to end."""
 
-import io
 import csv
+import io
 import json
 import math
 
