@@ -59,6 +59,8 @@ CONFIGURATIONS: dict[str, tuple[str, dict[str, Any]]] = {
     "batch20": ("20 traces per batch", {"learner.batch_size": 20}),
     "ratio2": ("1 update per 2 env steps", {"learner.env_steps_per_update": 2.0}),
     "bfloat16": ("bfloat16 learner (same math)", {"learner.precision": "bfloat16"}),
+    "combination": ("stored LSTM state, 2 steps of burn-in, bfloat16 where native (fast preset + stored state)",
+                    {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}),
 }
 STUDY_KEYS = sorted({key for _, options in CONFIGURATIONS.values() for key in options})
 

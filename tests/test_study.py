@@ -23,6 +23,9 @@ def test_a_run_is_the_configuration_its_config_sets():
     assert study.configuration_of(items(**{"learner.stored_state": True, "learner.burn_in": 2})) == "stored-burnin2"
     assert study.configuration_of(items(**{"learner.stored_state": True})) == "stored"
     assert study.configuration_of(items(**{"learner.env_steps_per_update": 2})) == "ratio2"
+    combined = {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}
+    assert study.configuration_of(items(**combined)) == "combination"
+    assert study.configuration_of(items(**{**combined, "learner.precision": "bfloat16"})) is None  # forced, not auto
     assert study.configuration_of(items(**{"learner.n_step": 3, "learner.batch_size": 20})) is None  # no such one
     assert study.configuration_of(items(**{"exploration.strategy": "softmax"})) == "paper"  # not a study option
 
