@@ -247,7 +247,10 @@ def _on_device(arrays: tuple[np.ndarray | None, ...], device: torch.device) -> T
 
 
 def _state_on(initial_state: np.ndarray | None, device: torch.device) -> torch.Tensor | None:
-    return None if initial_state is None else torch.as_tensor(initial_state, dtype=torch.float32, device=device)
+    if initial_state is None:
+        return None
+    # a copy: the stored state arrives as a read-only view of the wire's float16 bytes
+    return torch.from_numpy(np.array(initial_state, dtype=np.float32)).to(device)
 
 
 def checked_arrays(batch: TraceArrays, network: NetworkConfig, learner: LearnerConfig

@@ -558,3 +558,12 @@ def test_burn_in_steps_of_a_stored_state_batch_carry_no_gradient():
     weights = torch.randn(q_values[:, 2:].shape, generator=torch.Generator().manual_seed(33))  # not a plain sum:
     (q_values[:, 2:] * weights).sum().backward()  # the advantages' mean is subtracted, a sum over actions is 0
     assert all(p.grad is not None and p.grad.abs().max() > 0 for p in learner.online.parameters())
+
+
+def test_a_read_only_stored_state_moves_to_float32_without_a_warning(recwarn):
+    batch = random_batch(np.random.default_rng(3), stored_state=True)
+    batch.initial_state.flags.writeable = False  # as the wire's bytes arrive
+    tensors = to_tensors(batch, TINY, LearnerConfig(stored_state=True), torch.device("cpu"))
+    assert tensors.initial_state.dtype == torch.float32
+    assert torch.equal(tensors.initial_state, torch.from_numpy(batch.initial_state.astype(np.float32)))
+    assert not [w for w in recwarn if "not writable" in str(w.message)]
