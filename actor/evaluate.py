@@ -149,7 +149,7 @@ def _main(args: argparse.Namespace) -> None:
              "intervals": f"{100 * evaluation.confidence:g}% percentile intervals of {evaluation.bootstrap_replicates} "
                           "bootstrap replicates (trials resampled within each start)",
              "processes": f"{workers} worker(s) x {evaluation.envs_per_worker} lockstep env(s), "
-                          f"{torch_threads_per_worker(workers)} torch thread(s) each",
+                          f"{torch_threads_per_worker(evaluation, workers)} torch thread(s) each",
              "wall time": f"{wall_s:.1f} s",
              "priority": f"nice {nice}",
              "date": datetime.datetime.now().isoformat(timespec="seconds")}

@@ -336,6 +336,10 @@ class EvaluationConfig:
     max_steps: int = option(2000, "an evaluation episode is cut here", "steps")
     workers: int = option(2, "evaluation processes", "processes")
     envs_per_worker: int = option(4, "simulators each worker steps in lockstep", "simulators")
+    torch_threads: int = option(0, "torch threads per worker; 0: the cores divided among the workers, or 1 with "
+                                   "--follow: beside a training run a worker's second thread waits on a busy core "
+                                   "(a forward pass ran 8x slower on 2 threads than on 1, busy 2-core AMD EPYC)",
+                                "threads")
     reward_bins: list[float] = option([0.0, 0.25, 0.5, 0.75, 1.0], "edges of the bins the episodes' step rewards "
                                                                    "are counted in; must cover [0, 1]")
     seed: int = option(0, "root of every trial's seed (env reset, random baseline, privileged driver's turns) and "
@@ -352,6 +356,7 @@ class EvaluationConfig:
         check_positive(self, "episodes_per_start", "max_steps", "workers", "envs_per_worker",
                        "progress_period_s", "progress_log_period_s", "live_timeout_s", "bootstrap_replicates")
         check(self.seed >= 0, "seed", "must be >= 0")
+        check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: the cores divided among the workers)")
         check(0.0 < self.confidence < 1.0, "confidence", "must lie in (0, 1)")
         bins = self.reward_bins
         check(len(bins) >= 2 and all(a < b for a, b in zip(bins, bins[1:])), "reward_bins", "must be at least two increasing edges")

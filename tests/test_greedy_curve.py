@@ -16,8 +16,10 @@ import torch
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, read_curve, summary_lines
+from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
+from common.config import EvaluationConfig
 from common.config_values import from_dict, load_config, to_dict
 from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
@@ -288,6 +290,24 @@ def test_the_curve_takes_five_trials_per_start_unless_told():
     assert curve_config(saved, build_parser().parse_args(["--curve", "x"])).evaluation.episodes_per_start == CURVE_TRIALS
     flags = build_parser().parse_args(["--curve", "x", "--evaluation.episodes_per_start", "7"])
     assert curve_config(saved, flags).evaluation.episodes_per_start == 7
+
+
+def test_a_curve_followed_beside_a_run_takes_one_torch_thread_per_worker_unless_told():
+    saved = to_dict(load_config("smoke"))
+    parse = build_parser().parse_args
+    assert curve_config(saved, parse(["--curve", "x"])).evaluation.torch_threads == 0  # the cores, divided
+    assert curve_config(saved, parse(["--curve", "x", "--follow"])).evaluation.torch_threads == 1
+    told = parse(["--curve", "x", "--follow", "--evaluation.torch_threads", "2"])
+    assert curve_config(saved, told).evaluation.torch_threads == 2
+
+
+def test_the_workers_torch_threads_are_the_option_or_the_cores_divided(monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    assert torch_threads_per_worker(EvaluationConfig(), 2) == 2
+    assert torch_threads_per_worker(EvaluationConfig(), 8) == 1
+    assert torch_threads_per_worker(EvaluationConfig(torch_threads=1), 1) == 1
+    with pytest.raises(ConfigError, match="torch_threads"):
+        load_config("smoke", overrides={"evaluation.torch_threads": -1})
 
 
 # --- the time to drive ---------------------------------------------------------------------------------------

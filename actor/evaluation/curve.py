@@ -52,9 +52,13 @@ log = logging.getLogger("evaluate")
 
 
 def curve_config(saved: dict, args: argparse.Namespace) -> Config:
-    """A kept policy's config with CURVE_TRIALS trials per start, then --config FILE and the flags given."""
+    """A kept policy's config with CURVE_TRIALS trials per start, and with --follow one torch thread per
+    worker (evaluation.torch_threads: beside a run a second thread waits on a busy core), then --config FILE
+    and the flags given."""
     evaluation = saved.get("evaluation")
-    trials = {"evaluation": {**evaluation, "episodes_per_start": CURVE_TRIALS}} if isinstance(evaluation, dict) else {}
+    beside_a_run = {"torch_threads": 1} if getattr(args, "follow", None) is not None else {}
+    trials = ({"evaluation": {**evaluation, "episodes_per_start": CURVE_TRIALS, **beside_a_run}}
+              if isinstance(evaluation, dict) else {})
     return checkpoint_config({**saved, **trials}, args)
 
 

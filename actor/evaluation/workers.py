@@ -13,13 +13,13 @@ from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import EpisodeJob, WorkerDone, WorkerFailed, evaluation_worker
 from actor.evaluation.status import EvaluationStatus
 from common.analysis.stats import EvaluationEpisode
-from common.config import Config
+from common.config import Config, EvaluationConfig
 
 WORKER_EXIT_TIMEOUT_S = 10.0
 
 
-def torch_threads_per_worker(workers: int) -> int:
-    return max(1, len(os.sched_getaffinity(0)) // workers)
+def torch_threads_per_worker(evaluation: EvaluationConfig, workers: int) -> int:
+    return evaluation.torch_threads or max(1, len(os.sched_getaffinity(0)) // workers)
 
 
 def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequence[EpisodeJob],
@@ -32,7 +32,7 @@ def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequen
         job_queue.put(job)
     for _ in range(n_workers):
         job_queue.put(None)  # one end marker per worker
-    threads = torch_threads_per_worker(n_workers)
+    threads = torch_threads_per_worker(config.evaluation, n_workers)
     workers = [context.Process(target=evaluation_worker, name=f"evaluate-{number}", daemon=True,
                                args=(number, config, weights, threads, job_queue, result_queue))
                for number in range(n_workers)]

@@ -12,6 +12,10 @@ as one evaluation worker is when ``evaluation.workers`` equals the cores:
   greedy network's batched forward pass at every step (its actions are
   discarded). Per env-step: simulator + camera + network + privileged driver.
 
+First, with ``--busy N`` (default: the cores), the inference rate on 1 thread and on all
+cores' threads while N spinning processes hold the cores, as a training run does beside a
+curve followed with ``--follow``: the reason ``evaluation.torch_threads`` is 1 there.
+
 From the lockstep rate it estimates the wall time of a full-length evaluation
 (episodes_per_start x 10 starts x 2 sets episodes of max_steps steps each)
 over ``evaluation.workers`` processes, assuming that many free cores. The
@@ -24,6 +28,8 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import multiprocessing
+import os
 import time
 
 import numpy as np
@@ -51,6 +57,29 @@ def inference_rate(policy: GreedyPolicy, n_envs: int, seconds: float, shape: tup
         policy.act(slots, observations, poses)
         passes += 1
     return n_envs * passes / (clock() - start)
+
+
+def _spin() -> None:
+    while True:
+        pass
+
+
+def rates_beside_busy_cores(network, n_envs: int, seconds: float, shape: tuple[int, ...], busy: int
+                            ) -> dict[int, float]:
+    """Inference env-steps/s per torch thread count (1, then every core) while `busy` processes spin."""
+    spinners = [multiprocessing.get_context("spawn").Process(target=_spin, daemon=True) for _ in range(busy)]
+    for spinner in spinners:
+        spinner.start()
+    try:
+        rates = {}
+        for threads in sorted({1, len(os.sched_getaffinity(0))}):
+            torch.set_num_threads(threads)
+            rates[threads] = inference_rate(GreedyPolicy(network, n_envs), n_envs, seconds, shape)
+        return rates
+    finally:
+        for spinner in spinners:
+            spinner.terminate()
+            spinner.join()
 
 
 class PaidGreedyPrivileged:
@@ -85,14 +114,21 @@ def main() -> None:
     parser.add_argument("--envs", default="1,4,8", help="envs_per_worker values to measure")
     parser.add_argument("--seconds", type=float, default=3.0, help="time per inference measurement")
     parser.add_argument("--cap", type=int, default=300, help="steps per lockstep episode (the rate does not depend on it)")
+    parser.add_argument("--busy", type=int, default=len(os.sched_getaffinity(0)),
+                        help="spinning processes beside the threads' measurement (default: the cores; 0 skips it)")
     args = parser.parse_args()
     print(f"CPU: {describe_cpu()}", flush=True)
-    cpu = one_core()
     paper = Config().evaluation  # the protocol being estimated
     config = Config()
     config.evaluation.max_steps = args.cap
     network = DoubleQLearner(config.network, config.learner).online.eval()
     shape = (config.network.frame_height, config.network.frame_width, config.network.frame_channels)
+    if args.busy:
+        n_envs = config.evaluation.envs_per_worker
+        rates = rates_beside_busy_cores(network, n_envs, args.seconds, shape, args.busy)
+        print(f"beside {args.busy} spinning process(es), {n_envs} envs, inference env-steps/s: "
+              + ", ".join(f"{threads} torch thread(s) {rate:,.0f}" for threads, rate in rates.items()), flush=True)
+    cpu = one_core()
     print(f"pinned to CPU {cpu}, {torch.get_num_threads()} torch thread, torch {torch.__version__}")
     episodes = paper.episodes_per_start * sum(len(start_poses(name)) for name in START_SETS)
     full_steps = episodes * paper.max_steps
