@@ -159,6 +159,11 @@ def export(folder: Path, into: Path) -> Path:
 
 # --- report -------------------------------------------------------------------------------------------------
 
+# the window reading: the mean over the kept policies of the last 2,000 updates to the budget, since a greedy
+# curve swings by hundreds of steps between neighbouring policies (559 and 1,547 one policy apart)
+READING_WINDOW = 2 * KEEP_EVERY
+
+
 @dataclass
 class StudyRun:
     folder: Path
@@ -171,6 +176,14 @@ class StudyRun:
         before (a curve evaluated only in parts has no reading at the budget)."""
         rows = [row for row in self.test_rows if updates - KEEP_EVERY < int(row["updates"]) <= updates]
         return rows[-1] if rows else None
+
+    def window(self, updates: int) -> list[dict]:
+        """The rows of every kept policy from `updates` - READING_WINDOW to `updates`; none without a reading at
+        `updates`, or with a policy of the window's grid not evaluated."""
+        rows = [row for row in self.test_rows if updates - READING_WINDOW <= int(row["updates"]) <= updates]
+        first = max(KEEP_EVERY, -(-(updates - READING_WINDOW) // KEEP_EVERY) * KEEP_EVERY)
+        grid = set(range(first, updates + 1, KEEP_EVERY))  # the learner keeps a policy at each
+        return rows if self.at(updates) and grid <= {int(row["updates"]) for row in rows} else []
 
 
 def find_runs(folders: Sequence[Path]) -> list[StudyRun]:
@@ -210,7 +223,7 @@ def seconds_per_update(costs: Path | None) -> dict[str, float]:
 def study_rows(runs: Sequence[StudyRun], budget: int, per_update: dict[str, float]) -> list[dict]:
     rows = []
     for run in runs:
-        end = run.at(budget)
+        end, window = run.at(budget), run.window(budget)
         drive = first_reaching(run.test_rows, "mean_length", DRIVE_LENGTH)
         within = [row for row in run.test_rows if int(row["updates"]) <= budget]
         held = first_reaching(within, "mean_length", DRIVE_LENGTH, held=True) if end else None
@@ -222,6 +235,9 @@ def study_rows(runs: Sequence[StudyRun], budget: int, per_update: dict[str, floa
             "test_mean_length_low": float(end["mean_length_low"]) if end else math.nan,
             "test_mean_length_high": float(end["mean_length_high"]) if end else math.nan,
             "test_cfr": float(end["cfr"]) if end else math.nan,
+            "window_mean_length": (float(np.mean([float(row["mean_length"]) for row in window])) if window
+                                   else math.nan),
+            "window_policies": len(window),
             "updates_to_drive": drive["updates"] if drive and drive["updates"] <= budget else "",
             # from here on every kept policy up to the budget drove: the curves swing, a first crossing can be luck
             "updates_drive_held_from": held["updates"] if held else "",
@@ -232,11 +248,11 @@ def study_rows(runs: Sequence[StudyRun], budget: int, per_update: dict[str, floa
     return rows
 
 
-def supported(rows: Sequence[dict], baseline: str = "paper") -> list[str]:
-    """For each configuration against the baseline: do its seeds lie apart at the budget, and by how much."""
+def supported(rows: Sequence[dict], baseline: str = "paper", column: str = "test_mean_length") -> list[str]:
+    """For each configuration against the baseline: do its seeds' readings (column) lie apart, and by how much."""
     by_name: dict[str, np.ndarray] = {}
     for row in rows:
-        by_name.setdefault(row["configuration"], []).append(row["test_mean_length"])
+        by_name.setdefault(row["configuration"], []).append(row[column])
     if baseline not in by_name:
         return [f"no {baseline} run: nothing to compare against"]
     lines = []
@@ -331,21 +347,29 @@ def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out:
     lines = [f"# The study at {budget:,d} updates", "",
              f"Greedy test curves (K = 5 trials per start) of each configuration; wall time derived from "
              f"{costs if costs else 'no cost measurement'}.", "",
-             "| Configuration | Seed | Updates read | Test mean length [95% CI] | Test CFR | Updates to drive | "
-             "Driving held from | Derived hours to drive | s/update |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| Configuration | Seed | Updates read | Test mean length [95% CI] | Test CFR | "
+             f"Window mean, {budget - READING_WINDOW:,d}–{budget:,d} | Updates to drive | "
+             "Driving held from | Derived hours to drive | s/update |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         length = ("no policy kept within 1,000 updates of the budget" if math.isnan(row["test_mean_length"]) else
                   f"{row['test_mean_length']:,.0f} [{row['test_mean_length_low']:,.0f}, "
                   f"{row['test_mean_length_high']:,.0f}]")
         cfr = "–" if math.isnan(row["test_cfr"]) else f"{100 * row['test_cfr']:.0f}%"
+        window = ("–" if math.isnan(row["window_mean_length"]) else
+                  f"{row['window_mean_length']:,.0f} ({row['window_policies']} policies)")
         lines.append(f"| {row['configuration']} | {row['seed']} | {row['updates_at_budget'] or '–'} | {length} | {cfr} | "
+                     f"{window} | "
                      f"{row['updates_to_drive'] or 'not reached'} | {row['updates_drive_held_from'] or '–'} | "
                      f"{row['derived_hours_to_drive'] or '–'} | "
                      f"{row['seconds_per_update'] or '–'} |")
     lines += ["", "Driving held from: the first kept policy from which every one up to the budget read at least "
               f"{DRIVE_LENGTH:,.0f} steps; – where the last one before the budget read less.", "",
+              "Window mean: the mean of the test mean lengths of every kept policy in the window (the curves "
+              "swing between neighbouring policies); – where one of the window's policies was not evaluated.", "",
               "Which differences the seeds support, at the budget:", ""]
     lines += [f"- {line}" for line in supported(rows)]
+    lines += ["", f"And over the window, {budget - READING_WINDOW:,d}–{budget:,d} updates:", ""]
+    lines += [f"- {line}" for line in supported(rows, column="window_mean_length")]
     (out / "study.md").write_text("\n".join(lines) + "\n")
     (out / REPORT_ARGS).write_text(json.dumps({"folders": [str(folder) for folder in folders], "budget": budget,
                                                "costs": str(costs) if costs else None}, indent=1) + "\n")

@@ -96,6 +96,9 @@ def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the
         rows = {(row["configuration"], row["seed"]): row for row in csv.DictReader(handle)}
     assert rows[("paper", "0")]["updates_at_budget"] == "2000" and float(rows[("paper", "0")]["test_mean_length"]) == 100
     assert rows[("nstep3", "0")]["updates_to_drive"] == "2000"
+    # the window, 500 to 2,500: the policies of 1,000 and 2,000
+    assert float(rows[("nstep3", "0")]["window_mean_length"]) == pytest.approx((80 + 1_200) / 2)
+    assert rows[("nstep3", "0")]["window_policies"] == "2"
     assert float(rows[("nstep3", "0")]["derived_hours_to_drive"]) == pytest.approx(round(2000 * 0.5 / 3600, 2))
     assert rows[("nstep3", "1")]["updates_to_drive"] == ""  # at 3,000, past the budget
     assert rows[("nstep3", "0")]["updates_drive_held_from"] == "2000"
@@ -103,6 +106,8 @@ def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the
     assert rows[("ratio2", "1")]["updates_to_drive"] == "1000" and rows[("ratio2", "1")]["updates_drive_held_from"] == ""
     assert "nstep3 against paper: mean +940 steps; seeds apart (by chance alone 1 time in 3)" in report
     assert "stored against paper" in report and "not asked (1 vs 2 seeds" in report
+    window_verdicts = report.split("And over the window, 500–2,500 updates:")[1]
+    assert "nstep3 against paper: mean +485 steps; seeds apart" in window_verdicts  # (640 + 495) / 2 - (75 + 90) / 2
     assert (tmp_path / "out" / "study.png").stat().st_size > 0
 
 
@@ -119,7 +124,8 @@ def test_a_curve_without_a_policy_near_the_budget_has_no_reading_there(tmp_path)
     runs = study.find_runs([tmp_path])
     runs[0].test_rows = [row for row in runs[0].test_rows if int(row["updates"]) in (1000, 2000, 3000, 9000)]
     report = study.write_report(runs, 6_000, None, tmp_path / "out").read_text()
-    assert "| paper | 0 | – | no policy kept within 1,000 updates of the budget | – |" in report
+    assert "| paper | 0 | – | no policy kept within 1,000 updates of the budget | – | – |" in report
+    assert runs[1].window(6_000) and runs[0].window(3_000) and not runs[0].window(9_000)  # 7,000 and 8,000 missing
     assert "nstep3 against paper: not asked (no reading at the budget on one side)" in report
 
 
