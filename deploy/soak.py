@@ -2,7 +2,7 @@
 
 Beside a run of deploy/run.sh (it reads the stack's status.json for the pids), every --every seconds it
 appends one row to <run>/soak/soak.csv: the run's env steps and updates, each process's resident memory
-(VmRSS, MB), the bytes of each part of the run folder (the flight log, the replay's snapshot, checkpoints,
+(VmRSS, MB; the stack's, and the curve's follower with its workers, `evaluate --curve RUN`), the bytes of each part of the run folder (the flight log, the replay's snapshot, checkpoints,
 kept policies, logs) and the restarts. When the run stops (or at --until-s), it draws soak.png and writes
 soak_summary.json / .md: each process's memory growth over the second half of the samples, when the replay
 is full, and the run folder's growth per hour.
@@ -19,6 +19,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,7 @@ PARTS = {  # the run folder's parts, by what they are
     "process_logs": lambda run: [run.logs],
 }
 FIXED = ["time", "elapsed_s", "phase", "env_steps", "updates", "restarts"]
+CURVE_FOLLOWER = "curve"  # the memory column of the run's curve evaluation (evaluate --curve --follow) and workers
 
 
 def resident_mb(pid: int) -> float:
@@ -61,18 +63,61 @@ def tree_bytes(paths: list[Path]) -> int:
     return total
 
 
+def curve_followers(run: RunDir) -> list[int]:
+    """Pids of the processes evaluating this run's curve (`evaluate --curve RUN`, the folder resolved from
+    each one's working directory): they run beside the stack for as long as it trains."""
+    found = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            args = (proc / "cmdline").read_bytes().decode(errors="replace").split("\0")
+            where = Path(os.readlink(proc / "cwd"))
+        except OSError:  # gone, or not ours to read
+            continue
+        if "--curve" in args[:-1] and (where / args[args.index("--curve") + 1]).resolve() == run.root.resolve():
+            found.append(int(proc.name))
+    return found
+
+
+def tree_resident_mb(pids: list[int]) -> float:
+    """VmRSS of the processes and all their descendants (a follower's evaluation workers), MB; nan if none."""
+    total, seen, todo = 0.0, set(), list(pids)
+    while todo:
+        pid = todo.pop()
+        resident = resident_mb(pid) if pid not in seen else math.nan
+        seen.add(pid)
+        if math.isfinite(resident):
+            total += resident
+            todo += children(pid)
+    return total if seen and total > 0 else math.nan
+
+
+def children(pid: int) -> list[int]:
+    try:
+        return [int(child) for child in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except (OSError, ValueError):
+        return []
+
+
 def sample(run: RunDir, status: RunStatus) -> dict:
     row = {"time": round(time.time(), 1), "elapsed_s": round(status.elapsed_s, 1), "phase": status.phase,
            "env_steps": status.env_steps, "updates": status.updates, "restarts": sum(status.restarts.values())}
     row.update({f"rss_mb_{name}": round(resident_mb(pid), 1) for name, pid in sorted(status.pids.items())})
+    row[f"rss_mb_{CURVE_FOLLOWER}"] = round(tree_resident_mb(curve_followers(run)), 1)
     row.update({f"bytes_{part}": tree_bytes(paths(run)) for part, paths in PARTS.items()})
     return row
 
 
 def append(path: Path, row: dict) -> None:
-    """One row; the header is the first row's, and a later row's new columns are left out (the roles are fixed)."""
+    """One row; a row with columns the file lacks (a soak of an older version, resumed) rewrites the file with
+    them added, blank in the rows before."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fields = list(row) if not path.exists() else next(csv.reader(path.open()))
+    fields = list(row) if not path.exists() else next(csv.reader(path.open()), list(row))
+    if set(row) - set(fields):
+        earlier = read_rows(path)
+        fields += [name for name in row if name not in fields]
+        with path.open("w", newline="") as out:
+            csv.DictWriter(out, fieldnames=fields).writeheader()
+            csv.DictWriter(out, fieldnames=fields).writerows(earlier)
     with path.open("a", newline="") as out:
         writer = csv.DictWriter(out, fieldnames=fields, extrasaction="ignore")
         if out.tell() == 0:

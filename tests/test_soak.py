@@ -4,6 +4,9 @@ import csv
 import json
 import math
 import os
+import subprocess
+import sys
+import time
 
 import pytest
 
@@ -47,3 +50,36 @@ def test_the_summary_reads_growth_per_hour_from_the_second_half():
     leaking = soak.summarize(rows(4, lambda hour: 500.0 + 30 * hour, lambda hour: 0.0))
     assert leaking["memory"]["learner"]["second_half_mb_per_hour"] == pytest.approx(30.0)
     assert math.isnan(soak.slope_per_hour(soak.np.array([1.0]), soak.np.array([5.0])))
+
+
+def test_a_sample_reads_the_curves_follower_with_its_workers(tmp_path):
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    sleep = "import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']); " \
+            "time.sleep(60)"
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "--curve", str(tmp_path / "x")])
+    follower = subprocess.Popen([sys.executable, "-c", sleep, "--curve", "run"], cwd=tmp_path)  # relative to its cwd
+    try:
+        deadline = time.monotonic() + 30
+        while len(soak.children(follower.pid)) < 1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert soak.curve_followers(run) == [follower.pid]
+        alone = soak.resident_mb(follower.pid)
+        assert soak.tree_resident_mb([follower.pid]) > alone + 1  # and its worker
+        row = soak.sample(run, RunStatus("training", pids={"learner": os.getpid()}))
+        assert row["rss_mb_curve"] > alone
+    finally:
+        for process in (other, follower):
+            for pid in soak.children(process.pid):
+                os.kill(pid, 9)
+            process.kill()
+            process.wait()
+    assert math.isnan(soak.tree_resident_mb(soak.curve_followers(run)))
+
+
+def test_a_row_with_a_new_column_extends_the_files_header(tmp_path):
+    path = tmp_path / "soak.csv"
+    soak.append(path, {"time": 1.0, "rss_mb_learner": 500.0})
+    soak.append(path, {"time": 2.0, "rss_mb_learner": 501.0, "rss_mb_curve": 300.0})
+    assert list(csv.DictReader(path.open())) == [{"time": "1.0", "rss_mb_learner": "500.0", "rss_mb_curve": ""},
+                                                 {"time": "2.0", "rss_mb_learner": "501.0", "rss_mb_curve": "300.0"}]
