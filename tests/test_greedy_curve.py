@@ -249,6 +249,11 @@ def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stop
     main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--follow"])
     assert waits == [5.0] and read_rows(run.curve / "curve.csv")[-1]["updates"] == "40"
 
+    # the train set afterwards, on the same policies: only its rows are added, each policy's train row first
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "train,test"])
+    assert [(row["updates"], row["start_set"]) for row in read_rows(run.curve / "curve.csv")] == [
+        (updates, name) for updates in ("10", "30", "40") for name in ("train", "test")]
+
 
 def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_path, capsys):
     old_rows = read_rows(OLD_CURVE)

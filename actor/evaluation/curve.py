@@ -64,7 +64,8 @@ def curve_config(saved: dict, args: argparse.Namespace) -> Config:
 
 def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],
                    nice: int, show_status: bool = True) -> list[dict] | None:
-    """Evaluates the kept policies the CSV lacks, writing it after each; returns all its rows, or None
+    """Evaluates the kept policies the CSV lacks, on the start sets it lacks them on (a curve of the test
+    set, rerun with train,test, adds the train rows), writing it after each; returns all its rows, or None
     when nothing was added (nothing new, or every new file skipped)."""
     kept = run.kept_policies()
     if not kept:
@@ -72,15 +73,16 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
                               "learner.keep_every or learner.keep_every_s)")
     path = out_dir / CURVE_CSV
     rows = read_curve(path)
-    done = {int(row["updates"]) for row in rows}
-    todo = [(updates, file) for updates, file in kept if updates not in done]
+    done = {(int(row["updates"]), row["start_set"]) for row in rows}
+    todo = [(updates, file, missing) for updates, file in kept
+            if (missing := [name for name in start_sets if (updates, name) not in done])]
     if not todo:
         print(f"curve: nothing new: all {len(kept)} kept policies are in {path}", file=sys.stderr)
         return None
     eta, added = Eta(len(todo)), 0
     eta.update(0)
-    for number, (updates, file) in enumerate(todo, 1):
-        new = policy_rows(file, updates, start_sets, configure, nice, show_status)
+    for number, (updates, file, missing) in enumerate(todo, 1):
+        new = policy_rows(file, updates, missing, configure, nice, show_status)
         if new:
             rows = write_curve(path, rows + new)
             added += 1
@@ -148,7 +150,7 @@ def write_curve(path: Path, rows: list[dict]) -> list[dict]:
     if any(set(row) != set(columns) for row in rows):
         raise EvaluationError(f"{path} has other columns than this evaluation writes (other reward bins?); "
                               "give another --out")
-    rows = sorted(rows, key=lambda row: int(row["updates"]))  # stable: a policy's start sets stay in order
+    rows = sorted(rows, key=lambda row: (int(row["updates"]), row["start_set"] != "train"))  # train, then test
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with temporary.open("w", newline="") as handle:
