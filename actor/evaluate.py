@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --curve, beside a training run: evaluate the policies it keeps as they come, "
                              f"looking every SECONDS (default {FOLLOW_EVERY_S:g}), until its stack stops training "
                              "(then once more, for the policy it stops with); give it --nice")
+    parser.add_argument("--from-updates", type=int, default=0, metavar="N",
+                        help="with --curve, only the policies kept at N updates or later, e.g. the train rows of "
+                             "a run's last policies, to choose one on the train starts (default: 0, all)")
     parser.add_argument("--out", type=Path, metavar="DIR",
                         help="output directory (default: <run dir>/evaluation, with --curve <run dir>/curve)")
     parser.add_argument("--nice", type=int, default=0, metavar="N",
@@ -173,7 +176,8 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         if training and not run.kept_policies():
             time.sleep(args.follow)  # no policy kept yet
             continue
-        rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice)
+        rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice,
+                              from_updates=args.from_updates)
         evaluated_now = rows is not None
         if rows is None and not training:
             rows = read_curve(out_dir / CURVE_CSV) or None  # nothing new: the figure and summary redrawn whole
