@@ -39,7 +39,7 @@ from common.run_dir import RunDir, RunStatus, StatusError
 from deploy import soak
 from deploy.stack import build_parser
 from replay.log.reader import LogError, LogFile
-from replay.snapshot import manifest_episodes
+from replay.snapshot import manifest_held
 
 ROOT = Path(__file__).resolve().parents[1]
 STACK = ROOT / "deploy" / "stack.py"
@@ -114,7 +114,8 @@ def kill_one(chaos: Chaos, process: str, started: float, settle_s: float) -> Kil
     kill = Kill(round(time.monotonic() - started, 1), process, pid)
     restores = len(restored_lines(run))
     if process == "replay":
-        kill.promised = manifest_episodes(run.replay_snapshot)
+        held = manifest_held(run.replay_snapshot)
+        kill.promised = held.episodes if held else None
     os.kill(pid, signal.SIGKILL)
     killed_at = time.monotonic()
     if wait_until(lambda: (now := status(run)) is not None and now.pids.get(process, pid) != pid

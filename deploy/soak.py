@@ -3,9 +3,11 @@
 Beside a run of deploy/run.sh (it reads the stack's status.json for the pids), every --every seconds it
 appends one row to <run>/soak/soak.csv: the run's env steps and updates, each process's resident memory
 (VmRSS, MB; the stack's, and the curve's follower with its workers, `evaluate --curve RUN`), the bytes of each part of the run folder (the flight log, the replay's snapshot, checkpoints,
-kept policies, logs) and the restarts. When the run stops (or at --until-s), it draws soak.png and writes
+kept policies, logs), the bytes of the episodes the replay holds (its snapshot's manifest) and the
+restarts. When the run stops (or at --until-s), it draws soak.png and writes
 soak_summary.json / .md: each process's memory growth over the second half of the samples, when the replay
-is full, and the run folder's growth per hour.
+is full, the replay's memory growth less that of its episodes (a replay at capacity still grows while
+its episodes lengthen), and the run folder's growth per hour.
 
     .venv/bin/python deploy/soak.py runs/default --every 30              # until the run stops
     .venv/bin/python deploy/soak.py runs/default --report                # the figure and summary of what is there
@@ -28,6 +30,7 @@ import numpy as np
 
 from common.analysis.plotting import finish_figure, pyplot
 from common.run_dir import RunDir, RunStatus, StatusError
+from replay.snapshot import manifest_held
 
 PARTS = {  # the run folder's parts, by what they are
     "log": lambda run: run.wire_log_segments(),
@@ -37,6 +40,9 @@ PARTS = {  # the run folder's parts, by what they are
     "process_logs": lambda run: [run.logs],
 }
 FIXED = ["time", "elapsed_s", "phase", "env_steps", "updates", "restarts"]
+# the episodes the replay holds, by its snapshot's manifest (one snapshot period behind): what its memory
+# should grow by once it is full and its episodes still lengthen
+REPLAY_HELD = "bytes_replay_held"
 CURVE_FOLLOWER = "curve"  # the memory column of the run's curve evaluation (evaluate --curve --follow) and workers
 
 
@@ -104,6 +110,8 @@ def sample(run: RunDir, status: RunStatus) -> dict:
     row.update({f"rss_mb_{name}": round(resident_mb(pid), 1) for name, pid in sorted(status.pids.items())})
     row[f"rss_mb_{CURVE_FOLLOWER}"] = round(tree_resident_mb(curve_followers(run)), 1)
     row.update({f"bytes_{part}": tree_bytes(paths(run)) for part, paths in PARTS.items()})
+    held = manifest_held(run.replay_snapshot)
+    row[REPLAY_HELD] = held.bytes if held else ""
     return row
 
 
@@ -146,6 +154,19 @@ def memory_figures(resident: np.ndarray, hours: np.ndarray, late: np.ndarray) ->
             "second_half_mb_per_hour": slope_per_hour(hours[late], resident[late])}
 
 
+def held_figures(rows: list[dict], hours: np.ndarray, late: np.ndarray, replay: dict | None) -> dict | None:
+    """The replay's held episodes (MB, first and last) and their late growth, and the late growth of its
+    memory less theirs (a leak shows there); None for a soak without the column."""
+    if REPLAY_HELD not in rows[0] or replay is None:
+        return None
+    held = np.array([float(row[REPLAY_HELD]) / 2**20 if row[REPLAY_HELD] not in ("", None) else math.nan
+                     for row in rows])
+    seen = held[np.isfinite(held)]
+    rate = slope_per_hour(hours[late], held[late])
+    return {"first_mb": float(seen[0]) if seen.size else math.nan, "last_mb": float(seen[-1]) if seen.size else math.nan,
+            "second_half_mb_per_hour": rate, "replay_rest_mb_per_hour": replay["second_half_mb_per_hour"] - rate}
+
+
 def summarize(rows: list[dict]) -> dict:
     """Memory growth of each process over the second half of the samples, and the folder's growth per hour."""
     hours = np.array([(float(row["time"]) - float(rows[0]["time"])) / 3600 for row in rows])
@@ -156,7 +177,8 @@ def summarize(rows: list[dict]) -> dict:
     total = sum(column(f"bytes_{part}") for part in PARTS)
     return {"samples": len(rows), "hours": float(hours[-1]), "env_steps": int(float(rows[-1]["env_steps"])),
             "updates": int(float(rows[-1]["updates"])), "restarts": int(float(rows[-1]["restarts"])),
-            "memory": memory, "folder_bytes_last": int(total[-1]),
+            "memory": memory, "replay_held": held_figures(rows, hours, late, memory.get("replay")),
+            "folder_bytes_last": int(total[-1]),
             "folder_mb_per_hour": slope_per_hour(hours, total / 2**20),
             "folder_mb_per_hour_by_part": {part: slope_per_hour(hours, column(f"bytes_{part}") / 2**20)
                                            for part in PARTS}}
@@ -169,6 +191,11 @@ def summary_text(summary: dict) -> str:
     for name, memory in summary["memory"].items():
         lines.append(f"| {name} | {memory['first_mb']:.0f} | {memory['last_mb']:.0f} | {memory['max_mb']:.0f} | "
                      f"{memory['second_half_mb_per_hour']:+.1f} |")
+    held = summary.get("replay_held")
+    if held:
+        lines += ["", f"replay's episodes (its snapshot's manifest): {held['first_mb']:.0f} MB to {held['last_mb']:.0f} MB, "
+                      f"{held['second_half_mb_per_hour']:+.1f} MB/h in the second half; the replay's memory less "
+                      f"them: {held['replay_rest_mb_per_hour']:+.1f} MB/h"]
     parts = ", ".join(f"{part} {rate:+.1f}" for part, rate in summary["folder_mb_per_hour_by_part"].items())
     lines += ["", f"run folder: {summary['folder_bytes_last'] / 2**20:.0f} MB at the last sample, "
                   f"{summary['folder_mb_per_hour']:+.1f} MB per hour ({parts})"]

@@ -30,6 +30,7 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import msgpack
 import numpy as np
@@ -301,11 +302,17 @@ class Snapshotter:
         return sorted(number for path in self.directory.iterdir() if (number := _segment_number(path)) is not None)
 
 
-def manifest_episodes(directory: Path) -> int | None:
-    """How many episodes the snapshot in `directory` names (what a replay resumed now restores, less any
-    damaged record); None without a readable manifest. Reads the manifest only."""
+class Held(NamedTuple):
+    episodes: int  # the episodes the manifest names live
+    bytes: int  # their records' bytes: the stored episodes' size, which a resumed replay holds in memory
+
+
+def manifest_held(directory: Path) -> Held | None:
+    """What the snapshot in `directory` names (what a replay resumed now restores, less any damaged record);
+    None without a readable manifest. Reads the manifest only."""
     try:
         manifest = msgpack.unpackb((Path(directory) / MANIFEST).read_bytes(), raw=False)
-        return len(manifest["episodes"])
-    except (OSError, KeyError, TypeError, ValueError, msgpack.UnpackException):
+        entries = manifest["episodes"]
+        return Held(len(entries), sum(int(entry[3]) for entry in entries))
+    except (OSError, KeyError, TypeError, ValueError, IndexError, msgpack.UnpackException):
         return None

@@ -10,8 +10,13 @@ import time
 
 import pytest
 
+import numpy as np
+
 from common.run_dir import RunDir, RunStatus
+from common.wire.frames import FrameStack
 from deploy import soak
+from replay.snapshot import MANIFEST, SnapshotView, Snapshotter, manifest_held
+from replay.store import StoredEpisode
 
 
 def test_a_sample_reads_the_processes_memory_and_the_folders_parts(tmp_path):
@@ -50,6 +55,40 @@ def test_the_summary_reads_growth_per_hour_from_the_second_half():
     leaking = soak.summarize(rows(4, lambda hour: 500.0 + 30 * hour, lambda hour: 0.0))
     assert leaking["memory"]["learner"]["second_half_mb_per_hour"] == pytest.approx(30.0)
     assert math.isnan(soak.slope_per_hour(soak.np.array([1.0]), soak.np.array([5.0])))
+
+
+def held_episode(seq: int, steps: int) -> StoredEpisode:
+    frames = np.random.default_rng(seq).integers(0, 256, (steps + 1, 8, 8, 3), dtype=np.uint8)
+    return StoredEpisode.of(FrameStack.from_array(frames), np.zeros(steps, np.int64), np.zeros(steps, np.float32),
+                            np.zeros(steps, np.int64), False, seq=seq)
+
+
+def test_a_sample_reads_the_bytes_of_the_episodes_the_replays_snapshot_holds(tmp_path):
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    RunStatus("finished", pids={}).write(run.status)
+    assert soak.sample(run, RunStatus.read(run.status))["bytes_replay_held"] == ""  # no snapshot yet
+    episodes = [held_episode(seq, steps) for seq, steps in enumerate((5, 9))]
+    Snapshotter(run.replay_snapshot).write(SnapshotView(episodes, {}, {}, {}))
+    held = soak.sample(run, RunStatus.read(run.status))["bytes_replay_held"]
+    # each record: the episode's bytes and the msgpack fields around them (frame shape, flags, numbers)
+    assert sum(episode.nbytes for episode in episodes) < held < sum(episode.nbytes for episode in episodes) + 400
+    assert manifest_held(run.replay_snapshot) == (2, held)
+    (run.replay_snapshot / MANIFEST).write_bytes(b"\x93 not a manifest")
+    assert manifest_held(run.replay_snapshot) is None
+
+
+def test_the_summary_separates_the_replays_growth_from_that_of_its_episodes():
+    # the replay's memory grows 90 MB an hour while its episodes (lengthening) grow 80: 10 MB an hour is the rest
+    held_rows = [{**row, "rss_mb_replay": 300.0 + 90 * hour, "bytes_replay_held": int((100 + 80 * hour) * 2**20)}
+                 for hour, row in enumerate(rows(4, lambda hour: 500.0, lambda hour: 0.0))]
+    held_rows[0]["bytes_replay_held"] = ""  # no snapshot yet at the first sample
+    held = soak.summarize(held_rows)["replay_held"]
+    assert (held["first_mb"], held["last_mb"]) == (180.0, 420.0)
+    assert held["second_half_mb_per_hour"] == pytest.approx(80.0)
+    assert held["replay_rest_mb_per_hour"] == pytest.approx(10.0)
+    assert "the replay's memory less them: +10.0 MB/h" in soak.summary_text(soak.summarize(held_rows))
+    assert soak.summarize(rows(4, lambda hour: 500.0, lambda hour: 0.0))["replay_held"] is None  # an older soak
 
 
 def test_a_sample_reads_the_curves_follower_with_its_workers(tmp_path):
