@@ -142,18 +142,20 @@ def run(name: str, seed: int, updates: int, runs_dir: Path, sets: str, extra: Se
 
 # a run folder's file: its name in the export (the layout of results/time-to-drive)
 EXPORTED = {"config.toml": "config.toml", "summary.json": "run_summary.json", f"curve/{CURVE_CSV}": CURVE_CSV,
-            f"curve/{SUMMARY_JSON}": SUMMARY_JSON, f"curve/{SUMMARY_MD}": SUMMARY_MD, f"curve/{CURVE_PNG}": CURVE_PNG}
+            f"curve/{SUMMARY_JSON}": SUMMARY_JSON, f"curve/{SUMMARY_MD}": SUMMARY_MD, f"curve/{CURVE_PNG}": CURVE_PNG,
+            **{f"soak/{name}": name for name in ("soak.csv", "soak.png", "soak_summary.json", "soak_summary.md")}}
 
 
 def export(folder: Path, into: Path) -> Path:
-    """A trained run's small files (config, run summary, greedy curve) into `into`/<run name>/."""
+    """A trained run's small files (config, run summary, greedy curve, and its soak where deploy/soak.py
+    sampled it) into `into`/<run name>/."""
+    if not (folder / "curve" / CURVE_CSV).exists():
+        raise SystemExit(f"study: {folder} has no greedy curve yet; run `evaluate --curve {folder}` first")
     target = into / folder.name
     target.mkdir(parents=True, exist_ok=True)
     for relative, name in EXPORTED.items():
         if (folder / relative).exists():
             shutil.copy2(folder / relative, target / name)
-    if not (target / CURVE_CSV).exists():
-        raise SystemExit(f"study: {folder} has no greedy curve yet; run `evaluate --curve {folder}` first")
     return target
 
 

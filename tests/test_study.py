@@ -156,3 +156,19 @@ def test_a_curves_line_does_not_bridge_policies_that_were_not_evaluated():
     xs, ys = study.broken_at_gaps([1000, 2000, 5000, 5400, 6000], [1.0, 2.0, 5.0, 5.4, 6.0])
     assert xs[:2].tolist() == [1000.0, 2000.0] and xs[3:].tolist() == [5000.0, 5400.0, 6000.0]
     assert np.isnan(xs[2]) and np.isnan(ys[2]) and ys[3:].tolist() == [5.0, 5.4, 6.0]
+
+
+def test_export_copies_a_runs_small_files_and_its_soak_and_refuses_a_run_without_a_curve(tmp_path):
+    run = tmp_path / "runs" / "study-combination-s0"
+    for relative in ("config.toml", "summary.json", "curve/curve.csv", "curve/curve.png", "soak/soak.csv",
+                     "soak/soak_summary.md", "policies/policy-u0001000.pt", "replay/snapshot/manifest.msgpack"):
+        (run / relative).parent.mkdir(parents=True, exist_ok=True)
+        (run / relative).write_text(relative)
+    target = study.export(run, tmp_path / "results")
+    assert sorted(path.name for path in target.iterdir()) == [
+        "config.toml", "curve.csv", "curve.png", "run_summary.json", "soak.csv", "soak_summary.md"]
+    assert (target / "run_summary.json").read_text() == "summary.json"  # named as results/time-to-drive names it
+    (run / "curve" / "curve.csv").unlink()
+    with pytest.raises(SystemExit, match="has no greedy curve yet"):
+        study.export(run, tmp_path / "elsewhere")
+    assert not (tmp_path / "elsewhere").exists()  # refused before anything is copied
