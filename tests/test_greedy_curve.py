@@ -364,9 +364,13 @@ def test_the_policy_to_ship_is_chosen_on_the_training_starts_not_the_test_starts
         "chosen on the training starts (highest train CFR, then mean length): update 3,000 (u3000): train CFR 80%, "
         "mean length 1,700; test CFR 50%, mean length 1,200")
     assert curve_summary([row(1000, "test", 400, 0.1)])["chosen_on_train"] is None
-    partly = curve_summary(rows + [row(4000, "test", 1900, 0.9)])  # the later policy only on the test starts
-    assert partly["chosen_on_train"] is None
-    assert "chosen on the training starts: not every kept policy was evaluated on them" in summary_lines(partly)[-2]
+    assert "among" not in summary_lines(curve_summary(rows))[-2]  # all of them
+    partly = curve_summary([row(500, "test", 1950, 1.0)] + rows)  # the earlier one only on the test starts
+    assert (partly["chosen_on_train"]["updates"], partly["chosen_on_train"]["among"]) == (3000, 3)
+    assert summary_lines(partly)[-2].startswith(
+        "chosen on the training starts among the 3 of 4 kept policies evaluated on them (1,000-3,000 updates) "
+        "(highest train CFR, then mean length): update 3,000")
+    assert "no kept policy was evaluated on them" in summary_lines(curve_summary([row(1000, "test", 400, 0.1)]))[-2]
     assert curve_summary([row(1000, "train", 400, 0.1)])["chosen_on_train"]["test_cfr"] is None
 
 

@@ -186,17 +186,21 @@ def first_reaching(rows: Sequence[dict], column: str, threshold: float, start_se
 
 def chosen_on_train(rows: Sequence[dict]) -> dict | None:
     """The kept policy to ship, chosen on the training starts alone (highest greedy train CFR, then mean
-    length, then the later policy), with its train and test readings: choosing on the test starts would make
-    its test reading the best of many draws, biased upwards. None unless every kept policy of the curve was
-    evaluated on the training starts (a choice among some would pass over the others)."""
+    length, then the later policy) among the kept policies evaluated on them (all, or a run's last ones:
+    `evaluate --curve --from-updates`), with its train and test readings and which policies it was chosen
+    among: choosing on the test starts would make its test reading the best of many draws, biased upwards.
+    None when no policy was evaluated on the training starts."""
     train = [row for row in rows if row["start_set"] == "train"]
-    if not train or {row["updates"] for row in train} != {row["updates"] for row in rows}:
+    if not train:
         return None
     best = max(train, key=lambda row: (float(row["cfr"]), float(row["mean_length"]), int(row["updates"])))
     test = next((row for row in rows if row["start_set"] == "test" and row["updates"] == best["updates"]), None)
+    among = sorted(int(row["updates"]) for row in train)
     return {"updates": int(best["updates"]), "kept_file": best["kept_file"],
             **{f"{name}_{column}": float(row[column]) if row is not None else None
-               for name, row in (("train", best), ("test", test)) for column in ("cfr", "mean_length")}}
+               for name, row in (("train", best), ("test", test)) for column in ("cfr", "mean_length")},
+            "among": len(among), "of": len({row["updates"] for row in rows}), "among_first": among[0],
+            "among_last": among[-1]}
 
 
 def curve_summary(rows: Sequence[dict], evaluated_on: str | None = None) -> dict:
@@ -230,11 +234,14 @@ def summary_lines(summary: dict) -> list[str]:
                          f"(up to update {summary['last_updates']:,d})")
     chosen = summary.get("chosen_on_train")
     if chosen is None and "chosen_on_train" in summary:
-        lines.append("chosen on the training starts: not every kept policy was evaluated on them (--sets train,test)")
+        lines.append("chosen on the training starts: no kept policy was evaluated on them (--sets train,test)")
     if chosen is not None:
         test = ("not evaluated on the test starts" if chosen["test_cfr"] is None else
                 f"test CFR {100 * chosen['test_cfr']:.0f}%, mean length {chosen['test_mean_length']:,.0f}")
-        lines.append(f"chosen on the training starts (highest train CFR, then mean length): update "
+        among = ("" if "among" not in chosen or chosen["among"] == chosen["of"] else
+                 f" among the {chosen['among']} of {chosen['of']} kept policies evaluated on them "
+                 f"({chosen['among_first']:,d}-{chosen['among_last']:,d} updates)")
+        lines.append(f"chosen on the training starts{among} (highest train CFR, then mean length): update "
                      f"{chosen['updates']:,d} ({chosen['kept_file']}): train CFR {100 * chosen['train_cfr']:.0f}%, "
                      f"mean length {chosen['train_mean_length']:,.0f}; {test}")
     nice = ", ".join(str(value) for value in summary["nice"])
