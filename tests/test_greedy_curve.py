@@ -15,7 +15,8 @@ import torch
 
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
-from actor.evaluation.curve import CURVE_TRIALS, curve_config, curve_summary, first_reaching, read_curve, summary_lines
+from actor.evaluation.curve import (CURVE_TRIALS, curve_config, curve_summary, first_reaching, read_curve, summary_lines,
+                                    unbridged)
 from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
@@ -392,3 +393,11 @@ def test_evaluate_checkpoint_takes_a_kept_policy_file(tmp_path):
     facts = json.loads((out / "facts.json").read_text())
     assert facts["source"] == f"kept policy {policy}" and (facts["updates"], facts["env steps"]) == ("30", "1200")
     assert [row["start_set"] for row in read_rows(out / "summary.csv")] == ["test"]
+
+
+def test_a_sets_line_does_not_bridge_policies_evaluated_on_the_other_set_only():
+    rows = [row(updates, "test", 100, 0.0) for updates in (1000, 2000, 3000, 4000)]
+    rows += [row(updates, "train", 100, 0.0) for updates in (1000, 2000, 4000)]
+    train = [entry for entry in rows if entry["start_set"] == "train"]
+    assert [[int(entry["updates"]) for entry in segment] for segment in unbridged(train, rows)] == [[1000, 2000], [4000]]
+    assert len(unbridged(rows[:4], rows)) == 1 and unbridged([], rows) == []

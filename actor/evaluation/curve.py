@@ -271,6 +271,18 @@ PANELS = (("mean_length", 1.0, "greedy mean length (steps)"), ("cfr", 100.0, "gr
 SET_COLOURS = {"train": "tab:blue", "test": "tab:orange"}
 
 
+def unbridged(points: Sequence[dict], rows: Sequence[dict]) -> list[list[dict]]:
+    """One start set's rows, by updates, split where a kept policy of the curve lacks a row of that set: a
+    line does not bridge policies evaluated on the other set only."""
+    order = {updates: index for index, updates in enumerate(sorted({int(row["updates"]) for row in rows}))}
+    segments: list[list[dict]] = []
+    for row in points:
+        if not segments or order[int(row["updates"])] != order[int(segments[-1][-1]["updates"])] + 1:
+            segments.append([])
+        segments[-1].append(row)
+    return segments
+
+
 def plot_curve(rows: Sequence[dict], path: Path, title: str) -> None:
     """Mean length and CFR of the greedy policy against wall time and env steps, a line per start set,
     its band the rows' intervals over the trials."""
@@ -283,14 +295,13 @@ def plot_curve(rows: Sequence[dict], path: Path, title: str) -> None:
         for ax, (x_column, x_scale, x_label) in zip(panel_axes, x_axes):
             for start_set, colour in SET_COLOURS.items():
                 points = sorted((row for row in rows if row["start_set"] == start_set), key=lambda r: int(r["updates"]))
-                if not points:
-                    continue
-                x = [x_scale * float(row[x_column]) for row in points]
-                y, low, high = ([scale * float(row[key]) for row in points]
-                                for key in (statistic, f"{statistic}_low", f"{statistic}_high"))
-                ax.plot(x, y, color=colour, marker=".", label=start_set)
-                if all(math.isfinite(value) for value in low + high):
-                    ax.fill_between(x, low, high, color=colour, alpha=0.2, linewidth=0)
+                for number, segment in enumerate(unbridged(points, rows)):
+                    x = [x_scale * float(row[x_column]) for row in segment]
+                    y, low, high = ([scale * float(row[key]) for row in segment]
+                                    for key in (statistic, f"{statistic}_low", f"{statistic}_high"))
+                    ax.plot(x, y, color=colour, marker=".", label=None if number else start_set)
+                    if all(math.isfinite(value) for value in low + high):
+                        ax.fill_between(x, low, high, color=colour, alpha=0.2, linewidth=0)
             ax.set(xlabel=x_label, ylabel=y_label)
     finish_figure(plt, figure, axes.flat, path, title)
 
