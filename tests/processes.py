@@ -9,9 +9,15 @@ import sys
 import time
 from pathlib import Path
 
-from common.transport import free_port, loopback_endpoint  # re-exported: the tests take ports from here
+import zenoh
+
+from common.config import TransportConfig
+from common.transport import free_port, loopback_endpoint, open_session  # ports re-exported: the tests take them here
 
 STOP_TIMEOUT_S = 30.0
+# a router process just started imports torch before it listens: on a loaded 2-core machine that took longer
+# than the client's default 10 s of connect retries
+ROUTER_START_S = 60.0
 
 
 def start(args: list[str], log_path: Path, cwd: Path | None = None) -> subprocess.Popen:
@@ -19,6 +25,11 @@ def start(args: list[str], log_path: Path, cwd: Path | None = None) -> subproces
     with open(log_path, "wb") as log:
         return subprocess.Popen([sys.executable, *args], stdout=log, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, cwd=cwd)
+
+
+def router_client(endpoint: str) -> zenoh.Session:
+    """A client session to a router process that may still be starting (close it, or use it with `with`)."""
+    return open_session(TransportConfig(mode="client", connect=[endpoint], connect_timeout_s=ROUTER_START_S))
 
 
 def stop(*processes: subprocess.Popen) -> None:

@@ -8,10 +8,9 @@ import threading
 import time
 from pathlib import Path
 
-from common.config import TransportConfig
-from common.transport import Keys, open_session, subscribe
+from common.transport import Keys, subscribe
 from common.wire.messages import EpisodeRecord, ExplorationState, Stats
-from tests.processes import loopback_endpoint, start, stop
+from tests.processes import loopback_endpoint, router_client, start, stop
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 README_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -59,7 +58,7 @@ def test_the_readme_example_trains_with_the_learners_strategy(tmp_path):
             processes.append(start(["-m", MODULES[role], *flags, *SMOKE, "--run.runs_dir", str(tmp_path / "runs")],
                                    logs[-1]))
             if role == "replay":
-                session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+                session = router_client(endpoint)
                 keys = Keys("d3rqn", run)
                 subscriptions = [subscribe(session, keys.metrics_all, on_metric),
                                  subscribe(session, keys.exploration, on_exploration, expected=ExplorationState)]

@@ -33,7 +33,7 @@ from replay.log.recorder import HandOff, Recorder, WeightsSampler
 from replay.log.recover import recover
 from replay.log.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns
 from replay.log.writer import LogWriter
-from tests.processes import loopback_endpoint, start, stop, wait_for
+from tests.processes import loopback_endpoint, router_client, start, stop, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "logrun"
@@ -285,7 +285,7 @@ def fresh_replay(tmp_path):
     process = start(["-m", "replay.main", "--preset", "smoke", "--run.name", "fresh", "--transport.mode", "router",
                      "--transport.listen", endpoint, "--replay.stats_period_s", "0.2",
                      "--run.runs_dir", str(tmp_path / "runs")], log)
-    session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+    session = router_client(endpoint)
     try:
         yield endpoint, session, log
     finally:

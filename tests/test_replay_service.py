@@ -10,15 +10,14 @@ import time
 import numpy as np
 import pytest
 
-from common.config import TransportConfig
 from common.config_values import load_config
-from common.transport import Keys, open_session, publisher, request, subscribe
+from common.transport import Keys, publisher, request, subscribe
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, Stats, TraceBatch, TraceBatchRequest
 from replay.service import ReplayService, counters_path
 from tests import processes
-from tests.processes import loopback_endpoint, start, stop
+from tests.processes import loopback_endpoint, router_client, start, stop
 
 RUN = "replaysvc"
 TRACE = 10
@@ -40,7 +39,7 @@ def replay(tmp_path):
          "--transport.listen", endpoint, "--replay.capacity", "3", "--replay.max_message_mb", "1",
          "--replay.stats_period_s", "0.2", "--run.runs_dir", str(tmp_path / "runs"),
          "--env.max_steps", "400"], tmp_path / "replay.log")  # episodes longer than env.max_steps are refused
-    session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+    session = router_client(endpoint)
     stats: list[dict] = []
     subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats,
                              lambda message, key: stats.append(dict(message.values)), expected=Stats)
@@ -159,7 +158,7 @@ def test_a_resumed_replay_continues_its_counters(tmp_path):
     process = start(["-m", "replay.main", "--preset", "smoke", "--run.name", RUN, "--run.runs_dir",
                      str(tmp_path / "runs"), "--transport.mode", "router", "--transport.listen", endpoint,
                      "--replay.stats_period_s", "0.2", "--resume"], tmp_path / "replay.log")
-    session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+    session = router_client(endpoint)
     stats: list[dict] = []
     subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats, lambda m, k: stats.append(dict(m.values)),
                              expected=Stats)

@@ -9,11 +9,10 @@ from collections import defaultdict
 
 import pytest
 
-from common.config import TransportConfig
 from common.presets import PRESETS
-from common.transport import Keys, open_session, subscribe
+from common.transport import Keys, subscribe
 from common.wire.messages import EpisodeRecord, ExplorationState, Stats
-from tests.processes import loopback_endpoint, start, stop
+from tests.processes import loopback_endpoint, router_client, start, stop
 
 DEADLINE_S = 240.0
 SMOKE_CAPACITY = PRESETS["smoke"]["replay.capacity"]
@@ -68,7 +67,7 @@ def stack(tmp_path):
     logs.mkdir()
     processes = {"replay": start_role("replay", common + ["--transport.mode", "router", "--transport.listen", endpoint], logs)}
     observer = Observer()
-    session = open_session(TransportConfig(mode="client", connect=[endpoint]))
+    session = router_client(endpoint)
     keys = Keys("d3rqn", run)
     subscriptions = [subscribe(session, keys.metrics_all, observer.on_metric),
                      subscribe(session, keys.replay_stats, observer.on_replay),
