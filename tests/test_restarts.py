@@ -100,7 +100,9 @@ def test_a_killed_learner_resumes_from_its_checkpoint_and_is_owed_what_it_lost(t
 
 def test_a_killed_actor_is_replaced_and_the_replay_keeps_all_it_stored(tmp_path):
     with StackRun(tmp_path, "kill-actor", actors=2) as run:
-        run.wait(lambda w: w.updates() >= 3 and all(w.records[a] >= 3 for a in (0, 1)), "both actors", timeout_s=80)
+        # and the replay's stats (under load its first can come after both actors' third episode)
+        run.wait(lambda w: w.updates() >= 3 and all(w.records[a] >= 3 for a in (0, 1)) and w.replay,
+                 "both actors and the replay's stats", timeout_s=80)
         with run.watch.lock:
             before = dict(run.watch.replay)
             records = dict(run.watch.records)
