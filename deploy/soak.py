@@ -154,17 +154,11 @@ def memory_figures(resident: np.ndarray, hours: np.ndarray, late: np.ndarray) ->
             "second_half_mb_per_hour": slope_per_hour(hours[late], resident[late])}
 
 
-def held_figures(rows: list[dict], hours: np.ndarray, late: np.ndarray, replay: dict | None) -> dict | None:
-    """The replay's held episodes (MB, first and last) and their late growth, and the late growth of its
-    memory less theirs (a leak shows there); None for a soak without the column."""
-    if REPLAY_HELD not in rows[0] or replay is None:
-        return None
-    held = np.array([float(row[REPLAY_HELD]) / 2**20 if row[REPLAY_HELD] not in ("", None) else math.nan
-                     for row in rows])
-    seen = held[np.isfinite(held)]
-    rate = slope_per_hour(hours[late], held[late])
-    return {"first_mb": float(seen[0]) if seen.size else math.nan, "last_mb": float(seen[-1]) if seen.size else math.nan,
-            "second_half_mb_per_hour": rate, "replay_rest_mb_per_hour": replay["second_half_mb_per_hour"] - rate}
+def held_figures(held_mb: np.ndarray, hours: np.ndarray, late: np.ndarray, replay: dict) -> dict:
+    """The replay's held episodes as memory_figures gives them, and the late growth of its memory less theirs
+    (a leak shows there)."""
+    figures = memory_figures(held_mb, hours, late)
+    return {**figures, "replay_rest_mb_per_hour": replay["second_half_mb_per_hour"] - figures["second_half_mb_per_hour"]}
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -177,7 +171,8 @@ def summarize(rows: list[dict]) -> dict:
     total = sum(column(f"bytes_{part}") for part in PARTS)
     return {"samples": len(rows), "hours": float(hours[-1]), "env_steps": int(float(rows[-1]["env_steps"])),
             "updates": int(float(rows[-1]["updates"])), "restarts": int(float(rows[-1]["restarts"])),
-            "memory": memory, "replay_held": held_figures(rows, hours, late, memory.get("replay")),
+            "memory": memory, "replay_held": (held_figures(column(REPLAY_HELD) / 2**20, hours, late, memory["replay"])
+                                              if REPLAY_HELD in rows[0] and "replay" in memory else None),
             "folder_bytes_last": int(total[-1]),
             "folder_mb_per_hour": slope_per_hour(hours, total / 2**20),
             "folder_mb_per_hour_by_part": {part: slope_per_hour(hours, column(f"bytes_{part}") / 2**20)
