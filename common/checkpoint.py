@@ -13,7 +13,8 @@ The policies the learner keeps for greedy learning curves (learner.keep_every,
 <run>/policies/) are files of their own, KeptPolicy: the online weights only.
 A policy shipped with the project (deploy/ship_policy.py) is a KeptPolicy too,
 its weights in 16 bits (POLICY_ENCODINGS), half the size; reading it widens
-them to float32.
+them to float32. So is the mean of several kept policies' weights
+(deploy/average_policies.py), which names the updates of those it averaged.
 """
 
 from __future__ import annotations
@@ -128,11 +129,13 @@ class KeptPolicy:
     cpu: str  # the learner host's CPU model: wall_s is that machine's time
     config: dict  # the run's config as a table (common.config_values.to_dict): it rebuilds the network
     online: dict[str, torch.Tensor]  # the online network's state dict
+    averaged: tuple[int, ...] = ()  # the updates of the kept policies whose mean these weights are; () if none
     path: Path | None = None  # the file it was read from
 
     def save(self, path: Path) -> Path:
         fields = {name: getattr(self, name) for name in _POLICY_CHECKS}
-        write_atomically(path, {"format": POLICY_FORMAT, **fields})
+        mean = {"averaged": list(self.averaged)} if self.averaged else {}  # a learner's file stays as it was
+        write_atomically(path, {"format": POLICY_FORMAT, **fields, **mean})
         return path
 
     @classmethod
@@ -147,9 +150,12 @@ class KeptPolicy:
     @classmethod
     def _of(cls, payload: dict[str, Any], path: Path, kind: str = "kept policy") -> KeptPolicy:
         wrong = [name for name, check in _POLICY_CHECKS.items() if not check(payload.get(name))]
+        averaged = payload.get("averaged", [])
+        if not (isinstance(averaged, (list, tuple)) and all(_is_count(updates) for updates in averaged)):
+            wrong.append("averaged")
         if wrong:
             raise CheckpointError(f"{kind} {path}: {', '.join(wrong)} missing or malformed")
-        return cls(**{name: payload[name] for name in _POLICY_CHECKS}, path=path)
+        return cls(**{name: payload[name] for name in _POLICY_CHECKS}, averaged=tuple(averaged), path=path)
 
     @classmethod
     def of_checkpoint(cls, checkpoint: Checkpoint) -> KeptPolicy:

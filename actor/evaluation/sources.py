@@ -43,6 +43,9 @@ def checkpoint_source(path: Path, args: argparse.Namespace) -> PolicySource:
         shipped = "" if saved.encoding == "float32" else f" ({saved.encoding} weights, widened to float32)"
         facts = {"source": f"kept policy {saved.path}{shipped}", "updates": str(saved.updates),
                  "env steps": str(saved.env_steps), "strategy": config.exploration.strategy}
+        if saved.averaged:
+            facts["averaged"] = f"the mean of {len(saved.averaged)} kept policies' weights, updates " \
+                                f"{', '.join(str(updates) for updates in saved.averaged)}"
         return PolicySource(saved.weights(), config, RunDir.of_checkpoint(saved.path), facts)
     weights = saved.policy_weights()
     config = checkpoint_config(saved.config, args)
