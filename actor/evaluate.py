@@ -77,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--from-updates", type=int, default=0, metavar="N",
                         help="with --curve, only the policies kept at N updates or later, e.g. the train rows of "
                              "a run's last policies, to choose one on the train starts (default: 0, all)")
+    parser.add_argument("--every", type=int, default=1, metavar="N",
+                        help="with --curve, only the policies kept at multiples of N updates, e.g. 5000 on a long "
+                             "run whose greedy episodes reach the cap and take minutes each (default: 1, all)")
     parser.add_argument("--out", type=Path, metavar="DIR",
                         help="output directory (default: <run dir>/evaluation, with --curve <run dir>/curve)")
     parser.add_argument("--nice", type=int, default=0, metavar="N",
@@ -171,13 +174,15 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
     out_dir = args.out if args.out is not None else run.curve
     if args.follow is not None and args.follow <= 0:
         raise EvaluationError(f"--follow: seconds must be > 0, got {args.follow:g}")
+    if args.every < 1:
+        raise EvaluationError(f"--every: updates must be >= 1, got {args.every}")
     while True:
         training = args.follow is not None and _stack_training(run)
         if training and not run.kept_policies():
             time.sleep(args.follow)  # no policy kept yet
             continue
         rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice,
-                              from_updates=args.from_updates)
+                              from_updates=args.from_updates, every=args.every)
         evaluated_now = rows is not None
         if rows is None and not training:
             rows = read_curve(out_dir / CURVE_CSV) or None  # nothing new: the figure and summary redrawn whole

@@ -250,16 +250,20 @@ def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stop
     main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--follow"])
     assert waits == [5.0] and read_rows(run.curve / "curve.csv")[-1]["updates"] == "40"
 
-    # the train set afterwards, of the last policies only (to choose one on the train starts), then of all:
-    # only the rows lacking are added, each policy's train row first
+    # the train set afterwards: at multiples of 20 updates only (a long run's coarse curve), then of the last
+    # policies (to choose one on the train starts), then of all: only the rows lacking are added, each
+    # policy's train row first
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "train", "--every", "20"])
+    assert [row["updates"] for row in read_rows(run.curve / "curve.csv") if row["start_set"] == "train"] == ["40"]
     main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "train", "--from-updates", "30"])
     assert [(row["updates"], row["start_set"]) for row in read_rows(run.curve / "curve.csv")] == [
         ("10", "test"), *((updates, name) for updates in ("30", "40") for name in ("train", "test"))]
     main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "train,test"])
     assert [(row["updates"], row["start_set"]) for row in read_rows(run.curve / "curve.csv")] == [
         (updates, name) for updates in ("10", "30", "40") for name in ("train", "test")]
-    with pytest.raises(SystemExit):  # nothing kept that late: a clear error
-        main(["--curve", str(run.root), *CURVE_FLAGS, "--from-updates", "41"])
+    for wrong in (["--from-updates", "41"], ["--every", "7"], ["--every", "0"]):  # nothing such kept: an error
+        with pytest.raises(SystemExit):
+            main(["--curve", str(run.root), *CURVE_FLAGS, *wrong])
 
 
 def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_path, capsys):

@@ -63,17 +63,19 @@ def curve_config(saved: dict, args: argparse.Namespace) -> Config:
 
 
 def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],
-                   nice: int, show_status: bool = True, from_updates: int = 0) -> list[dict] | None:
-    """Evaluates the kept policies (those kept at `from_updates` or later) the CSV lacks, on the start sets
-    it lacks them on (a curve of the test set, rerun with train,test, adds the train rows), writing it after
-    each; returns all its rows, or None when nothing was added (nothing new, or every new file skipped)."""
+                   nice: int, show_status: bool = True, from_updates: int = 0, every: int = 1) -> list[dict] | None:
+    """Evaluates the kept policies (those kept at `from_updates` or later, at multiples of `every` updates)
+    the CSV lacks, on the start sets it lacks them on (a curve of the test set, rerun with train,test, adds the
+    train rows), writing it after each; returns all its rows, or None when nothing was added (nothing new, or
+    every new file skipped)."""
     kept = run.kept_policies()
     if not kept:
         raise EvaluationError(f"no kept policies in {run.policies}/ (the learner keeps them with "
                               "learner.keep_every or learner.keep_every_s)")
-    kept = [(updates, file) for updates, file in kept if updates >= from_updates]
+    kept = [(updates, file) for updates, file in kept if updates >= from_updates and updates % every == 0]
     if not kept:
-        raise EvaluationError(f"--from-updates {from_updates:,d}: no policy in {run.policies}/ was kept that late")
+        raise EvaluationError(f"--from-updates {from_updates:,d}, --every {every:,d}: no policy in "
+                              f"{run.policies}/ was kept that late at such a multiple")
     path = out_dir / CURVE_CSV
     rows = read_curve(path)
     done = {(int(row["updates"]), row["start_set"]) for row in rows}
