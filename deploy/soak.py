@@ -5,14 +5,17 @@ appends one row to <run>/soak/soak.csv: the run's env steps and updates, each pr
 (VmRSS, MB; the stack's, and the curve's follower with its workers, `evaluate --curve RUN`), the bytes of each part of the run folder (the flight log, the replay's snapshot, checkpoints,
 kept policies, logs), the bytes of the episodes the replay holds (its snapshot's manifest) and the
 restarts. When the run stops (or at --until-s), it draws soak.png and writes
-soak_summary.json / .md: each process's memory growth over the second half of the samples, when the replay
-is full, the replay's memory growth less that of its episodes (a replay at capacity still grows while
-its episodes lengthen), and the run folder's growth per hour.
+soak_summary.json / .md: each process's memory growth over the second half of the last session's samples,
+when the replay is full, the replay's memory growth less that of its episodes (a replay at capacity still
+grows while its episodes lengthen), and the run folder's growth per hour of run time.
 
     .venv/bin/python deploy/soak.py runs/default --every 30              # until the run stops
     .venv/bin/python deploy/soak.py runs/default --report                # the figure and summary of what is there
 
-A rerun appends to the CSV, so a resumed run's soak carries on.
+A rerun appends to the CSV, so a resumed run's soak carries on. Its hours are the run's: a sample whose
+stack time (elapsed_s) is below the one before starts a new session (a resume), and the hours between the
+sessions, when nothing ran, do not count; memory growth is read in the last session, whose processes
+started afresh.
 """
 
 from __future__ import annotations
@@ -161,16 +164,34 @@ def held_figures(held_mb: np.ndarray, hours: np.ndarray, late: np.ndarray, repla
     return {**figures, "replay_rest_mb_per_hour": replay["second_half_mb_per_hour"] - figures["second_half_mb_per_hour"]}
 
 
+def run_hours(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Each sample's hours of run time, the gaps between sessions left out, and its session's number (a new
+    session where the stack's elapsed_s falls: a resumed run's stack started again)."""
+    hours, sessions = [0.0], [0]
+    for before, row in zip(rows, rows[1:]):
+        elapsed, earlier = float(row["elapsed_s"]), float(before["elapsed_s"])
+        resumed = elapsed < earlier
+        step = elapsed if resumed else float(row["time"]) - float(before["time"])
+        hours.append(hours[-1] + step / 3600)
+        sessions.append(sessions[-1] + resumed)
+    return np.array(hours), np.array(sessions)
+
+
 def summarize(rows: list[dict]) -> dict:
-    """Memory growth of each process over the second half of the samples, and the folder's growth per hour."""
-    hours = np.array([(float(row["time"]) - float(rows[0]["time"])) / 3600 for row in rows])
-    late = hours >= hours[-1] / 2
+    """Memory growth of each process over the second half of the last session, and the folder's growth per
+    hour of run time."""
+    hours, sessions = run_hours(rows)
+    last = sessions == sessions[-1]
+    late = last & (hours >= (hours[last][0] + hours[-1]) / 2)
     column = lambda name: np.array([float(row[name]) if row[name] not in ("", None) else math.nan for row in rows])
     processes = sorted(name[len("rss_mb_"):] for name in rows[0] if name.startswith("rss_mb_"))
     memory = {name: memory_figures(column(f"rss_mb_{name}"), hours, late) for name in processes}
     total = sum(column(f"bytes_{part}") for part in PARTS)
-    return {"samples": len(rows), "hours": float(hours[-1]), "env_steps": int(float(rows[-1]["env_steps"])),
-            "updates": int(float(rows[-1]["updates"])), "restarts": int(float(rows[-1]["restarts"])),
+    return {"samples": len(rows), "hours": float(hours[-1]), "sessions": int(sessions[-1]) + 1,
+            "env_steps": int(float(rows[-1]["env_steps"])),
+            "updates": int(float(rows[-1]["updates"])),
+            "restarts": sum(int(float(rows[np.flatnonzero(sessions == session)[-1]]["restarts"]))  # each stack's
+                            for session in range(sessions[-1] + 1)),
             "memory": memory, "replay_held": (held_figures(column(REPLAY_HELD) / 2**20, hours, late, memory["replay"])
                                               if REPLAY_HELD in rows[0] and "replay" in memory else None),
             "folder_bytes_last": int(total[-1]),
@@ -180,9 +201,12 @@ def summarize(rows: list[dict]) -> dict:
 
 
 def summary_text(summary: dict) -> str:
-    lines = [f"{summary['samples']} samples over {summary['hours']:.2f} h: {summary['env_steps']:,} env steps, "
-             f"{summary['updates']:,} updates, {summary['restarts']} restarts",
-             "", "| process | first MB | last MB | max MB | growth, second half (MB/h) |", "|---|---:|---:|---:|---:|"]
+    sessions = summary.get("sessions", 1)
+    lines = [f"{summary['samples']} samples over {summary['hours']:.2f} h of run time"
+             f"{f' in {sessions} sessions (stack starts)' if sessions > 1 else ''}: {summary['env_steps']:,} env "
+             f"steps, {summary['updates']:,} updates, {summary['restarts']} restarts",
+             "", f"| process | first MB | last MB | max MB | growth, second half{' of the last session' if sessions > 1 else ''} "
+                 "(MB/h) |", "|---|---:|---:|---:|---:|"]
     for name, memory in summary["memory"].items():
         lines.append(f"| {name} | {memory['first_mb']:.0f} | {memory['last_mb']:.0f} | {memory['max_mb']:.0f} | "
                      f"{memory['second_half_mb_per_hour']:+.1f} |")
@@ -200,14 +224,16 @@ def summary_text(summary: dict) -> str:
 def draw(rows: list[dict], path: Path, title: str) -> None:
     plt = pyplot()
     figure, axes = plt.subplots(1, 3, figsize=(15, 4))
-    hours = [(float(row["time"]) - float(rows[0]["time"])) / 3600 for row in rows]
+    hours, sessions = run_hours(rows)
     for name in (name for name in rows[0] if name.startswith("rss_mb_")):
         axes[0].plot(hours, [float(row[name] or "nan") for row in rows], label=name[len("rss_mb_"):])
     for part in PARTS:
         axes[1].plot(hours, [int(row[f"bytes_{part}"]) / 2**20 for row in rows], label=part)
     axes[2].step(hours, [int(row["restarts"]) for row in rows], where="post")
     for ax, label in zip(axes, ("resident memory (MB)", "run folder (MB)", "restarts")):
-        ax.set_xlabel("hours")
+        for start in hours[1:][np.diff(sessions) > 0]:  # a resume: the stack started again
+            ax.axvline(start, color="grey", linestyle=":", linewidth=1)
+        ax.set_xlabel("hours of run time (dotted: a resume)")
         ax.set_ylabel(label)
     finish_figure(plt, figure, axes, path, title)
 

@@ -57,6 +57,24 @@ def test_the_summary_reads_growth_per_hour_from_the_second_half():
     assert math.isnan(soak.slope_per_hour(soak.np.array([1.0]), soak.np.array([5.0])))
 
 
+def test_a_resumed_runs_soak_counts_run_time_and_reads_memory_growth_in_the_last_session():
+    # session 1: 4 h, the learner leaking 30 MB/h and the log growing 50 MB/h; 10 h with nothing running; then
+    # a resumed session of 4 h, its new learner flat after its first 2 h, the log growing on at 50 MB/h
+    first = rows(4, lambda hour: 500.0 + 30 * hour, lambda hour: 50.0 * hour)
+    second = [{**row, "time": 3600.0 * (14 + hour), "restarts": 1, "rss_mb_learner": 400.0 + 100 * min(hour, 2),
+               "bytes_log": int((200 + 50 * hour) * 2**20)} for hour, row in enumerate(rows(4, float, float))]
+    for session in (first, second):
+        for hour, row in enumerate(session):
+            row["elapsed_s"] = 3600.0 * hour + 60  # the stack's time since it started
+    summary = soak.summarize(first + second)
+    assert (summary["sessions"], summary["hours"], summary["samples"]) == (2, pytest.approx(8 + 60 / 3600), 10)
+    assert summary["folder_mb_per_hour"] == pytest.approx(50.0, rel=0.02)  # not diluted by the 10 h between
+    assert summary["memory"]["learner"]["second_half_mb_per_hour"] == pytest.approx(0.0, abs=1e-9)
+    assert summary["restarts"] == 2 + 1  # each stack's count, summed
+    assert "in 2 sessions" in soak.summary_text(summary)
+    assert soak.summarize(first)["sessions"] == 1
+
+
 def held_episode(seq: int, steps: int) -> StoredEpisode:
     frames = np.random.default_rng(seq).integers(0, 256, (steps + 1, 8, 8, 3), dtype=np.uint8)
     return StoredEpisode.of(FrameStack.from_array(frames), np.zeros(steps, np.int64), np.zeros(steps, np.float32),
