@@ -51,15 +51,17 @@ def test_run_trains_with_the_curve_followed_beside_it_then_evaluates_what_it_mis
              "RunStatus(phase='training', pids={'stack': os.getpid()}, time=time.time()).write(path); "
              "time.sleep(1.5); RunStatus(phase='finished', time=time.time()).write(path)")
     monkeypatch.setattr(study, "stack_command", lambda *args: [sys.executable, "-c", stack])
-    monkeypatch.setattr(study, "curve_command", lambda folder, sets, follow: [
-        sys.executable, "-c", f"open({str(calls)!r}, 'a').write('{sets} {follow}\\n')"])
+    monkeypatch.setattr(study, "curve_command", lambda folder, sets, follow, every: [
+        sys.executable, "-c", f"open({str(calls)!r}, 'a').write('{sets} {follow} {every}\\n')"])
     monkeypatch.setattr(study, "FOLLOW_START_POLL_S", 0.05)
-    assert study.run("paper", 0, 100, tmp_path, "test", []) == 0
-    assert calls.read_text().splitlines() == ["test True", "test False"]  # the follower, then the last pass
+    assert study.run("paper", 0, 100, tmp_path, "test", [], curve_every=4000) == 0
+    assert calls.read_text().splitlines() == ["test True 4000", "test False 4000"]  # the follower, the last pass
     assert not study.trains_since(folder, 0.0)  # finished
     monkeypatch.undo()
     command = study.curve_command(folder, "train,test", follow=True)
     assert command[-5:] == ["--follow", "--nice", "15", "--evaluation.workers", "1"] and "--curve" in command
+    assert "--every" not in command
+    assert study.curve_command(folder, "test", False, 4000)[-2:] == ["--every", "4000"]
 
 
 def write_run(top, name, seed, overrides, lengths):
