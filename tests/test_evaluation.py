@@ -20,7 +20,7 @@ from actor.evaluation.workers import run_jobs
 from actor.sim import make_env
 from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
                                    summarise_all)
-from common.analysis.tables import bin_labels, markdown_table
+from common.analysis.tables import bin_labels, failures_by_start, markdown_table
 from common.checkpoint import save_checkpoint
 from common.config import TransportConfig
 from common.config_values import load_config, to_dict
@@ -90,6 +90,22 @@ def test_without_progress_the_row_says_so():
     assert math.isnan(row.mean_progress_m) and math.isnan(row.intervals["progress_m"].low)
     assert math.isnan(row.mean_streets) and math.isnan(row.intervals["junctions"].low)
     assert "| – | – | – |" in markdown_table([row], EDGES)  # progress, streets, junctions
+
+
+def test_the_failures_are_told_start_by_start_with_the_steps_they_came_at():
+    bins = (0, 0, 0, 1)
+    episodes = [episode(2000, "cap", 1.0, bins, start_set="train"), episode(49, "collision", 1.0, bins, start_set="train"),
+                episode(52, "collision", 1.0, bins, start_set="train"),
+                episode(100, "offroad", 1.0, bins, start_index=3), episode(2000, "cap", 1.0, bins, start_index=3),
+                episode(2000, "cap", 1.0, bins, start_index=4),  # no failure: no row
+                episode(7, "stalled", 1.0, bins, start_index=4, policy="random")]  # another policy's
+    assert failures_by_start(episodes)[2:] == [
+        "| Set | Start | Collision-free | Collision / off-road / stalled | Failed at step: median (range) |",
+        "|---|---:|---:|---:|---:|",
+        "| test | 3 | 1/2 | 0 / 1 / 0 | 100 (100–100) |",
+        "| train | 0 | 1/3 | 2 / 0 / 0 | 50.5 (49–52) |"]
+    assert failures_by_start(episodes[:1]) == ["Every greedy episode reached the cap."]
+    assert failures_by_start(episodes, policy="privileged") == []
 
 
 def test_summaries_group_by_policy_and_set_and_refuse_mixed_or_empty_groups():
@@ -301,6 +317,7 @@ def test_evaluate_a_checkpoint_end_to_end(tmp_path, capsys):
     assert json.loads((out / "facts.json").read_text())["updates"] == "0"
     markdown = (out / "summary.md").read_text()
     assert sum(line.startswith(("| greedy |", "| random |")) for line in markdown.splitlines()) == 4
+    assert "Where the greedy policy failed" in markdown or "Every greedy episode reached the cap." in markdown
     assert "max_steps = 30" in (out / "config.toml").read_text()
     assert "| Policy | Set |" in capsys.readouterr().out
 
