@@ -75,7 +75,6 @@ def average(policies: list[KeptPolicy]) -> KeptPolicy:
     for policy in policies:
         if policy.averaged:
             raise CheckpointError(f"{policy.path} is a mean already: average the kept policies it was made of")
-    for policy in policies[1:]:
         if policy.config.get("network") != first.config.get("network"):
             raise CheckpointError(f"{policy.path} is of another network than {first.path} (their configs' "
                                   "network sections differ)")

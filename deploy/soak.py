@@ -190,8 +190,7 @@ def summarize(rows: list[dict]) -> dict:
     return {"samples": len(rows), "hours": float(hours[-1]), "sessions": int(sessions[-1]) + 1,
             "env_steps": int(float(rows[-1]["env_steps"])),
             "updates": int(float(rows[-1]["updates"])),
-            "restarts": sum(int(float(rows[np.flatnonzero(sessions == session)[-1]]["restarts"]))  # each stack's
-                            for session in range(sessions[-1] + 1)),
+            "restarts": int(column("restarts")[np.append(np.diff(sessions) > 0, True)].sum()),  # each stack's last
             "memory": memory, "replay_held": (held_figures(column(REPLAY_HELD) / 2**20, hours, late, memory["replay"])
                                               if REPLAY_HELD in rows[0] and "replay" in memory else None),
             "folder_bytes_last": int(total[-1]),

@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import json
 import math
+import statistics
 from pathlib import Path
 from typing import Sequence
 
@@ -141,28 +142,26 @@ def greedy_variety_note(summaries: Sequence[SetSummary], trials: int) -> str:
 def failures_by_start(episodes: Sequence[EvaluationEpisode], policy: str = "greedy") -> list[str]:
     """Where a policy's episodes failed, start by start: a set's CFR can hide a few starts that fail most
     trials at one spot (the long run: test start 3 failed 8 of 30 trials, all at steps 49-50)."""
-    failed: dict[tuple[str, int], list[EvaluationEpisode]] = {}
-    trials: dict[tuple[str, int], int] = {}
+    by_start: dict[tuple[str, int], list[EvaluationEpisode]] = {}
     for episode in episodes:
         if episode.policy == policy:
-            key = (episode.start_set, episode.start_index)
-            trials[key] = trials.get(key, 0) + 1
-            if not episode.collision_free:
-                failed.setdefault(key, []).append(episode)
-    if not trials:
+            by_start.setdefault((episode.start_set, episode.start_index), []).append(episode)
+    failed = {key: [episode for episode in trials if not episode.collision_free] for key, trials in by_start.items()}
+    if not by_start:
         return []
-    if not failed:
+    if not any(failed.values()):
         return [f"Every {policy} episode reached the cap."]
     lines = [f"Where the {policy} policy failed (starts with a failure only):", "",
              "| Set | Start | Collision-free | Collision / off-road / stalled | Failed at step: median (range) |",
              "|---|---:|---:|---:|---:|"]
     for (start_set, start), ended in sorted(failed.items()):
+        if not ended:
+            continue
         ends = " / ".join(str(sum(episode.end == reason for episode in ended)) for reason in TERMINAL_REASONS)
-        steps = sorted(episode.length for episode in ended)
-        median = (steps[(len(steps) - 1) // 2] + steps[len(steps) // 2]) / 2
-        total = trials[(start_set, start)]
+        steps = [episode.length for episode in ended]
+        total = len(by_start[(start_set, start)])
         lines.append(f"| {start_set} | {start} | {total - len(ended)}/{total} | {ends} | "
-                     f"{median:g} ({steps[0]}–{steps[-1]}) |")
+                     f"{statistics.median(steps):g} ({min(steps)}–{max(steps)}) |")
     return lines
 
 
