@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.config_values import flat_items, load_config, to_toml
+from common.config_values import flat_items, load_config
 from common.run_dir import RunStatus
 from deploy import study
+from tests.study_runs import write_run
 
 
 def items(**overrides):
@@ -62,21 +63,6 @@ def test_run_trains_with_the_curve_followed_beside_it_then_evaluates_what_it_mis
     assert command[-5:] == ["--follow", "--nice", "15", "--evaluation.workers", "1"] and "--curve" in command
     assert "--every" not in command
     assert study.curve_command(folder, "test", False, 4000)[-2:] == ["--every", "4000"]
-
-
-def write_run(top, name, seed, overrides, lengths):
-    """A run folder with a config and a greedy test curve of the given mean lengths at 1,000, 2,000, ... updates."""
-    folder = top / f"{name}-s{seed}"
-    folder.mkdir(parents=True)
-    folder.joinpath("config.toml").write_text(to_toml(load_config("local", overrides={"run.seed": seed, **overrides})))
-    columns = ["updates", "env_steps", "wall_s", "kept_file", "trained_on", "start_set", "mean_length",
-               "mean_length_low", "mean_length_high", "cfr"]
-    with folder.joinpath("curve.csv").open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(columns)
-        for k, length in enumerate(lengths, start=1):
-            writer.writerow([1000 * k, 4000 * k, 100 * k, f"policy-u{1000 * k:07d}.pt", "cpu", "test", length,
-                             length - 10, length + 10, min(length / 2000, 1.0)])
 
 
 def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the_seeds_support(tmp_path):
