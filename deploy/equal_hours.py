@@ -42,9 +42,9 @@ def one_cpu(runs: Sequence[StudyRun]) -> str:
 
 def reading_at(run: StudyRun, mark_s: float, span_s: float) -> dict | None:
     """The run at `mark_s` seconds: its last kept policy by then and the mean over those of the span before;
-    None before its first reading or after it stopped (its last reading more than a span before the mark)."""
+    None before its first reading, or past its last (the policy it stopped with): it did not train that long."""
     by_then = [row for row in run.test_rows if float(row["wall_s"]) <= mark_s]
-    if not by_then or float(run.test_rows[-1]["wall_s"]) < mark_s - span_s:
+    if not by_then or float(run.test_rows[-1]["wall_s"]) < mark_s:
         return None
     last = by_then[-1]
     span = [row for row in by_then if float(row["wall_s"]) > mark_s - span_s] or [last]
@@ -57,9 +57,9 @@ def reading_at(run: StudyRun, mark_s: float, span_s: float) -> dict | None:
 
 
 def marks(runs: Sequence[StudyRun], span_s: float) -> list[float]:
-    """Every span up to the longest run's last reading, and that reading's time."""
-    end = max(float(run.test_rows[-1]["wall_s"]) for run in runs)
-    return [span_s * k for k in range(1, int(end // span_s) + 1)] + ([end] if end % span_s else [])
+    """Every span up to the longest run's last reading, and each run's last reading: where it stopped."""
+    ends = {float(run.test_rows[-1]["wall_s"]) for run in runs}
+    return sorted(ends | {span_s * k for k in range(1, int(max(ends) // span_s) + 1)})
 
 
 def label(run: StudyRun) -> str:

@@ -28,7 +28,9 @@ def test_each_run_is_read_at_each_mark_by_its_last_policy_and_the_span_before_it
     half = equal_hours.reading_at(paper, 1800.0, 1800.0)
     assert half["updates"] == 1000 and half["span_policies"] == 1  # kept at 1,200 s; the next at 2,400
     assert equal_hours.reading_at(paper, 600.0, 1800.0) is None  # nothing kept yet
-    assert equal_hours.reading_at(paper, 7200.0, 1800.0) is None  # stopped at 3,600 s, a span and more before
+    assert equal_hours.reading_at(paper, 3700.0, 1800.0) is None  # it stopped at 3,600 s
+    paper.test_rows = paper.test_rows[:2]  # as if it had stopped at 2,400 s: a mark there too
+    assert equal_hours.marks([paper, combination], 1800.0) == [1800.0, 2400.0, 3600.0]
 
 
 def test_the_report_writes_its_table_figure_and_milestones(tmp_path):
