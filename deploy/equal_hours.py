@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from actor.evaluation.curve import DRIVE_LENGTH, first_reaching
+from actor.evaluation.curve import DRIVE_LENGTH, MILESTONES, first_reaching
 from common.analysis.plotting import finish_figure, pyplot
 from common.eta import clock_time
 from deploy.study import StudyRun, find_runs
@@ -73,8 +73,9 @@ def hours_rows(runs: Sequence[StudyRun], span_s: float) -> list[dict]:
 
 def milestone_lines(run: StudyRun) -> list[str]:
     lines = []
-    for column, threshold, what in (("mean_length", DRIVE_LENGTH, "greedy test mean length >= 1,000 steps"),
-                                    ("cfr", 0.5, "greedy test CFR >= 50%")):
+    for _, column, threshold, held, what in MILESTONES:
+        if held:
+            continue
         reached = first_reaching(run.test_rows, column, threshold)
         lines.append(f"{label(run)}: first {what} " + (
             f"at {clock_time(reached['wall_s'])} ({reached['updates']:,d} updates, {reached['env_steps']:,d} env steps)"
@@ -151,7 +152,11 @@ def main(argv: list[str] | None = None) -> None:
     if len(runs) < 2:
         raise SystemExit(f"equal_hours: {len(runs)} run(s) with a greedy test curve in "
                          + ", ".join(map(str, args.folders)) + "; two or more compare")
-    print(write_report(runs, 60 * args.every_min, args.out).read_text())
+    try:
+        print(write_report(runs, 60 * args.every_min, args.out).read_text())
+    except (KeyError, ValueError) as error:  # a curve that is not evaluate --curve's: one line, not a trace
+        raise SystemExit(f"equal_hours: a curve lacks a column or holds a bad value ({type(error).__name__}: "
+                         f"{error}); regenerate it with evaluate --curve") from None
 
 
 if __name__ == "__main__":

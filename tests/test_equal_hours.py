@@ -58,3 +58,17 @@ def test_runs_of_two_cpu_models_are_refused_and_one_run_is_too_few(tmp_path, cap
     with pytest.raises(SystemExit):
         equal_hours.main([str(tmp_path / "runs"), "--every-min", "0", "--out", str(tmp_path / "zero")])
     assert "--every-min must be a positive number" in capsys.readouterr().err
+
+
+def test_a_curve_without_its_interval_columns_is_one_line_not_a_trace(tmp_path):
+    two_runs(tmp_path / "runs")
+    curve = tmp_path / "runs" / "slow-s0" / "curve.csv"
+    with curve.open() as handle:
+        rows = list(csv.DictReader(handle))
+    with curve.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=[name for name in rows[0] if name != "mean_length_low"],
+                                extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    with pytest.raises(SystemExit, match="a curve lacks a column or holds a bad value"):
+        equal_hours.main([str(tmp_path / "runs"), "--out", str(tmp_path / "out")])
