@@ -144,7 +144,8 @@ def main(argv: list[str] | None = None) -> None:
                         "(as deploy/study.py export writes them, or a run folder)")
     parser.add_argument("--every-min", type=float, default=SPAN_S / 60,
                         help=f"minutes between marks, and the span each mark's mean reads (default {SPAN_S / 60:.0f})")
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--out", type=Path, required=True,
+                        help="where equal_hours.md, equal_hours.csv and equal_hours.png go")
     args = parser.parse_args(argv)
     if not (args.every_min > 0 and math.isfinite(args.every_min)):
         parser.error(f"--every-min must be a positive number of minutes, not {args.every_min}")

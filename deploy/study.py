@@ -387,25 +387,31 @@ def main(argv: list[str] | None = None) -> None:
     commands = parser.add_subparsers(dest="command", required=True)
     train = commands.add_parser("run", help="train one configuration and seed, its greedy curve evaluated beside "
                                 "it at nice 15 as the learner keeps policies (evaluate --curve --follow)")
-    train.add_argument("configuration", choices=list(CONFIGURATIONS))
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("configuration", choices=list(CONFIGURATIONS),
+                       help="the configuration to train: the paper's method, or one of the options beyond it")
+    train.add_argument("--seed", type=int, default=0, help="the run's seed (run.seed; default 0)")
     train.add_argument("--updates", type=int, default=BUDGET_UPDATES,
                        help=f"the budget in updates (default {BUDGET_UPDATES:,})")
-    train.add_argument("--runs-dir", type=Path, default=Path("runs"))
+    train.add_argument("--runs-dir", type=Path, default=Path("runs"),
+                       help="where the run folder study-CONFIGURATION-sSEED goes (default runs)")
     train.add_argument("--sets", default="test", help="start sets of the curve (default test)")
     train.add_argument("--curve-every", type=int, default=1, metavar="N",
                        help="evaluate only the policies kept at multiples of N updates (evaluate --curve --every): "
                             "a long run whose greedy episodes reach the cap outruns a one-worker follower at 1 "
                             "(default: 1, every kept policy)")
     copy = commands.add_parser("export", help="copy a run's config, summary and greedy curve to commit")
-    copy.add_argument("folder", type=Path)
-    copy.add_argument("--into", type=Path, default=ROOT / "results" / "study" / "runs")
+    copy.add_argument("folder", type=Path, help="the run folder to copy from")
+    copy.add_argument("--into", type=Path, default=ROOT / "results" / "study" / "runs",
+                      help="the folder the run's copy goes under (default results/study/runs)")
     report = commands.add_parser("report", help="the study's table, figure and verdicts from exported runs")
-    report.add_argument("folders", type=Path, nargs="+")
+    report.add_argument("folders", type=Path, nargs="+",
+                        help="folders holding exported runs or run folders; the first run of a configuration and "
+                             "seed found wins")
     report.add_argument("--budget", type=int, default=BUDGET_UPDATES,
                         help=f"read each curve at this many updates (default {BUDGET_UPDATES:,})")
     report.add_argument("--costs", type=Path, help="option_costs.json of deploy/bench/option_costs.py")
-    report.add_argument("--out", type=Path, default=ROOT / "results" / "study")
+    report.add_argument("--out", type=Path, default=ROOT / "results" / "study",
+                        help="where study.md, study.csv, study.json and study.png go (default results/study)")
     args, extra = parser.parse_known_args(argv)
     if args.command == "run":
         raise SystemExit(run(args.configuration, args.seed, args.updates, args.runs_dir, args.sets, extra,
