@@ -153,15 +153,16 @@ class StackMonitor:
     def _mean_return(self) -> float | None:
         return sum(self.returns) / len(self.returns) if self.returns else None
 
-    def summary(self, config: Config, restarts: dict[str, int] | None = None) -> dict:
-        """The run's figures from the learner's last metrics (and the replay's last stats)."""
+    def summary(self, config: Config, restarts: dict[str, int] | None = None, finished: bool = False) -> dict:
+        """The run's figures from the learner's last metrics (and the replay's last stats); `finished`: the
+        learner exited by itself, its budget paid for (a stop by hand also sends its final metrics)."""
         with self._lock:
             learner, replay = dict(self.learner), dict(self.replay)
         ratio = stat_number(learner, "env_steps_per_update")
         return {
             "run": config.run.name,
             "strategy": config.exploration.strategy,
-            "learner_finished": learner.get("final") == 1,
+            "learner_finished": finished,
             "updates": _count(learner, "updates"),
             "env_steps": _count(learner, "env_steps"),
             "start_env_steps": stat_number(learner, "start_env_steps"),
@@ -419,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
         if session is not None:
             session.close()
     stack.report(monitor, "finished" if stack.learner_finished else "stopped")
-    summary = monitor.summary(config, stack.restarts)
+    summary = monitor.summary(config, stack.restarts, stack.learner_finished)
     run.summary.write_text(json.dumps(summary, indent=2) + "\n")
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"

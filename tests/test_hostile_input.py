@@ -397,3 +397,13 @@ def test_the_stack_line_survives_missing_and_wrongly_typed_values():
     assert not monitor.learner_final.is_set()
     summary = monitor.summary(load_config("smoke"), {"replay": 1})
     assert summary["updates"] == 0 and summary["restarts"] == {"replay": 1} and not summary["learner_finished"]
+
+
+def test_a_learner_stopped_by_hand_is_not_finished_in_the_run_summary():
+    """Its final metrics come on any clean stop; only a learner that exited by itself paid for its budget."""
+    monitor = StackMonitor()
+    monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": 7, "final": 1}), "d3rqn/r/metrics/learner/0")
+    assert monitor.learner_final.is_set()
+    config = load_config("smoke")
+    assert not monitor.summary(config)["learner_finished"]
+    assert monitor.summary(config, finished=True)["learner_finished"]
