@@ -143,6 +143,11 @@ class LearnerConfig:
     keep_every_s: float = option(
         0.0, "also keep the policy once this long has passed since the last kept one (after an update), whichever of "
              "this and keep_every comes first; 0: not by time", "s")
+    keep_encoding: str = option(
+        "float32", "how kept policies hold their weights: float32 (as trained), or, beyond the paper, float16 or "
+                   "bfloat16 at half the disk (24.3 MB at the paper's sizes; a long run's largest part): the curve then "
+                   "reads the rounded weights, as a shipped policy's (docs/evaluation-curves.md)",
+        choices=tuple(WEIGHTS_ENCODINGS))
     prefetch: int = option(2, "batch requests kept in flight to the replay", "batches")
     torch_threads: int = option(
         0, "torch's CPU threads; 0 keeps torch's default (all cores): paced actors leave the learner most of the "
@@ -205,6 +210,7 @@ class LearnerConfig:
         check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
         check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
               f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
+        check(self.keep_encoding in WEIGHTS_ENCODINGS, "keep_encoding", f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
 
 
 INFERENCE_PRECISIONS = ("float32", "bfloat16", "auto")  # actor.inference

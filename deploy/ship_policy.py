@@ -54,8 +54,9 @@ def source_policy(path: Path) -> KeptPolicy:
     saved = load_checkpoint_or_policy(path)
     policy = saved if isinstance(saved, KeptPolicy) else KeptPolicy.of_checkpoint(saved)
     if policy.encoding != "float32":
-        raise CheckpointError(f"{policy.path} holds {policy.encoding} weights already: ship from the float32 "
-                              "kept policy or checkpoint")
+        raise CheckpointError(f"{policy.path} holds {policy.encoding} weights already (a shipped policy, or one "
+                              "kept with learner.keep_encoding): copy it as it is, or ship from a float32 kept "
+                              "policy or checkpoint")
     check_weights(from_dict(policy.config), policy.weights())
     return policy
 

@@ -3,7 +3,9 @@
 The online weights are copied on the training thread (tens of milliseconds at the paper's
 sizes) and written by a thread of their own: an update does not wait for the disk. A keep
 that comes while the previous file is still being written waits for it, so at most one
-copy of the weights is in flight.
+copy of the weights is in flight. With learner.keep_encoding float16 or bfloat16 the
+writer rounds the copy first (half the disk); weights the encoding cannot hold are kept
+in float32 with a log line, never lost.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 
-from common.checkpoint import KeptPolicy
+from common.checkpoint import CheckpointError, KeptPolicy
 from common.run_dir import RunDir
 
 log = logging.getLogger("learner")
@@ -20,9 +22,10 @@ log = logging.getLogger("learner")
 class PolicyKeeper:
     """Writes kept policies to <run>/policies/ when `cadence` says so."""
 
-    def __init__(self, run: RunDir, cadence) -> None:
+    def __init__(self, run: RunDir, cadence, encoding: str = "float32") -> None:
         self.run = run
         self.cadence = cadence  # learner.service.Cadence, or None: keeping is off
+        self.encoding = encoding  # learner.keep_encoding
         self.last_kept: int | None = None  # the updates of the latest policy kept
         self.failed = 0
         self._writer: threading.Thread | None = None
@@ -42,10 +45,19 @@ class PolicyKeeper:
             self._writer.join()
             self._writer = None
 
+    def _compact(self, policy: KeptPolicy) -> KeptPolicy:
+        if self.encoding == "float32":
+            return policy
+        try:
+            return policy.compact(self.encoding)
+        except CheckpointError as error:  # a weight beyond float16's range, or a NaN: keep it as trained
+            log.warning("the policy of update %d is kept in float32, not %s: %s", policy.updates, self.encoding, error)
+            return policy
+
     def _write(self, policy: KeptPolicy) -> None:
         path = self.run.policy(policy.updates)
         try:
-            policy.save(path)
+            self._compact(policy).save(path)
         except (OSError, RuntimeError) as error:  # a full disk must not end the training
             self.failed += 1
             log.error("cannot keep the policy of update %d in %s: %s", policy.updates, path, error)

@@ -164,8 +164,8 @@ class LearnerProcess:
         self.clock = RunClock(config.learner.env_steps_per_update, config.replay.error_buffer_updates, clock)
         self.checkpoints = Cadence(config.learner.checkpoint_every, config.learner.checkpoint_every_s, clock)
         keeping = config.learner.keep_every > 0 or config.learner.keep_every_s > 0
-        self.keeper = PolicyKeeper(RunDir.of(config), Cadence(config.learner.keep_every, config.learner.keep_every_s,
-                                                              clock) if keeping else None)
+        cadence = Cadence(config.learner.keep_every, config.learner.keep_every_s, clock) if keeping else None
+        self.keeper = PolicyKeeper(RunDir.of(config), cadence, config.learner.keep_encoding)
         self.episodes_stored = 0
         self.bmc_observations = 0  # transitions passed to the strategy's on_returns
         self._resumed_env_steps: int | None = None

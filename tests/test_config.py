@@ -152,6 +152,7 @@ ENUMERATED = {
     "transport.mode": ("peer", "client", "router"),
     "record.image_format": ("png", "jpeg"),
     "learner.weights_encoding": ("float32", "float16", "bfloat16"),
+    "learner.keep_encoding": ("float32", "float16", "bfloat16"),
     "actor.inference": ("float32", "bfloat16", "auto"),
     "learner.precision": ("float32", "bfloat16", "auto"),
     "learner.start_by": ("strategy", "episodes", "steps"),

@@ -10,6 +10,7 @@ import shutil
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -26,6 +27,7 @@ from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus
 from deploy.experiments import keep_flags
+from learner.keep import PolicyKeeper
 from learner.service import LearnerProcess
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
 from tests.test_status_lines import FakeClock
@@ -124,6 +126,35 @@ def test_a_kept_policy_reads_back_into_the_network(config):
         assert torch.equal(network(frames)[0], process.learner.online(frames)[0])
 
 
+@pytest.mark.parametrize("encoding", ["float16", "bfloat16"])
+def test_a_policy_kept_in_16_bits_is_the_trained_one_rounded(config, encoding):
+    config.learner.keep_encoding = encoding
+    process = learner(config, keep_every=1)
+    train(process, batches(1)[0])
+    process.keep_policy_if_due()
+    process.keeper.wait()
+    policy = KeptPolicy.load(RunDir.of(config).policy(1))
+    assert policy.encoding == encoding and policy.config["learner"]["keep_encoding"] == encoding
+    trained = process.learner.online_weights()
+    dtype = getattr(torch, encoding)
+    for name, array in policy.weights().items():  # widened back: float32 holding exactly the rounded weights
+        assert array.dtype == np.float32
+        assert np.array_equal(array, torch.from_numpy(trained[name]).to(dtype).float().numpy())
+
+
+def test_weights_a_16_bit_encoding_cannot_hold_are_kept_in_float32_with_a_warning(tmp_path, caplog):
+    run = RunDir(tmp_path / "run")
+    keeper = PolicyKeeper(run, cadence=None, encoding="float16")
+    online = {"w": torch.tensor([1.0, 70_000.0])}  # beyond float16's 65,504
+    caplog.set_level(logging.WARNING, logger="learner")
+    keeper.keep(KeptPolicy(updates=3, env_steps=9, wall_s=1.0, cpu="Test CPU", config={}, online=online))
+    keeper.wait()
+    kept_back = KeptPolicy.load(run.policy(3))
+    assert kept_back.encoding == "float32" and kept_back.online["w"].tolist() == [1.0, 70_000.0]
+    assert keeper.failed == 0
+    assert any("kept in float32, not float16" in record.message for record in caplog.records)
+
+
 def test_a_damaged_or_foreign_policy_file_is_a_clear_error(config, tmp_path):
     process = learner(config, keep_every=1)
     train(process, batches(1)[0])
@@ -149,6 +180,9 @@ def test_keeping_options_are_checked_and_set_by_the_presets_and_the_grid():
     assert load_config("local").learner.keep_every == 1_000 and load_config("smoke").learner.keep_every == 100
     with pytest.raises(ConfigError, match="learner.keep_every_s"):
         load_config("paper", overrides={"learner.keep_every_s": -1})
+    assert load_config("local").learner.keep_encoding == "float32"  # as trained, unless asked
+    with pytest.raises(ConfigError, match="learner.keep_encoding"):
+        load_config("paper", overrides={"learner.keep_encoding": "int8"})
     # the grid: a config that keeps nothing keeps about 20 policies a run; one that keeps is left alone
     assert keep_flags(["--preset", "paper"], 80_000) == ["--learner.keep_every", "1000"]
     assert keep_flags(["--preset", "local"], 80_000) == []
