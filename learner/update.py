@@ -397,7 +397,7 @@ class DoubleQLearner:
         with torch.random.fork_rng(devices=[]):  # seeded weights without touching the caller's RNG
             torch.manual_seed(learner.seed)
             self.online = D3RQN(network).to(self.device)
-        self.target = copy.deepcopy(self.online).requires_grad_(False)
+        self.target = _packed(copy.deepcopy(self.online)).requires_grad_(False)
         self.optimizer = _adam(self.online.parameters(), learner.lr)
         self.updates = 0
         self.split_passes = False  # the target pass on a helper thread (update path "trace-split")
@@ -551,6 +551,12 @@ class DoubleQLearner:
             raise ValueError(f"learner checkpoint does not fit this network: {error}") from None
         self.updates = int(state["updates"])
 
+    def scratch_copy(self) -> "DoubleQLearner":
+        """A deep copy to time updates on, its LSTMs packed as the original's."""
+        scratch = copy.deepcopy(self)
+        _packed(scratch.online), _packed(scratch.target)
+        return scratch
+
 
 # name: (loss function, soft update and target pass on a helper thread)
 UPDATE_PATHS: dict[str, tuple[LossFunction, bool]] = {
@@ -586,7 +592,7 @@ def choose_learner_precision(learner: DoubleQLearner, batch: TraceTensors, round
                cpu_capability.bfloat16_problem() or "this CPU has no native bfloat16 (AMX or AVX512-BF16)")
         log.info("learner.precision auto: float32, since %s", why)
         return "float32"
-    scratch = copy.deepcopy(learner)
+    scratch = learner.scratch_copy()
     scratch.use_path("trace")
     best = {precision: math.inf for precision in ("float32", "bfloat16")}
     for round_ in range(rounds + 1):
@@ -616,7 +622,7 @@ def choose_update_path(learner: DoubleQLearner, batch: TraceTensors, rounds: int
            tuple(batch.observations.shape), threads, learner.precision)
     if key in _chosen_paths:
         return _chosen_paths[key]
-    scratch = copy.deepcopy(learner)
+    scratch = learner.scratch_copy()
     best = {name: math.inf for name in candidate_paths(learner.device, threads, learner.precision)}
     for round_ in range(rounds + 1):
         for name in best:
@@ -633,6 +639,12 @@ def choose_update_path(learner: DoubleQLearner, batch: TraceTensors, rounds: int
              ", ".join(f"{name} {1e3 * seconds:.1f} ms" for name, seconds in best.items()))
     _chosen_paths[key] = chosen
     return chosen
+
+
+def _packed(network: D3RQN) -> D3RQN:
+    # deepcopy splits cuDNN's single LSTM weight buffer; unpacked, every CUDA call re-packs it (a no-op on CPU)
+    network.lstm.flatten_parameters()
+    return network
 
 
 def _synchronize(device: torch.device) -> None:

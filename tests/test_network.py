@@ -146,7 +146,7 @@ def test_frames_smaller_than_the_convolutions_are_a_config_error():
 def test_runs_on_cuda_like_on_cpu():
     net = make_net()
     frames = random_frames(TINY, batch=2, time=3)
-    with torch.no_grad():
+    with torch.no_grad(), torch.backends.cudnn.flags(enabled=True, allow_tf32=False):  # TF32 rounds to 10 bits
         on_cpu = net(frames)[0]
         on_cuda = net.to("cuda")(frames.to("cuda"))[0]
     torch.testing.assert_close(on_cuda.cpu(), on_cpu, rtol=1e-4, atol=1e-5)
