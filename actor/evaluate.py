@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 from actor.evaluation import EvaluationError
-from actor.evaluation.curve import (CURVE_CSV, CURVE_TRIALS, curve_config, evaluate_curve, read_curve,
+from actor.evaluation.curve import (CURVE_CSV, CURVE_TRIALS, curve_config, curve_policies, evaluate_curve, read_curve,
                                     summary_lines, write_outputs)
 from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
@@ -178,8 +178,8 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         raise EvaluationError(f"--every: updates must be >= 1, got {args.every}")
     while True:
         training = args.follow is not None and _stack_training(run)
-        if training and not run.kept_policies():
-            time.sleep(args.follow)  # no policy kept yet
+        if training and not curve_policies(run, args.from_updates, args.every):
+            time.sleep(args.follow)  # none kept yet that the curve reads
             continue
         rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice,
                               from_updates=args.from_updates, every=args.every)

@@ -299,6 +299,18 @@ def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stop
         with pytest.raises(SystemExit):
             main(["--curve", str(run.root), *CURVE_FLAGS, *wrong])
 
+    # a coarse curve followed from the start waits for a policy at its multiple, not only for any policy
+    def the_coarse_run_goes_on(seconds):
+        waits.append(seconds)
+        keep(config, 60)
+        RunStatus(phase="finished").write(run.status)
+
+    RunStatus(phase="training", pids={"learner": os.getpid()}).write(run.status)
+    keep(config, 50)
+    monkeypatch.setattr("actor.evaluate.time.sleep", the_coarse_run_goes_on)
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--every", "60", "--follow", "5"])
+    assert waits == [5.0, 5.0] and read_rows(run.curve / "curve.csv")[-1]["updates"] == "60"
+
 
 def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_path, capsys):
     old_rows = read_rows(OLD_CURVE)

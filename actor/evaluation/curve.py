@@ -68,11 +68,10 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
     the CSV lacks, on the start sets it lacks them on (a curve of the test set, rerun with train,test, adds the
     train rows), writing it after each; returns all its rows, or None when nothing was added (nothing new, or
     every new file skipped)."""
-    kept = run.kept_policies()
-    if not kept:
+    if not run.kept_policies():
         raise EvaluationError(f"no kept policies in {run.policies}/ (the learner keeps them with "
                               "learner.keep_every or learner.keep_every_s)")
-    kept = [(updates, file) for updates, file in kept if updates >= from_updates and updates % every == 0]
+    kept = curve_policies(run, from_updates, every)
     if not kept:
         raise EvaluationError(f"--from-updates {from_updates:,d}, --every {every:,d}: no policy in "
                               f"{run.policies}/ was kept that late at such a multiple")
@@ -98,6 +97,11 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
         print(f"curve: every new kept policy was skipped; {path} is unchanged", file=sys.stderr)
         return None
     return rows
+
+
+def curve_policies(run: RunDir, from_updates: int = 0, every: int = 1) -> list[tuple[int, Path]]:
+    """The kept policies a curve reads: those kept at `from_updates` or later, at multiples of `every` updates."""
+    return [(updates, file) for updates, file in run.kept_policies() if updates >= from_updates and updates % every == 0]
 
 
 def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: Callable[[dict], Config],
