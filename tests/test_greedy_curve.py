@@ -423,6 +423,10 @@ def test_the_policy_to_ship_is_chosen_on_the_training_starts_not_the_test_starts
         "(highest train CFR, then mean length): update 3,000")
     assert "no kept policy was evaluated on them" in summary_lines(curve_summary([row(1000, "test", 400, 0.1)]))[-2]
     assert curve_summary([row(1000, "train", 400, 0.1)])["chosen_on_train"]["test_cfr"] is None
+    # the test rows read back from the CSV (strings) beside train rows just evaluated (numbers)
+    read_back = [{**r, "updates": int(r["updates"])} if r["start_set"] == "train" else r for r in rows]
+    mixed = curve_summary(read_back)["chosen_on_train"]
+    assert (mixed["updates"], mixed["test_cfr"], mixed["of"]) == (3000, 0.5, 3)
 
 
 def test_a_curve_that_never_drives_says_so():

@@ -200,12 +200,14 @@ def chosen_on_train(rows: Sequence[dict]) -> dict | None:
     if not train:
         return None
     best = max(train, key=lambda row: (float(row["cfr"]), float(row["mean_length"]), int(row["updates"])))
-    test = next((row for row in rows if row["start_set"] == "test" and row["updates"] == best["updates"]), None)
+    # rows read back from the CSV hold strings, rows just evaluated numbers
+    test = next((row for row in rows if row["start_set"] == "test" and int(row["updates"]) == int(best["updates"])),
+                None)
     among = sorted(int(row["updates"]) for row in train)
     return {"updates": int(best["updates"]), "kept_file": best["kept_file"],
             **{f"{name}_{column}": float(row[column]) if row is not None else None
                for name, row in (("train", best), ("test", test)) for column in ("cfr", "mean_length")},
-            "among": len(among), "of": len({row["updates"] for row in rows}), "among_first": among[0],
+            "among": len(among), "of": len({int(row["updates"]) for row in rows}), "among_first": among[0],
             "among_last": among[-1]}
 
 
