@@ -178,7 +178,7 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         raise EvaluationError(f"--every: updates must be >= 1, got {args.every}")
     while True:
         training = args.follow is not None and _stack_training(run)
-        if training and not curve_policies(run, args.from_updates, args.every):
+        if training and not curve_policies(run.kept_policies(), args.from_updates, args.every):
             time.sleep(args.follow)  # none kept yet that the curve reads
             continue
         rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice,

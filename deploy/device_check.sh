@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The one prepared run for a lent GPU machine (docs/gpu.md): the CUDA tests,
+# The one prepared run for a lent GPU machine (docs/deployment.md, On a GPU): the CUDA tests,
 # the learner's speed on the GPU, then the paper's method as a stack with the
 # learner on the GPU and the actors on the CPU cores, until the time is up.
 # Everything it reports goes to $OUT (the device tool's folder; /tmp/device-out

@@ -68,10 +68,11 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
     the CSV lacks, on the start sets it lacks them on (a curve of the test set, rerun with train,test, adds the
     train rows), writing it after each; returns all its rows, or None when nothing was added (nothing new, or
     every new file skipped)."""
-    if not run.kept_policies():
+    kept = run.kept_policies()
+    if not kept:
         raise EvaluationError(f"no kept policies in {run.policies}/ (the learner keeps them with "
                               "learner.keep_every or learner.keep_every_s)")
-    kept = curve_policies(run, from_updates, every)
+    kept = curve_policies(kept, from_updates, every)
     if not kept:
         raise EvaluationError(f"--from-updates {from_updates:,d}, --every {every:,d}: no policy in "
                               f"{run.policies}/ was kept that late at such a multiple")
@@ -99,9 +100,9 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
     return rows
 
 
-def curve_policies(run: RunDir, from_updates: int = 0, every: int = 1) -> list[tuple[int, Path]]:
-    """The kept policies a curve reads: those kept at `from_updates` or later, at multiples of `every` updates."""
-    return [(updates, file) for updates, file in run.kept_policies() if updates >= from_updates and updates % every == 0]
+def curve_policies(kept: Sequence[tuple[int, Path]], from_updates: int = 0, every: int = 1) -> list[tuple[int, Path]]:
+    """Of a run's kept policies, those a curve reads: kept at `from_updates` or later, at multiples of `every`."""
+    return [(updates, file) for updates, file in kept if updates >= from_updates and updates % every == 0]
 
 
 def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: Callable[[dict], Config],
@@ -154,7 +155,8 @@ def read_curve(path: Path) -> list[dict]:
 
 def write_curve(path: Path, rows: list[dict]) -> list[dict]:
     """All rows, by updates, atomically: an interruption leaves the previous file whole. The columns are in
-    the order of the last row, the newest evaluation's."""
+    the order of the last row, the newest evaluation's. Returns the rows as the file holds them (strings, as
+    read_curve gives them), so that rows just evaluated and rows read back compare alike."""
     columns = list(rows[-1])
     if any(set(row) != set(columns) for row in rows):
         raise EvaluationError(f"{path} has other columns than this evaluation writes (other reward bins?); "
@@ -167,7 +169,7 @@ def write_curve(path: Path, rows: list[dict]) -> list[dict]:
         writer.writeheader()
         writer.writerows(rows)
     os.replace(temporary, path)
-    return rows
+    return [{key: "" if value is None else str(value) for key, value in row.items()} for row in rows]
 
 
 # --- the time to drive ---------------------------------------------------------------------------------------
