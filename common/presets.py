@@ -24,6 +24,25 @@ LOCAL = {
     "exploration.decreasing.n_max": 60_000,
 }
 
+# The grid's protocol (docs/experiments.md): every strategy starts updating at the same env step, about where the
+# paper's 999 random episodes end here, and trains 30,000 updates at the paper's 1 update per 4 env steps.
+GRID_START_STEPS = 28_000
+GRID_UPDATES = 30_000
+GRID_TOTAL_ENV_STEPS = GRID_START_STEPS + 4 * GRID_UPDATES
+# The paper's first slope of decreasing epsilon is 400,000 of its 950,000 steps after the start: 42%.
+GRID_DECREASING_N_ANN = round((GRID_TOTAL_ENV_STEPS - GRID_START_STEPS) * 400_000 / 950_000)
+
+DRIVE = {
+    **LOCAL,
+    "learner.start_by": "steps",
+    "learner.start_steps": GRID_START_STEPS,
+    "learner.total_env_steps": GRID_TOTAL_ENV_STEPS,
+    "learner.precision": "auto",
+    "exploration.decreasing.n_start": GRID_START_STEPS,
+    "exploration.decreasing.n_ann": GRID_DECREASING_N_ANN,
+    "exploration.decreasing.n_max": GRID_TOTAL_ENV_STEPS,
+}
+
 PRESETS: dict[str, Preset] = {
     "paper": Preset("the paper's values, which are the defaults", {}),
     "local": Preset(
@@ -39,6 +58,12 @@ PRESETS: dict[str, Preset] = {
             "learner.total_env_steps": 112_000,
             "learner.precision": "auto",
         }),
+    "drive": Preset(
+        "the main job and every cell of the grid (deploy/experiments.py): the paper's agent, buffer and ratio, "
+        "30,000 updates (past the knee of 15,000-24,000 where the paper's learner first drives), updates starting "
+        "at 28,000 env steps for every strategy, decreasing epsilon's schedule scaled to that budget, "
+        "learner.precision auto (beyond the paper: bfloat16 where the CPU does it natively and measures faster)",
+        DRIVE),
     "smoke": Preset(
         "seconds-long runs for tests: tiny buffer, short episodes, early updates", {
             "replay.capacity": 50,
