@@ -77,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--from-updates", type=int, default=0, metavar="N",
                         help="with --curve, only the policies kept at N updates or later, e.g. the train rows of "
                              "a run's last policies, to choose one on the train starts (default: 0, all)")
+    parser.add_argument("--to-updates", type=int, default=None, metavar="N",
+                        help="with --curve, only the policies kept at N updates or earlier, e.g. a dense early "
+                             "part of a curve read more sparsely later (default: no end)")
     parser.add_argument("--every", type=int, default=1, metavar="N",
                         help="with --curve, only the policies kept at multiples of N updates, e.g. 5000 on a long "
                              "run whose greedy episodes reach the cap and take minutes each (default: 1, all)")
@@ -178,11 +181,11 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         raise EvaluationError(f"--every: updates must be >= 1, got {args.every}")
     while True:
         training = args.follow is not None and _stack_training(run)
-        if training and not curve_policies(run.kept_policies(), args.from_updates, args.every):
+        if training and not curve_policies(run.kept_policies(), args.from_updates, args.every, args.to_updates):
             time.sleep(args.follow)  # none kept yet that the curve reads
             continue
         rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice,
-                              from_updates=args.from_updates, every=args.every)
+                              from_updates=args.from_updates, every=args.every, to_updates=args.to_updates)
         evaluated_now = rows is not None
         if rows is None and not training:
             rows = read_curve(out_dir / CURVE_CSV) or None  # nothing new: the figure and summary redrawn whole

@@ -36,7 +36,7 @@ def one_cpu(runs: Sequence[StudyRun]) -> str:
     models = {row["trained_on"] for run in runs for row in run.test_rows}
     if len(models) != 1:
         raise SystemExit("equal_hours: the runs trained on " + " and ".join(sorted(models)) + "; measured hours "
-                         "compare only on one CPU model (deploy/study.py report derives wall time instead)")
+                         "compare only on one CPU model (deploy/study.py derives wall time instead)")
     return models.pop()
 
 
@@ -141,7 +141,7 @@ def write_report(runs: Sequence[StudyRun], span_s: float, out: Path) -> Path:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="equal_hours", description=__doc__.splitlines()[0])
     parser.add_argument("folders", type=Path, nargs="+", help="run folders with config.toml and a greedy curve "
-                        "(as deploy/study.py export writes them, or a run folder)")
+                        "(as the study exported them, or a run folder)")
     parser.add_argument("--every-min", type=float, default=SPAN_S / 60,
                         help=f"minutes between marks, and the span each mark's mean reads (default {SPAN_S / 60:.0f})")
     parser.add_argument("--out", type=Path, required=True,

@@ -1,108 +1,79 @@
-"""The paper's comparison: train and evaluate a grid of strategies x replay capacities x seeds, then tabulate.
+"""The grid runner: trains a grid of cells (strategy x replay capacity x learner option set) x seeds on the
+protocol of deploy/grid_cells.py, each run read on its greedy test curve, then reports.
 
-Each run of the grid goes through the real distributed stack (deploy/stack.py, a
-subprocess) in the run folder <runs-dir>/<strategy>-b<capacity>-s<seed>/
-(common/run_dir.py), then through `evaluate` (its greedy policy and the random
-baseline, train and test starts, into the run's evaluation folder). Runs go one
-after the other, or --parallel K at once (each learner then takes its share of
-the cores, learner.torch_threads, unless the flags set it). A line per period
-shows each running run (from the stack's status file, or evaluate's status
-line) and the grid:
-runs done of all, and an ETA from the env steps trained so far in this session.
-Each run, once evaluated, is exported (deploy/run_results.py) to --export,
-<runs-dir>/results/runs/ unless told: its evaluation, config, run summary and
-training curves, small enough to commit. At the end, <runs-dir>/results/
-receives the report on the exported runs and those of any --merge folder
-(deploy/report.py, which also rebuilds it from committed runs alone): the
-tables of the paper's tables 3-6 with bootstrap confidence intervals over the
-seeds (results.md, results.csv: pooled rows and one row per seed, with every
-run's updates), the figures of common/analysis/figures.py and the performance
-profiles of deploy/performance_profile.py.
+Each run goes through the real distributed stack (deploy/stack.py, a subprocess) in
+<runs-dir>/<run name>/ with the soak sampled beside it (deploy/soak.py), then `evaluate --curve` (its greedy
+test curve), the choice of its policy on the train starts among its last five kept, and `evaluate
+--checkpoint` of that policy on both start sets. Each finished run is exported (deploy/run_results.py) to
+--export, small enough to commit; the report (deploy/grid_report.py) reads exported runs only, so runs from
+several machines merge (--merge) and it rebuilds from a fresh clone.
 
-Every run keeps its policy now and then for a greedy learning curve
-(learner.keep_every: the config's, or about GRID_KEPT_POLICIES over the budget
-when it keeps none); `evaluate --curve <run folder>` draws it, after the run or
-beside it (docs/evaluation-curves.md).
+`--cells` lists the grid's runs, numbered from 0; `--cell I` runs only the I-th, so a scheduler (a Slurm
+array, a Kubernetes indexed job) can spread a grid over machines. Running the same command again resumes
+every run from what its folder holds.
 
-Stopping and running the same command again resumes: a run with an evaluation
-and a checkpoint at the step budget is done; a run whose checkpoint is short of
-the budget is resumed (--resume) and evaluated again; a trained run without an
-evaluation is only evaluated; a run without a checkpoint starts over.
+    .venv/bin/python deploy/experiments.py --buffers 1000 --seeds 0,1,2          # the comparison's 21 runs
+    .venv/bin/python deploy/experiments.py --buffers 1000 --seeds 0,1,2 --cells  # its numbered runs
+    .venv/bin/python deploy/experiments.py --buffers 1000 --seeds 0,1,2 --cell 7 # one of them
+    .venv/bin/python deploy/experiments.py --strategies bmc --buffers 1000 --options nstep3,batch20 --seeds 0,1
 
-    .venv/bin/python deploy/experiments.py --strategies bmc,softmax --buffers 1000 --steps 40000 \\
-        --trials 10 --preset local
-
-Every other flag is a config flag passed to every run's stack and evaluation
-(--preset, --config FILE, --env.max_steps 500, ...; see deploy/stack.py --help).
+Every other flag is a config flag passed to every run's stack and evaluation (--preset, default drive;
+--config FILE, --env.max_steps 500, ...; see deploy/stack.py --help).
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import os
-import re
 import shutil
 import signal
-import subprocess
 import sys
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from actor.evaluation.status import is_evaluation_line
-from common.analysis.intervals import Bootstrap, bootstrap_of
-from common.analysis.tables import SUMMARY_CSV
-from common.checkpoint import Checkpoint, CheckpointError
+from common.config import Config
 from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time
 from common.exploration.names import STRATEGIES
 from common.options import ConfigError
+from common.presets import GRID_UPDATES
 from common.run_dir import RunDir, RunStatus, StatusError
-from deploy.report import write_report
-from deploy.run_results import collect, export_run, run_name
+from deploy.child_process import Child
+from deploy.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, FINAL_TRIALS,
+                               OPTION_SETS, PROTOCOL_PRESET, RESUME, TRAIN, ExperimentError, RunSpec, budget_env_steps,
+                               checkpoint_env_steps, choice_candidates, choose, curve_read, curve_wanted, grid,
+                               next_step, read_choice, write_cell)
+from deploy.run_results import ExportError, export_run, greedy_headline
 
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
+SOAK_SCRIPT = Path(__file__).resolve().parent / "soak.py"
 RESULTS_DIR = "results"
 EXPORTED_RUNS = "runs"
 # Keys the grid sets for each run; giving them as config flags would contradict it.
 GRID_KEYS = {"run.name": "the run names", "run.seed": "--seeds", "run.runs_dir": "--runs-dir",
              "exploration.strategy": "--strategies", "replay.capacity": "--buffers",
-             "learner.total_env_steps": "--steps", "evaluation.episodes_per_start": "--trials"}
+             "learner.total_env_steps": "--updates", "evaluation.episodes_per_start": "--trials"}
 POLL_S = 0.5
-GRID_KEPT_POLICIES = 20  # policies a run keeps for its greedy curve when the runs' config keeps none
-TRAIN, RESUME, EVALUATE, DONE = "train", "resume", "evaluate", "done"
-
-
-class ExperimentError(RuntimeError):
-    """A run or the grid cannot go on; the message says which and why."""
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    strategy: str
-    capacity: int  # replay.capacity, episodes
-    seed: int
-
-    @property
-    def name(self) -> str:
-        return run_name(self.strategy, self.capacity, self.seed)
+SOAK_EVERY_S = 60.0
+FOLLOW_NICE = 15  # a curve followed beside training yields to it
 
 
 @dataclass(frozen=True)
 class Options:
     runs_dir: Path
-    steps: int  # learner.total_env_steps of every run
-    trials: int | None  # evaluation.episodes_per_start; None keeps the config's
+    updates: int  # the budget of every run, in updates
+    trials: int  # evaluation.episodes_per_start of the chosen policy's evaluation
     actors: int | None
     extra: tuple[str, ...]  # config flags for every stack and evaluation
     progress_s: float
     export: Path | None = None  # where finished runs go (deploy/run_results.py); None: <runs-dir>/results/runs
     merge: tuple[Path, ...] = ()  # more folders of exported runs for the report (another machine's)
+    curve_beside: bool = False  # follow the curve while the run trains (spare cores), not after
 
     def run_dir(self, spec: RunSpec) -> Path:
         return self.runs_dir / spec.name
@@ -115,45 +86,92 @@ class Options:
         return RunDir(self.run_dir(spec))
 
 
-def grid(strategies: list[str], capacities: list[int], seeds: list[int]) -> list[RunSpec]:
-    """Capacity, then seed, then strategy: the runs of one table come before those of the next."""
-    return [RunSpec(strategy, capacity, seed) for capacity in capacities for seed in seeds for strategy in strategies]
+# --- a run's config and commands -----------------------------------------------------------------------------
+
+def config_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="deploy/experiments.py", add_help=False,
+                                     usage="deploy/experiments.py [options] [config flags of deploy/stack.py --help]")
+    add_config_arguments(parser)
+    return parser
 
 
-# --- what a run still needs -----------------------------------------------------------------------------------
+def identity_flags(spec: RunSpec, options: Options) -> list[str]:
+    return ["--run.name", spec.name, "--run.runs_dir", str(options.runs_dir), "--run.seed", str(spec.seed),
+            "--exploration.strategy", spec.strategy, "--replay.capacity", str(spec.capacity)]
 
-def checkpoint_env_steps(path: Path) -> int:
-    """The learner's clock in a checkpoint: the env steps of the whole system when it was saved."""
+
+def run_config(spec: RunSpec, options: Options) -> Config:
+    """The run's config as its stack builds it, before the budget; a bad flag or option set fails here."""
     try:
-        env_steps = Checkpoint.load(path).env_steps
-    except CheckpointError as error:
-        raise ExperimentError(f"cannot read the step count of {path}: {error}") from None
-    if env_steps is None:
-        raise ExperimentError(f"cannot read the step count of {path}: its clock has none")
-    return env_steps
+        config = config_from_args(parse_flags(config_parser(), [*options.extra, *spec.option_flags(),
+                                                                *identity_flags(spec, options)]))
+    except ConfigError as error:
+        raise ExperimentError(f"{spec.name}: config error: {error}") from None
+    if config.learner.start_by != "steps":
+        raise ExperimentError(f"{spec.name}: a budget in updates needs every strategy to start at the same env "
+                              f"step (learner.start_by steps, as the drive preset has); got "
+                              f"{config.learner.start_by!r}")
+    if config.learner.keep_every <= 0:
+        raise ExperimentError(f"{spec.name}: the grid reads a run on the policies it keeps every "
+                              "learner.keep_every updates; it is 0")
+    return config
 
 
-def next_step(run_dir: Path, budget: int) -> str:
-    """TRAIN, RESUME, EVALUATE or DONE for the run in run_dir, from what it holds on disk."""
-    run = RunDir(run_dir)
-    evaluated = (run.evaluation / SUMMARY_CSV).is_file()
-    if not run.checkpoint.is_file():
-        return DONE if evaluated else TRAIN
-    if checkpoint_env_steps(run.checkpoint) < budget:
-        return RESUME  # also a run evaluated earlier with a smaller budget
-    return DONE if evaluated else EVALUATE
+def run_budget(spec: RunSpec, options: Options) -> int:
+    """The run's learner.total_env_steps: its budget in updates from the env step its updates start at."""
+    learner = run_config(spec, options).learner
+    return budget_env_steps(learner.start_steps, learner.env_steps_per_update, options.updates)
 
 
-def trained_env_steps(run_dir: Path, budget: int) -> int:
-    """How much of the budget a run has trained: all of it once it is done, else what its checkpoint
-    holds (0 without a readable one)."""
-    try:
-        step = next_step(run_dir, budget)
-        if step in (TRAIN, DONE):
-            return budget if step == DONE else 0
-        return min(checkpoint_env_steps(RunDir(run_dir).checkpoint), budget)
-    except ExperimentError:
-        return 0
+def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
+    command = [sys.executable, str(STACK_SCRIPT), *options.extra, *spec.option_flags(),
+               *identity_flags(spec, options), "--learner.total_env_steps", str(run_budget(spec, options))]
+    command += ["--actors", str(options.actors)] if options.actors else []
+    return command + (["--resume"] if resume else [])
+
+
+def curve_command(run: RunDir, options: Options, *span: str) -> list[str]:
+    return [sys.executable, "-m", "actor.evaluate", "--curve", str(run.root), *span, *options.extra]
+
+
+def curve_commands(run: RunDir, options: Options) -> list[list[str]]:
+    """The passes of evaluate --curve that the protocol's test curve still needs: the dense part, then the
+    sparse one (a pass only where a policy it reads is missing: a pass over nothing is an error)."""
+    missing = curve_wanted([updates for updates, _ in run.kept_policies()]) - curve_read(run)
+    passes = []
+    if any(updates <= CURVE_DENSE_UNTIL for updates in missing):
+        passes.append(curve_command(run, options, "--sets", "test", "--to-updates", str(CURVE_DENSE_UNTIL)))
+    if any(updates > CURVE_DENSE_UNTIL for updates in missing):
+        passes.append(curve_command(run, options, "--sets", "test", "--from-updates", str(CURVE_DENSE_UNTIL + 1),
+                                    "--every", str(CURVE_LATE_EVERY)))
+    return passes
+
+
+def follow_command(run: RunDir, options: Options) -> list[str]:
+    """The test curve followed beside training, on one worker at low priority (--curve-beside)."""
+    return curve_command(run, options, "--sets", "test", "--follow", "--nice", str(FOLLOW_NICE),
+                         "--evaluation.workers", "1", "--every", str(CURVE_LATE_EVERY))
+
+
+def choice_command(run: RunDir, options: Options) -> list[str]:
+    """The last kept policies on the train starts, to choose the run's policy on."""
+    return curve_command(run, options, "--sets", "train", "--from-updates", str(choice_candidates(run)[0]))
+
+
+def evaluate_command(run: RunDir, options: Options, updates: int) -> list[str]:
+    """The chosen policy on both start sets (and the random baseline) into the run's evaluation folder."""
+    return [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.policy(updates)),
+            "--out", str(run.evaluation), *options.extra, "--evaluation.episodes_per_start", str(options.trials)]
+
+
+def check_config_flags(specs: list[RunSpec], options: Options) -> None:
+    """Builds every run's config as the stack will, so a bad flag fails here and not after an hour."""
+    for token in options.extra:
+        key = token.removeprefix("--").split("=")[0]
+        if key in GRID_KEYS:
+            raise ExperimentError(f"--{key} is set by the grid for each run ({GRID_KEYS[key]}); do not pass it")
+    for spec in specs:
+        run_config(spec, options)
 
 
 def set_aside_stale_files(run_dir: Path) -> Path | None:
@@ -173,113 +191,33 @@ def set_aside_stale_files(run_dir: Path) -> Path | None:
     return target
 
 
-# --- the commands of one run ------------------------------------------------------------------------------
-
-def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
-    command = [sys.executable, str(STACK_SCRIPT), *options.extra, *grid_flags(spec, options)]
-    command += ["--actors", str(options.actors)] if options.actors else []
-    return command + (["--resume"] if resume else [])
-
-
-def evaluate_command(spec: RunSpec, options: Options, privileged: bool = False) -> list[str]:
-    """evaluate's command for a run: its greedy policy and the random baseline, and with `privileged` the
-    map-reading driver too (the grid's first run: the baselines need no training, so once is enough)."""
-    run = options.run(spec)
-    command = [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.root),
-               "--out", str(run.evaluation), *(["--privileged"] if privileged else []), *options.extra]
-    return command + (["--evaluation.episodes_per_start", str(options.trials)] if options.trials else [])
+def trained_share(run_dir: Path, budget: int) -> float:
+    """How much of its budget (env steps) a run has trained: all once past its training, else what its
+    checkpoint holds (nothing without a readable one)."""
+    try:
+        step = next_step(run_dir, budget)
+        if step in (TRAIN, RESUME):
+            return 0.0 if step == TRAIN else min(1.0, checkpoint_env_steps(RunDir(run_dir).checkpoint) / budget)
+        return 1.0
+    except ExperimentError:
+        return 0.0
 
 
-def grid_flags(spec: RunSpec, options: Options) -> list[str]:
-    return ["--run.name", spec.name, "--run.runs_dir", str(options.runs_dir), "--run.seed", str(spec.seed),
-            "--exploration.strategy", spec.strategy, "--replay.capacity", str(spec.capacity),
-            "--learner.total_env_steps", str(options.steps)]
+def trains_since(run: RunDir, since: float) -> bool:
+    """Whether the run's stack, started at `since` (time.time()), says it trains: a resumed run's old
+    status.json says "stopped" until the new stack rewrites it."""
+    try:
+        status = RunStatus.read(run.status)
+    except StatusError:
+        return False
+    return status.time >= since and status.training()
 
 
-def check_config_flags(specs: list[RunSpec], options: Options) -> None:
-    """Builds every run's config as the stack will, so a bad flag fails here and not after an hour."""
-    for token in options.extra:
-        key = token.removeprefix("--").split("=")[0]
-        if key in GRID_KEYS:
-            raise ExperimentError(f"--{key} is set by the grid for each run ({GRID_KEYS[key]}); do not pass it")
-    parser = config_parser()
-    for spec in specs:
-        try:
-            config_from_args(parse_flags(parser, [*options.extra, *grid_flags(spec, options)]))
-        except ConfigError as error:
-            raise ExperimentError(f"config error: {error}") from None
-
-
-def config_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="deploy/experiments.py", add_help=False,
-                                     usage="deploy/experiments.py [options] [config flags of deploy/stack.py --help]")
-    add_config_arguments(parser)
-    return parser
-
-
-def report_bootstrap(options: Options) -> Bootstrap:
-    """The intervals' settings (evaluation.bootstrap_replicates, .confidence, .seed) of the runs' config flags."""
-    return bootstrap_of(config_from_args(parse_flags(config_parser(), list(options.extra))))
-
-
-# --- child processes -------------------------------------------------------------------------------------------
-
-class Child:
-    """A subprocess whose output goes to a log file; keeps its latest status line (those `is_status`
-    accepts) and echoes the others.
-
-    It runs in a session of its own, so a Ctrl-C in the terminal reaches it once, forwarded by the runner.
-    """
-
-    def __init__(self, command: list[str], log_path: Path, is_status: Callable[[str], bool] | None,
-                 echo_prefix: str | None) -> None:
-        log_path.parent.mkdir(parents=True, exist_ok=True)
-        self.is_status = is_status
-        self.echo_prefix = echo_prefix  # None: other lines stay in the log
-        self.latest = ""
-        self.tail: deque[str] = deque(maxlen=8)  # for the error message when it fails
-        self._log = open(log_path, "ab")
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        pending = ""
-        while chunk := self.process.stdout.read1(65536):
-            self._log.write(chunk)
-            self._log.flush()
-            *lines, pending = re.split(r"[\r\n]", pending + chunk.decode(errors="replace"))
-            for line in filter(None, (line.strip() for line in lines)):
-                self._take(line)
-        if pending.strip():
-            self._take(pending.strip())
-
-    def _take(self, line: str) -> None:
-        if self.is_status is not None and self.is_status(line):
-            self.latest = line
-            return
-        self.tail.append(line)
-        if self.echo_prefix is not None:
-            print(f"{self.echo_prefix}: {line}", flush=True)
-
-    def interrupt(self) -> None:
-        """SIGINT, once: the stack stops its processes (the learner checkpoints), evaluate stops its workers."""
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-
-    def wait(self) -> int:
-        code = self.process.wait()
-        self._reader.join()
-        self._log.close()
-        return code
-
-
-# --- one run --------------------------------------------------------------------------------------------------------
+# --- one run ------------------------------------------------------------------------------------------------------
 
 @dataclass
 class RunJob:
-    """One run of the grid, stepped through TRAIN/RESUME then EVALUATE on its own thread."""
+    """One run of the grid, stepped through its steps (deploy/grid_cells.py) on its own thread."""
 
     number: int
     total: int
@@ -287,11 +225,11 @@ class RunJob:
     options: Options
     stopping: threading.Event
     phase: str = "waiting"
-    child: Child | None = None
+    children: list[Child] = field(default_factory=list)
     error: str | None = None
     headline: str = ""
-    trained_at_start: int = 0  # env steps of its checkpoint when the grid started
-    took_s: float | None = None  # wall time of its training and evaluation, once it ran them in this session
+    trained_at_start: float = 0.0  # the share of its budget its checkpoint held when the grid started
+    took_s: float | None = None  # wall time of its steps, once it ran them in this session
     started: float = field(default_factory=time.monotonic)
     started_at: float = field(default_factory=time.time)  # wall clock, to tell this stack's status from older ones
     thread: threading.Thread | None = None
@@ -308,78 +246,123 @@ class RunJob:
             self.error = str(error)
         except Exception as error:  # the thread's end: whatever went wrong must reach the grid's report
             self.error = f"{type(error).__name__}: {error}"
-        self.child = None
+        self.children = []
+
+    @property
+    def run(self) -> RunDir:
+        return self.options.run(self.spec)
 
     def _steps(self) -> None:
-        run_dir, run = self.options.run_dir(self.spec), self.options.run(self.spec)
-        step = next_step(run_dir, self.options.steps)
-        summary = run.evaluation / SUMMARY_CSV
-        if step == DONE:
-            self.phase, self.headline = "already done", evaluation_headline(summary)
-            return
-        print(f"{self.tag}: {step}", flush=True)
+        budget, done = run_budget(self.spec, self.options), []
+        while (step := next_step(self.run.root, budget)) != DONE:
+            if done and done[-1] == step:
+                raise ExperimentError(f"the {step} step left the run as it was; see {self.run.logs}/")
+            print(f"{self.tag}: {step}", flush=True)
+            self.phase = step
+            {TRAIN: self._train, RESUME: self._train, CURVE: self._curve, CHOOSE: self._choose,
+             EVALUATE: self._evaluate}[step](step)
+            done.append(step)
+        self.phase, self.headline = "done" if done else "already done", evaluation_headline(self.run)
+        if done:
+            self.took_s = time.monotonic() - self.started
+        try:
+            print(f"{self.tag}: exported to {export_run(self.run, self.options.export_dir)}", flush=True)
+        except ExportError as error:
+            raise ExperimentError(f"cannot export: {error}") from None
+
+    def _train(self, step: str) -> None:
         if step == TRAIN:
-            moved = set_aside_stale_files(run_dir)
+            moved = set_aside_stale_files(self.run.root)
             if moved is not None:
                 print(f"{self.tag}: an earlier attempt left no checkpoint; its logs moved to {moved}", flush=True)
-        if step in (TRAIN, RESUME):
-            self.phase = "resuming" if step == RESUME else "training"
-            self._child(stack_command(self.spec, self.options, resume=step == RESUME), run.log("stack"),
-                        None, "the stack", echo=True)  # its figures are in the status file
-            reached = checkpoint_env_steps(run.checkpoint)
-            if reached < self.options.steps:
-                raise ExperimentError(f"the stack stopped at {reached:,d} of {self.options.steps:,d} env steps")
-        self.phase = "evaluating"
-        self._child(evaluate_command(self.spec, self.options, privileged=self.number == 1), run.log("evaluate"),
-                    is_evaluation_line, "evaluate", echo=False)  # its summary.md, printed at the end, is in the log
-        self.phase, self.headline = "done", evaluation_headline(summary)
-        self.took_s = time.monotonic() - self.started
-        folder = export_run(run, self.options.export_dir)
-        print(f"{self.tag}: exported to {folder}", flush=True)
+            write_cell(self.run, self.spec, self.options.updates)
+        stack = self._start(stack_command(self.spec, self.options, resume=step == RESUME), "stack", None, echo=True)
+        beside = [(SOAK_SCRIPT, "soak")] + ([(None, "follow")] if self.options.curve_beside else [])
+        while stack.process.poll() is None and beside:
+            if trains_since(self.run, self.started_at):
+                for script, name in beside:
+                    command = ([sys.executable, str(script), str(self.run.root), "--every", str(SOAK_EVERY_S)]
+                               if script else follow_command(self.run, self.options))
+                    self._start(command, name, is_evaluation_line, echo=False)
+                beside = []
+            time.sleep(POLL_S)
+        self._wait_all()
+        reached = checkpoint_env_steps(self.run.checkpoint)
+        if reached < run_budget(self.spec, self.options):
+            raise ExperimentError(f"the stack stopped at {reached:,d} env steps, short of the budget")
 
-    def _child(self, command: list[str], log_path: Path, is_status: Callable[[str], bool] | None, what: str,
-               echo: bool) -> None:
+    def _curve(self, _: str) -> None:
+        for command in curve_commands(self.run, self.options):
+            self._start(command, "curve", is_evaluation_line, echo=False)
+            self._wait_all()
+
+    def _choose(self, _: str) -> None:
+        if not {updates for updates in choice_candidates(self.run)} <= curve_read(self.run, "train"):
+            self._start(choice_command(self.run, self.options), "curve", is_evaluation_line, echo=False)
+            self._wait_all()
+        choice = choose(self.run)
+        print(f"{self.tag}: chose the policy kept at {choice['updates']:,d} updates on the train starts "
+              f"(train CFR {100 * choice['train_cfr']:.0f}%, among {choice['among']})", flush=True)
+
+    def _evaluate(self, _: str) -> None:
+        self._start(evaluate_command(self.run, self.options, read_choice(self.run)["updates"]), "evaluate",
+                    is_evaluation_line, echo=False)  # its summary.md, printed at the end, is in the log
+        self._wait_all()
+
+    def _start(self, command: list[str], what: str, is_status, echo: bool) -> Child:
         if self.stopping.is_set():
             raise ExperimentError("interrupted")
-        self.child = Child(command, log_path, is_status, self.tag if echo else None)
+        child = Child(command, self.run.log(what), is_status, self.tag if echo else None)
+        self.children.append(child)
         if self.stopping.is_set():  # the interruption came while the child was starting
-            self.child.interrupt()
-        code = self.child.wait()
+            child.interrupt()
+        return child
+
+    def _wait_all(self) -> None:
+        """Waits for every child started; raises if one failed or the grid is stopping."""
+        failed = [(child, code) for child in self.children if (code := child.wait()) != 0]
+        self.children = []
         if self.stopping.is_set():
             raise ExperimentError("interrupted")
-        if code != 0:
-            tail = "\n    ".join(self.child.tail)
-            raise ExperimentError(f"{what} exited with code {code} (log: {log_path}); its last lines:\n    {tail}")
+        for child, code in failed:
+            tail = "\n    ".join(child.tail)
+            raise ExperimentError(f"{child.log_path.stem} exited with code {code} (log: {child.log_path}); "
+                                  f"its last lines:\n    {tail}")
+
+    def interrupt(self) -> None:
+        for child in list(self.children):
+            child.interrupt()
 
     def status(self) -> RunStatus | None:
         """The status file of this job's stack; None before it wrote one (an older one does not count)."""
         try:
-            status = RunStatus.read(self.options.run(self.spec).status)
+            status = RunStatus.read(self.run.status)
         except StatusError:
             return None
         return status if status.time >= self.started_at else None
 
     def latest_line(self) -> str:
-        """The stack's figures while training, evaluate's status line while evaluating."""
-        if self.phase in ("training", "resuming"):
+        """The stack's figures while training, the evaluation's status line after."""
+        if self.phase in (TRAIN, RESUME):
             status = self.status()
             return stack_line(status) if status is not None else ""
-        return self.child.latest if self.child is not None else ""
+        return next((child.latest for child in self.children if child.latest), "")
 
     def remaining_s(self) -> float | None:
         """Its stack's ETA while it trains (None if unknown yet), nothing more once it evaluates."""
-        if self.phase in ("training", "resuming"):
+        if self.phase in (TRAIN, RESUME):
             status = self.status()
             return None if status is None else status.eta_s
         return 0.0
 
-    def trained(self) -> int:
-        """Env steps of the budget trained so far."""
-        budget = self.options.steps
-        if self.phase in ("evaluating", "done", "already done"):
-            return budget
-        status = self.status() if self.phase in ("training", "resuming") else None
-        return self.trained_at_start if status is None else max(self.trained_at_start, min(status.env_steps, budget))
+    def trained(self) -> float:
+        """The share of its budget trained, 0 to 1: its stack's while it trains, else what it had at the start."""
+        if self.phase not in (TRAIN, RESUME, "waiting"):
+            return 1.0
+        status = self.status() if self.phase != "waiting" else None
+        if status is None:
+            return self.trained_at_start
+        return max(self.trained_at_start, min(1.0, status.env_steps / max(status.total_env_steps, 1)))
 
     @property
     def tag(self) -> str:
@@ -400,31 +383,21 @@ def stack_line(status: RunStatus) -> str:
             f"ETA {eta}")
 
 
-def evaluation_headline(summary_csv: Path) -> str:
-    """'test: mean length 812.4 [701.0, 905.2], CFR 35.0% [28.3, 41.7]' from the greedy rows of an evaluate
-    summary.csv (the intervals over its trials, when the file has them)."""
-    with summary_csv.open(newline="") as handle:
-        rows = [row for row in csv.DictReader(handle) if row["policy"] == "greedy"]
-
-    def interval(row: dict, statistic: str, scale: float) -> str:
-        if not row.get(f"{statistic}_low"):
-            return ""
-        return f" [{scale * float(row[statistic + '_low']):,.1f}, {scale * float(row[statistic + '_high']):,.1f}]"
-
-    return "; ".join(f"{row['start_set']}: mean length {float(row['mean_length']):,.1f}{interval(row, 'mean_length', 1)}, "
-                     f"CFR {100 * float(row['cfr']):.1f}%{interval(row, 'cfr', 100)}" for row in rows)
+def evaluation_headline(run: RunDir) -> str:
+    """'policy 28,000 (chosen on train): test: mean length 812.4 [701.0, 905.2], CFR 35.0% [28.3, 41.7]; ...'."""
+    choice = read_choice(run) or {}
+    return f"policy {choice.get('updates', 0):,d} (chosen on train): " + greedy_headline(run.evaluation)
 
 
 # --- the grid ----------------------------------------------------------------------------------------------------------
 
 class GridStatus:
-    """Runs done of all, the share of env steps trained, and an ETA by runs: the running runs' own ETAs
+    """Runs done of all, the share of their budgets trained, and an ETA by runs: the running runs' own ETAs
     (their stacks'), then the runs still waiting, `parallel` at a time, each taking as long as the runs
     this session finished took or, before one has finished, as long as the running ones look to take."""
 
-    def __init__(self, jobs: list[RunJob], budget: int, parallel: int = 1) -> None:
+    def __init__(self, jobs: list[RunJob], parallel: int = 1) -> None:
         self.jobs = jobs
-        self.total = len(jobs) * budget
         self.parallel = parallel
         self.started = time.monotonic()
 
@@ -442,36 +415,33 @@ class GridStatus:
         waves = -(-waiting // self.parallel)
         return max(left, default=0.0) + (waves * sum(per_run) / len(per_run) if waiting else 0.0)
 
-    def _trained(self) -> int:
-        return sum(job.trained() for job in self.jobs)
-
     def line(self) -> str:
-        trained = self._trained()
+        trained = sum(job.trained() for job in self.jobs)
         remaining = self.remaining_s()
         done = sum(job.finished and job.error is None for job in self.jobs)
         failed = sum(job.finished and job.error is not None for job in self.jobs)
         return (f"grid: {done}/{len(self.jobs)} runs done" + (f", {failed} failed" if failed else "")
-                + f", {100 * trained / max(self.total, 1):.1f}% of the env steps trained, "
+                + f", {100 * trained / max(len(self.jobs), 1):.1f}% of the budgets trained, "
                   f"elapsed {clock_time(time.monotonic() - self.started)}, "
                   f"ETA {'?' if remaining is None else clock_time(remaining)}")
 
 
-def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
+def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: list[int] | None = None) -> int:
     """Runs every spec; returns the number of runs that failed (an interruption raises KeyboardInterrupt)."""
     stopping = threading.Event()
+    numbers = numbers or list(range(len(specs)))
     jobs = [RunJob(number, len(specs), spec, options, stopping,
-                   trained_at_start=trained_env_steps(options.run_dir(spec), options.steps))
-            for number, spec in enumerate(specs, 1)]
+                   trained_at_start=trained_share(options.run_dir(spec), run_budget(spec, options)))
+            for number, spec in zip(numbers, specs)]
     pending, active = deque(jobs), []
     failed = 0
-    grid = GridStatus(jobs, options.steps, parallel)
+    status = GridStatus(jobs, parallel)
     last_shown = time.monotonic()
 
     def interrupt(*_) -> None:
         stopping.set()
         for job in active:
-            if job.child is not None:
-                job.child.interrupt()
+            job.interrupt()
 
     previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -489,35 +459,20 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int) -> int:
                     if line := job.latest_line():
                         print(f"{job.tag} {job.phase} {clock_time(time.monotonic() - job.started)} | {line}",
                               flush=True)
-                print(grid.line(), flush=True)
+                print(status.line(), flush=True)
             for job in [job for job in active if job.finished]:
                 active.remove(job)
                 failed += job.error is not None
                 took = clock_time(time.monotonic() - job.started)
                 outcome = f"FAILED after {took}: {job.error}" if job.error else f"{job.phase} in {took}"
                 print(f"{job.tag}: {outcome}" + (f" | {job.headline}" if job.headline else ""), flush=True)
-                print(grid.line(), flush=True)
+                print(status.line(), flush=True)
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if stopping.is_set():
         raise KeyboardInterrupt
     return failed
-
-
-# --- the results ------------------------------------------------------------------------------------------------------
-
-def write_results(specs: list[RunSpec], options: Options, facts: dict[str, str]) -> list[Path]:
-    """Exports every evaluated run of the grid, then reports on the exported runs (with those of --merge);
-    returns the files written."""
-    for spec in specs:
-        if (options.run(spec).evaluation / SUMMARY_CSV).is_file():
-            export_run(options.run(spec), options.export_dir)
-    def warn(line: str) -> None:
-        print(line, file=sys.stderr)
-
-    runs = collect([options.export_dir, *options.merge], warn=warn)
-    return write_report(runs, options.runs_dir / RESULTS_DIR, facts, report_bootstrap(options), warn)
 
 
 # --- command line ----------------------------------------------------------------------------------------------------
@@ -535,20 +490,34 @@ def parse_list(text: str, kind, what: str) -> list:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="deploy/experiments.py", description=__doc__, allow_abbrev=False,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--strategies", default=",".join(STRATEGIES), help="comma-separated (default: all seven)")
-    parser.add_argument("--buffers", default="1000,2000", help="replay capacities in episodes (default: 1000,2000)")
-    parser.add_argument("--seeds", default="0", help="run.seed of each run (default: 0)")
-    parser.add_argument("--steps", type=int, required=True, help="learner.total_env_steps of every run")
-    parser.add_argument("--trials", type=int, default=None,
-                        help="evaluation.episodes_per_start (default: the config's, 30 in the paper preset)")
+    parser.add_argument("--strategies", default=",".join(STRATEGIES),
+                        help="comma-separated exploration strategies of the grid (default: all seven)")
+    parser.add_argument("--buffers", default="1000", help="replay capacities in episodes (default: 1000)")
+    parser.add_argument("--options", default="paper",
+                        help="comma-separated learner option sets: " + ", ".join(
+                            f"{name} ({doc})" for name, (doc, _) in OPTION_SETS.items()) + " (default: paper)")
+    parser.add_argument("--seeds", default="0,1,2", help="run.seed of each run (default: 0,1,2)")
+    parser.add_argument("--updates", type=int, default=GRID_UPDATES,
+                        help=f"the budget of every run in learner updates (default: {GRID_UPDATES:,d})")
+    parser.add_argument("--trials", type=int, default=FINAL_TRIALS,
+                        help="trials per start of the chosen policy's evaluation on both start sets "
+                             f"(default: {FINAL_TRIALS}; the paper's 30 where time allows)")
+    parser.add_argument("--cells", action="store_true", help="list the grid's runs, numbered, with the step each "
+                                                             "needs next, and exit")
+    parser.add_argument("--cell", type=int, default=None, metavar="I",
+                        help="run only the I-th run of --cells (from 0), e.g. $SLURM_ARRAY_TASK_ID")
     parser.add_argument("--parallel", type=int, default=1, help="runs at once (default: 1)")
-    parser.add_argument("--runs-dir", type=Path, default=Path("runs/experiments"),
-                        help="where the runs and results/ go (default: runs/experiments)")
+    parser.add_argument("--curve-beside", action="store_true",
+                        help="follow each run's test curve while it trains (one worker at nice 15, the learner on "
+                             "the other cores); for machines with cores to spare. Default: the curve after "
+                             "training, with every core")
+    parser.add_argument("--runs-dir", type=Path, default=Path("runs/grid"),
+                        help="where the run folders and results/ go (default: runs/grid)")
     parser.add_argument("--actors", type=int, default=None, help="actors per stack (default: the stack's)")
-    parser.add_argument("--progress-s", type=float, default=30.0,
-                        help="seconds between the status lines of the running runs and the grid (default: 30)")
+    parser.add_argument("--progress-s", type=float, default=60.0,
+                        help="seconds between the status lines of the running runs and the grid (default: 60)")
     parser.add_argument("--report-only", action="store_true",
-                        help="train and evaluate nothing; export the evaluated runs on disk and rebuild results/")
+                        help="train and evaluate nothing; export the finished runs on disk and rebuild the report")
     parser.add_argument("--export", type=Path, default=None,
                         help="where each finished run's small outputs go, to commit or copy (default: "
                              "<runs-dir>/results/runs); the report reads them from there")
@@ -558,70 +527,91 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def learner_threads_flags(extra: list[str], parallel: int, cores: int) -> list[str]:
-    """With several runs at once, each learner gets its share of the cores unless the flags say otherwise:
-    learners of torch's default (all cores each) oversubscribe the CPU, which slows an update several times."""
-    if parallel == 1 or any(flag.split("=")[0] == "--learner.torch_threads" for flag in extra):
+def thread_flags(extra: list[str], parallel: int, curve_beside: bool, cores: int) -> list[str]:
+    """The learner's torch threads unless the flags set them: its share of the cores with several runs at
+    once, one core fewer with the curve followed beside it. A multi-threaded learner whose threads share a
+    core with an evaluation stalls (8.8 to 0.3-1.0 updates/s), whatever the evaluation's niceness."""
+    if any(flag.split("=")[0] == "--learner.torch_threads" for flag in extra):
         return []
-    return ["--learner.torch_threads", str(max(1, cores // parallel))]
+    threads = cores // parallel - (1 if curve_beside else 0)
+    return [] if parallel == 1 and not curve_beside else ["--learner.torch_threads", str(max(1, threads))]
 
 
-def keep_flags(extra: list[str], steps: int) -> list[str]:
-    """Every run keeps policies for its greedy learning curve (`evaluate --curve`): when the flags' config
-    keeps none (the paper preset), about GRID_KEPT_POLICIES over the budget."""
-    try:
-        learner = config_from_args(parse_flags(config_parser(), extra)).learner
-    except ConfigError:
-        return []  # check_config_flags says what is wrong
-    if learner.keep_every or learner.keep_every_s:
-        return []
-    return ["--learner.keep_every", str(max(1, round(steps / learner.env_steps_per_update / GRID_KEPT_POLICIES)))]
+def preset_flags(extra: list[str]) -> list[str]:
+    """The protocol's preset unless the flags name one."""
+    return [] if any(flag.split("=")[0] == "--preset" for flag in extra) else ["--preset", PROTOCOL_PRESET]
 
 
-def parse_arguments(argv: list[str] | None) -> tuple[list[RunSpec], Options, int, bool]:
+@dataclass(frozen=True)
+class Plan:
+    specs: list[RunSpec]
+    numbers: list[int]
+    options: Options
+    parallel: int
+    report_only: bool
+    list_cells: bool
+
+
+def parse_arguments(argv: list[str] | None) -> Plan:
     args, extra = build_parser().parse_known_args(argv)
-    unknown_strategies = [name for name in parse_list(args.strategies, str, "strategies") if name not in STRATEGIES]
-    if unknown_strategies:
-        raise ExperimentError(f"--strategies: unknown {', '.join(unknown_strategies)}; choose from {', '.join(STRATEGIES)}")
-    for name in ("steps", "parallel", "trials", "actors", "progress_s"):
+    strategies = parse_list(args.strategies, str, "strategies")
+    unknown = [name for name in strategies if name not in STRATEGIES]
+    unknown_sets = [name for name in parse_list(args.options, str, "options") if name not in OPTION_SETS]
+    if unknown or unknown_sets:
+        raise ExperimentError(f"unknown {', '.join(unknown + unknown_sets)}; strategies: {', '.join(STRATEGIES)}; "
+                              f"option sets: {', '.join(OPTION_SETS)}")
+    for name in ("updates", "parallel", "trials", "actors", "progress_s"):
         value = getattr(args, name)
         if value is not None and value <= 0:
             raise ExperimentError(f"--{name.replace('_', '-')}: must be > 0, got {value}")
-    specs = grid(parse_list(args.strategies, str, "strategies"), parse_list(args.buffers, int, "buffers"),
-                 parse_list(args.seeds, int, "seeds"))
-    extra = [*extra, *learner_threads_flags(extra, args.parallel, os.cpu_count() or 1), *keep_flags(extra, args.steps)]
-    options = Options(args.runs_dir, args.steps, args.trials, args.actors, tuple(extra), args.progress_s,
-                      args.export, tuple(args.merge))
+    specs = grid(strategies, parse_list(args.buffers, int, "buffers"), parse_list(args.seeds, int, "seeds"),
+                 parse_list(args.options, str, "options"))
+    numbers = list(range(len(specs)))
+    if args.cell is not None:
+        if not 0 <= args.cell < len(specs):
+            raise ExperimentError(f"--cell {args.cell}: the grid has runs 0 to {len(specs) - 1} (--cells lists them)")
+        specs, numbers = [specs[args.cell]], [args.cell]
+    extra = [*preset_flags(extra), *extra,
+             *thread_flags(extra, args.parallel, args.curve_beside, os.cpu_count() or 1)]
+    options = Options(args.runs_dir, args.updates, args.trials, args.actors, tuple(extra), args.progress_s,
+                      args.export, tuple(args.merge), args.curve_beside)
     check_config_flags(specs, options)
-    return specs, options, args.parallel, args.report_only
+    return Plan(specs, numbers, options, args.parallel, args.report_only, args.cells)
+
+
+def list_cells(plan: Plan) -> None:
+    for number, spec in zip(plan.numbers, plan.specs):
+        step = next_step(plan.options.run_dir(spec), run_budget(spec, plan.options))
+        print(f"{number:3d}  {spec.name:32s} {spec.strategy:14s} buffer {spec.capacity:5d}  options {spec.options:15s} "
+              f"seed {spec.seed}  next: {step}")
 
 
 def main(argv: list[str] | None = None) -> int:
     try:
-        specs, options, parallel, report_only = parse_arguments(argv)
+        plan = parse_arguments(argv)
+        if plan.list_cells:
+            list_cells(plan)
+            return 0
     except ExperimentError as error:
         print(f"deploy/experiments.py: error: {error}", file=sys.stderr)
         return 2
-    started = time.monotonic()
-    plan = {spec: next_step(options.run_dir(spec), options.steps) for spec in specs}
-    print(f"grid: {len(specs)} runs under {options.runs_dir}/, budget {options.steps:,d} env steps each, "
-          f"{parallel} at a time; to do: " + ", ".join(f"{spec.name} {step}" for spec, step in plan.items()), flush=True)
+    started, options = time.monotonic(), plan.options
+    print(f"grid: {len(plan.specs)} runs under {options.runs_dir}/, {options.updates:,d} updates each, "
+          f"{plan.parallel} at a time; flags: {' '.join(options.extra)}", flush=True)
     failed = 0
-    if not report_only:
+    if not plan.report_only:
         try:
-            failed = run_grid(specs, options, parallel)
+            failed = run_grid(plan.specs, options, plan.parallel, plan.numbers)
         except KeyboardInterrupt:
             print("interrupted: the running stacks checkpointed; the same command resumes", file=sys.stderr)
             return 130
-    facts = {"runs": ", ".join(spec.name for spec in specs), "budget": f"{options.steps:,d} env steps per run",
-             "trials": f"{options.trials or 'the config’s'} per start", "config flags": " ".join(options.extra) or "none",
-             "date": datetime.datetime.now().isoformat(timespec="seconds")}
+    from deploy.grid_report import report_on  # the report's figures import matplotlib: not before a run
     try:
-        paths = write_results(specs, options, facts)
-    except ValueError as error:  # ComparisonError, or data a figure cannot draw
-        print(f"deploy/experiments.py: cannot write the results: {error}", file=sys.stderr)
+        paths = report_on([options.export_dir, *options.merge], options.runs_dir / RESULTS_DIR)
+    except (ValueError, ExportError) as error:
+        print(f"deploy/experiments.py: cannot write the report: {error}", file=sys.stderr)
         return 1
-    print(f"grid finished in {clock_time(time.monotonic() - started)}; {failed} failed; results: "
+    print(f"grid finished in {clock_time(time.monotonic() - started)}; {failed} failed; report: "
           + ", ".join(str(path) for path in paths), flush=True)
     return 1 if failed else 0
 

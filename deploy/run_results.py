@@ -9,9 +9,14 @@ nothing large:
     evaluation/      evaluate's episodes.csv, summary.csv, summary.md, facts.json and config.toml
     training.csv     one row per training episode, in the order the episodes ended: return, length, epsilon
     learner.csv      one row per learner report: updates, |loss_k - loss_k-1|
+    cell.json        a grid run's cell: strategy, capacity, learner option set, seed, budget (deploy/grid_cells.py)
+    choice.json      a grid run's policy, chosen on the train starts among its last kept
+    curve/           its greedy curve: curve.csv, curve_summary.json and .md, curve.png
+    soak/            its soak: soak.csv, soak_summary.json and .md, soak.png (deploy/soak.py)
 
-Checkpoints, replay snapshots and MCAP logs stay in the run folder. A run is known by its strategy, capacity
-and seed, so runs exported on several machines merge into one set (collect) and none counts twice.
+Checkpoints, replay snapshots and MCAP logs stay in the run folder. A run is known by its strategy, capacity,
+learner option set and seed, so runs exported on several machines merge into one set (collect) and none
+counts twice.
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from actor.evaluation.curve import CURVE_CSV, CURVE_PNG, SUMMARY_JSON
+from actor.evaluation.curve import SUMMARY_MD as CURVE_SUMMARY_MD
 from common.analysis.figures import RunCurves
 from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
 from common.config import Config
@@ -31,6 +38,7 @@ from common.config_values import load_config
 from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.comparison import EvaluatedRun
+from deploy.grid_cells import CELL_JSON, CHOICE_JSON, read_cell, run_name
 from replay.log.reader import LogError
 from replay.log.run_curves import read_run_curves
 
@@ -38,16 +46,16 @@ CONFIG_TOML = "config.toml"  # evaluate's copy of its config, in evaluation/
 TRAINING_CSV = "training.csv"
 LEARNER_CSV = "learner.csv"
 EVALUATION_FILES = (EPISODES_CSV, SUMMARY_CSV, SUMMARY_MD, FACTS_JSON, CONFIG_TOML)
+# a grid run's files (deploy/experiments.py), by their path in the run folder and in the export
+GRID_FILES = (CELL_JSON, CHOICE_JSON, *(f"curve/{name}" for name in (CURVE_CSV, SUMMARY_JSON, CURVE_SUMMARY_MD,
+                                                                      CURVE_PNG)),
+              *(f"soak/{name}" for name in ("soak.csv", "soak.png", "soak_summary.json", "soak_summary.md")))
 TRAINING_COLUMNS = ("return", "length", "epsilon")
 LEARNER_COLUMNS = ("updates", "loss_abs_diff")
 
 
 class ExportError(ValueError):
     """A run cannot be exported, or an exported folder cannot be read; the message says which and why."""
-
-
-def run_name(strategy: str, capacity: int, seed: int) -> str:
-    return f"{strategy}-b{capacity}-s{seed}"
 
 
 @dataclass(frozen=True)
@@ -72,8 +80,14 @@ class ExportedRun:
         return self.config.run.seed
 
     @property
-    def identity(self) -> tuple[str, int, int]:
-        return self.strategy, self.capacity, self.seed
+    def options(self) -> str:
+        """Its learner option set (cell.json; runs from before the grid runner: the paper's learner)."""
+        cell = read_cell(self.folder)
+        return cell["options"] if cell else "paper"
+
+    @property
+    def identity(self) -> tuple[str, int, int, str]:
+        return self.strategy, self.capacity, self.seed, self.options
 
     @property
     def name(self) -> str:
@@ -126,8 +140,9 @@ def export_run(run: RunDir, destination: Path) -> Path:
     if not run.config.is_file() or not (run.evaluation / SUMMARY_CSV).is_file():
         raise ExportError(f"{run.root}: not an evaluated run (it needs {run.config.name} and "
                           f"{run.evaluation.name}/{SUMMARY_CSV})")
-    config = _read_config(run.config)
-    folder = destination / run_name(config.exploration.strategy, config.replay.capacity, config.run.seed)
+    config, cell = _read_config(run.config), read_cell(run.root)
+    folder = destination / run_name(config.exploration.strategy, config.replay.capacity, config.run.seed,
+                                    cell["options"] if cell else "paper")
     staging = destination / f".{folder.name}.incoming"
     shutil.rmtree(staging, ignore_errors=True)
     copy = RunDir(staging)  # an export keeps a run folder's layout
@@ -138,6 +153,10 @@ def export_run(run: RunDir, destination: Path) -> Path:
     for name in EVALUATION_FILES:
         if (run.evaluation / name).is_file():
             shutil.copy2(run.evaluation / name, copy.evaluation / name)
+    for relative in GRID_FILES:
+        if (run.root / relative).is_file():
+            (staging / relative).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(run.root / relative, staging / relative)
     segments = run.wire_log_segments()
     if segments:
         try:
@@ -148,6 +167,21 @@ def export_run(run: RunDir, destination: Path) -> Path:
         shutil.rmtree(folder)
     staging.rename(folder)
     return folder
+
+
+def greedy_headline(evaluation: Path) -> str:
+    """'test: mean length 812.4 [701.0, 905.2], CFR 35.0% [28.3, 41.7]; ...' from the greedy rows of an
+    evaluate summary.csv (the intervals over its trials, when the file has them)."""
+    with (evaluation / SUMMARY_CSV).open(newline="") as handle:
+        rows = [row for row in csv.DictReader(handle) if row["policy"] == "greedy"]
+
+    def interval(row: dict, statistic: str, scale: float) -> str:
+        if not row.get(f"{statistic}_low"):
+            return ""
+        return f" [{scale * float(row[statistic + '_low']):,.1f}, {scale * float(row[statistic + '_high']):,.1f}]"
+
+    return "; ".join(f"{row['start_set']}: mean length {float(row['mean_length']):,.1f}{interval(row, 'mean_length', 1)}, "
+                     f"CFR {100 * float(row['cfr']):.1f}%{interval(row, 'cfr', 100)}" for row in rows)
 
 
 def write_curves(curves: RunCurves, folder: Path) -> None:

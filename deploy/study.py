@@ -1,15 +1,14 @@
-"""The study at a fixed budget (issue 24): the paper's learner and each option beyond it, 2 seeds each, read on
-greedy learning curves.
+"""The study's report (issue 24): the paper's learner and each option beyond it, 2 seeds each, read on greedy
+learning curves at a fixed budget.
 
-Every configuration trains the main job's setting (the `local` preset: BMC, buffer 1,000, 1 update per 4 env
-steps unless the configuration changes it) for the same number of updates once updates start, keeps a policy
-every 1,000 updates, and is read on its greedy test curve (`evaluate --curve`). The CPU differs between
-sessions, so wall time is derived: the updates a configuration needs times its seconds per update, from one
-run of deploy/bench/option_costs.py on one machine.
+The study's configurations are the grid runner's learner option sets (deploy/grid_cells.py OPTION_SETS); a
+run of one is trained, read on its curve and exported by deploy/experiments.py (`--options NAME`). The study's
+own runs (results/study/runs, results/time-to-drive) were trained on the `local` preset before the runner
+took over, and this report rebuilds from them. The CPU differs between sessions, so wall time is derived:
+the updates a configuration needs times its seconds per update, from one run of deploy/bench/option_costs.py
+on one machine.
 
-    .venv/bin/python deploy/study.py run nstep3 --seed 1                 # train, its greedy curve evaluated beside
-    .venv/bin/python deploy/study.py export runs/study-nstep3-s1         # its small files into results/study/runs/
-    .venv/bin/python deploy/study.py report results/study/runs results/time-to-drive \\
+    .venv/bin/python deploy/study.py results/study/runs results/time-to-drive \\
         --costs results/option-costs/option_costs.json --out results/study
 
 A run's configuration is read from its config.toml (the options below that it sets), not from its name, so
@@ -22,10 +21,7 @@ import argparse
 import csv
 import json
 import math
-import shutil
-import subprocess
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -33,35 +29,19 @@ from typing import Any, Sequence
 import numpy as np
 
 from actor.evaluation import EvaluationError
-from actor.evaluation.curve import (CURVE_CSV, CURVE_PNG, DRIVE_LENGTH, SUMMARY_JSON, SUMMARY_MD, first_reaching,
-                                    read_curve)
+from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read_curve
 from common.analysis.plotting import finish_figure, pyplot
 from common.config_values import flat_items, load_config
 from common.options import ConfigError
-from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.differences import chance_apart, lie_apart
+from deploy.grid_cells import OPTION_SETS
 
 ROOT = Path(__file__).resolve().parents[1]
-PRESET = "local"
+PRESET = "local"  # the preset the study's runs were trained on
 KEEP_EVERY = 1000  # updates between kept policies: the curve's resolution
-START_MARGIN_ENV_STEPS = 28_000  # env steps before updates start (the local preset's 999 random episodes: 27,945 at seed 0)
 # The budget: both seed-0 runs of the paper's learner first drove at about 21,000 updates (results/time-to-drive).
 BUDGET_UPDATES = 21_000
-FOLLOW_NICE = 15  # the curve evaluated beside the training run yields to it
-FOLLOW_START_POLL_S = 5.0  # how often `run` looks for the stack's first "training" status
-
-# name: (what it is, its options). "paper" is the local preset as it is. Names are folder-safe.
-CONFIGURATIONS: dict[str, tuple[str, dict[str, Any]]] = {
-    "paper": ("the paper's learner", {}),
-    "nstep3": ("3-step double-Q targets", {"learner.n_step": 3}),
-    "stored-burnin2": ("stored LSTM state, 2 steps of burn-in", {"learner.stored_state": True, "learner.burn_in": 2}),
-    "stored": ("stored LSTM state, no burn-in", {"learner.stored_state": True, "learner.burn_in": 0}),
-    "batch20": ("20 traces per batch", {"learner.batch_size": 20}),
-    "ratio2": ("1 update per 2 env steps", {"learner.env_steps_per_update": 2.0}),
-    "bfloat16": ("bfloat16 learner (same math)", {"learner.precision": "bfloat16"}),
-    "combination": ("stored LSTM state, 2 steps of burn-in, bfloat16 where native (fast preset + stored state)",
-                    {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}),
-}
+CONFIGURATIONS = OPTION_SETS
 STUDY_KEYS = sorted({key for _, options in CONFIGURATIONS.values() for key in options})
 
 
@@ -80,87 +60,6 @@ def _same(found: Any, wanted: Any) -> bool:
     if isinstance(wanted, float) and isinstance(found, (int, float)):
         return math.isclose(found, wanted)
     return found == wanted
-
-
-# --- run --------------------------------------------------------------------------------------------------
-
-def run_name(name: str, seed: int) -> str:
-    return f"study-{name}-s{seed}"
-
-
-def stack_command(name: str, seed: int, updates: int, runs_dir: Path, extra: Sequence[str]) -> list[str]:
-    """The stack's command line for one configuration and seed: its options, the budget and the curve's policies."""
-    options = {**CONFIGURATIONS[name][1]}
-    ratio = options.get("learner.env_steps_per_update", load_config(PRESET).learner.env_steps_per_update)
-    flags = {"run.name": run_name(name, seed), "run.seed": seed, "run.runs_dir": runs_dir,
-             "learner.total_env_steps": int(START_MARGIN_ENV_STEPS + updates * ratio),
-             "learner.keep_every": KEEP_EVERY, "learner.torch_threads": 1, **options}
-    command = [sys.executable, str(ROOT / "deploy" / "stack.py"), "--preset", PRESET, "--actors", "1"]
-    for key, value in flags.items():
-        command += [f"--{key}", str(value).lower() if isinstance(value, bool) else str(value)]
-    return command + list(extra)
-
-
-def curve_command(folder: Path, sets: str, follow: bool, every: int = 1) -> list[str]:
-    """evaluate --curve of a run (its policies at multiples of `every` updates): beside its training (follow),
-    at FOLLOW_NICE on one worker; or after it."""
-    command = [sys.executable, "-m", "actor.evaluate", "--curve", str(folder), "--sets", sets]
-    command += ["--every", str(every)] if every > 1 else []
-    return command + (["--follow", "--nice", str(FOLLOW_NICE), "--evaluation.workers", "1"] if follow else [])
-
-
-def trains_since(folder: Path, since: float) -> bool:
-    """Whether the run's stack, started at `since` (time.time()), has said it trains: a resumed run's old
-    status.json says "stopped" until the new stack rewrites it."""
-    try:
-        status = RunStatus.read(RunDir(folder).status)
-    except StatusError:
-        return False
-    return status.time >= since and status.training()
-
-
-def run(name: str, seed: int, updates: int, runs_dir: Path, sets: str, extra: Sequence[str],
-        curve_every: int = 1) -> int:
-    """Trains one cell with its greedy curve evaluated beside it as policies are kept (those at multiples of
-    `curve_every` updates), then evaluates what the follower missed (nothing, as a rule: it makes a last pass
-    for the policy the learner stops with)."""
-    folder = runs_dir / run_name(name, seed)
-    resume = ["--resume"] if (folder / "checkpoints").exists() else []
-    started = time.time()
-    stack = subprocess.Popen(stack_command(name, seed, updates, runs_dir, extra) + resume, cwd=ROOT)
-    follower = None
-    while stack.poll() is None and follower is None:
-        if trains_since(folder, started):
-            follower = subprocess.Popen(curve_command(folder, sets, True, curve_every), cwd=ROOT)
-        else:
-            time.sleep(FOLLOW_START_POLL_S)
-    code = stack.wait()
-    if follower is not None:
-        follower.wait()
-    if code != 0:
-        return code
-    return subprocess.call(curve_command(folder, sets, False, curve_every), cwd=ROOT)
-
-
-# --- export -------------------------------------------------------------------------------------------------
-
-# a run folder's file: its name in the export (the layout of results/time-to-drive)
-EXPORTED = {"config.toml": "config.toml", "summary.json": "run_summary.json", f"curve/{CURVE_CSV}": CURVE_CSV,
-            f"curve/{SUMMARY_JSON}": SUMMARY_JSON, f"curve/{SUMMARY_MD}": SUMMARY_MD, f"curve/{CURVE_PNG}": CURVE_PNG,
-            **{f"soak/{name}": name for name in ("soak.csv", "soak.png", "soak_summary.json", "soak_summary.md")}}
-
-
-def export(folder: Path, into: Path) -> Path:
-    """A trained run's small files (config, run summary, greedy curve, and its soak where deploy/soak.py
-    sampled it) into `into`/<run name>/."""
-    if not (folder / "curve" / CURVE_CSV).exists():
-        raise SystemExit(f"study: {folder} has no greedy curve yet; run `evaluate --curve {folder}` first")
-    target = into / folder.name
-    target.mkdir(parents=True, exist_ok=True)
-    for relative, name in EXPORTED.items():
-        if (folder / relative).exists():
-            shutil.copy2(folder / relative, target / name)
-    return target
 
 
 # --- report -------------------------------------------------------------------------------------------------
@@ -384,43 +283,15 @@ def write_report(runs: Sequence[StudyRun], budget: int, costs: Path | None, out:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="study", description=__doc__.splitlines()[0])
-    commands = parser.add_subparsers(dest="command", required=True)
-    train = commands.add_parser("run", help="train one configuration and seed, its greedy curve evaluated beside "
-                                "it at nice 15 as the learner keeps policies (evaluate --curve --follow)")
-    train.add_argument("configuration", choices=list(CONFIGURATIONS),
-                       help="the configuration to train: the paper's method, or one of the options beyond it")
-    train.add_argument("--seed", type=int, default=0, help="the run's seed (run.seed; default 0)")
-    train.add_argument("--updates", type=int, default=BUDGET_UPDATES,
-                       help=f"the budget in updates (default {BUDGET_UPDATES:,})")
-    train.add_argument("--runs-dir", type=Path, default=Path("runs"),
-                       help="where the run folder study-CONFIGURATION-sSEED goes (default runs)")
-    train.add_argument("--sets", default="test", help="start sets of the curve (default test)")
-    train.add_argument("--curve-every", type=int, default=1, metavar="N",
-                       help="evaluate only the policies kept at multiples of N updates (evaluate --curve --every): "
-                            "a long run whose greedy episodes reach the cap outruns a one-worker follower at 1 "
-                            "(default: 1, every kept policy)")
-    copy = commands.add_parser("export", help="copy a run's config, summary and greedy curve to commit")
-    copy.add_argument("folder", type=Path, help="the run folder to copy from")
-    copy.add_argument("--into", type=Path, default=ROOT / "results" / "study" / "runs",
-                      help="the folder the run's copy goes under (default results/study/runs)")
-    report = commands.add_parser("report", help="the study's table, figure and verdicts from exported runs")
-    report.add_argument("folders", type=Path, nargs="+",
+    parser.add_argument("folders", type=Path, nargs="+",
                         help="folders holding exported runs or run folders; the first run of a configuration and "
                              "seed found wins")
-    report.add_argument("--budget", type=int, default=BUDGET_UPDATES,
+    parser.add_argument("--budget", type=int, default=BUDGET_UPDATES,
                         help=f"read each curve at this many updates (default {BUDGET_UPDATES:,})")
-    report.add_argument("--costs", type=Path, help="option_costs.json of deploy/bench/option_costs.py")
-    report.add_argument("--out", type=Path, default=ROOT / "results" / "study",
+    parser.add_argument("--costs", type=Path, help="option_costs.json of deploy/bench/option_costs.py")
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "study",
                         help="where study.md, study.csv, study.json and study.png go (default results/study)")
-    args, extra = parser.parse_known_args(argv)
-    if args.command == "run":
-        raise SystemExit(run(args.configuration, args.seed, args.updates, args.runs_dir, args.sets, extra,
-                              args.curve_every))
-    if extra:
-        parser.error(f"unrecognised arguments: {' '.join(extra)}")
-    if args.command == "export":
-        print(export(args.folder, args.into))
-        return
+    args = parser.parse_args(argv)
     runs = find_runs(args.folders)
     if not runs:
         raise SystemExit("study: no run with a greedy curve in " + ", ".join(map(str, args.folders)))

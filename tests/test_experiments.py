@@ -7,9 +7,7 @@ evaluate's own report writer, checkpoints with the learner's checkpoint writer.
 from __future__ import annotations
 
 import csv
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +16,9 @@ import pytest
 from common.analysis.figures import (RunCurves, plot_epsilon, plot_loss_differences, plot_reward_bins,
                                      plot_reward_curves, seed_band)
 from common.analysis.intervals import Bootstrap
-from common.analysis.stats import EvaluationEpisode, summarise_all
+from common.analysis.stats import summarise_all
 from common.analysis.tables import EPISODES_CSV, write_evaluation
-from common.checkpoint import save_checkpoint
-from common.config_values import load_config, to_toml
+from common.config_values import load_config
 from common.run_dir import log_segments
 from common.transport import Keys
 from common.wire.envelope import encode
@@ -29,26 +26,15 @@ from common.wire.messages import EpisodeRecord, Stats
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
 from deploy.performance_profile import plot_performance_profiles
+from deploy.run_results import greedy_headline
 from replay.log.arrival import Arrival, peek
 from replay.log.reader import LogError
 from replay.log.run_curves import read_run_curves
 from replay.log.writer import LogWriter
+from tests.grid_runs import EDGES, episode, fake_evaluation
 
 ROOT = Path(__file__).resolve().parents[1]
-EDGES = [0.0, 0.25, 0.5, 0.75, 1.0]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
-def load_runner():
-    """deploy/experiments.py is a script run by path, as deploy/stack.py; load it as a module."""
-    spec = importlib.util.spec_from_file_location("experiments", ROOT / "deploy" / "experiments.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-experiments = load_runner()
 
 
 # --- logs written with the recorder's writer ---------------------------------------------------------------------
@@ -155,34 +141,6 @@ def test_figures_refuse_what_they_cannot_draw(tmp_path):
 
 # --- evaluations pooled into the paper's tables --------------------------------------------------------------
 
-def episode(policy: str, start_set: str, length: int, end: str, bins: tuple[int, ...], start_index: int = 0,
-            progress_m: float = math.nan, streets: float = math.nan, junctions: float = math.nan) -> EvaluationEpisode:
-    return EvaluationEpisode(policy=policy, start_set=start_set, start_index=start_index, trial=0, seed=7,
-                             length=length, end=end, episode_return=0.5 * length, reward_bin_counts=bins,
-                             actions_digest=f"d{length}", progress_m=progress_m, streets=streets, junctions=junctions)
-
-
-def fake_evaluation(directory: Path, greedy_lengths: list[int], random_length: int = 4, updates: int | None = None,
-                    progress: bool = False, privileged_length: int | None = None) -> Path:
-    """Greedy episodes of the given lengths on both sets (a length of 100 reaches the cap, 50 stalls), one
-    random each (and one of the privileged driver if given); with progress, each greedy episode drove 0.9 m
-    per step and visited a street per 25 steps (at least one) and a junction fewer."""
-    episodes = []
-    for start_set in ("train", "test"):
-        for number, length in enumerate(greedy_lengths):
-            end = {100: "cap", 50: "stalled"}.get(length, "collision")
-            streets = max(1, length // 25)
-            coverage = (streets, streets - 1) if progress else (math.nan, math.nan)
-            episodes.append(episode("greedy", start_set, length, end, (0, 0, 0, length), number,
-                                    0.9 * length if progress else math.nan, *coverage))
-        episodes.append(episode("random", start_set, random_length, "offroad", (random_length, 0, 0, 0)))
-        if privileged_length is not None:
-            episodes.append(episode("privileged", start_set, privileged_length, "cap", (0, 0, 0, privileged_length)))
-    facts = {} if updates is None else {"updates": str(updates)}
-    write_evaluation(directory, episodes, summarise_all(episodes), EDGES, facts, 1, "")
-    return directory
-
-
 def test_episodes_csv_reads_back_as_written(tmp_path):
     fake_evaluation(tmp_path, [100, 50], progress=True)
     episodes, edges = read_episodes_csv(tmp_path / EPISODES_CSV)
@@ -274,7 +232,7 @@ def test_the_privileged_driver_is_a_baseline_row_after_the_random_one(tmp_path):
 
 def test_a_runs_headline_gives_its_intervals(tmp_path):
     fake_evaluation(tmp_path, [100, 100])
-    assert experiments.evaluation_headline(tmp_path / "summary.csv") == (
+    assert greedy_headline(tmp_path) == (
         "train: mean length 100.0 [100.0, 100.0], CFR 100.0% [100.0, 100.0]; "
         "test: mean length 100.0 [100.0, 100.0], CFR 100.0% [100.0, 100.0]")
 
@@ -308,114 +266,3 @@ def test_evaluations_with_other_reward_bins_are_not_pooled(tmp_path):
         comparison_rows([EvaluatedRun("bmc", 1000, first), EvaluatedRun("vdbe", 1000, other)])
     with pytest.raises(ComparisonError, match="no evaluated runs"):
         comparison_rows([])
-
-
-# --- the runner ----------------------------------------------------------------------------------------------------
-
-def options(tmp_path: Path, steps: int = 1000, extra: tuple[str, ...] = ()):
-    return experiments.Options(tmp_path, steps, trials=3, actors=None, extra=extra, progress_s=30.0)
-
-
-def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False, updates: int | None = None,
-             strategy: str = "bmc", capacity: int = 50, seed: int = 0) -> Path:
-    """A run folder as the stack and evaluate leave it: its config, a checkpoint with this clock, an evaluation."""
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config = load_config("smoke", overrides={"run.name": run_dir.name, "exploration.strategy": strategy,
-                                             "replay.capacity": capacity, "run.seed": seed})
-    (run_dir / "config.toml").write_text(to_toml(config))
-    if env_steps is not None:
-        save_checkpoint(run_dir / "checkpoints", {"clock": {"env_steps": env_steps}, "learner": {"updates": 7}})
-    if evaluated:
-        fake_evaluation(run_dir / "evaluation", [100, 50], updates=updates)
-    return run_dir
-
-
-@pytest.mark.parametrize("env_steps, evaluated, expected", [
-    (None, False, "train"),  # nothing yet, or an attempt stopped before its first checkpoint
-    (400, False, "resume"),  # stopped before the budget
-    (1000, False, "evaluate"),  # trained, not evaluated
-    (1200, True, "done"),
-    (400, True, "resume"),  # evaluated under a smaller budget: train on, evaluate again
-    (None, True, "done"),  # an evaluation without its checkpoint is kept as it is
-])
-def test_what_a_run_folder_still_needs(tmp_path, env_steps, evaluated, expected):
-    assert experiments.next_step(make_run(tmp_path / "run", env_steps, evaluated), 1000) == expected
-
-
-def test_a_damaged_checkpoint_is_one_clear_error(tmp_path):
-    run = make_run(tmp_path / "run")
-    (run / "checkpoints").mkdir()
-    (run / "checkpoints" / "latest.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(experiments.ExperimentError, match="cannot read the step count"):
-        experiments.next_step(run, 1000)
-
-
-def test_a_fresh_start_sets_the_abandoned_attempts_logs_aside(tmp_path):
-    run = make_run(tmp_path / "run")
-    assert experiments.set_aside_stale_files(run) is None
-    for name in ("traffic.mcap", "traffic-2.mcap", "logs/learner.log", "config.toml"):
-        (run / name).parent.mkdir(exist_ok=True)
-        (run / name).write_text(name)
-    moved = experiments.set_aside_stale_files(run)
-    assert sorted(path.name for path in moved.iterdir()) == ["logs", "traffic-2.mcap", "traffic.mcap"]
-    assert sorted(path.name for path in run.iterdir()) == ["abandoned", "config.toml"]
-
-
-def test_the_grid_names_runs_and_passes_each_its_flags(tmp_path):
-    specs = experiments.grid(["bmc", "softmax"], [1000, 2000], [0, 1])
-    assert [spec.name for spec in specs[:3]] == ["bmc-b1000-s0", "softmax-b1000-s0", "bmc-b1000-s1"]
-    assert len(specs) == 8
-    opts = options(tmp_path, extra=("--preset", "local", "--env.max_steps", "500"))
-    stack = experiments.stack_command(specs[0], opts, resume=True)
-    assert stack[1].endswith("deploy/stack.py") and stack[-1] == "--resume"
-    assert stack[2:6] == ["--preset", "local", "--env.max_steps", "500"]
-    flags = dict(zip(stack[6:-1:2], stack[7:-1:2]))
-    assert flags == {"--run.name": "bmc-b1000-s0", "--run.runs_dir": str(tmp_path), "--run.seed": "0",
-                     "--exploration.strategy": "bmc", "--replay.capacity": "1000", "--learner.total_env_steps": "1000"}
-    evaluate = experiments.evaluate_command(specs[0], opts)
-    assert evaluate[1:7] == ["-m", "actor.evaluate", "--checkpoint", str(tmp_path / "bmc-b1000-s0"),
-                             "--out", str(tmp_path / "bmc-b1000-s0" / "evaluation")]
-    assert evaluate[-2:] == ["--evaluation.episodes_per_start", "3"] and "--privileged" not in evaluate
-    assert "--privileged" in experiments.evaluate_command(specs[0], opts, privileged=True)
-
-
-def test_runs_at_once_share_the_cores_between_their_learners_unless_told():
-    assert experiments.learner_threads_flags([], parallel=1, cores=2) == []
-    assert experiments.learner_threads_flags([], parallel=2, cores=2) == ["--learner.torch_threads", "1"]
-    assert experiments.learner_threads_flags([], parallel=2, cores=8) == ["--learner.torch_threads", "4"]
-    assert experiments.learner_threads_flags([], parallel=3, cores=2) == ["--learner.torch_threads", "1"]
-    for given in (["--learner.torch_threads", "2"], ["--learner.torch_threads=2"]):
-        assert experiments.learner_threads_flags(given, parallel=2, cores=2) == []
-
-
-@pytest.mark.parametrize("extra, message", [
-    (("--replay.capacity", "5"), "set by the grid"),
-    (("--run.seed=4",), "set by the grid"),
-    (("--learner.lr", "oops"), "learner.lr: expected a number"),
-])
-def test_config_flags_are_checked_before_anything_runs(tmp_path, extra, message):
-    with pytest.raises(experiments.ExperimentError, match=message):
-        experiments.check_config_flags(experiments.grid(["bmc"], [50], [0]), options(tmp_path, extra=extra))
-
-
-def test_the_results_of_finished_runs_are_written(tmp_path):
-    specs = experiments.grid(["bmc", "softmax"], [50], [0])
-    opts = options(tmp_path)
-    for spec, strategy in zip(specs, ("bmc", "softmax")):
-        run = make_run(tmp_path / spec.name, 1000, evaluated=True, updates=120, strategy=strategy)
-        write_log(run / "traffic.mcap", spec.name, strategy, 50,
-                  [record(10, 5.0, 1.0), learner_report(50, 0.2), record(12, 6.0, 0.5), learner_report(100, 0.1)])
-    paths = experiments.write_results(specs, opts, {"budget": "1,000"})
-    assert sorted(path.name for path in paths) == ["differences.csv", "epsilon.png", "loss_differences.png",
-                                                  "performance_profile.png", "results.csv", "results.md",
-                                                  "reward_bins.png", "reward_curves.png"]
-    for path in paths:
-        if path.suffix == ".png":
-            assert_png(path)
-    markdown = (tmp_path / "results" / "results.md").read_text()
-    assert markdown.count("| BMC | 0 | 120 | 2 |") == 2 and "- budget: 1,000" in markdown
-    assert "95% percentile intervals of 2000 bootstrap replicates" in markdown
-    # per set: bmc pooled and its seed, softmax pooled and its seed, random
-    assert len((tmp_path / "results" / "results.csv").read_text().splitlines()) == 1 + 2 * 5
-    exported = tmp_path / "results" / "runs"  # the tables were built from the exported runs
-    assert sorted(path.name for path in exported.iterdir()) == ["bmc-b50-s0", "softmax-b50-s0"]

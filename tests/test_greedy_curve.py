@@ -26,7 +26,6 @@ from common.config_values import from_dict, load_config, to_dict
 from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus
-from deploy.experiments import keep_flags
 from learner.keep import PolicyKeeper
 from learner.service import LearnerProcess
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
@@ -183,10 +182,6 @@ def test_keeping_options_are_checked_and_set_by_the_presets_and_the_grid():
     assert load_config("local").learner.keep_encoding == "float32"  # as trained, unless asked
     with pytest.raises(ConfigError, match="learner.keep_encoding"):
         load_config("paper", overrides={"learner.keep_encoding": "int8"})
-    # the grid: a config that keeps nothing keeps about 20 policies a run; one that keeps is left alone
-    assert keep_flags(["--preset", "paper"], 80_000) == ["--learner.keep_every", "1000"]
-    assert keep_flags(["--preset", "local"], 80_000) == []
-    assert keep_flags(["--learner.keep_every_s", "60"], 80_000) == []
 
 
 # --- the curve ----------------------------------------------------------------------------------------------

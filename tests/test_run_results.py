@@ -15,7 +15,8 @@ from common.config_values import load_config, to_toml
 from common.run_dir import RunDir
 from deploy import report
 from deploy.run_results import (LEARNER_CSV, TRAINING_CSV, ExportError, collect, export_run, read_exported)
-from tests.test_experiments import assert_png, fake_evaluation, learner_report, make_run, record, write_log
+from tests.grid_runs import fake_evaluation, make_run
+from tests.test_experiments import assert_png, learner_report, record, write_log
 
 
 def evaluated_run(root, strategy: str = "bmc", seed: int = 0, lengths=(100, 50), updates: int = 120):

@@ -101,7 +101,7 @@ def test_the_stack_writes_its_status_into_the_run_folder(tmp_path):
     assert status.restarts == {"replay": 0, "recorder": 0, "learner": 0, "actor-0": 0}
 
 
-def job(tmp_path, phase: str, trained_at_start: int = 0) -> "experiments.RunJob":
+def job(tmp_path, phase: str, trained_at_start: float = 0.0) -> "experiments.RunJob":
     options = experiments.Options(tmp_path, 1000, trials=1, actors=None, extra=(), progress_s=30.0)
     spec = experiments.RunSpec("bmc", 50, 0)
     run_job = experiments.RunJob(1, 2, spec, options, stopping=None, phase=phase, trained_at_start=trained_at_start)
@@ -110,17 +110,17 @@ def job(tmp_path, phase: str, trained_at_start: int = 0) -> "experiments.RunJob"
 
 
 def test_a_training_run_is_followed_by_its_stacks_status_not_an_older_one(tmp_path):
-    training = job(tmp_path, "training", trained_at_start=200)
+    training = job(tmp_path, "train", trained_at_start=0.2)
     path = training.options.run(training.spec).status
     RunStatus(phase="stopped", env_steps=900, total_env_steps=1000, time=training.started_at - 60).write(path)
-    assert training.latest_line() == "" and training.trained() == 200  # an earlier stack's
+    assert training.latest_line() == "" and training.trained() == 0.2  # an earlier stack's
     RunStatus(phase="training", env_steps=400, total_env_steps=1000, updates=20, mean_return=1.5, eta_s=95,
               restarts={"actor-0": 1}, time=time.time()).write(path)
     assert training.latest_line() == ("env steps 400/1,000 (40.0%), updates 20, return(100) 1.50, restarts 1, "
                                       "ETA 1:35")
-    assert training.trained() == 400
+    assert training.trained() == 0.4
     path.write_text("{")  # a damaged file is no status
-    assert training.latest_line() == "" and training.trained() == 200
+    assert training.latest_line() == "" and training.trained() == 0.2
 
 
 class Thread:
@@ -132,14 +132,14 @@ class Thread:
 
 
 def test_the_grid_line_counts_runs_done_and_the_steps_trained(tmp_path):
-    finished, waiting = job(tmp_path, "done"), job(tmp_path / "other", "waiting", trained_at_start=250)
+    finished, waiting = job(tmp_path, "done"), job(tmp_path / "other", "waiting", trained_at_start=0.25)
     finished.thread = Thread(alive=False)
-    line = experiments.GridStatus([finished, waiting], 1000).line()
-    assert line.startswith("grid: 1/2 runs done, 62.5% of the env steps trained, elapsed 0:00, ETA ")
+    line = experiments.GridStatus([finished, waiting]).line()
+    assert line.startswith("grid: 1/2 runs done, 62.5% of the budgets trained, elapsed 0:00, ETA ")
 
 
 def training_job(tmp_path, eta_s: float | None, elapsed_s: float) -> "experiments.RunJob":
-    running = job(tmp_path, "training")
+    running = job(tmp_path, "train")
     running.thread, running.started = Thread(alive=True), time.monotonic() - elapsed_s
     if eta_s is not None:
         RunStatus(phase="training", env_steps=400, total_env_steps=1000, eta_s=eta_s,
@@ -150,16 +150,16 @@ def training_job(tmp_path, eta_s: float | None, elapsed_s: float) -> "experiment
 def test_the_grid_eta_counts_runs_the_running_ones_own_etas_then_the_waiting_in_waves(tmp_path):
     running = [training_job(tmp_path / "a", 600, 1200), training_job(tmp_path / "b", 300, 1500)]
     waiting = [job(tmp_path / name, "waiting") for name in ("c", "d", "e")]
-    grid = experiments.GridStatus(running + waiting, 1000, parallel=2)
+    grid = experiments.GridStatus(running + waiting, parallel=2)
     # before any run ended, a run looks to take 1,800 s; 3 waiting runs, 2 at a time, are 2 waves
     assert grid.remaining_s() == pytest.approx(600 + 2 * 1800, abs=2)
     done = job(tmp_path / "f", "done")
     done.thread, done.took_s = Thread(alive=False), 1000.0
-    grid = experiments.GridStatus(running + waiting + [done], 1000, parallel=2)
+    grid = experiments.GridStatus(running + waiting + [done], parallel=2)
     assert grid.remaining_s() == pytest.approx(600 + 2 * 1000, abs=2)  # the runs that ended set the pace
     unknown = training_job(tmp_path / "g", None, 10)  # its stack has no ETA yet (the random phase)
-    assert experiments.GridStatus([unknown] + waiting, 1000, parallel=2).remaining_s() is None
-    assert "ETA ?" in experiments.GridStatus([unknown] + waiting, 1000, parallel=2).line()
+    assert experiments.GridStatus([unknown] + waiting, parallel=2).remaining_s() is None
+    assert "ETA ?" in experiments.GridStatus([unknown] + waiting, parallel=2).line()
 
 
 def test_held_episodes_are_logged_once_per_period_with_their_count(caplog):
@@ -188,11 +188,11 @@ def test_what_a_run_has_trained_comes_from_its_checkpoint(tmp_path):
     short, fresh = RunDir(tmp_path / "short"), RunDir(tmp_path / "fresh")
     save_checkpoint(short.checkpoints, {"clock": {"env_steps": 400}})
     fresh.root.mkdir()
-    assert experiments.trained_env_steps(short.root, 1000) == 400
-    assert experiments.trained_env_steps(short.root, 300) == 300  # trained, waiting for its evaluation
-    assert experiments.trained_env_steps(fresh.root, 1000) == 0
+    assert experiments.trained_share(short.root, 1000) == 0.4
+    assert experiments.trained_share(short.root, 300) == 1.0  # trained, waiting for its curve
+    assert experiments.trained_share(fresh.root, 1000) == 0.0
     short.checkpoint.write_bytes(b"damaged")
-    assert experiments.trained_env_steps(short.root, 1000) == 0
+    assert experiments.trained_share(short.root, 1000) == 0.0
 
 
 def test_a_status_file_that_cannot_be_written_is_said_once_and_the_stack_goes_on(tmp_path, capsys):

@@ -1,15 +1,13 @@
-"""The study at a fixed budget (deploy/study.py): which configuration a run is, its command, its table and verdicts."""
+"""The study at a fixed budget (deploy/study.py): which configuration a run is, its table and verdicts."""
 
 import csv
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from common.config_values import flat_items, load_config
-from common.run_dir import RunStatus
 from deploy import study
 from tests.study_runs import write_run
 
@@ -29,40 +27,6 @@ def test_a_run_is_the_configuration_its_config_sets():
     assert study.configuration_of(items(**{**combined, "learner.precision": "bfloat16"})) is None  # forced, not auto
     assert study.configuration_of(items(**{"learner.n_step": 3, "learner.batch_size": 20})) is None  # no such one
     assert study.configuration_of(items(**{"exploration.strategy": "softmax"})) == "paper"  # not a study option
-
-
-def test_the_run_command_sets_the_options_the_budget_and_the_curves_policies(tmp_path):
-    command = study.stack_command("ratio2", 1, 20_000, tmp_path, ["--env.traffic_vehicles", "0"])
-    flags = dict(zip(command[2::2], command[3::2]))
-    assert flags["--preset"] == "local" and flags["--run.name"] == "study-ratio2-s1" and flags["--run.seed"] == "1"
-    assert flags["--learner.env_steps_per_update"] == "2.0"
-    assert int(flags["--learner.total_env_steps"]) == study.START_MARGIN_ENV_STEPS + 40_000  # 20,000 updates x 2
-    assert flags["--learner.keep_every"] == "1000" and command[-2:] == ["--env.traffic_vehicles", "0"]
-    stored = study.stack_command("stored-burnin2", 0, 100, tmp_path, [])
-    assert stored[stored.index("--learner.stored_state") + 1] == "true"
-
-
-def test_run_trains_with_the_curve_followed_beside_it_then_evaluates_what_it_missed(tmp_path, monkeypatch):
-    folder = tmp_path / "study-paper-s0"
-    folder.mkdir()
-    RunStatus(phase="stopped", time=1.0).write(folder / "status.json")  # a resumed run's old status
-    calls = tmp_path / "calls.txt"
-    stack = ("import os, sys, time; from pathlib import Path; from common.run_dir import RunStatus; "
-             f"path = Path({str(folder / 'status.json')!r}); "
-             "RunStatus(phase='training', pids={'stack': os.getpid()}, time=time.time()).write(path); "
-             "time.sleep(1.5); RunStatus(phase='finished', time=time.time()).write(path)")
-    monkeypatch.setattr(study, "stack_command", lambda *args: [sys.executable, "-c", stack])
-    monkeypatch.setattr(study, "curve_command", lambda folder, sets, follow, every: [
-        sys.executable, "-c", f"open({str(calls)!r}, 'a').write('{sets} {follow} {every}\\n')"])
-    monkeypatch.setattr(study, "FOLLOW_START_POLL_S", 0.05)
-    assert study.run("paper", 0, 100, tmp_path, "test", [], curve_every=4000) == 0
-    assert calls.read_text().splitlines() == ["test True 4000", "test False 4000"]  # the follower, the last pass
-    assert not study.trains_since(folder, 0.0)  # finished
-    monkeypatch.undo()
-    command = study.curve_command(folder, "train,test", follow=True)
-    assert command[-5:] == ["--follow", "--nice", "15", "--evaluation.workers", "1"] and "--curve" in command
-    assert "--every" not in command
-    assert study.curve_command(folder, "test", False, 4000)[-2:] == ["--every", "4000"]
 
 
 def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the_seeds_support(tmp_path):
@@ -144,19 +108,3 @@ def test_a_curves_line_does_not_bridge_policies_that_were_not_evaluated():
     xs, ys = study.broken_at_gaps([1000, 2000, 5000, 5400, 6000], [1.0, 2.0, 5.0, 5.4, 6.0])
     assert xs[:2].tolist() == [1000.0, 2000.0] and xs[3:].tolist() == [5000.0, 5400.0, 6000.0]
     assert np.isnan(xs[2]) and np.isnan(ys[2]) and ys[3:].tolist() == [5.0, 5.4, 6.0]
-
-
-def test_export_copies_a_runs_small_files_and_its_soak_and_refuses_a_run_without_a_curve(tmp_path):
-    run = tmp_path / "runs" / "study-combination-s0"
-    for relative in ("config.toml", "summary.json", "curve/curve.csv", "curve/curve.png", "soak/soak.csv",
-                     "soak/soak_summary.md", "policies/policy-u0001000.pt", "replay/snapshot/manifest.msgpack"):
-        (run / relative).parent.mkdir(parents=True, exist_ok=True)
-        (run / relative).write_text(relative)
-    target = study.export(run, tmp_path / "results")
-    assert sorted(path.name for path in target.iterdir()) == [
-        "config.toml", "curve.csv", "curve.png", "run_summary.json", "soak.csv", "soak_summary.md"]
-    assert (target / "run_summary.json").read_text() == "summary.json"  # named as results/time-to-drive names it
-    (run / "curve" / "curve.csv").unlink()
-    with pytest.raises(SystemExit, match="has no greedy curve yet"):
-        study.export(run, tmp_path / "elsewhere")
-    assert not (tmp_path / "elsewhere").exists()  # refused before anything is copied

@@ -63,8 +63,9 @@ def curve_config(saved: dict, args: argparse.Namespace) -> Config:
 
 
 def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],
-                   nice: int, show_status: bool = True, from_updates: int = 0, every: int = 1) -> list[dict] | None:
-    """Evaluates the kept policies (those kept at `from_updates` or later, at multiples of `every` updates)
+                   nice: int, show_status: bool = True, from_updates: int = 0, every: int = 1,
+                   to_updates: int | None = None) -> list[dict] | None:
+    """Evaluates the kept policies (those kept from `from_updates` to `to_updates`, at multiples of `every`)
     the CSV lacks, on the start sets it lacks them on (a curve of the test set, rerun with train,test, adds the
     train rows), writing it after each; returns all its rows, or None when nothing was added (nothing new, or
     every new file skipped)."""
@@ -72,10 +73,11 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
     if not kept:
         raise EvaluationError(f"no kept policies in {run.policies}/ (the learner keeps them with "
                               "learner.keep_every or learner.keep_every_s)")
-    kept = curve_policies(kept, from_updates, every)
+    kept = curve_policies(kept, from_updates, every, to_updates)
     if not kept:
-        raise EvaluationError(f"--from-updates {from_updates:,d}, --every {every:,d}: no policy in "
-                              f"{run.policies}/ was kept that late at such a multiple")
+        until = "" if to_updates is None else f", --to-updates {to_updates:,d}"
+        raise EvaluationError(f"--from-updates {from_updates:,d}{until}, --every {every:,d}: no policy in "
+                              f"{run.policies}/ was kept in that span at such a multiple")
     path = out_dir / CURVE_CSV
     rows = read_curve(path)
     done = {(int(row["updates"]), row["start_set"]) for row in rows}
@@ -100,9 +102,12 @@ def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], config
     return rows
 
 
-def curve_policies(kept: Sequence[tuple[int, Path]], from_updates: int = 0, every: int = 1) -> list[tuple[int, Path]]:
-    """Of a run's kept policies, those a curve reads: kept at `from_updates` or later, at multiples of `every`."""
-    return [(updates, file) for updates, file in kept if updates >= from_updates and updates % every == 0]
+def curve_policies(kept: Sequence[tuple[int, Path]], from_updates: int = 0, every: int = 1,
+                   to_updates: int | None = None) -> list[tuple[int, Path]]:
+    """Of a run's kept policies, those a curve reads: kept from `from_updates` to `to_updates` (None: no end),
+    at multiples of `every`."""
+    return [(updates, file) for updates, file in kept if updates >= from_updates and updates % every == 0
+            and (to_updates is None or updates <= to_updates)]
 
 
 def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: Callable[[dict], Config],

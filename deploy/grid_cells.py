@@ -1,0 +1,181 @@
+"""The grid's cells and the protocol every run of them follows (docs/experiments.md).
+
+A cell is a strategy, a replay capacity and a named learner option set (OPTION_SETS: the paper's learner, or
+one of the options beyond it the study compared); a run is a cell and a seed, in <runs-dir>/<run name>/.
+Every run goes through the same steps, each decided from what its folder holds, so that stopping and
+running again resumes:
+
+    train     the stack to the budget in updates (learner.total_env_steps = start_steps + updates x ratio),
+              keeping a policy every learner.keep_every updates; the soak sampled beside it
+    curve     the greedy test curve at CURVE_TRIALS trials per start (evaluate --curve): every kept policy up
+              to CURVE_DENSE_UNTIL updates, then those at multiples of CURVE_LATE_EVERY
+    choose    the last CHOICE_AMONG kept policies on the train starts; the best (train CFR, then mean length,
+              then the later) is the run's policy, written to choice.json: chosen on the train starts so that
+              its test reading is not the best of several draws
+    evaluate  the chosen policy on both start sets at --trials per start (evaluate --checkpoint), into
+              evaluation/
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from actor.evaluation.curve import CURVE_CSV, CURVE_TRIALS, chosen_on_train, read_curve
+from common.analysis.tables import SUMMARY_CSV, read_facts
+from common.checkpoint import Checkpoint, CheckpointError
+from common.run_dir import RunDir
+
+PROTOCOL_PRESET = "drive"  # common/presets.py: 30,000 updates, updates from 28,000 env steps for every strategy
+CURVE_DENSE_UNTIL = 20_000  # every kept policy up to here: where the paper's learner first drives
+CURVE_LATE_EVERY = 2_000  # then at least every 2,000 updates
+CHOICE_AMONG = 5  # the run's policy is chosen among its last five kept
+FINAL_TRIALS = 10  # trials per start of the chosen policy's evaluation (the paper: 30)
+CELL_JSON = "cell.json"  # who the run is: strategy, capacity, option set, seed, budget
+CHOICE_JSON = "choice.json"
+
+# name: (what it is, its options over the preset). Names are folder-safe; "paper" is the preset as it is.
+OPTION_SETS: dict[str, tuple[str, dict[str, Any]]] = {
+    "paper": ("the paper's learner", {}),
+    "nstep3": ("3-step double-Q targets", {"learner.n_step": 3}),
+    "stored-burnin2": ("stored LSTM state, 2 steps of burn-in", {"learner.stored_state": True, "learner.burn_in": 2}),
+    "stored": ("stored LSTM state, no burn-in", {"learner.stored_state": True, "learner.burn_in": 0}),
+    "batch20": ("20 traces per batch", {"learner.batch_size": 20}),
+    "ratio2": ("1 update per 2 env steps", {"learner.env_steps_per_update": 2.0}),
+    "bfloat16": ("bfloat16 learner (same math)", {"learner.precision": "bfloat16"}),
+    "combination": ("stored LSTM state, 2 steps of burn-in, bfloat16 where native (fast preset + stored state)",
+                    {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}),
+}
+
+TRAIN, RESUME, CURVE, CHOOSE, EVALUATE, DONE = "train", "resume", "curve", "choose", "evaluate", "done"
+
+
+class ExperimentError(RuntimeError):
+    """A run or the grid cannot go on; the message says which and why."""
+
+
+def run_name(strategy: str, capacity: int, seed: int, options: str = "paper") -> str:
+    middle = "" if options == "paper" else f"-{options}"
+    return f"{strategy}-b{capacity}{middle}-s{seed}"
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    strategy: str
+    capacity: int  # replay.capacity, episodes
+    seed: int
+    options: str = "paper"  # a name of OPTION_SETS
+
+    @property
+    def name(self) -> str:
+        return run_name(self.strategy, self.capacity, self.seed, self.options)
+
+    def option_flags(self) -> list[str]:
+        """The option set's config flags."""
+        flags = []
+        for key, value in OPTION_SETS[self.options][1].items():
+            flags += [f"--{key}", str(value).lower() if isinstance(value, bool) else str(value)]
+        return flags
+
+
+def grid(strategies: list[str], capacities: list[int], seeds: list[int], option_sets: list[str] = ("paper",)
+         ) -> list[RunSpec]:
+    """Capacity, then option set, then seed, then strategy: a table's runs come before the next table's, and
+    every strategy's first seed before any second."""
+    return [RunSpec(strategy, capacity, seed, options) for capacity in capacities for options in option_sets
+            for seed in seeds for strategy in strategies]
+
+
+def budget_env_steps(start_steps: int, env_steps_per_update: float, updates: int) -> int:
+    """learner.total_env_steps of a budget in updates, with updates from start_steps (learner.start_by steps)."""
+    return int(start_steps + round(updates * env_steps_per_update))
+
+
+# --- what a run holds --------------------------------------------------------------------------------------------
+
+def checkpoint_env_steps(path: Path) -> int:
+    """The learner's clock in a checkpoint: the env steps of the whole system when it was saved."""
+    try:
+        env_steps = Checkpoint.load(path).env_steps
+    except CheckpointError as error:
+        raise ExperimentError(f"cannot read the step count of {path}: {error}") from None
+    if env_steps is None:
+        raise ExperimentError(f"cannot read the step count of {path}: its clock has none")
+    return env_steps
+
+
+def curve_wanted(kept: list[int]) -> set[int]:
+    """The kept policies (by updates) the protocol's greedy test curve reads."""
+    return {updates for updates in kept if updates <= CURVE_DENSE_UNTIL or updates % CURVE_LATE_EVERY == 0}
+
+
+def curve_read(run: RunDir, start_set: str = "test") -> set[int]:
+    """The kept policies (by updates) the run's curve has rows of on a start set."""
+    return {int(row["updates"]) for row in read_curve(run.curve / CURVE_CSV) if row["start_set"] == start_set}
+
+
+def choice_candidates(run: RunDir) -> list[int]:
+    """The updates of the last CHOICE_AMONG kept policies."""
+    return [updates for updates, _ in run.kept_policies()][-CHOICE_AMONG:]
+
+
+def read_choice(run: RunDir) -> dict | None:
+    try:
+        return json.loads((run.root / CHOICE_JSON).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def evaluated_updates(run: RunDir) -> int | None:
+    """The updates of the policy the run's evaluation read (its facts), None without one."""
+    if not (run.evaluation / SUMMARY_CSV).is_file():
+        return None
+    updates = str(read_facts(run.evaluation).get("updates", ""))
+    return int(updates) if updates.isdigit() else None
+
+
+def next_step(run_dir: Path, budget: int) -> str:
+    """The step the run in run_dir needs next, from what it holds on disk (budget: its total env steps)."""
+    run = RunDir(run_dir)
+    if not run.checkpoint.is_file():
+        return DONE if read_choice(run) and evaluated_updates(run) is not None else TRAIN
+    if checkpoint_env_steps(run.checkpoint) < budget:
+        return RESUME  # also a run read earlier at a smaller budget
+    if not curve_wanted([updates for updates, _ in run.kept_policies()]) <= curve_read(run):
+        return CURVE
+    choice = read_choice(run)
+    if choice is None or choice.get("among") != choice_candidates(run):
+        return CHOOSE
+    return DONE if evaluated_updates(run) == choice["updates"] else EVALUATE
+
+
+# --- the steps' outputs ------------------------------------------------------------------------------------------
+
+def write_cell(run: RunDir, spec: RunSpec, updates: int) -> None:
+    run.root.mkdir(parents=True, exist_ok=True)
+    (run.root / CELL_JSON).write_text(json.dumps({**asdict(spec), "updates": updates}, indent=1) + "\n")
+
+
+def read_cell(folder: Path) -> dict | None:
+    try:
+        cell = json.loads((folder / CELL_JSON).read_text())
+    except (OSError, ValueError):
+        return None
+    return cell if isinstance(cell, dict) and cell.get("options") in OPTION_SETS else None
+
+
+def choose(run: RunDir) -> dict:
+    """Writes choice.json: the run's policy, chosen on the train starts among its last CHOICE_AMONG kept."""
+    among = choice_candidates(run)
+    rows = [row for row in read_curve(run.curve / CURVE_CSV) if int(row["updates"]) in among]
+    if {int(row["updates"]) for row in rows if row["start_set"] == "train"} != set(among):
+        raise ExperimentError(f"{run.root}: the curve lacks train rows of the policies kept at "
+                              f"{', '.join(map(str, among))}")
+    chosen = chosen_on_train(rows)
+    choice = {"updates": chosen["updates"], "kept_file": str(run.policy(chosen["updates"]).name), "among": among,
+              "trials_per_start": CURVE_TRIALS,
+              **{key: chosen[key] for key in ("train_cfr", "train_mean_length", "test_cfr", "test_mean_length")}}
+    (run.root / CHOICE_JSON).write_text(json.dumps(choice, indent=1) + "\n")
+    return choice

@@ -1,0 +1,73 @@
+"""The main job (deploy/run.sh): the grid's BMC cell at buffer 1,000 (the drive preset) trained by the stack,
+then read as the grid reads a run: its greedy test curve, its policy chosen on the train starts among its
+last five kept, and that policy evaluated on both start sets. It ends with the chosen policy in
+runs/<run>/policy.pt and its evaluation in runs/<run>/evaluation/.
+
+Every flag of deploy/stack.py --help applies (the preset, the strategy, --resume, ...); with another preset
+or budget the same steps follow. Stopped by Ctrl-C, it stops where it is; the same command with --resume
+(while training) or as it was (after) goes on.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from common.config_cli import parse_config_or_exit
+from common.run_dir import RunDir
+from deploy.experiments import Options, choice_command, curve_commands, evaluate_command, preset_flags
+from deploy.grid_cells import CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, choose, next_step, \
+    read_choice
+from deploy.run_results import greedy_headline
+from deploy.stack import build_parser
+
+STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
+POLICY_FILE = "policy.pt"
+
+
+def call(command: list[str]) -> None:
+    code = subprocess.call(command)
+    if code != 0:
+        raise SystemExit(code)
+
+
+def read_run(run: RunDir, options: Options, budget: int) -> None:
+    """The steps after training, each as the grid takes it, until the run is done."""
+    while (step := next_step(run.root, budget)) != DONE:
+        print(f"main job: {step} ({run.root})", flush=True)
+        if step == CURVE:
+            for command in curve_commands(run, options):
+                call(command)
+        elif step == CHOOSE:
+            call(choice_command(run, options))
+            choice = choose(run)
+            print(f"main job: chose the policy kept at {choice['updates']:,d} updates on the train starts "
+                  f"(train CFR {100 * choice['train_cfr']:.0f}% at {choice['trials_per_start']} trials per start)")
+        elif step == EVALUATE:
+            call(evaluate_command(run, options, read_choice(run)["updates"]))
+        else:
+            raise SystemExit(f"main job: the run stopped short of its budget; `deploy/run.sh --resume` with "
+                             f"the same flags trains on ({run.root})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    flags = [*preset_flags(argv), *argv]
+    if any(flag in ("-h", "--help", "--dump-config") for flag in argv):
+        return subprocess.call([sys.executable, str(STACK_SCRIPT), *flags])
+    _, config = parse_config_or_exit(build_parser(), flags)
+    run, budget = RunDir.of(config), config.learner.total_env_steps
+    if next_step(run.root, budget) in (TRAIN, RESUME):
+        call([sys.executable, str(STACK_SCRIPT), *flags])
+    read_run(run, Options(Path(config.run.runs_dir), 0, FINAL_TRIALS, None, (), 0.0), budget)
+    policy = run.root / POLICY_FILE
+    shutil.copy2(run.policy(read_choice(run)["updates"]), policy)
+    print(f"main job: done. The chosen policy: {policy} (kept at {read_choice(run)['updates']:,d} updates); "
+          f"its evaluation: {run.evaluation}/summary.md\n  {greedy_headline(run.evaluation)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,227 @@
+"""The grid runner (deploy/experiments.py) and its cells (deploy/grid_cells.py): runs named by cell, the
+budget in updates, each step decided from the run folder, the curve's passes, the choice on the train
+starts, --cells and --cell, and the export of a grid run."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+import deploy.experiments as experiments
+from common.checkpoint import save_checkpoint
+from common.config_values import load_config, to_toml
+from deploy import grid_cells
+from deploy.grid_cells import RunSpec, choose, curve_wanted, next_step
+from deploy.run_results import export_run, read_exported
+from common.run_dir import RunDir
+from tests.grid_runs import fake_evaluation
+
+BUDGET = 148_000  # the drive preset: updates from 28,000 env steps, 30,000 of them at 4 env steps each
+KEPT = list(range(1_000, 30_001, 1_000))
+
+
+def options(tmp_path: Path, updates: int = 30_000, extra: tuple[str, ...] = ("--preset", "drive")):
+    return experiments.Options(tmp_path, updates, trials=10, actors=None, extra=extra, progress_s=30.0)
+
+
+def curve_rows(updates: list[int], start_set: str, cfr: dict[int, float] | None = None) -> list[dict]:
+    cfr = cfr or {}
+    return [{"updates": u, "env_steps": 28_000 + 4 * u, "wall_s": u / 4, "kept_file": f"policy-u{u:07d}.pt",
+             "trained_on": "cpu", "nice": 0, "start_set": start_set, "mean_length": 500 + u / 100,
+             "cfr": cfr.get(u, 0.1)} for u in updates]
+
+
+def write_curve(run: RunDir, rows: list[dict]) -> None:
+    run.curve.mkdir(parents=True, exist_ok=True)
+    with (run.curve / "curve.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def make_run(folder: Path, env_steps: int | None = None, kept: list[int] = (), curve: list[dict] = (),
+             strategy: str = "bmc", seed: int = 0) -> RunDir:
+    """A run folder as the steps leave it: its config, a checkpoint with this clock, kept policies, a curve."""
+    run = RunDir(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    config = load_config("drive", overrides={"run.name": folder.name, "exploration.strategy": strategy,
+                                             "run.seed": seed})
+    run.config.write_text(to_toml(config))
+    if env_steps is not None:
+        save_checkpoint(run.checkpoints, {"clock": {"env_steps": env_steps}, "learner": {"updates": 7}})
+    run.policies.mkdir(parents=True, exist_ok=True)
+    for updates in kept:
+        run.policy(updates).write_bytes(b"kept")
+    if curve:
+        write_curve(run, list(curve))
+    return run
+
+
+def test_runs_are_named_by_cell_and_seed_and_the_grid_orders_them():
+    specs = grid_cells.grid(["bmc", "softmax"], [1000, 2000], [0, 1], ["paper", "nstep3"])
+    assert len(specs) == 16
+    assert [spec.name for spec in specs[:5]] == ["bmc-b1000-s0", "softmax-b1000-s0", "bmc-b1000-s1",
+                                                 "softmax-b1000-s1", "bmc-b1000-nstep3-s0"]
+    assert specs[4].option_flags() == ["--learner.n_step", "3"]
+    assert RunSpec("bmc", 1000, 0, "stored").option_flags() == ["--learner.stored_state", "true",
+                                                                "--learner.burn_in", "0"]
+
+
+def test_the_budget_in_updates_sets_each_runs_step_budget_from_its_own_ratio(tmp_path):
+    opts = options(tmp_path)
+    command = experiments.stack_command(RunSpec("vdbe", 1000, 2), opts, resume=False)
+    flags = dict(zip(command[2::2], command[3::2]))
+    assert flags["--preset"] == "drive" and flags["--learner.total_env_steps"] == str(BUDGET)
+    assert flags["--run.name"] == "vdbe-b1000-s2" and flags["--exploration.strategy"] == "vdbe"
+    ratio2 = experiments.stack_command(RunSpec("bmc", 1000, 0, "ratio2"), opts, resume=True)
+    assert ratio2[-1] == "--resume" and ratio2[ratio2.index("--learner.total_env_steps") + 1] == str(28_000 + 60_000)
+    assert ratio2[ratio2.index("--learner.env_steps_per_update") + 1] == "2.0"
+
+
+@pytest.mark.parametrize("extra, message", [
+    (("--preset", "drive", "--replay.capacity", "5"), "set by the grid"),
+    (("--preset", "drive", "--learner.total_env_steps=4"), "set by the grid"),
+    (("--preset", "drive", "--learner.lr", "oops"), "learner.lr: expected a number"),
+    (("--preset", "local"), "learner.start_by steps"),  # the 999 random episodes end at another step per run
+    (("--preset", "drive", "--learner.keep_every", "0"), "learner.keep_every"),  # no curve to read
+])
+def test_config_flags_are_checked_before_anything_runs(tmp_path, extra, message):
+    with pytest.raises(grid_cells.ExperimentError, match=message):
+        experiments.check_config_flags(grid_cells.grid(["bmc"], [1000], [0]), options(tmp_path, extra=extra))
+
+
+def test_the_curve_reads_every_policy_to_20000_updates_then_every_2000():
+    wanted = curve_wanted(KEPT + [30_004])
+    assert sorted(wanted) == list(range(1_000, 20_001, 1_000)) + list(range(22_000, 30_001, 2_000))
+
+
+def test_what_a_run_folder_needs_next(tmp_path):
+    assert next_step(tmp_path / "fresh", BUDGET) == "train"
+    assert next_step(make_run(tmp_path / "short", 90_000, KEPT[:15]).root, BUDGET) == "resume"
+    full = make_run(tmp_path / "full", BUDGET, KEPT, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
+    assert next_step(full.root, BUDGET) == "curve"  # the sparse part is missing
+    write_curve(full, curve_rows(sorted(curve_wanted(KEPT)), "test"))
+    assert next_step(full.root, BUDGET) == "choose"
+    write_curve(full, curve_rows(sorted(curve_wanted(KEPT)), "test") + curve_rows(KEPT[-5:], "train"))
+    choose(full)
+    assert next_step(full.root, BUDGET) == "evaluate"
+    fake_evaluation(full.evaluation, [100, 50], updates=29_000)  # another policy's evaluation
+    assert next_step(full.root, BUDGET) == "evaluate"
+    fake_evaluation(full.evaluation, [100, 50], updates=30_000)
+    assert next_step(full.root, BUDGET) == "done"
+    full.policy(32_000).write_bytes(b"kept")  # trained on past the choice (a larger budget): read it, choose again
+    assert next_step(full.root, BUDGET) == "curve"
+
+
+def test_the_policy_is_chosen_on_the_train_starts_among_the_last_five_kept(tmp_path):
+    test_cfr = {26_000: 1.0}  # the best on the test starts must not decide
+    rows = (curve_rows(KEPT, "test", test_cfr) + curve_rows(KEPT[-5:], "train", {27_000: 0.8, 29_000: 0.8})
+            + curve_rows([20_000], "train", {20_000: 1.0}))  # older than the last five: not a candidate
+    run = make_run(tmp_path / "run", BUDGET, KEPT, rows)
+    choice = choose(run)
+    assert choice["updates"] == 29_000 and choice["among"] == KEPT[-5:]  # a tie on CFR: the longer, later one
+    assert json.loads((run.root / "choice.json").read_text())["kept_file"] == "policy-u0029000.pt"
+    assert choice["train_cfr"] == 0.8 and choice["test_cfr"] == 0.1
+    write_curve(run, curve_rows(KEPT, "test") + curve_rows(KEPT[-4:], "train"))
+    with pytest.raises(grid_cells.ExperimentError, match="lacks train rows"):
+        choose(run)
+
+
+def test_the_curve_passes_ask_only_for_what_is_missing(tmp_path):
+    opts = options(tmp_path)
+    run = make_run(tmp_path / "run", BUDGET, KEPT)
+    passes = experiments.curve_commands(run, opts)
+    assert [command[command.index("--sets"):command.index("--sets") + 4] for command in passes] == [
+        ["--sets", "test", "--to-updates", "20000"], ["--sets", "test", "--from-updates", "20001"]]
+    assert passes[1][passes[1].index("--every") + 1] == "2000"
+    write_curve(run, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
+    assert len(experiments.curve_commands(run, opts)) == 1
+    assert experiments.choice_command(run, opts)[5:9] == ["--sets", "train", "--from-updates", "26000"]
+    evaluate = experiments.evaluate_command(run, opts, 29_000)
+    assert evaluate[3:6] == ["--checkpoint", str(run.policy(29_000)), "--out"]
+    assert evaluate[-2:] == ["--evaluation.episodes_per_start", "10"]
+
+
+def test_cells_lists_the_numbered_runs_and_cell_runs_one(tmp_path, capsys):
+    argv = ["--strategies", "bmc,softmax", "--seeds", "0,1", "--runs-dir", str(tmp_path)]
+    assert experiments.main([*argv, "--cells"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[:2] for line in lines] == [["0", "bmc-b1000-s0"], ["1", "softmax-b1000-s0"],
+                                                   ["2", "bmc-b1000-s1"], ["3", "softmax-b1000-s1"]]
+    assert all(line.endswith("next: train") for line in lines)
+    plan = experiments.parse_arguments([*argv, "--cell", "2"])
+    assert [spec.name for spec in plan.specs] == ["bmc-b1000-s1"] and plan.numbers == [2]
+    assert experiments.main([*argv, "--cell", "4"]) == 2
+    assert "the grid has runs 0 to 3" in capsys.readouterr().err
+
+
+def test_the_learner_gets_the_cores_the_curve_and_other_runs_leave_it():
+    assert experiments.thread_flags([], parallel=1, curve_beside=False, cores=2) == []
+    assert experiments.thread_flags([], parallel=1, curve_beside=True, cores=2) == ["--learner.torch_threads", "1"]
+    assert experiments.thread_flags([], parallel=2, curve_beside=False, cores=8) == ["--learner.torch_threads", "4"]
+    assert experiments.thread_flags([], parallel=2, curve_beside=True, cores=2) == ["--learner.torch_threads", "1"]
+    assert experiments.thread_flags(["--learner.torch_threads=2"], parallel=2, curve_beside=True, cores=2) == []
+
+
+def test_a_grid_run_exports_its_cell_choice_curve_and_soak_under_its_cells_name(tmp_path):
+    run = make_run(tmp_path / "bmc-b1000-nstep3-s1", BUDGET, KEPT,
+                   curve_rows(sorted(curve_wanted(KEPT)), "test") + curve_rows(KEPT[-5:], "train"), seed=1)
+    grid_cells.write_cell(run, RunSpec("bmc", 1000, 1, "nstep3"), 30_000)
+    choose(run)
+    fake_evaluation(run.evaluation, [100, 50], updates=30_000)
+    run.soak.mkdir()
+    (run.soak / "soak.csv").write_text("time\n1\n")
+    folder = export_run(run, tmp_path / "export")
+    assert folder.name == "bmc-b1000-nstep3-s1"
+    for name in ("cell.json", "choice.json", "curve/curve.csv", "soak/soak.csv", "evaluation/summary.csv"):
+        assert (folder / name).is_file(), name
+    exported = read_exported(folder)
+    assert exported.identity == ("bmc", 1000, 1, "nstep3")
+
+
+def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_path, monkeypatch):
+    """The steps with every child a stand-in that leaves what the real one would: a stack stopped short is
+    resumed, then the curve, the choice and the evaluation follow; a second run of the grid does nothing."""
+    spec, opts = RunSpec("bmc", 1000, 0), options(tmp_path)
+    run = RunDir(tmp_path / spec.name)
+    calls = []
+
+    def stand_in(self, command, what, is_status, echo):
+        calls.append(what if what != "stack" else ("resume" if "--resume" in command else "train"))
+        if what == "stack":
+            reached = BUDGET if "--resume" in command else 90_000
+            make_run(run.root, reached, KEPT if reached == BUDGET else KEPT[:15])
+        elif what == "curve":
+            flag = dict(zip(command[5::2], command[6::2]))
+            low, high = int(flag.get("--from-updates", 0)), int(flag.get("--to-updates", 10 ** 9))
+            wanted = sorted(curve_wanted(KEPT)) if flag["--sets"] == "test" else KEPT[-5:]
+            old = list(csv.DictReader((run.curve / "curve.csv").open())) if (run.curve / "curve.csv").exists() else []
+            write_curve(run, old + curve_rows([u for u in wanted if low <= u <= high], flag["--sets"]))
+        elif what == "evaluate":
+            fake_evaluation(run.evaluation, [100, 100], updates=json.loads((run.root / "choice.json").read_text())["updates"])
+        return FakeChild()
+
+    monkeypatch.setattr(experiments.RunJob, "_start", stand_in)
+    monkeypatch.setattr(experiments, "trains_since", lambda *_: False)  # nothing beside the stand-in stack
+    assert experiments.run_grid([spec], opts, parallel=1) == 1  # the first stack stops short: an error
+    assert calls == ["train"]
+    calls.clear()
+    assert experiments.run_grid([spec], opts, parallel=1) == 0
+    assert calls == ["resume", "curve", "curve", "curve", "evaluate"]  # the dense, the sparse, the choice's pass
+    assert (tmp_path / "results" / "runs" / spec.name / "choice.json").is_file()
+    calls.clear()
+    assert experiments.run_grid([spec], opts, parallel=1) == 0 and calls == []
+
+
+class FakeChild:
+    process = type("Process", (), {"poll": staticmethod(lambda: 0)})()
+    latest = ""
+
+    def wait(self) -> int:
+        return 0
+
+    def interrupt(self) -> None:
+        pass
