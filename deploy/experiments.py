@@ -47,7 +47,7 @@ from deploy.child_process import Child
 from deploy.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, FINAL_TRIALS,
                                OPTION_SETS, PROTOCOL_PRESET, RESUME, TRAIN, ExperimentError, RunSpec, budget_env_steps,
                                checkpoint_env_steps, choice_candidates, choose, curve_read, curve_wanted, grid,
-                               next_step, read_choice, write_cell)
+                               next_step, read_cell, read_choice, write_cell)
 from deploy.run_results import ExportError, export_run, greedy_headline
 
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
@@ -254,6 +254,8 @@ class RunJob:
 
     def _steps(self) -> None:
         budget, done = run_budget(self.spec, self.options), []
+        if self.run.config.is_file() and read_cell(self.run.root) is None:  # a run started by hand
+            write_cell(self.run, self.spec, self.options.updates)
         while (step := next_step(self.run.root, budget)) != DONE:
             if done and done[-1] == step:
                 raise ExperimentError(f"the {step} step left the run as it was; see {self.run.logs}/")

@@ -1,0 +1,366 @@
+"""The grid's report, from exported runs only (deploy/run_results.py), so that it rebuilds from a fresh clone
+and merges runs of several machines:
+
+- per run: the time to drive (updates and env steps until the greedy test mean length first reaches 1,000
+  steps), where driving held from, the mean test length over the curve (the area under it over its span),
+  and the chosen policy's test mean length and CFR with their intervals over its trials;
+- per strategy (each cell of buffer and option set apart): the same over its seeds, with the paper's test CFR
+  beside it, and the interquartile mean of the chosen policies' test CFR over seeds x test starts with its
+  stratified bootstrap interval (common/analysis/across_seeds.py);
+- the paper's two claims read by the rule of common/analysis/across_seeds.py, with the probability of
+  improvement, and what the seeds can carry at all;
+- figures: the greedy test curves (median over seeds, band their range), and each seed's time to drive;
+- the soak across the grid: hours, restarts, memory growth per process, the largest run folder.
+
+    .venv/bin/python deploy/grid_report.py results/grid/runs --out results/grid
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read_curve
+from common.analysis import across_seeds
+from common.analysis.intervals import Bootstrap
+from common.analysis.plotting import finish_figure, pyplot
+from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
+from common.exploration.names import STRATEGIES
+from deploy.comparison import read_episodes_csv
+from deploy.grid_cells import read_choice
+from deploy.run_results import ExportedRun, collect
+
+# The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
+PAPER_TEST_CFR = {"vdbe_softmax": 87.54, "bmc": 86.71, "max_boltzmann": 84.14, "softmax": 82.25, "vdbe": 61.77,
+                  "constant": 59.79, "decreasing": 48.95}
+LEADERS = ("vdbe_softmax", "bmc")
+CLAIMS = (
+    ("1", "Softmax, MBE, VDBE-Softmax and BMC beat constant and decreasing epsilon-greedy",
+     ("softmax", "max_boltzmann", "vdbe_softmax", "bmc"), ("constant", "decreasing")),
+    ("2", "VDBE-Softmax and BMC lead at buffer 1,000 (against the other five)",
+     LEADERS, tuple(name for name in STRATEGIES if name not in LEADERS)),
+)
+CELL = tuple[int, str]  # replay capacity, learner option set
+
+
+@dataclass
+class GridRun:
+    run: ExportedRun
+    test_rows: list[dict]  # its greedy test curve, by updates
+    choice: dict
+    greedy_test: dict  # the chosen policy's greedy test row of evaluate's summary.csv
+    start_cfr: np.ndarray  # its test CFR per start, by start index
+
+    @property
+    def cell(self) -> CELL:
+        return self.run.capacity, self.run.options
+
+
+def read_runs(folders: Sequence[Path], warn=print) -> list[GridRun]:
+    """The exported runs of the grid runner (a curve, a choice and its evaluation) in these folders."""
+    runs = []
+    for run in collect(folders, warn=warn):
+        choice = read_choice(run.layout)
+        curve = run.folder / "curve" / CURVE_CSV
+        if choice is None or not curve.is_file():
+            continue  # a run of the earlier comparison: deploy/report.py reads it
+        rows = sorted((row for row in read_curve(curve) if row["start_set"] == "test"), key=lambda r: int(r["updates"]))
+        episodes, _ = read_episodes_csv(run.layout.evaluation / EPISODES_CSV)
+        runs.append(GridRun(run, rows, choice, _greedy_row(run.layout.evaluation / SUMMARY_CSV, "test"),
+                            start_cfr(episodes)))
+    return sorted(runs, key=lambda item: (item.cell, STRATEGIES.index(item.run.strategy), item.run.seed))
+
+
+def _greedy_row(summary_csv: Path, start_set: str) -> dict:
+    with summary_csv.open(newline="") as handle:
+        return next(row for row in csv.DictReader(handle) if row["policy"] == "greedy" and row["start_set"] == start_set)
+
+
+def start_cfr(episodes) -> np.ndarray:
+    """The greedy test CFR of each test start (the tasks of the statistics across seeds)."""
+    by_start: dict[int, list[bool]] = {}
+    for episode in episodes:
+        if episode.policy == "greedy" and episode.start_set == "test":
+            by_start.setdefault(episode.start_index, []).append(episode.collision_free)
+    return np.asarray([np.mean(by_start[start]) for start in sorted(by_start)])
+
+
+def curve_mean(rows: Sequence[dict]) -> float:
+    """The mean test length over the curve's span of updates: the area under it (trapezoids) over the span,
+    so that a curve read more sparsely late is not weighted by its number of points."""
+    updates = np.asarray([int(row["updates"]) for row in rows], dtype=float)
+    lengths = np.asarray([float(row["mean_length"]) for row in rows])
+    if len(rows) < 2:
+        return float(lengths[0]) if len(rows) else math.nan
+    return float(np.sum((lengths[1:] + lengths[:-1]) / 2 * np.diff(updates)) / (updates[-1] - updates[0]))
+
+
+def run_row(item: GridRun) -> dict:
+    drive = first_reaching(item.test_rows, "mean_length", DRIVE_LENGTH)
+    held = first_reaching(item.test_rows, "mean_length", DRIVE_LENGTH, held=True)
+    test = item.greedy_test
+    return {
+        "strategy": item.run.strategy, "capacity": item.run.capacity, "options": item.run.options,
+        "seed": item.run.seed, "updates": item.run.updates or "",
+        "updates_to_drive": drive["updates"] if drive else "", "env_steps_to_drive": drive["env_steps"] if drive else "",
+        "hours_to_drive": round(drive["wall_s"] / 3600, 2) if drive else "",
+        "drive_held_from": held["updates"] if held else "",
+        "curve_mean_length": round(curve_mean(item.test_rows), 1),
+        "chosen_updates": item.choice["updates"],
+        "test_mean_length": float(test["mean_length"]), "test_mean_length_low": float(test["mean_length_low"]),
+        "test_mean_length_high": float(test["mean_length_high"]),
+        "test_cfr": float(test["cfr"]), "test_cfr_low": float(test["cfr_low"]), "test_cfr_high": float(test["cfr_high"]),
+        "trained_on": item.test_rows[-1]["trained_on"] if item.test_rows else "",
+    }
+
+
+def strategy_rows(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[dict]:
+    rows = []
+    for cell in sorted({item.cell for item in runs}):
+        for strategy in STRATEGIES:
+            seeds = [item for item in runs if item.cell == cell and item.run.strategy == strategy]
+            if not seeds:
+                continue
+            per_run = [run_row(item) for item in seeds]
+            drives = [row["updates_to_drive"] for row in per_run]
+            reached = sorted(value for value in drives if value != "")
+            iqm = across_seeds.iqm_estimate(np.vstack([item.start_cfr for item in seeds]), bootstrap)
+            rows.append({
+                "strategy": strategy, "capacity": cell[0], "options": cell[1], "seeds": len(seeds),
+                "drove": f"{len(reached)}/{len(seeds)}",
+                "updates_to_drive": ";".join(str(value) if value != "" else "not" for value in drives),
+                "median_updates_to_drive": float(np.median(reached)) if len(reached) * 2 > len(seeds) else "",
+                "curve_mean_length": round(float(np.mean([row["curve_mean_length"] for row in per_run])), 1),
+                "test_mean_length": round(float(np.mean([row["test_mean_length"] for row in per_run])), 1),
+                "test_cfr": float(np.mean([row["test_cfr"] for row in per_run])),
+                "test_cfr_by_seed": ";".join(f"{row['test_cfr']:.3f}" for row in per_run),
+                "iqm_test_cfr": iqm.point, "iqm_test_cfr_low": iqm.interval.low, "iqm_test_cfr_high": iqm.interval.high,
+                "paper_test_cfr": PAPER_TEST_CFR[strategy] / 100 if cell == (1000, "paper") else "",
+            })
+    return rows
+
+
+def claim_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1000, "paper")) -> list[dict]:
+    """The paper's claims on the runs of one cell (the paper's learner at buffer 1,000): each group of
+    strategies pooled, a run scored by its chosen policy's test CFR per start."""
+    readings = []
+    for number, text, better, worse in CLAIMS:
+        groups = [[item.start_cfr for item in runs if item.cell == cell and item.run.strategy in side]
+                  for side in (better, worse)]
+        if not all(groups):
+            readings.append({"claim": number, "text": text, "reading": "not asked (a side has no runs)"})
+            continue
+        found = across_seeds.claim(np.vstack(groups[0]), np.vstack(groups[1]), bootstrap)
+        readings.append({"claim": number, "text": text, "reading": found.reading, "p_value": found.p_value,
+                         "runs": f"{found.a_runs} vs {found.b_runs}", "improvement": found.improvement.point,
+                         "improvement_low": found.improvement.interval.low,
+                         "improvement_high": found.improvement.interval.high,
+                         "smallest_p": across_seeds.smallest_p_value(found.a_runs, found.b_runs)})
+    return readings
+
+
+def pair_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1000, "paper")) -> list[dict]:
+    """Every two strategies of a cell: P(first > second) with its interval (no claim: see seeds_to_support)."""
+    by_strategy = {name: np.vstack([item.start_cfr for item in runs if item.cell == cell and item.run.strategy == name])
+                   for name in STRATEGIES if any(item.cell == cell and item.run.strategy == name for item in runs)}
+    rows = []
+    for first in by_strategy:
+        for second in by_strategy:
+            if STRATEGIES.index(first) < STRATEGIES.index(second):
+                found = across_seeds.improvement_estimate(by_strategy[first], by_strategy[second], bootstrap)
+                rows.append({"first": first, "second": second, "improvement": found.point,
+                             "low": found.interval.low, "high": found.interval.high})
+    return rows
+
+
+# --- the soak across the grid -----------------------------------------------------------------------------------
+
+def soak_rows(runs: Sequence[GridRun]) -> list[dict]:
+    rows = []
+    for item in runs:
+        path = item.run.folder / "soak" / "soak_summary.json"
+        if not path.is_file():
+            continue
+        summary = json.loads(path.read_text())
+        rows.append({"run": item.run.name, "hours": summary["hours"], "restarts": summary["restarts"],
+                     "folder_mb": summary["folder_bytes_last"] / 1e6,
+                     **{f"{name}_mb_per_hour": figures["second_half_mb_per_hour"]
+                        for name, figures in summary["memory"].items() if name != "curve"},
+                     "replay_rest_mb_per_hour": summary.get("replay_held", {}).get("replay_rest_mb_per_hour", math.nan)})
+    return rows
+
+
+def soak_lines(rows: Sequence[dict]) -> list[str]:
+    if not rows:
+        return ["No run of the grid has a soak yet."]
+    processes = sorted({key for row in rows for key in row if key.endswith("_mb_per_hour")})
+    largest = max(rows, key=lambda row: row["folder_mb"])
+    lines = [f"{len(rows)} runs, {sum(row['hours'] for row in rows):.1f} hours of run time in all, "
+             f"{sum(row['restarts'] for row in rows)} restarts; the largest run folder {largest['run']} "
+             f"({largest['folder_mb']:,.0f} MB).", "",
+             "| Process | memory growth in the second half of each run, MB/h: median | largest |", "|---|---:|---:|"]
+    for key in processes:
+        values = [row[key] for row in rows if key in row and math.isfinite(row[key])]
+        if values:
+            lines.append(f"| {key.removesuffix('_mb_per_hour')} | {np.median(values):+.1f} | {max(values):+.1f} |")
+    return lines
+
+
+# --- figures ---------------------------------------------------------------------------------------------------
+
+def plot_curves(runs: Sequence[GridRun], path: Path, cell: CELL) -> None:
+    """Greedy test mean length against updates: per strategy the median over seeds at the policies every seed
+    has, and a band from the lowest seed to the highest."""
+    plt = pyplot()
+    figure, ax = plt.subplots(figsize=(10, 5.5), dpi=90)
+    colours = dict(zip(STRATEGIES, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    for strategy in STRATEGIES:
+        seeds = [item for item in runs if item.cell == cell and item.run.strategy == strategy]
+        if not seeds:
+            continue
+        shared = sorted(set.intersection(*({int(row["updates"]) for row in item.test_rows} for item in seeds)))
+        values = np.asarray([[float(next(row for row in item.test_rows if int(row["updates"]) == u)["mean_length"])
+                              for item in seeds] for u in shared]).reshape(len(shared), len(seeds))
+        ax.plot(shared, np.median(values, axis=1), color=colours[strategy], linewidth=2,
+                label=f"{strategy} ({len(seeds)} seeds)")
+        ax.fill_between(shared, values.min(axis=1), values.max(axis=1), color=colours[strategy], alpha=0.12, linewidth=0)
+    ax.axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
+    ax.set(xlabel="updates", ylabel="greedy test mean length (steps)")
+    finish_figure(plt, figure, [ax], path, f"greedy test curves, buffer {cell[0]}, {cell[1]} learner: median over "
+                                          "seeds, band lowest to highest")
+
+
+def plot_time_to_drive(rows: Sequence[dict], path: Path, budget: int) -> None:
+    """Each seed's updates to drive as a dot per strategy; a seed that did not drive by the budget as an x."""
+    plt = pyplot()
+    figure, ax = plt.subplots(figsize=(8, 4.5), dpi=90)
+    names = [name for name in STRATEGIES if any(row["strategy"] == name for row in rows)]
+    for index, name in enumerate(names):
+        mine = [row for row in rows if row["strategy"] == name]
+        drove = [row["updates_to_drive"] for row in mine if row["updates_to_drive"] != ""]
+        ax.scatter([index] * len(drove), drove, color="C0", zorder=3)
+        missed = len(mine) - len(drove)
+        ax.scatter([index] * missed, [budget * 1.03] * missed, marker="x", color="C3", zorder=3)
+    ax.set_xticks(range(len(names)), names, rotation=20)
+    ax.axhline(budget, color="grey", linestyle=":", linewidth=1)
+    ax.set(ylabel="updates to drive (x: not by the budget)")
+    finish_figure(plt, figure, [ax], path, "time to drive per seed: the first greedy test mean length >= 1,000")
+
+
+# --- the page --------------------------------------------------------------------------------------------------
+
+def _percent(value) -> str:
+    return "–" if value == "" or value is None else f"{100 * float(value):.1f}%"
+
+
+def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
+    per_run = [run_row(item) for item in runs]
+    lines = ["# The grid: the exploration strategies past the knee", "",
+             f"{len(runs)} runs. Protocol: docs/experiments.md. Intervals: {100 * bootstrap.confidence:g}% "
+             f"percentile, {bootstrap.replicates} bootstrap replicates.", "",
+             "## Per run", "",
+             "| Strategy | Buffer | Options | Seed | Updates | Updates to drive (env steps) | Held from | "
+             "Curve mean length | Chosen | Test mean length [CI] | Test CFR [CI] | Trained on |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for row in per_run:
+        drive = (f"{row['updates_to_drive']:,d} ({row['env_steps_to_drive']:,d})" if row["updates_to_drive"] != ""
+                 else "not reached")
+        lines.append(
+            f"| {row['strategy']} | {row['capacity']} | {row['options']} | {row['seed']} | {row['updates']} | {drive} | "
+            f"{row['drive_held_from'] or '–'} | {row['curve_mean_length']:,.0f} | {row['chosen_updates']:,d} | "
+            f"{row['test_mean_length']:,.0f} [{row['test_mean_length_low']:,.0f}, {row['test_mean_length_high']:,.0f}] | "
+            f"{_percent(row['test_cfr'])} [{_percent(row['test_cfr_low'])}, {_percent(row['test_cfr_high'])}] | "
+            f"{row['trained_on']} |")
+    lines += ["", "## Per strategy", "",
+              "| Strategy | Buffer | Options | Seeds | Drove | Updates to drive, by seed | Curve mean length | "
+              "Test mean length | Test CFR, by seed | IQM test CFR [CI] | Paper's test CFR |",
+              "|---|---:|---|---:|---:|---|---:|---:|---|---:|---:|"]
+    for row in strategy_rows(runs, bootstrap):
+        lines.append(
+            f"| {row['strategy']} | {row['capacity']} | {row['options']} | {row['seeds']} | {row['drove']} | "
+            f"{row['updates_to_drive']} | {row['curve_mean_length']:,.0f} | {row['test_mean_length']:,.0f} | "
+            f"{', '.join(_percent(value) for value in row['test_cfr_by_seed'].split(';'))} | "
+            f"{_percent(row['iqm_test_cfr'])} [{_percent(row['iqm_test_cfr_low'])}, {_percent(row['iqm_test_cfr_high'])}] | "
+            f"{_percent(row['paper_test_cfr'])} |")
+    lines += ["", "## The paper's claims", "", _rule_text(), ""]
+    for reading in claim_readings(runs, bootstrap):
+        if "p_value" not in reading:
+            lines.append(f"- Claim {reading['claim']} ({reading['text']}): {reading['reading']}.")
+            continue
+        lines.append(f"- Claim {reading['claim']} ({reading['text']}): **{reading['reading']}**; runs "
+                     f"{reading['runs']}, one-sided Mann-Whitney p = {reading['p_value']:.4f} (the least these "
+                     f"runs can give: {reading['smallest_p']:.2g}), P(better > worse) = {reading['improvement']:.2f} "
+                     f"[{reading['improvement_low']:.2f}, {reading['improvement_high']:.2f}].")
+    lines += ["", f"A claim about one pair of strategies needs {across_seeds.seeds_to_support()} seeds a side: with "
+              f"3 against 3 the least one-sided p-value is {across_seeds.smallest_p_value(3, 3):.2f}, not below "
+              f"{across_seeds.SIGNIFICANCE}. Every pair's probability of improvement, as a guide:", "",
+              "| First | Second | P(first > second) [CI] |", "|---|---|---:|"]
+    for row in pair_readings(runs, bootstrap):
+        lines.append(f"| {row['first']} | {row['second']} | {row['improvement']:.2f} [{row['low']:.2f}, {row['high']:.2f}] |")
+    lines += ["", "## Soak across the grid", "", *soak_lines(soak_rows(runs))]
+    return lines
+
+
+def _rule_text() -> str:
+    return (f"The rule (common/analysis/across_seeds.py): a claim is supported when the one-sided Mann-Whitney "
+            f"test of the better group's runs against the worse group's gives p < {across_seeds.SIGNIFICANCE} and "
+            f"the interval of P(better > worse) lies above {across_seeds.NO_IMPROVEMENT}; a lean when only the "
+            f"point estimate of P(better > worse) is above {across_seeds.NO_IMPROVEMENT}; can't tell otherwise. "
+            "A run's score is its chosen policy's test CFR per test start; P is averaged over the starts, and "
+            "the test reads each run's mean over them.")
+
+
+def write_csv(path: Path, rows: Sequence[dict]) -> Path:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def report_on(folders: Sequence[Path], out: Path, bootstrap: Bootstrap | None = None, warn=print) -> list[Path]:
+    """Writes grid.md, grid_runs.csv, grid_strategies.csv, curves.png and time_to_drive.png into `out`."""
+    bootstrap = bootstrap or Bootstrap()
+    runs = read_runs(folders, warn)
+    if not runs:
+        raise ValueError("no finished grid run (with a curve, a choice and an evaluation) in "
+                         + ", ".join(map(str, folders)))
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [run_row(item) for item in runs]
+    paths = [write_csv(out / "grid_runs.csv", rows), write_csv(out / "grid_strategies.csv", strategy_rows(runs, bootstrap))]
+    cell = (1000, "paper") if any(item.cell == (1000, "paper") for item in runs) else runs[0].cell
+    plot_curves(runs, out / "curves.png", cell)
+    budget = max(int(item.test_rows[-1]["updates"]) for item in runs if item.test_rows)
+    plot_time_to_drive([row for row in rows if (row["capacity"], row["options"]) == cell], out / "time_to_drive.png",
+                       budget)
+    (out / "grid.md").write_text("\n".join(report_lines(runs, bootstrap)
+                                           + ["", "![curves](curves.png)", "", "![time to drive](time_to_drive.png)"])
+                                 + "\n")
+    return [out / "grid.md", *paths, out / "curves.png", out / "time_to_drive.png"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="deploy/grid_report.py", description=__doc__.splitlines()[0])
+    parser.add_argument("folders", type=Path, nargs="+", help="folders of exported runs (the first copy of a run wins)")
+    parser.add_argument("--out", type=Path, required=True, help="where grid.md, the CSVs and the figures go")
+    args = parser.parse_args(argv)
+    try:
+        paths = report_on(args.folders, args.out, warn=lambda line: print(line, file=sys.stderr))
+    except ValueError as error:
+        print(f"grid_report: {error}", file=sys.stderr)
+        return 1
+    print((args.out / "grid.md").read_text())
+    print("wrote " + ", ".join(map(str, paths)), file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
