@@ -46,8 +46,8 @@ DRIVE = {
 PRESETS: dict[str, Preset] = {
     "paper": Preset("the paper's values, which are the defaults", {}),
     "local": Preset(
-        "the main job on a 2-core CPU machine (about 30 minutes): the paper's agent, buffer and ratio, with the run "
-        "cut to 60,000 steps and the decreasing schedule scaled to that length", LOCAL),
+        "a quick look on a 2-core CPU machine (about 30 minutes, a car that does not drive yet): the paper's agent, "
+        "buffer and ratio, with the run cut to 60,000 steps and the decreasing schedule scaled to that length", LOCAL),
     "fast": Preset(
         "the local preset trained past the knee, with the learner in bfloat16 where the CPU does it natively and "
         "measures faster (the study, docs/results/study.md). Beyond the paper: learner.precision auto (the same "

@@ -1,0 +1,97 @@
+"""The grid's report (deploy/grid_report.py) on exported runs made by hand: each figure against values
+computed by hand."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.config_values import load_config, to_toml
+from deploy import grid_report
+from tests.grid_runs import fake_evaluation
+
+CURVE = {1000: 200, 2000: 1200, 3000: 800, 4000: 1100, 6000: 1500}  # updates: greedy test mean length
+
+
+def exported_run(top: Path, strategy: str, seed: int, starts: list[int], curve: dict[int, float] = CURVE) -> Path:
+    """An exported grid run: its greedy test curve, its choice, and its chosen policy's evaluation (one
+    greedy episode per start, of these lengths; 100 reaches the cap)."""
+    folder = top / f"{strategy}-b1000-s{seed}"
+    (folder / "curve").mkdir(parents=True)
+    config = load_config("drive", overrides={"run.name": folder.name, "exploration.strategy": strategy,
+                                             "run.seed": seed})
+    (folder / "config.toml").write_text(to_toml(config))
+    (folder / "cell.json").write_text(json.dumps({"strategy": strategy, "capacity": 1000, "seed": seed,
+                                                  "options": "paper", "updates": 6000}))
+    (folder / "choice.json").write_text(json.dumps({"updates": 6000, "among": [2000, 3000, 4000, 6000]}))
+    with (folder / "curve" / "curve.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["updates", "env_steps", "wall_s", "kept_file", "trained_on",
+                                                    "nice", "start_set", "mean_length", "cfr"])
+        writer.writeheader()
+        for updates, length in curve.items():
+            writer.writerow({"updates": updates, "env_steps": 28_000 + 4 * updates, "wall_s": updates / 2,
+                             "kept_file": f"policy-u{updates:07d}.pt", "trained_on": "AMD EPYC", "nice": 0,
+                             "start_set": "test", "mean_length": length, "cfr": 0.5})
+    fake_evaluation(folder / "evaluation", starts, updates=6000)
+    return folder
+
+
+def test_a_runs_row_reads_its_curve_and_its_chosen_policy(tmp_path):
+    exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])
+    (run,) = grid_report.read_runs([tmp_path])
+    row = grid_report.run_row(run)
+    assert (row["updates_to_drive"], row["env_steps_to_drive"], row["drive_held_from"]) == (2000, 36_000, 4000)
+    # trapezoids: (200+1200)/2 + (1200+800)/2 + (800+1100)/2 over 1,000 each, (1100+1500)/2 over 2,000; / 5,000
+    assert row["curve_mean_length"] == pytest.approx((700 + 1000 + 950 + 2600) * 1000 / 5000)
+    assert row["test_cfr"] == pytest.approx(0.75) and row["chosen_updates"] == 6000
+    assert run.start_cfr.tolist() == [1.0, 1.0, 1.0, 0.0]
+
+
+def test_a_run_that_never_drove_has_no_time_to_drive():
+    assert grid_report.curve_mean([{"updates": 1000, "mean_length": 5}]) == 5
+    assert math.isnan(grid_report.curve_mean([]))
+
+
+def test_a_strategys_row_pools_its_seeds_and_takes_the_iqm_over_seeds_and_starts(tmp_path):
+    for seed, starts in enumerate(([100, 100, 100, 50], [100, 50, 50, 50], [100, 100, 50, 40])):
+        exported_run(tmp_path, "bmc", seed, starts)
+    (row,) = grid_report.strategy_rows(grid_report.read_runs([tmp_path]), grid_report.Bootstrap(replicates=200))
+    # 12 scores, six 1s and six 0s: the middle six (three cut from each end) are three 0s and three 1s
+    assert row["iqm_test_cfr"] == pytest.approx(0.5)
+    assert row["iqm_test_cfr_low"] <= 0.5 <= row["iqm_test_cfr_high"]
+    assert row["test_cfr"] == pytest.approx(np.mean([0.75, 0.25, 0.5]))
+    assert row["drove"] == "3/3" and row["updates_to_drive"] == "2000;2000;2000"
+    assert row["paper_test_cfr"] == pytest.approx(0.8671)
+
+
+def test_the_claims_pool_strategies_and_three_seeds_a_side_can_only_lean(tmp_path):
+    for seed in range(3):
+        exported_run(tmp_path, "bmc", seed, [100, 100, 100, 100])
+        exported_run(tmp_path, "constant", seed, [50, 50, 50, 50])
+    runs = grid_report.read_runs([tmp_path])
+    first, second = grid_report.claim_readings(runs, grid_report.Bootstrap(replicates=200))
+    for reading in (first, second):
+        # every BMC run above every constant run: P = 1, and the least p-value of 3 runs against 3, 1/20
+        assert reading["improvement"] == 1.0 and reading["p_value"] == pytest.approx(0.05)
+        assert reading["smallest_p"] == pytest.approx(0.05) and reading["reading"] == "a lean"
+    (pair,) = grid_report.pair_readings(runs, grid_report.Bootstrap(replicates=200))
+    assert (pair["first"], pair["second"], pair["improvement"]) == ("constant", "bmc", 0.0)
+
+
+def test_the_report_is_written_from_exported_runs_alone(tmp_path):
+    for seed in range(2):
+        exported_run(tmp_path / "runs", "softmax", seed, [100, 50, 50, 50])
+    exported_run(tmp_path / "runs", "vdbe", 0, [50, 50, 50, 50], curve={1000: 100, 2000: 300})
+    paths = grid_report.report_on([tmp_path / "runs"], tmp_path / "out", grid_report.Bootstrap(replicates=100))
+    assert sorted(path.name for path in paths) == ["curves.png", "grid.md", "grid_runs.csv", "grid_strategies.csv",
+                                                  "time_to_drive.png"]
+    page = (tmp_path / "out" / "grid.md").read_text()
+    assert "| vdbe | 1000 | paper | 0 | 6000 | not reached |" in page
+    assert "Claim 1" in page and "needs 4 seeds a side" in page
+    with pytest.raises(ValueError, match="no finished grid run"):
+        grid_report.report_on([tmp_path / "out"], tmp_path / "again")

@@ -1,0 +1,56 @@
+"""The main job (deploy/run.sh -> deploy/main_job.py): the stack, then the grid's steps, ending with the chosen
+policy in runs/<run>/policy.pt and its evaluation; every child a stand-in that leaves what the real one would."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+
+from common.run_dir import RunDir
+from deploy import main_job
+from deploy.grid_cells import curve_wanted, read_choice
+from tests.grid_runs import fake_evaluation
+from tests.test_grid_runner import BUDGET, KEPT, curve_rows, make_run, write_curve
+
+
+def stand_in(run: RunDir, calls: list[str], reached: int = BUDGET):
+    def call(command: list[str]) -> None:
+        if command[1].endswith("stack.py"):
+            calls.append("stack")
+            make_run(run.root, reached, KEPT if reached == BUDGET else KEPT[:5])
+            for kept in KEPT:
+                run.policy(kept).write_bytes(f"weights {kept}".encode())
+        elif "--curve" in command:
+            sets = command[command.index("--sets") + 1]
+            calls.append(f"curve {sets}")
+            old = list(csv.DictReader(run.curve.joinpath("curve.csv").open())) if (run.curve / "curve.csv").exists() else []
+            new = sorted(curve_wanted(KEPT)) if sets == "test" else KEPT[-5:]
+            write_curve(run, old + [row for row in curve_rows(new, sets) if str(row["updates"]) not in
+                                    {r["updates"] for r in old if r["start_set"] == sets}])
+        else:
+            calls.append("evaluate")
+            fake_evaluation(run.evaluation, [100, 50], updates=read_choice(run)["updates"])
+    return call
+
+
+def test_the_main_job_trains_then_reads_chooses_evaluates_and_ships_the_policy(tmp_path, monkeypatch, capsys):
+    run, calls = RunDir(tmp_path / "job"), []
+    monkeypatch.setattr(main_job, "call", stand_in(run, calls))
+    assert main_job.main(["--run.runs_dir", str(tmp_path), "--run.name", "job"]) == 0
+    assert calls == ["stack", "curve test", "curve test", "curve train", "evaluate"]
+    chosen = read_choice(run)["updates"]
+    assert (run.root / "policy.pt").read_bytes() == f"weights {chosen}".encode()
+    out = capsys.readouterr().out
+    assert f"{run.root / 'policy.pt'}" in out and "evaluation/summary.md" in out
+    calls.clear()
+    assert main_job.main(["--run.runs_dir", str(tmp_path), "--run.name", "job"]) == 0  # done: nothing again
+    assert calls == []
+
+
+def test_a_main_job_stopped_in_training_says_how_to_go_on(tmp_path, monkeypatch):
+    run, calls = RunDir(tmp_path / "job"), []
+    monkeypatch.setattr(main_job, "call", stand_in(run, calls, reached=60_000))
+    with pytest.raises(SystemExit, match="--resume"):
+        main_job.main(["--run.runs_dir", str(tmp_path), "--run.name", "job"])
+    assert calls == ["stack"]
