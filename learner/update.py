@@ -60,7 +60,8 @@ import torch
 from common import cpu_capability
 from common.config import LearnerConfig, NetworkConfig
 from common.exploration.bmc import greedy_and_uniform_returns
-from common.network import D3RQN, RecurrentState, resolve_device, scale_frames, weights_to_numpy
+from common.network import (D3RQN, RecurrentState, initial_network, resolve_device, scale_frames,
+                            weights_to_numpy)
 from common.stored_state import lstm_state
 from learner.allocator import keep_freed_memory
 
@@ -394,9 +395,7 @@ class DoubleQLearner:
         self.config = learner
         self.device = device if device is not None else resolve_device(network)
         keep_freed_memory()
-        with torch.random.fork_rng(devices=[]):  # seeded weights without touching the caller's RNG
-            torch.manual_seed(learner.seed)
-            self.online = D3RQN(network).to(self.device)
+        self.online = initial_network(network, learner.seed).to(self.device)
         self.target = _packed(copy.deepcopy(self.online)).requires_grad_(False)
         self.optimizer = _adam(self.online.parameters(), learner.lr)
         self.updates = 0
