@@ -56,7 +56,7 @@ from actor.sim import make_env
 from common.config import Config
 from common.exploration.build import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
-from common.network import D3RQN
+from common.network import initial_network
 from common.rejections import Rejections
 from common.service import Service
 from common.stored_state import no_states
@@ -224,7 +224,8 @@ class Actor:
         seeds = [env_seed(self.seed, index) for index in range(config.actor.envs_per_actor)]
         self.slots = [EnvSlot(index, make_env(config.env, seed=seed), seed, np.random.default_rng(seed))
                       for index, seed in enumerate(seeds)]
-        self.network = D3RQN(config.network).eval()
+        # the learner's initial network (learner.seed): what the random phase runs for its stored states
+        self.network = initial_network(config.network, config.learner.seed).eval()
         self.batched_q = BatchedQ(self.network, len(self.slots),
                                   choose_precision(self.network, len(self.slots), config.actor.inference))
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
@@ -315,10 +316,17 @@ class Actor:
         if not running:
             return []
         if not self.uses_network():
+            if self.config.learner.stored_state:
+                # The random phase acts uniformly but still runs the network, so that its episodes store the
+                # initial network's real LSTM states, not zero rows mid-episode (docs/method.md, learner.stored_state).
+                self._q_values(running)
             return [int(slot.rng.integers(self.config.network.n_actions)) for slot in running]
-        q_values = self.batched_q.q_values([slot.index for slot in running],
-                                           [slot.episode.frames[-1] for slot in running]).numpy()
+        q_values = self._q_values(running).numpy()
         return [self.strategy.act(row, slot.rng) for row, slot in zip(q_values, running)]
+
+    def _q_values(self, running: list[EnvSlot]) -> torch.Tensor:
+        """The running simulators' Q-values on their latest frames; advances their LSTM states."""
+        return self.batched_q.q_values([slot.index for slot in running], [slot.episode.frames[-1] for slot in running])
 
     def _finish(self, slot: EnvSlot, terminated: bool, truncated: bool, info: dict) -> tuple[Episode, EpisodeRecord]:
         buffer, slot.episode = slot.episode, None

@@ -31,6 +31,15 @@ def resolve_device(config: NetworkConfig) -> torch.device:
     return torch.device(config.device)
 
 
+def initial_network(config: NetworkConfig, seed: int) -> "D3RQN":
+    """The D3RQN every run starts from, seeded by learner.seed, without touching the caller's RNG: the learner's
+    online network, and the network an actor runs before the learner's first weights arrive (the random phase's
+    stored states, learner.stored_state), are the same one."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return D3RQN(config)
+
+
 def conv_output_shape(height: int, width: int) -> tuple[int, int]:
     """Spatial size after the three VALID convolutions (66x200 -> 4x21)."""
     for _, kernel, stride in CONV_LAYERS:

@@ -174,12 +174,21 @@ class StackMonitor:
             "replay_episodes_total": _count(replay, "inserted"),
             "episodes": self.episodes,
             "restarts": dict(restarts or {}),
+            # what the learner's updates ran, from its own metrics (learner.precision and update_path "auto"
+            # resolve at its first batch); None before any metrics came
+            "learner_precision": _text(learner, "precision"),
+            "learner_update_path": _text(learner, "update_path"),
         }
 
 
 def _number(values: dict, name: str, default: float) -> float:
     value = stat_number(values, name)
     return default if value is None else float(value)
+
+
+def _text(values: dict, name: str) -> str | None:
+    value = values.get(name)
+    return value if isinstance(value, str) else None
 
 
 def _count(values: dict, name: str) -> int:

@@ -116,12 +116,13 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
         # 1. act (learner.stored_state: first record the state the network takes this frame in)
         if learner_config.stored_state:
             states.append(state_row(*state))
-        if strategy.started:
+        if strategy.started or learner_config.stored_state:  # the random phase too: real stored states
             torch.set_num_threads(1)  # one frame: more threads only wait for each other
             with torch.inference_mode():
                 frame = torch.from_numpy(observation).view(1, 1, *observation.shape).to(learner.device)
                 q_values, state = acting(frame, state)
             torch.set_num_threads(update_threads)
+        if strategy.started:
             action = strategy.act(q_values[0, 0].cpu().numpy(), rng)
         else:
             action = int(rng.integers(config.network.n_actions))

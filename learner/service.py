@@ -547,6 +547,9 @@ class LearnerMetrics:
             "weights_version": self.process.latest_weights.version if self.process.latest_weights else -1,
             "bmc_observations": self.process.bmc_observations,
             "failed_updates": self.process.failed_updates,
+            # what the updates actually ran: "auto" resolves on the first batch (learner/update.py)
+            "precision": self.process.learner.precision,
+            "update_path": self.process.learner.update_path,
             **self.process.rejections.values(),
             **{f"malformed_{door}": receiver.rejected for door, receiver in self.process.receivers.items()},
         }
@@ -555,8 +558,8 @@ class LearnerMetrics:
             values["env_steps_per_update"] = achieved
             values["start_env_steps"] = float(self.process.clock.start_env_steps)
         log.info("updates %(updates)d, env steps %(env_steps)d, loss %(loss).5f, epsilon %(epsilon).3f, "
-                 "%(updates_per_s).2f updates/s, waiting for data %(data_wait_share).0f%% of the time, "
-                 "%(ratio).3f env steps per update", {**values, "data_wait_share": 100 * values["data_wait_share"],
+                 "%(updates_per_s).2f updates/s (%(precision)s, update path %(update_path)s), waiting for data "
+                 "%(data_wait_share).0f%% of the time, %(ratio).3f env steps per update", {**values, "data_wait_share": 100 * values["data_wait_share"],
                                                       "ratio": achieved})
         self.losses.clear()
         self.loss_diffs.clear()

@@ -9,6 +9,7 @@ from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire.messages import Stats, Weights
+from learner.update import DoubleQLearner
 
 
 def small_config():
@@ -118,6 +119,27 @@ def test_a_stored_state_actor_records_the_lstm_state_before_each_step():
     with torch.no_grad():  # the state after s_0..s_t-1 is the row of step t
         for t in range(1, steps):
             _, (hidden, cell) = network(frames[:, :t])
+            np.testing.assert_allclose(rows[t, 0], hidden[0, 0].numpy(), atol=2e-3)
+            np.testing.assert_allclose(rows[t, 1], cell[0, 0].numpy(), atol=2e-3, rtol=2e-3)
+
+
+def test_the_random_phase_stores_the_initial_networks_real_states_and_still_acts_at_random():
+    """Before the learner's first weights an actor acts uniformly; with learner.stored_state it still runs its
+    network, the learner's initial one (learner.seed), so that its episodes' rows are real LSTM states, not zeros."""
+    config = small_config()
+    config.learner.stored_state = True
+    episode, _ = Actor(config, actor_id=5).run_episode(threading.Event())
+    plain, _ = Actor(small_config(), actor_id=5).run_episode(threading.Event())
+    np.testing.assert_array_equal(episode.actions, plain.actions)  # the same uniform draws: the network is not asked
+    assert (episode.weights_version == -1).all()
+    steps = len(episode.actions)
+    rows = episode.recurrent_state
+    assert rows.shape == (steps, 2, 16) and not rows[0].any() and all(rows[t].any() for t in range(1, steps))
+    learner_network = DoubleQLearner(config.network, config.learner).online
+    frames = torch.from_numpy(episode.observations.decode()[None, :steps - 1])
+    with torch.no_grad():  # the state after s_0..s_t-1 under the learner's initial weights is the row of step t
+        for t in range(1, steps):
+            _, (hidden, cell) = learner_network(frames[:, :t])
             np.testing.assert_allclose(rows[t, 0], hidden[0, 0].numpy(), atol=2e-3)
             np.testing.assert_allclose(rows[t, 1], cell[0, 0].numpy(), atol=2e-3, rtol=2e-3)
 

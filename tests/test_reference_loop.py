@@ -114,10 +114,12 @@ def test_the_loop_with_stored_states_trains_past_the_burn_in(spied, monkeypatch)
     stored = []
     add = reference_loop.EpisodeStore.add
     monkeypatch.setattr(reference_loop.EpisodeStore, "add",
-                        lambda store, episode: stored.append(episode.recurrent_state.shape) or add(store, episode))
+                        lambda store, episode: stored.append(episode.recurrent_state) or add(store, episode))
     config = smoke("bmc", **{"exploration.bmc.observations": "per_transition", "learner.stored_state": True,
                              "learner.burn_in": 2})
     result = reference_loop.train(config, evaluate_at_end=False, log_period_s=1e9)
     assert result.updates >= 8 and math.isfinite(result.loss)
-    assert stored and all(shape[1:] == (2, 64) and shape[0] >= 1 for shape in stored)
+    assert stored and all(rows.shape[1:] == (2, 64) and rows.shape[0] >= 1 for rows in stored)
+    # the random phase's episodes too (the first two) store real states after their zero start, not zero rows
+    assert all(not rows[0].any() and all(row.any() for row in rows[1:]) for rows in stored[:2])
     assert spied[0][1]["observations"] == [config.learner.batch_size * (config.learner.trace_length - 2)] * result.updates
