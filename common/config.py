@@ -175,7 +175,8 @@ class LearnerConfig:
                    "forward and backward (the trace paths): float32 (the paper's); bfloat16 (master weights, Adam's "
                    "state, the recurrence, the head, targets and the loss stay float32; refused at start on a CPU "
                    "that cannot run it); or auto (bfloat16 where the CPU does it natively, AMX or AVX512-BF16, and "
-                   "it times at least 1.3x faster on the first batch; float32 otherwise, with a log line)",
+                   "the best of 5 interleaved timing rounds on the first batch, by CPU time, is at least 1.3x faster, so a busy "
+                   "neighbour does not decide it; float32 otherwise, and with the autograd path, with a log line)",
         choices=LEARNER_PRECISIONS)
     log_period_s: float = option(10.0, "how often the learner logs and publishes its metrics", "s")
     seed: int = option(0, "seed of the network's initial weights")
