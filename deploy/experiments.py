@@ -155,7 +155,10 @@ def follow_command(run: RunDir, options: Options) -> list[str]:
 
 def choice_command(run: RunDir, options: Options) -> list[str]:
     """The last kept policies on the train starts, to choose the run's policy on."""
-    return curve_command(run, options, "--sets", "train", "--from-updates", str(choice_candidates(run)[0]))
+    candidates = choice_candidates(run)
+    if not candidates:
+        raise ExperimentError(f"{run.root}: no kept policy to choose among (learner.keep_every was 0)")
+    return curve_command(run, options, "--sets", "train", "--from-updates", str(candidates[0]))
 
 
 def evaluate_command(run: RunDir, options: Options, updates: int) -> list[str]:

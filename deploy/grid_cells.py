@@ -169,6 +169,8 @@ def read_cell(folder: Path) -> dict | None:
 def choose(run: RunDir) -> dict:
     """Writes choice.json: the run's policy, chosen on the train starts among its last CHOICE_AMONG kept."""
     among = choice_candidates(run)
+    if not among:
+        raise ExperimentError(f"{run.root}: no kept policy to choose among (learner.keep_every was 0)")
     rows = [row for row in read_curve(run.curve / CURVE_CSV) if int(row["updates"]) in among]
     if {int(row["updates"]) for row in rows if row["start_set"] == "train"} != set(among):
         raise ExperimentError(f"{run.root}: the curve lacks train rows of the policies kept at "

@@ -15,16 +15,18 @@ import subprocess
 import sys
 from pathlib import Path
 
+from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
 from deploy.experiments import Options, choice_command, curve_commands, evaluate_command, preset_flags
-from deploy.grid_cells import CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, choose, next_step, \
-    read_choice
+from deploy.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
+                               next_step, read_choice)
 from deploy.run_results import greedy_headline
 from deploy.stack import build_parser
 
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
 POLICY_FILE = "policy.pt"
+KEEP_EVERY = 1_000  # updates between kept policies when the config keeps none
 
 
 def call(command: list[str]) -> None:
@@ -58,10 +60,19 @@ def main(argv: list[str] | None = None) -> int:
     if any(flag in ("-h", "--help", "--dump-config") for flag in argv):
         return subprocess.call([sys.executable, str(STACK_SCRIPT), *flags])
     _, config = parse_config_or_exit(build_parser(), flags)
+    if not (config.learner.keep_every or config.learner.keep_every_s):  # the paper preset keeps none
+        print(f"main job: keeping a policy every {KEEP_EVERY:,d} updates to choose among "
+              f"(--learner.keep_every {KEEP_EVERY})", flush=True)
+        flags += ["--learner.keep_every", str(KEEP_EVERY)]
+        _, config = parse_config_or_exit(build_parser(), flags)
     run, budget = RunDir.of(config), config.learner.total_env_steps
     if next_step(run.root, budget) in (TRAIN, RESUME):
         call([sys.executable, str(STACK_SCRIPT), *flags])
-    read_run(run, Options(Path(config.run.runs_dir), 0, FINAL_TRIALS, None, (), 0.0), budget)
+    try:
+        read_run(run, Options(Path(config.run.runs_dir), 0, FINAL_TRIALS, None, (), 0.0), budget)
+    except (ExperimentError, EvaluationError) as error:
+        print(f"main job: error: {error}", file=sys.stderr)
+        return 1
     policy = run.root / POLICY_FILE
     shutil.copy2(run.policy(read_choice(run)["updates"]), policy)
     print(f"main job: done. The chosen policy: {policy} (kept at {read_choice(run)['updates']:,d} updates); "

@@ -54,3 +54,14 @@ def test_a_main_job_stopped_in_training_says_how_to_go_on(tmp_path, monkeypatch)
     with pytest.raises(SystemExit, match="--resume"):
         main_job.main(["--run.runs_dir", str(tmp_path), "--run.name", "job"])
     assert calls == ["stack"]
+
+
+def test_a_config_that_keeps_no_policy_gets_one_kept_every_1000_updates(tmp_path, monkeypatch, capsys):
+    commands = []
+    monkeypatch.setattr(main_job, "call", lambda command: commands.append(command) or None)
+    monkeypatch.setattr(main_job, "read_run", lambda *args: None)
+    monkeypatch.setattr(main_job.shutil, "copy2", lambda *args: None)
+    monkeypatch.setattr(main_job, "read_choice", lambda run: {"updates": 1000})
+    monkeypatch.setattr(main_job, "greedy_headline", lambda folder: "")
+    main_job.main(["--preset", "paper", "--run.runs_dir", str(tmp_path), "--run.name", "p"])
+    assert commands[0][-2:] == ["--learner.keep_every", "1000"] and "keeping a policy" in capsys.readouterr().out
