@@ -36,6 +36,7 @@ from typing import Sequence
 
 import numpy as np
 
+from common.analysis.across_seeds import smallest_p_value
 from common.analysis.intervals import Bootstrap, Interval, bootstrap_weights, cell_statistics, percentile_interval
 from deploy.comparison import BASELINES, STRATEGY_NAMES, ComparisonRow
 
@@ -87,8 +88,9 @@ def run_statistics(row: ComparisonRow) -> dict[str, np.ndarray]:
 
 def chance_apart(first_runs: int, second_runs: int) -> float:
     """How often runs lie apart by chance alone, with no difference between the strategies: of the ways to
-    order n + m exchangeable values, the 2 that put one side wholly above the other (2 n! m! / (n + m)!)."""
-    return 2 / math.comb(first_runs + second_runs, first_runs)
+    order n + m exchangeable values, the 2 that put one side wholly above the other (2 n! m! / (n + m)!), each
+    the smallest p-value of a one-sided exact Mann-Whitney test."""
+    return 2 * smallest_p_value(first_runs, second_runs)
 
 
 def chances_apart(found: Sequence[Difference]) -> str:
