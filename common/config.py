@@ -68,9 +68,15 @@ class ReplayConfig:
     error_buffer_updates: float = option(
         50.0, "the rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one update per "
               "learner.env_steps_per_update env steps: it holds trace batches while the learner is this many updates "
-              "ahead, and the actors' next episode while it is this many behind. The whole run's ratio is off by at "
-              "most this many updates. A buffer of at least the updates the budget pays for (1e9) holds nobody: the "
+              "ahead, and the actors' next episode while it is this many (or hold_updates, if more) behind. The "
+              "whole run's ratio is off by at most this many updates. A buffer of at least the updates the budget pays for (1e9) holds nobody: the "
               "run is unpaced and ends at the budget", "updates")
+    hold_updates: float = option(
+        1500.0, "the actors hold their next episode while the learner is more than this many updates behind "
+               "(never fewer than error_buffer_updates). A let-go actor delivers nothing until its whole next "
+               "episode ends, so a fast learner needs this lead to keep busy (docs/architecture.md, the pace of a "
+               "fast learner); it does not change the run's ratio at the end, which the learner pays for before "
+               "the run closes", "updates")
     stats_period_s: float = option(1.0, "how often the replay publishes its stats and checks the actors' hold", "s")
     log_period_s: float = option(10.0, "how often the replay logs a status line", "s")
     seed: int = option(0, "seed of the replay's trace sampling")
@@ -86,6 +92,7 @@ class ReplayConfig:
                        "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
         check(self.error_buffer_updates >= 1, "error_buffer_updates",
               f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
+        check(self.hold_updates >= 0, "hold_updates", f"must be >= 0, got {self.hold_updates!r}")
         check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
 
 

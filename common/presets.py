@@ -69,6 +69,7 @@ PRESETS: dict[str, Preset] = {
             "replay.capacity": 50,
             "replay.stats_period_s": 0.5,
             "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
+            "replay.hold_updates": 2.0,  # as tight: 700 would be 14,000 of the 20,000 steps, and hold nobody
             "learner.batch_size": 4,
             "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
             "learner.start_episodes": 2,
