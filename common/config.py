@@ -134,6 +134,11 @@ class LearnerConfig:
         0.0, "also broadcast the weights once this long has passed since the last broadcast (after an update), "
              "whichever of this and weights_every comes first: a fast learner broadcasts by time, a slow one by "
              "updates; 0: by updates only", "s")
+    weights_min_period_s: float = option(
+        0.8, "but never broadcast sooner than this after the last broadcast: a learner faster than weights_every "
+             "updates in this time broadcasts by time (the default leaves the paper's every 50 updates to a learner "
+             "of up to 62 updates/s). Each broadcast costs every actor a pause of its loop to load the weights and "
+             "CPU to decode them (docs/architecture.md, the pace of a fast learner); 0: no floor", "s")
     weights_encoding: str = option(
         "float32", "how weights travel to the actors (broadcasts and the latest-weights answer): float32 (whole; "
                    "48.6 MB at the paper's sizes), or half the size as float16 or bfloat16, whose greedy actions "
@@ -212,6 +217,7 @@ class LearnerConfig:
         check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
         check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
         check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
+        check(self.weights_min_period_s >= 0, "weights_min_period_s", "must be >= 0 (0: no floor)")
         check(self.checkpoint_every_s >= 0, "checkpoint_every_s", "must be >= 0 (0: by updates only)")
         check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
         check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")
