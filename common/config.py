@@ -68,9 +68,15 @@ class ReplayConfig:
     error_buffer_updates: float = option(
         50.0, "the rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one update per "
               "learner.env_steps_per_update env steps: it holds trace batches while the learner is this many updates "
-              "ahead, and the actors' next episode while it is this many behind. The whole run's ratio is off by at "
-              "most this many updates. A buffer of at least the updates the budget pays for (1e9) holds nobody: the "
+              "ahead, and the actors' next episode while it is this many (or hold_updates, if more) behind. The "
+              "whole run's ratio is off by at most this many updates. A buffer of at least the updates the budget pays for (1e9) holds nobody: the "
               "run is unpaced and ends at the budget", "updates")
+    hold_updates: float = option(
+        1500.0, "the actors hold their next episode while the learner is more than this many updates behind "
+               "(never fewer than error_buffer_updates). A let-go actor delivers nothing until its whole next "
+               "episode ends, so a fast learner needs this lead to keep busy (docs/architecture.md, the pace of a "
+               "fast learner); it does not change the run's ratio at the end, which the learner pays for before "
+               "the run closes", "updates")
     stats_period_s: float = option(1.0, "how often the replay publishes its stats and checks the actors' hold", "s")
     log_period_s: float = option(10.0, "how often the replay logs a status line", "s")
     seed: int = option(0, "seed of the replay's trace sampling")
@@ -86,6 +92,7 @@ class ReplayConfig:
                        "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
         check(self.error_buffer_updates >= 1, "error_buffer_updates",
               f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
+        check(self.hold_updates >= 0, "hold_updates", f"must be >= 0, got {self.hold_updates!r}")
         check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
 
 
@@ -127,6 +134,11 @@ class LearnerConfig:
         0.0, "also broadcast the weights once this long has passed since the last broadcast (after an update), "
              "whichever of this and weights_every comes first: a fast learner broadcasts by time, a slow one by "
              "updates; 0: by updates only", "s")
+    weights_min_period_s: float = option(
+        0.8, "but never broadcast sooner than this after the last broadcast: a learner faster than weights_every "
+             "updates in this time broadcasts by time (the default leaves the paper's every 50 updates to a learner "
+             "of up to 62 updates/s). Each broadcast costs every actor a pause of its loop to load the weights and "
+             "CPU to decode them (docs/architecture.md, the pace of a fast learner); 0: no floor", "s")
     weights_encoding: str = option(
         "float32", "how weights travel to the actors (broadcasts and the latest-weights answer): float32 (whole; "
                    "48.6 MB at the paper's sizes), or half the size as float16 or bfloat16, whose greedy actions "
@@ -206,6 +218,7 @@ class LearnerConfig:
         check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
         check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
         check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
+        check(self.weights_min_period_s >= 0, "weights_min_period_s", "must be >= 0 (0: no floor)")
         check(self.checkpoint_every_s >= 0, "checkpoint_every_s", "must be >= 0 (0: by updates only)")
         check(self.keep_every >= 0, "keep_every", "must be >= 0 (0: not by updates)")
         check(self.keep_every_s >= 0, "keep_every_s", "must be >= 0 (0: not by time)")

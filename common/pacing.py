@@ -15,14 +15,15 @@ from common.exploration.names import starts_by_steps
 @dataclass(frozen=True)
 class RateLimit:
     """The limiter's settings, from learner.env_steps_per_update, learner.start_episodes,
-    learner.start_steps, learner.total_env_steps and replay.error_buffer_updates."""
+    learner.start_steps, learner.total_env_steps, replay.error_buffer_updates and replay.hold_updates."""
 
     env_steps_per_update: float
     start_episodes: int
     start_steps: int
-    error_buffer: float  # B, in updates
+    error_buffer: float  # B, in updates: how far the learner may run ahead
     total_env_steps: int | None = None  # actors hold for good once this many steps arrived
     start_by_steps: bool = False  # decreasing epsilon: start at start_steps, not start_episodes
+    hold_buffer: float = 0.0  # H, in updates: how far the learner may fall behind before actors hold, if more than B
 
     def __post_init__(self) -> None:
         if not self.env_steps_per_update > 0:
@@ -32,6 +33,14 @@ class RateLimit:
                              f"{self.start_episodes} and {self.start_steps}")
         if not self.error_buffer >= 1:  # Reverb: narrower buffers can block both sides
             raise ValueError(f"error_buffer must be >= 1 update, got {self.error_buffer}")
+        if not self.hold_buffer >= 0:
+            raise ValueError(f"hold_buffer must be >= 0 updates, got {self.hold_buffer}")
+
+    @property
+    def actors_lead(self) -> float:
+        """The updates the learner may fall behind before actors hold their next episode: H, but never
+        less than B, so that a buffer that holds nobody (an unpaced run) holds the actors neither."""
+        return max(self.hold_buffer, self.error_buffer)
 
 
 def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
@@ -42,6 +51,7 @@ def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
         start_episodes=learner.start_episodes,
         start_steps=learner.start_steps,
         error_buffer=config.replay.error_buffer_updates,
+        hold_buffer=config.replay.hold_updates,
         total_env_steps=learner.total_env_steps,
         start_by_steps=starts_by_steps(strategy or config.exploration.strategy, learner.start_by),
     )

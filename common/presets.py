@@ -69,12 +69,14 @@ PRESETS: dict[str, Preset] = {
             "replay.capacity": 50,
             "replay.stats_period_s": 0.5,
             "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
+            "replay.hold_updates": 2.0,  # as tight: 700 would be 14,000 of the 20,000 steps, and hold nobody
             "learner.batch_size": 4,
             "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
             "learner.start_episodes": 2,
             "learner.start_steps": 100,
             "learner.total_env_steps": 20_000,
             "learner.weights_every": 5,
+            "learner.weights_min_period_s": 0.0,  # every 5 updates, however fast: the tests watch the versions
             "learner.checkpoint_every": 50,
             "learner.keep_every": 100,
             "learner.log_period_s": 1.0,

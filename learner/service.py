@@ -133,20 +133,24 @@ class Admitted:
 class Cadence:
     """When the weights go out, a checkpoint is written or a policy is kept: after every `every`-th
     update (every > 0), and (period_s > 0) after the first update once period_s has passed since the
-    last time, whichever comes first."""
+    last time, whichever comes first; but (min_period_s > 0) never sooner than min_period_s after the
+    last time: a counted update that comes sooner is owed until then, so that a fast learner goes by time."""
 
-    def __init__(self, every: int, period_s: float, clock=time.monotonic) -> None:
+    def __init__(self, every: int, period_s: float, clock=time.monotonic, min_period_s: float = 0.0) -> None:
         self.every = every
         self.period_s = period_s
+        self.min_period_s = min_period_s
         self._clock = clock
         self._last = clock()
+        self._owed = False  # a counted update came too soon after the last time: due once min_period_s passed
 
     def due(self, updates: int) -> bool:
         """Whether it is time after this update; a yes restarts the period."""
         now = self._clock()
-        by_count = self.every > 0 and updates % self.every == 0
-        if by_count or (self.period_s > 0 and now - self._last >= self.period_s):
-            self._last = now
+        since = now - self._last
+        self._owed = self._owed or (self.every > 0 and updates % self.every == 0)
+        if since >= self.min_period_s and (self._owed or (self.period_s > 0 and since >= self.period_s)):
+            self._last, self._owed = now, False
             return True
         return False
 
@@ -413,7 +417,7 @@ class Outputs:
 def _train(process: LearnerProcess, outputs: Outputs, stop: threading.Event, session, keys: Keys) -> None:
     config = process.config.learner
     heartbeat = Every(config.log_period_s)
-    broadcasts = Cadence(config.weights_every, config.weights_period_s)
+    broadcasts = Cadence(config.weights_every, config.weights_period_s, min_period_s=config.weights_min_period_s)
 
     def fetch(message: TraceBatchRequest):
         # Every request states the updates made: the first of this process (its checkpoint's) lets the replay

@@ -12,9 +12,13 @@ only place that counts both:
   ``due = (env_steps - start_mark) / env_steps_per_update``; the error is
   ``due - served``. A batch may be served while ``served + 1 <= due + B``
   (the learner at most B updates ahead); actors are told to hold their next
-  episode while ``due - served > B`` (the learner more than B behind). B, the
-  error buffer, is a fixed number of updates, not a share of the total, so the
-  error of the whole run's ratio shrinks as the run grows. Steps that arrive
+  episode while ``due - served > H`` (the learner more than H behind, H never
+  less than B). B, the error buffer, and H, the actors' lead, are fixed numbers
+  of updates, not shares of the total. The two differ because an actor that is
+  let go delivers nothing until its whole next episode ends: a learner that
+  may fall only B behind waits for data while a fast learner's B runs out
+  before the episodes come (deploy/bench/pacing_sim.py), while a learner
+  that may run far ahead would end a run off the ratio. Steps that arrive
   after the start mark (episodes still in flight when it was reached, the
   random phase's last episodes) are owed like any others.
 - Once the run's step budget is reached, actors are held for good, so the
@@ -27,7 +31,9 @@ only place that counts both:
   the budget.
 
 An episode is inserted whole, so the actors' hold acts at episode boundaries:
-the learner can fall behind by B plus the episodes in flight, never more.
+the learner can fall behind by H plus the episodes in flight, never more. At
+the run's end it pays for all of that before the run closes, so only B, the
+learner's lead, bounds the whole run's error.
 
 Pure: no threads, no clock, no I/O. The replay service calls it under its lock
 and persists ``state_dict()``, so the counters survive a learner restart (the
@@ -150,7 +156,7 @@ class RateLimiter:
         """Why actors must hold their next episode: "behind", "budget", or "" (go on)."""
         if self.budget_spent:
             return "budget"
-        if self.started and not self.refilling and self.error > self.limit.error_buffer:
+        if self.started and not self.refilling and self.error > self.limit.actors_lead:
             return "behind"
         return ""
 
@@ -203,6 +209,7 @@ class RateLimiter:
             "lost_updates": self.lost_updates,
             "recounted_updates": self.recounted_updates,
             "error_buffer_updates": self.limit.error_buffer,
+            "hold_updates": self.limit.actors_lead,
             "env_steps_per_update_target": self.limit.env_steps_per_update,
         }
         achieved = self.env_steps_per_update()

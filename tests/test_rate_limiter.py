@@ -73,6 +73,25 @@ def test_actors_hold_while_the_learner_is_more_than_the_buffer_behind():
     assert rate.hold_reason() == ""
 
 
+def test_actors_hold_past_their_own_lead_while_the_learner_keeps_its_own():
+    rate = RateLimiter(RateLimit(4.0, 1, 0, error_buffer=2.0, hold_buffer=10.0))
+    rate.on_episode(20, episodes_stored=1)  # mark 20
+    rate.on_episode(40, episodes_stored=2)  # 10 due, 0 served: error 10, not more than H
+    assert rate.hold_reason() == ""
+    rate.on_episode(4, episodes_stored=3)  # 11 due: error 11 > 10
+    assert rate.hold_reason() == "behind" and rate.values()["hold_updates"] == 10.0
+    assert serve_all(rate) == 13  # the learner's own lead is still B: 11 due + 2
+
+
+def test_the_actors_lead_is_never_less_than_the_learners():
+    unpaced = RateLimiter(RateLimit(4.0, 1, 0, error_buffer=1e9, hold_buffer=10.0))
+    unpaced.on_episode(20, episodes_stored=1)
+    unpaced.on_episode(4_000, episodes_stored=2)  # 1,000 due, none served
+    assert unpaced.hold_reason() == "" and unpaced.limit.actors_lead == 1e9
+    with pytest.raises(ValueError, match="hold_buffer"):
+        RateLimit(4.0, 1, 0, 2.0, hold_buffer=-1.0)
+
+
 def test_the_learner_and_the_actors_never_wait_for_each_other_at_once():
     rate = limiter(start_episodes=1, buffer=1.0, per_update=3.0)
     rate.on_episode(1, episodes_stored=1)
@@ -192,6 +211,7 @@ def test_settings_come_from_the_config():
     assert (limit.env_steps_per_update, limit.start_episodes, limit.start_steps, limit.total_env_steps) == \
         (4.0, 999, 50_000, 1_000_000)
     assert limit.error_buffer == config.replay.error_buffer_updates and not limit.start_by_steps
+    assert limit.hold_buffer == config.replay.hold_updates
     assert rate_limit_from_config(config, strategy="decreasing").start_by_steps
     same_start = load_config("paper", overrides={"learner.start_by": "steps"})
     assert rate_limit_from_config(same_start, strategy="bmc").start_by_steps

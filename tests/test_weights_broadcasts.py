@@ -75,12 +75,36 @@ def test_a_slow_learner_broadcasts_after_every_update_once_the_period_has_passed
     assert schedule.due(1) and not schedule.due(2)
 
 
+def test_a_fast_learner_broadcasts_no_sooner_than_the_floor():
+    clock = FakeClock()
+    schedule = Cadence(every=50, period_s=0.0, clock=clock, min_period_s=0.5)
+    sent = []
+    for updates in range(1, 401):
+        clock.now += 1 / 256  # 256 updates a second: every 50 updates would be 5 broadcasts a second
+        if schedule.due(updates):
+            sent.append(updates)
+    assert sent == [128, 256, 384]  # owed from update 50 (then 150, 300), due once 0.5 s (128 updates) passed
+
+
+def test_a_learner_slower_than_the_floor_keeps_its_count():
+    clock = FakeClock()
+    schedule = Cadence(every=50, period_s=0.0, clock=clock, min_period_s=0.5)
+    sent = []
+    for updates in range(1, 201):
+        clock.now += 1 / 64  # every 50 updates is every 0.78 s
+        if schedule.due(updates):
+            sent.append(updates)
+    assert sent == [50, 100, 150, 200]
+
+
 def test_the_period_and_the_encoding_are_checked_options():
     config = load_config("paper")
     assert (config.learner.weights_period_s, config.learner.weights_encoding) == (0.0, "float32")
     assert not config.transport.shared_memory  # opt-in: see its help
     with pytest.raises(ConfigError, match="learner.weights_period_s"):
         load_config("paper", overrides={"learner.weights_period_s": -1.0})
+    with pytest.raises(ConfigError, match="learner.weights_min_period_s"):
+        load_config("paper", overrides={"learner.weights_min_period_s": -1.0})
     with pytest.raises(ConfigError, match="learner.weights_encoding"):
         load_config("paper", overrides={"learner.weights_encoding": "int8"})
 

@@ -92,10 +92,12 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
 
 
 def caught_up(replay: dict) -> bool:
-    """Updates have started and the learner is within the rate limiter's error buffer of what is due."""
+    """Updates have started and the learner is within the actors' lead of what is due (the lag a learner
+    slower than its actors keeps; a replay before replay.hold_updates gives only its error buffer)."""
     if replay.get("rate_start_env_steps", -1) < 0 or replay.get("rate_batches_served", 0) < 1:
         return False
-    return replay["rate_updates_due"] - replay["rate_batches_served"] <= replay["rate_error_buffer_updates"]
+    lead = replay.get("rate_hold_updates", replay["rate_error_buffer_updates"])
+    return replay["rate_updates_due"] - replay["rate_batches_served"] <= lead
 
 
 def replay_flat_out(config: Config, seconds: float, clients: int) -> tuple[float, float]:
