@@ -38,6 +38,11 @@ DRIVE = {
     "learner.start_steps": GRID_START_STEPS,
     "learner.total_env_steps": GRID_TOTAL_ENV_STEPS,
     "learner.precision": "auto",
+    # The pace the grid's first runs trained at, pinned so that every cell on every machine acts alike: actors
+    # held 50 updates behind, weights every 50 updates whatever the learner's speed (a cell is its updates and
+    # ratio, not the clock). The defaults since keep a fast learner busier (docs/architecture.md).
+    "replay.hold_updates": 50.0,
+    "learner.weights_min_period_s": 0.0,
     "exploration.decreasing.n_start": GRID_START_STEPS,
     "exploration.decreasing.n_ann": GRID_DECREASING_N_ANN,
     "exploration.decreasing.n_max": GRID_TOTAL_ENV_STEPS,
