@@ -1,9 +1,11 @@
 """The evaluate command: statistics by hand, lockstep batching against one env at a time, end to end."""
 
 import csv
+import dataclasses
 import io
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -16,14 +18,15 @@ from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, PrivilegedPolic
                                        trial_seed)
 from actor.evaluation.sources import check_weights, checkpoint_config, live_source
 from actor.evaluation.status import EvaluationStatus, evaluation_line
-from actor.evaluation.workers import run_jobs
+from actor.evaluation.workers import run_jobs, worker_layout
 from actor.sim import make_env
 from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
                                    summarise_all)
 from common.analysis.tables import bin_labels, failures_by_start, markdown_table
 from common.checkpoint import save_checkpoint
-from common.config import TransportConfig
+from common.config import EvaluationConfig, TransportConfig
 from common.config_values import load_config, to_dict
+from common.network import weights_to_numpy
 from common.transport import Keys, open_session, serve
 from common.wire.messages import Weights
 from learner.update import DoubleQLearner
@@ -263,6 +266,29 @@ def test_starting_an_episode_zeroes_only_its_slot_state(network):
     policy.begin(1, EpisodeJob("greedy", "test", 0, 0, 0), (0.0, 0.0, 0.0))
     assert policy.hidden[:, 1].abs().sum() == 0 and policy.cell[:, 1].abs().sum() == 0
     assert bool((policy.hidden[:, [0, 2]] == 1).all()) and bool((policy.cell[:, [0, 2]] == 1).all())
+
+
+def test_a_worker_steps_no_more_simulators_than_its_share_of_the_jobs(monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    evaluation = EvaluationConfig(workers=2, envs_per_worker=64)
+    assert worker_layout(evaluation, 1200) == (2, 64, 1)  # a full evaluation: every simulator has work
+    assert worker_layout(evaluation, 100) == (2, 50, 1)  # a curve's policy: half the queue each, not 64 and 36
+    assert worker_layout(evaluation, 3) == (2, 2, 1)
+    assert worker_layout(evaluation, 1) == (1, 1, 2)
+    assert worker_layout(EvaluationConfig(workers=1, envs_per_worker=8, torch_threads=1), 50) == (1, 8, 1)
+
+
+def test_many_lockstep_simulators_in_a_worker_give_the_episodes_of_one(small_config, network):
+    weights = weights_to_numpy(network)
+    jobs = episode_jobs(["greedy", "random"], ["test"], 1, root_seed=0)
+
+    def run(envs_per_worker):
+        evaluation = dataclasses.replace(small_config.evaluation, workers=1, envs_per_worker=envs_per_worker)
+        config = dataclasses.replace(small_config, evaluation=evaluation)
+        return run_jobs(config, weights, jobs, EvaluationStatus(len(jobs), 0.2, stream=None))
+
+    one, many = run(1), run(64)  # 64: all 20 jobs side by side in one batched forward pass
+    assert many == one and len(one) == len(jobs)
 
 
 def test_a_failing_worker_is_an_evaluation_error(small_config):
