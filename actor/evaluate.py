@@ -35,7 +35,7 @@ from pathlib import Path
 
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import (CURVE_CSV, CURVE_TRIALS, curve_config, curve_policies, evaluate_curve, read_curve,
-                                    summary_lines, write_outputs)
+                                    summary_lines, warn_if_crowding, write_outputs)
 from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
 from actor.evaluation.workers import worker_layout
@@ -175,6 +175,8 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         raise EvaluationError(f"--follow: seconds must be > 0, got {args.follow:g}")
     if args.every < 1:
         raise EvaluationError(f"--every: updates must be >= 1, got {args.every}")
+    if args.follow is not None:
+        warn_if_crowding(run, args)
     while True:
         training = args.follow is not None and _stack_training(run)
         if training and not curve_policies(run.kept_policies(), args.from_updates, args.every):
