@@ -1,9 +1,10 @@
 """Evaluation episodes: which to run, the policies that drive them, and lockstep stepping.
 
-One worker process holds ``envs_per_worker`` simulators and steps them in
-lockstep: at every step the greedy network sees all its running episodes in
-one batched forward pass, each with its own LSTM state, which is zeroed when
-that slot starts a new episode. A slot whose episode ends takes the next job
+One worker process holds ``envs_per_worker`` simulators (fewer for a short
+queue: workers.worker_layout) and steps them in lockstep: at every step the
+greedy network sees all its running episodes in one batched forward pass,
+each with its own LSTM state, which is zeroed when that slot starts a new
+episode. A slot whose episode ends takes the next job
 at once, so slow and fast episodes mix freely. Episodes of the random and
 privileged baselines run in the same loop without the network, and so does
 the privileged driver that turns right wherever it can ("right-turns"), which
