@@ -35,10 +35,10 @@ from pathlib import Path
 
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import (CURVE_CSV, CURVE_TRIALS, curve_config, curve_policies, evaluate_curve, read_curve,
-                                    summary_lines, write_outputs)
+                                    summary_lines, warn_if_crowding, write_outputs)
 from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import checkpoint_source, check_weights, live_source
-from actor.evaluation.workers import torch_threads_per_worker
+from actor.evaluation.workers import worker_layout
 from actor.sim import START_SETS
 from common.analysis.tables import SUMMARY_MD, write_evaluation
 from common.checkpoint import CheckpointError
@@ -150,15 +150,14 @@ def _main(args: argparse.Namespace) -> None:
     wall_s = time.monotonic() - started
     out_dir = args.out if args.out is not None else source.run_dir.evaluation
     evaluation = config.evaluation
-    workers = min(evaluation.workers, len(episodes))
+    workers, simulators, threads = worker_layout(evaluation, len(episodes))
     facts = {**source.facts,
              "protocol": f"{evaluation.episodes_per_start} episodes from each start of {', '.join(sets)}, "
                          f"capped at {evaluation.max_steps} steps; greedy = argmax Q",
              "seed": str(evaluation.seed),
              "intervals": f"{100 * evaluation.confidence:g}% percentile intervals of {evaluation.bootstrap_replicates} "
                           "bootstrap replicates (trials resampled within each start)",
-             "processes": f"{workers} worker(s) x {evaluation.envs_per_worker} lockstep env(s), "
-                          f"{torch_threads_per_worker(evaluation, workers)} torch thread(s) each",
+             "processes": f"{workers} worker(s) x {simulators} lockstep env(s), {threads} torch thread(s) each",
              "wall time": f"{wall_s:.1f} s",
              "priority": f"nice {nice}",
              "date": datetime.datetime.now().isoformat(timespec="seconds")}
@@ -179,6 +178,8 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         raise EvaluationError(f"--follow: seconds must be > 0, got {args.follow:g}")
     if args.every < 1:
         raise EvaluationError(f"--every: updates must be >= 1, got {args.every}")
+    if args.follow is not None:
+        warn_if_crowding(run, args)
     while True:
         training = args.follow is not None and _stack_training(run)
         if training and not curve_policies(run.kept_policies(), args.from_updates, args.every, args.to_updates):

@@ -355,7 +355,11 @@ class EvaluationConfig:
     episodes_per_start: int = option(30, "episodes from each start pose of each start set", "episodes")
     max_steps: int = option(2000, "an evaluation episode is cut here", "steps")
     workers: int = option(2, "evaluation processes", "processes")
-    envs_per_worker: int = option(4, "simulators each worker steps in lockstep", "simulators")
+    envs_per_worker: int = option(
+        64, "simulators each worker steps in lockstep with one batched forward pass (fewer when its share of the "
+            "jobs is smaller): a pass reads the LSTM's 44 MB of input weights whatever the batch, so 4 made a third "
+            "to a half of the batched actor's env steps per core and 64 as many (busy 2-core AMD EPYC, "
+            "deploy/bench/evaluation_speed.py)", "simulators")
     torch_threads: int = option(0, "torch threads per worker; 0: the cores divided among the workers, or 1 with "
                                    "--follow: beside a training run a worker's second thread waits on a busy core "
                                    "(a forward pass ran 8x slower on 2 threads than on 1, busy 2-core AMD EPYC)",

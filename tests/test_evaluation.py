@@ -4,6 +4,7 @@ import csv
 import io
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -16,13 +17,13 @@ from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, PrivilegedPolic
                                        trial_seed)
 from actor.evaluation.sources import check_weights, checkpoint_config, live_source
 from actor.evaluation.status import EvaluationStatus, evaluation_line
-from actor.evaluation.workers import run_jobs
+from actor.evaluation.workers import run_jobs, worker_layout
 from actor.sim import make_env
 from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
                                    summarise_all)
 from common.analysis.tables import bin_labels, failures_by_start, markdown_table
 from common.checkpoint import save_checkpoint
-from common.config import TransportConfig
+from common.config import EvaluationConfig, TransportConfig
 from common.config_values import load_config, to_dict
 from common.transport import Keys, open_session, serve
 from common.wire.messages import Weights
@@ -230,6 +231,7 @@ def test_batched_lockstep_gives_the_episodes_of_one_env_at_a_time(small_config, 
     batched = lockstep(small_config, network, jobs, n_envs=3)
     single = lockstep(small_config, network, jobs, n_envs=1)
     assert batched == single
+    assert lockstep(small_config, network, jobs, n_envs=len(jobs)) == single  # all side by side, as 64 envs run
     lengths = set()
     for job in jobs[:10]:
         got = batched[("greedy", job.start_set, job.start_index)]
@@ -263,6 +265,16 @@ def test_starting_an_episode_zeroes_only_its_slot_state(network):
     policy.begin(1, EpisodeJob("greedy", "test", 0, 0, 0), (0.0, 0.0, 0.0))
     assert policy.hidden[:, 1].abs().sum() == 0 and policy.cell[:, 1].abs().sum() == 0
     assert bool((policy.hidden[:, [0, 2]] == 1).all()) and bool((policy.cell[:, [0, 2]] == 1).all())
+
+
+def test_a_worker_steps_no_more_simulators_than_its_share_of_the_jobs(monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    evaluation = EvaluationConfig(workers=2, envs_per_worker=64)
+    assert worker_layout(evaluation, 1200) == (2, 64, 1)  # a full evaluation: every simulator has work
+    assert worker_layout(evaluation, 100) == (2, 50, 1)  # a curve's policy: half the queue each, not 64 and 36
+    assert worker_layout(evaluation, 3) == (2, 2, 1)
+    assert worker_layout(evaluation, 1) == (1, 1, 2)
+    assert worker_layout(EvaluationConfig(workers=1, envs_per_worker=8, torch_threads=1), 50) == (1, 8, 1)
 
 
 def test_a_failing_worker_is_an_evaluation_error(small_config):

@@ -16,13 +16,13 @@ import torch
 
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
-from actor.evaluation.curve import (CURVE_TRIALS, curve_config, curve_summary, first_reaching, read_curve, summary_lines,
-                                    unbridged)
+from actor.evaluation.curve import (CURVE_TRIALS, crowding_warning, curve_config, curve_summary, first_reaching,
+                                    read_curve, summary_lines, unbridged, warn_if_crowding)
 from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
 from common.config import EvaluationConfig
-from common.config_values import from_dict, load_config, to_dict
+from common.config_values import from_dict, load_config, to_dict, to_toml
 from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus
@@ -356,6 +356,35 @@ def test_a_curve_followed_beside_a_run_takes_one_torch_thread_per_worker_unless_
     assert curve_config(saved, parse(["--curve", "x", "--follow"])).evaluation.torch_threads == 1
     told = parse(["--curve", "x", "--follow", "--evaluation.torch_threads", "2"])
     assert curve_config(saved, told).evaluation.torch_threads == 2
+
+
+def test_a_follower_that_would_crowd_the_learners_cores_says_so_and_what_to_do():
+    assert crowding_warning(1, 1, 1, 2) is None  # 1 + 1 threads on 2 cores
+    assert crowding_warning(2, 2, 1, 4) is None
+    told = crowding_warning(0, 1, 1, 2)  # torch's default: every core
+    assert "2 + 1 > 2 cores" in told and "learner.torch_threads 0: every core" in told
+    assert "--learner.torch_threads 1" in told and "after training" in told
+    assert "3 + 2 > 4 cores" in crowding_warning(3, 2, 1, 4)
+    assert "fewer workers" in crowding_warning(1, 2, 1, 2)  # the follower alone fills the cores
+
+
+def test_following_a_run_warns_in_one_line_when_its_learner_and_the_follower_crowd_the_cores(tmp_path, caplog):
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    follow = build_parser().parse_args(["--curve", str(run.root), "--follow"])  # the smoke preset: 1 worker
+    with caplog.at_level(logging.WARNING, logger="evaluate"):
+        assert warn_if_crowding(run, follow, cores=2) is None  # no config.toml: said, nothing to weigh
+        assert "cannot weigh" in caplog.text
+        caplog.clear()
+        run.config.write_text(to_toml(load_config("smoke")))  # learner.torch_threads 0: both cores
+        warning = warn_if_crowding(run, follow, cores=2)
+        assert [record.getMessage() for record in caplog.records] == [warning]
+        assert "1 worker(s) x 1 thread(s): 2 + 1 > 2 cores" in warning
+        caplog.clear()
+        run.config.write_text(to_toml(load_config("smoke", overrides={"learner.torch_threads": 1})))
+        assert warn_if_crowding(run, follow, cores=2) is None and not caplog.records
+        two = build_parser().parse_args(["--curve", str(run.root), "--follow", "--evaluation.workers", "2"])
+        assert "1 + 2 > 2 cores" in warn_if_crowding(run, two, cores=2)
 
 
 def test_the_workers_torch_threads_are_the_option_or_the_cores_divided(monkeypatch):

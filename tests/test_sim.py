@@ -385,6 +385,17 @@ def test_lane_locator_gives_lane_coordinates():
     assert LaneLocator(network).locate(30.0, -1.0, math.pi).index == ("B1>A1", "A1<B1", 0)
 
 
+def test_simulators_of_a_process_share_the_road_lookups_and_place_obstacles_as_highway_env_does():
+    first, second = NeighbourhoodEnv(TOPDOWN), NeighbourhoodEnv(TOPDOWN)
+    assert first.vehicle.locator is second.vehicle.locator  # built once, read only
+    assert first.road is not second.road and first.road.network is not second.road.network
+    network = second.road.network
+    for obstacle in second.road.objects[::25]:  # highway-env's own search is slow: a sample
+        assert obstacle.road is second.road
+        assert obstacle.lane_index == network.get_closest_lane_index(obstacle.position, obstacle.heading)
+        assert obstacle.lane is network.get_lane(obstacle.lane_index)
+
+
 # --- progress and the stall rule ---------------------------------------------------------------
 
 def _meter(memory=20, window=10, minimum=5.0) -> ProgressMeter:

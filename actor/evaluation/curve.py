@@ -26,12 +26,14 @@ from typing import Callable, Sequence
 from actor.evaluation import EvaluationError
 from actor.evaluation.protocol import evaluate
 from actor.evaluation.sources import check_weights, checkpoint_config
+from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.stats import SetSummary
 from common.analysis.tables import COVERAGE_COLUMNS, summary_columns
 from common.checkpoint import CheckpointError, KeptPolicy
 from common.cpu_capability import cpu_model
 from common.config import Config
+from common.config_values import load_config, to_dict
 from common.eta import Eta, clock_time
 from common.options import ConfigError
 from common.run_dir import RunDir
@@ -60,6 +62,41 @@ def curve_config(saved: dict, args: argparse.Namespace) -> Config:
     trials = ({"evaluation": {**evaluation, "episodes_per_start": CURVE_TRIALS, **beside_a_run}}
               if isinstance(evaluation, dict) else {})
     return checkpoint_config({**saved, **trials}, args)
+
+
+def crowding_warning(learner_threads: int, workers: int, worker_threads: int, cores: int) -> str | None:
+    """What to say when a learner's torch threads (learner.torch_threads; 0: torch's default, every core) and a
+    follower's workers x threads together exceed the cores, else None. An update runs its threads in step, so
+    one of them waiting on a core a follower's worker holds stalls the whole update (a forward pass on 2 threads
+    ran 8 times slower than on 1 beside busy cores)."""
+    learner = learner_threads or cores
+    follower = workers * worker_threads
+    if learner + follower <= cores:
+        return None
+    origin = f"learner.torch_threads {learner_threads}" if learner_threads else "learner.torch_threads 0: every core"
+    room = cores - follower
+    advice = (f"run the learner with --learner.torch_threads {room}" if room >= 1 else
+              "give the follower fewer workers or threads (--evaluation.workers, --evaluation.torch_threads)")
+    return (f"the run's learner takes {learner} torch thread(s) ({origin}) and this follower {workers} worker(s) x "
+            f"{worker_threads} thread(s): {learner} + {follower} > {cores} cores, so the learner's updates will wait "
+            f"on the follower; {advice}, or evaluate the curve after training (without --follow)")
+
+
+def warn_if_crowding(run: RunDir, args: argparse.Namespace, cores: int | None = None) -> str | None:
+    """--follow: logs crowding_warning for the learner's threads in the run's config.toml and this follower's
+    (curve_config of that config: the flags given, one thread per worker unless told); returns the line."""
+    try:
+        config = load_config(toml_path=run.config)
+    except ConfigError as error:
+        log.warning("cannot weigh the learner's torch threads against this follower's: %s", error)
+        return None
+    evaluation = curve_config(to_dict(config), args).evaluation
+    warning = crowding_warning(config.learner.torch_threads, evaluation.workers,
+                               torch_threads_per_worker(evaluation, evaluation.workers),
+                               os.cpu_count() if cores is None else cores)
+    if warning is not None:
+        log.warning("%s", warning)
+    return warning
 
 
 def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],

@@ -1,9 +1,10 @@
 """Evaluation episodes: which to run, the policies that drive them, and lockstep stepping.
 
-One worker process holds ``envs_per_worker`` simulators and steps them in
-lockstep: at every step the greedy network sees all its running episodes in
-one batched forward pass, each with its own LSTM state, which is zeroed when
-that slot starts a new episode. A slot whose episode ends takes the next job
+One worker process holds ``envs_per_worker`` simulators (fewer for a short
+queue: workers.worker_layout) and steps them in lockstep: at every step the
+greedy network sees all its running episodes in one batched forward pass,
+each with its own LSTM state, which is zeroed when that slot starts a new
+episode. A slot whose episode ends takes the next job
 at once, so slow and fast episodes mix freely. Episodes of the random and
 privileged baselines run in the same loop without the network, and so does
 the privileged driver that turns right wherever it can ("right-turns"), which
@@ -261,16 +262,15 @@ def queued_jobs(job_queue, parent_pid: int | None = None) -> Iterator[EpisodeJob
         yield job
 
 
-def evaluation_worker(worker_id: int, config: Config, weights: dict[str, np.ndarray] | None,
+def evaluation_worker(worker_id: int, config: Config, weights: dict[str, np.ndarray] | None, n_slots: int,
                       torch_threads: int, job_queue, result_queue, parent_pid: int | None = None) -> None:
-    """Process entry point: runs queued jobs in lockstep, puts each EvaluationEpisode on result_queue,
-    then WorkerDone, or WorkerFailed with the traceback. If the parent dies, the worker finishes the
-    episodes it is driving and exits without waiting to hand over what nobody reads."""
+    """Process entry point: runs queued jobs on n_slots simulators in lockstep, puts each EvaluationEpisode on
+    result_queue, then WorkerDone, or WorkerFailed with the traceback. If the parent dies, the worker finishes
+    the episodes it is driving and exits without waiting to hand over what nobody reads."""
     parent_pid = os.getppid() if parent_pid is None else parent_pid
     envs = []
     try:
         torch.set_num_threads(torch_threads)
-        n_slots = config.evaluation.envs_per_worker
         envs = [make_env(evaluation_env_config(config)) for _ in range(n_slots)]
         run_lockstep(queued_jobs(job_queue, parent_pid), envs, make_policies(config, weights, n_slots),
                      config.evaluation.max_steps, config.evaluation.reward_bins, result_queue.put)

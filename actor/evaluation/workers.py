@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
 import queue
@@ -22,19 +23,29 @@ def torch_threads_per_worker(evaluation: EvaluationConfig, workers: int) -> int:
     return evaluation.torch_threads or max(1, len(os.sched_getaffinity(0)) // workers)
 
 
+def worker_layout(evaluation: EvaluationConfig, jobs: int) -> tuple[int, int, int]:
+    """(processes, lockstep simulators each, torch threads each) for this many jobs: no more processes than
+    jobs, and no more simulators than a process's share of them. Every worker fills all its simulators from
+    the shared queue at once, so without the cap the first to start would take more than its share of a short
+    queue (a curve's 50 or 100 episodes) while the others idle, and simulators that never get a job would be
+    built for nothing."""
+    workers = max(1, min(evaluation.workers, jobs))
+    simulators = max(1, min(evaluation.envs_per_worker, math.ceil(jobs / workers)))
+    return workers, simulators, torch_threads_per_worker(evaluation, workers)
+
+
 def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequence[EpisodeJob],
              status: EvaluationStatus) -> list[EvaluationEpisode]:
-    """Runs the jobs on min(workers, jobs) spawned processes; the episodes come back in job order."""
+    """Runs the jobs on spawned processes (worker_layout); the episodes come back in job order."""
     context = multiprocessing.get_context("spawn")
     job_queue, result_queue = context.Queue(), context.Queue()
-    n_workers = min(config.evaluation.workers, len(jobs))
+    n_workers, simulators, threads = worker_layout(config.evaluation, len(jobs))
     for job in jobs:
         job_queue.put(job)
     for _ in range(n_workers):
         job_queue.put(None)  # one end marker per worker
-    threads = torch_threads_per_worker(config.evaluation, n_workers)
     workers = [context.Process(target=evaluation_worker, name=f"evaluate-{number}", daemon=True,
-                               args=(number, config, weights, threads, job_queue, result_queue))
+                               args=(number, config, weights, simulators, threads, job_queue, result_queue))
                for number in range(n_workers)]
     for worker in workers:
         worker.start()

@@ -45,7 +45,7 @@ from actor.sim.front_camera import PerspectiveCamera
 from actor.sim.geometry import Obstacles
 from actor.sim.neighbourhood import Pose, neighbourhood, places_reached
 from actor.sim.progress import ProgressMeter
-from actor.sim.road import LaneLocator, neighbourhood_road
+from actor.sim.road import lane_locator, neighbourhood_road
 from actor.sim.vehicles import EgoVehicle
 from actor.sim.world_image import ground_image, world_image
 from common.config import EnvConfig
@@ -215,10 +215,11 @@ class NeighbourhoodEnv(AbstractEnv):
 
     def _build_road(self) -> None:
         config = self.env_config
-        self.road = neighbourhood_road(self.hood, config.lane_offset_m, 2 * (config.offroad_distance - config.lane_offset_m))
+        offset, width = config.lane_offset_m, 2 * (config.offroad_distance - config.lane_offset_m)
+        self.road = neighbourhood_road(self.hood, offset, width)
         start = self.hood.start_poses[START_SETS[0]][0]
         self.vehicle = EgoVehicle(self.road, [start.x, start.y], start.heading, config.speed)
-        self.vehicle.locator = LaneLocator(self.road.network)
+        self.vehicle.locator = lane_locator(self.hood, self.road.network, offset, width)
         self.road.vehicles.append(self.vehicle)
         if config.traffic_vehicles:
             from actor.sim.traffic import Traffic

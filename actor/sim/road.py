@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numba
 import numpy as np
@@ -105,20 +106,55 @@ def neighbourhood_road(hood: Neighbourhood, lane_offset: float, lane_width: floa
                        np_random: np.random.Generator | None = None) -> Road:
     """The road with parked cars, trees and houses as highway-env ``Obstacle`` objects."""
     road = Road(network=road_network(hood, lane_offset, lane_width), np_random=np_random)
-    rectangles = [car.rectangle for car in hood.parked_cars] + [tuple(h) for h in hood.houses]
-    squares = [(x, y, 0.0, 2 * r, 2 * r) for x, y, r in hood.trees]
-    for x, y, heading, length, width in rectangles + squares:
-        road.objects.append(_obstacle(road, x, y, heading, length, width))
+    for box, lane_index in zip(obstacle_boxes(hood), obstacle_lanes(hood, road.network, lane_offset, lane_width)):
+        road.objects.append(_obstacle(road, *box, lane_index))
     return road
 
 
-def _obstacle(road: Road, x: float, y: float, heading: float, length: float, width: float) -> Obstacle:
-    obstacle = Obstacle(road, [x, y], heading=heading)
+def obstacle_boxes(hood: Neighbourhood) -> list[tuple[float, float, float, float, float]]:
+    """(x, y, heading, length, width) of every parked car, house and tree (a tree as its bounding square)."""
+    rectangles = [car.rectangle for car in hood.parked_cars] + [tuple(h) for h in hood.houses]
+    return rectangles + [(x, y, 0.0, 2 * r, 2 * r) for x, y, r in hood.trees]
+
+
+# (what, id(hood), lane offset, lane width) -> (the hood, what was built of that road)
+_OF_ROAD: dict[tuple[str, int, float, float], tuple[Neighbourhood, Any]] = {}
+
+
+def once_per_road(what: str, hood: Neighbourhood, lane_offset: float, lane_width: float, build: Callable[[], Any]):
+    """What build() makes of one road (the hood and its lanes' geometry), made once per process and shared
+    by its simulators, read only: every simulator of a process drives the same road, and building its
+    lookups was most of building a simulator (about 0.9 s), which an evaluation worker of many
+    simulators paid for each."""
+    key = (what, id(hood), lane_offset, lane_width)
+    cached = _OF_ROAD.get(key)
+    if cached is None or cached[0] is not hood:  # the hood held too, so that a reused id cannot match
+        cached = _OF_ROAD[key] = (hood, build())
+    return cached[1]
+
+
+def obstacle_lanes(hood: Neighbourhood, network: RoadNetwork, lane_offset: float, lane_width: float
+                   ) -> list[LaneIndex]:
+    """The lane highway-env places each obstacle on (its get_closest_lane_index, a Python loop over every
+    lane), once per process and road."""
+    return once_per_road("obstacle lanes", hood, lane_offset, lane_width, lambda: [
+        network.get_closest_lane_index(np.array([x, y], dtype=np.float64), heading)
+        for x, y, heading, _, _ in obstacle_boxes(hood)])
+
+
+def lane_locator(hood: Neighbourhood, network: RoadNetwork, lane_offset: float, lane_width: float) -> LaneLocator:
+    """The LaneLocator of the road, once per process and road (it reads the network only when built)."""
+    return once_per_road("lane locator", hood, lane_offset, lane_width, lambda: LaneLocator(network))
+
+
+def _obstacle(road: Road, x: float, y: float, heading: float, length: float, width: float,
+              lane_index: LaneIndex) -> Obstacle:
+    obstacle = Obstacle(None, [x, y], heading=heading)  # without a road it skips its own lane lookup
+    obstacle.road = road
     obstacle.LENGTH, obstacle.WIDTH = length, width
     obstacle.diagonal = math.hypot(length, width)
-    # Obstacle() looked its lane up before it had its real size and place.
-    obstacle.lane_index = road.network.get_closest_lane_index(obstacle.position, heading)
-    obstacle.lane = road.network.get_lane(obstacle.lane_index)
+    obstacle.lane_index = lane_index
+    obstacle.lane = road.network.get_lane(lane_index)
     return obstacle
 
 
@@ -156,7 +192,6 @@ class LaneLocator:
                     lane_of.append(np.full(len(s), len(self.indices)))
                     along.append(s)
                     self.indices.append((_from, _to, number))
-        self.network = network
         self.points = np.concatenate(points)
         self.directions = np.concatenate(directions)
         self.lane_of = np.concatenate(lane_of)

@@ -12,7 +12,7 @@ taking turns within each round so that noise from other processes hits all alike
   few dozen steps, so resets are frequent, as in early training. Sending
   episodes (the outbox thread) is not included;
 * network alone: the same batched forward pass (actor/batched_q.py) on random
-  frames, as evaluation_speed.py times it, by CPU time.
+  frames, by CPU time (inference_rate, which evaluation_speed.py shares).
 
 The actor's rates are env steps per second of wall time and per second of
 this process's CPU time (steadier on a shared machine: "per actor core"). Then the network's
@@ -32,6 +32,7 @@ import dataclasses
 import statistics
 import time
 
+import numpy as np
 import torch
 
 from actor.evaluation.episodes import GreedyPolicy
@@ -42,12 +43,26 @@ from common.exploration.build import exploration_message, make_strategy
 from common.network import weights_to_numpy
 from common.wire.messages import Weights
 from env_speed import one_core  # deploy/bench is this script's directory
-from evaluation_speed import inference_rate
 from learner.flops import forward_flops
 from learner_speed import Clock, Gemms
 
 SQUARE_GEMM = 2048
 PEAK_TRIES = 5
+
+
+def inference_rate(policy: GreedyPolicy, n_envs: int, seconds: float, shape: tuple[int, ...],
+                   clock=time.perf_counter) -> float:
+    """Env-steps/s of the policy's batched forward pass over random frames, by wall time or another clock."""
+    slots = list(range(n_envs))
+    rng = np.random.default_rng(0)
+    observations = [rng.integers(0, 256, size=shape, dtype=np.uint8) for _ in slots]
+    poses = [(0.0, 0.0, 0.0)] * n_envs
+    policy.act(slots, observations, poses)  # warm-up
+    passes, start = 0, clock()
+    while clock() - start < seconds:
+        policy.act(slots, observations, poses)
+        passes += 1
+    return n_envs * passes / (clock() - start)
 
 
 def acting_actor(config: Config, envs: int, inference: str = "float32") -> Actor:
