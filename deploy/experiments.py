@@ -610,6 +610,9 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("interrupted: the running stacks checkpointed; the same command resumes", file=sys.stderr)
             return 130
+    if not options.export_dir.is_dir():
+        print(f"grid: no run has finished yet ({options.export_dir} is empty); no report", flush=True)
+        return 1 if failed else 0
     from deploy.grid_report import report_on  # the report's figures import matplotlib: not before a run
     try:
         paths = report_on([options.export_dir, *options.merge], options.runs_dir / RESULTS_DIR)

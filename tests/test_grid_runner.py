@@ -225,3 +225,8 @@ class FakeChild:
 
     def interrupt(self) -> None:
         pass
+
+
+def test_a_grid_with_no_finished_run_has_no_report_and_says_so(tmp_path, capsys):
+    assert experiments.main(["--strategies", "bmc", "--seeds", "0", "--runs-dir", str(tmp_path), "--report-only"]) == 0
+    assert "no run has finished yet" in capsys.readouterr().out
