@@ -348,7 +348,7 @@ def main() -> None:
             target = Target(target.name, target.mutate, target.tests, (), target.deselect)
         if args.recheck:
             after = recheck_target(target, args.work, args.out, args.budget, args.children)
-            print(f"{name}: {Counter(after['rechecked'].values())} of the last run's survivors and timeouts")
+            print(f"{name}: the last run's survivors now {dict(Counter(after['rechecked'].values()))}")
             continue
         report = run_target(target, args.work, args.out, args.budget, args.children, args.timeout_multiplier,
                             args.resume)
