@@ -7,14 +7,16 @@ import pytest
 import scipy.stats
 
 from common.config import ExplorationConfig
-from common.exploration.base import softmax_probabilities
+from common.exploration.base import softmax_probabilities, state_positive, state_probability
 from common.exploration.bmc import (BmcConfig, BmcPosterior, EpsilonBmc, bmc_observation_count,
                                     greedy_and_uniform_returns, newest_transitions, student_t_pdf)
-from common.exploration.boltzmann import MaxBoltzmann, MaxBoltzmannConfig
+from common.exploration.boltzmann import MaxBoltzmann, MaxBoltzmannConfig, SoftmaxConfig
 from common.exploration.build import exploration_message, make_strategy, same_strategy, strategy_from_state
-from common.exploration.epsilon_greedy import DecreasingEpsilonConfig, DecreasingEpsilonGreedy, decreasing_epsilon
+from common.exploration.epsilon_greedy import (ConstantEpsilonConfig, DecreasingEpsilonConfig, DecreasingEpsilonGreedy,
+                                               decreasing_epsilon)
 from common.exploration.names import STRATEGIES
-from common.exploration.vdbe import vdbe_f
+from common.exploration.vdbe import VdbeConfig, vdbe_f
+from common.options import ConfigError
 from common.wire.envelope import decode, encode
 from common.wire.messages import ExplorationState
 
@@ -137,6 +139,89 @@ def test_a_state_that_cannot_be_followed_is_a_value_error():
             strategy_from_state(state, N_ACTIONS)
 
 
+def test_a_strategy_without_state_refuses_one_by_name():
+    state = strategy("constant").state_dict()
+    with pytest.raises(ValueError, match=r"^constant keeps no state, got \{'epsilon': 0.5\}$"):
+        strategy("constant").load_state_dict({**state, "state": {"epsilon": 0.5}})
+
+
+def test_a_state_is_followed_only_with_the_same_name_and_the_same_params():
+    # Found by mutation testing: the name alone, or the params alone, is not the same strategy
+    state = strategy("vdbe").state_dict()
+    assert same_strategy(strategy("vdbe"), state)
+    assert not same_strategy(strategy("vdbe"), {**state, "params": {**state["params"], "nu": 2.0}})
+    assert not same_strategy(strategy("vdbe_softmax"), {**state, "params": strategy("vdbe_softmax").params()})
+
+
+def test_a_refused_state_is_quoted_to_200_characters_and_the_known_params_listed():
+    long_state = {"strategy": "greedy", "params": {"note": "x" * 300}}
+    with pytest.raises(ValueError) as refused:
+        strategy_from_state(long_state, N_ACTIONS)
+    assert str(refused.value) == f"exploration state names no known strategy ({str(long_state)[:200]})"
+    good = strategy("vdbe").state_dict()
+    with pytest.raises(ValueError, match=r"exploration param 'kappa' is not one of vdbe's \(eps0, lam, nu\)$"):
+        strategy_from_state({**good, "params": {**good["params"], "kappa": 0.1}}, N_ACTIONS)
+
+
+def test_state_values_are_checked_at_their_bounds():
+    # Found by mutation testing: each bound from both sides, and the refusal names the key
+    assert state_positive({"alpha": 0.5}, "alpha") == 0.5  # positive, below 1: taken
+    for bad in (0.0, -1.0, math.inf, math.nan):
+        with pytest.raises(ValueError, match=f"exploration state alpha must be a positive number, got {bad!r}"):
+            state_positive({"alpha": bad}, "alpha")
+    assert state_probability({"epsilon": 0.0}, "epsilon") == 0.0  # both ends of [0, 1] are probabilities
+    assert state_probability({"epsilon": 1.0}, "epsilon") == 1.0
+    for bad in (-0.01, 1.01, math.nan):
+        with pytest.raises(ValueError, match="must lie in"):
+            state_probability({"epsilon": bad}, "epsilon")
+
+
+def test_bmc_loads_a_fresh_posterior_and_refuses_impossible_statistics():
+    fresh = strategy("bmc").state_dict()
+    assert fresh["state"]["count"] == 0 and fresh["state"]["m2"] == 0.0
+    policy = strategy("bmc")
+    policy.load_state_dict(fresh)  # no observation yet: count 0 and m2 0 are the start, not an error
+    assert policy.state_dict() == fresh
+    one = {**fresh, "state": {**fresh["state"], "count": 1, "mean": 2.0}}  # one observation: m2 still 0
+    policy.load_state_dict(one)
+    assert policy.posterior.count == 1
+    for bad in ({"count": -1}, {"m2": -1.0}, {"mean": math.inf}, {"m2": math.nan}):
+        with pytest.raises(ValueError, match="bmc running statistics are invalid"):
+            policy.load_state_dict({**fresh, "state": {**fresh["state"], **bad}})
+
+
+@pytest.mark.parametrize("section, key, bad, message", [
+    (ConstantEpsilonConfig, "epsilon", 1.5, "must lie in [0, 1], got 1.5"),
+    (DecreasingEpsilonConfig, "eps_start", -0.1, "must lie in [0, 1], got -0.1"),
+    (DecreasingEpsilonConfig, "eps_last", 1.1, "must lie in [0, 1], got 1.1"),
+    (DecreasingEpsilonConfig, "eps_end", 2.0, "must lie in [0, 1], got 2.0"),
+    (DecreasingEpsilonConfig, "n_start", -1, "must be >= 0"),
+    (DecreasingEpsilonConfig, "n_ann", 0, "must be > 0"),
+    (DecreasingEpsilonConfig, "n_max", 450_000, "must exceed n_start + n_ann"),  # equal to it: refused
+    (SoftmaxConfig, "kappa", 0.0, "must be > 0, got 0.0"),
+    (MaxBoltzmannConfig, "epsilon", -0.5, "must lie in [0, 1], got -0.5"),
+    (MaxBoltzmannConfig, "kappa", -1.0, "must be > 0, got -1.0"),
+    (VdbeConfig, "lam", 1.5, "must lie in [0, 1], got 1.5"),
+    (VdbeConfig, "eps0", -1.0, "must lie in [0, 1], got -1.0"),
+    (VdbeConfig, "nu", 0.0, "must be > 0, got 0.0"),
+    *[(BmcConfig, key, 0.0, "must be > 0, got 0.0") for key in ("alpha0", "beta0", "a0", "b0", "tau0")],
+    (BmcConfig, "observations", "per_episode", "must be one of per_step, per_transition"),
+])
+def test_each_strategy_setting_out_of_range_is_refused_by_its_name(section, key, bad, message):
+    # Found by mutation testing: a setting left out of its check, or a refusal that names no key,
+    # passed every test that builds strategies from valid settings
+    settings = section()
+    settings.validate()  # the defaults are valid
+    setattr(settings, key, bad)
+    with pytest.raises(ConfigError) as refused:
+        settings.validate()
+    assert str(refused.value) == f"{key}: {message}"
+
+
+def test_the_decreasing_schedules_bounds_are_taken_at_their_edges():
+    DecreasingEpsilonConfig(eps_start=1.0, eps_last=0.0, eps_end=0.0, n_start=0, n_ann=1, n_max=2).validate()
+
+
 # --- which transitions BMC observes --------------------------------------------------
 
 def test_per_step_counts_one_transition_per_env_step():
@@ -152,7 +237,7 @@ def test_newest_transition_of_each_trace_first():
     assert newest_transitions(g, g, 6)[0].tolist() == [1, 2, 4, 5, 8, 11]  # then the step before, traces 0 and 1
     assert newest_transitions(g, g, 50)[0].tolist() == list(range(12))  # never more than the batch holds
     assert newest_transitions(g, g, 0)[0].size == 0
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="must be equal \\(B, U\\) arrays"):
         newest_transitions(g, g[:2], 3)
 
 
@@ -169,6 +254,23 @@ def test_softmax_probabilities_by_hand():
     expected = [1 / 1.5032147244, 0.3678794412 / 1.5032147244, 0.1353352832 / 1.5032147244]
     np.testing.assert_allclose(softmax_probabilities(np.array([0.2, 0.1, 0.0]), 0.1), expected, rtol=1e-9)
     np.testing.assert_allclose(softmax_probabilities(np.array([1.0, 0.0, -1.0]), 1.0), expected, rtol=1e-9)
+
+
+def test_softmax_of_float32_q_values_is_computed_in_float64():
+    q = np.array([0.1, 0.7, 0.3], dtype=np.float32)  # the actor's network gives float32
+    exact = np.exp((q.astype(np.float64) - float(q.max())) / 0.1)
+    np.testing.assert_allclose(softmax_probabilities(q, 0.1), exact / exact.sum(), rtol=1e-15, atol=0)
+
+
+def test_the_greedy_action_is_the_largest_q_value_and_a_one_action_strategy_is_allowed():
+    policy = strategy("constant")
+    policy.config.epsilon = 0.0
+    policy.start()
+    rng = np.random.default_rng(0)
+    assert [policy.act(np.array(q), rng) for q in ([0.0, 0.1, 0.0, 0.9, 0.2], [3.0, 0.0, 0.0, 0.0, 4.0])] == [3, 4]
+    assert strategy("constant", n_actions=1).act(np.array([0.5]), rng) == 0
+    with pytest.raises(ValueError, match="n_actions must be >= 1, got 0"):
+        strategy("constant", n_actions=0)
 
 
 def test_softmax_does_not_overflow_at_large_q_values():
@@ -275,6 +377,13 @@ def test_vdbe_epsilon_update_by_hand():
     assert policy.state_dict()["counters"]["updates"] == 2
 
 
+def test_vdbe_refuses_an_empty_update_by_name():
+    policy = strategy("vdbe")
+    with pytest.raises(ValueError, match="must be equal-shaped, non-empty and finite"):
+        policy.on_update(np.array([]), np.array([]))
+    assert policy.epsilon == 1.0 and policy.updates == 0
+
+
 def test_vdbe_softmax_explores_by_softmax_with_the_vdbe_epsilon():
     policy = strategy("vdbe_softmax")
     policy.start()
@@ -299,6 +408,29 @@ def test_greedy_and_uniform_returns_by_hand():
     # first: 1 + 0.9 * max(1, 2, 3) = 3.7 and 1 + 0.9 * mean = 1 + 0.9 * 2 = 2.8; second is terminal: 0.5, 0.5
     np.testing.assert_allclose(g_greedy, [3.7, 0.5])
     np.testing.assert_allclose(g_uniform, [2.8, 0.5])
+
+
+def test_greedy_and_uniform_returns_of_the_learners_float32_batch_in_float64():
+    # Found by mutation testing (deploy/bench/mutation.py). The learner passes (B, U) rewards and
+    # terminals and (B, U, A) next Q-values, all float32 (learner/update.py, exploration_terms): the
+    # max and mean are over the actions, and the arithmetic is float64, as a float64 reference gets it
+    rewards = np.array([[0.1, 0.2], [0.3, 0.4]], dtype=np.float32)
+    next_q = np.array([[[0.1, 0.2, 0.7], [1.1, 0.3, 0.3]], [[0.5, 0.6, 0.4], [0.9, 0.8, 0.2]]], dtype=np.float32)
+    terminated = np.array([[0.0, 0.0], [0.0, 1.0]], dtype=np.float32)
+    g_greedy, g_uniform = greedy_and_uniform_returns(rewards, next_q, terminated, gamma=0.9)
+    r, q, t = rewards.astype(np.float64), next_q.astype(np.float64), terminated.astype(np.float64)
+    expected_greedy = [[r[i, j] + 0.9 * (1.0 - t[i, j]) * max(q[i, j]) for j in range(2)] for i in range(2)]
+    expected_uniform = [[r[i, j] + 0.9 * (1.0 - t[i, j]) * (q[i, j, 0] + q[i, j, 1] + q[i, j, 2]) / 3.0
+                         for j in range(2)] for i in range(2)]
+    assert g_greedy.dtype == g_uniform.dtype == np.float64
+    # float64 rounding of a few operations (~1e-16); float32 anywhere on the way would be ~1e-8 off
+    np.testing.assert_allclose(g_greedy, expected_greedy, rtol=1e-14, atol=0)
+    np.testing.assert_allclose(g_uniform, expected_uniform, rtol=1e-14, atol=0)
+    # terminals that would broadcast but are not one per transition are refused, not spread
+    with pytest.raises(ValueError, match="do not describe the same transitions"):
+        greedy_and_uniform_returns(rewards, next_q, terminated[:, :1], gamma=0.9)
+    with pytest.raises(ValueError, match="do not describe the same transitions"):
+        greedy_and_uniform_returns(rewards, next_q[:, :1], terminated, gamma=0.9)
 
 
 @pytest.mark.parametrize("x, df, loc, scale", [(1.1, 505.0, 0.9, 1.0), (-3.0, 3.0, 0.5, 2.5), (0.0, 1.0, 0.0, 0.1)])
@@ -342,6 +474,60 @@ def test_one_bmc_update_step_by_step():
     # With eps < 0.5, G lies nearer G_Q (1.3 - G = 0.19996) than G_U (G - 0.9 = 0.20004): the greedy
     # model gains weight, so epsilon falls, if only a little
     assert policy.epsilon < eps
+
+
+def test_a_bmc_update_where_every_term_of_the_posterior_counts():
+    # Found by mutation testing: with the paper's priors (a0 = b0 = 250) and returns nearly
+    # equidistant from both models, the step-by-step test above cannot see the Normal-Gamma b change,
+    # a normaliser below 1, or a matched Beta whose alpha + beta is below 1. Small priors, a prior mean
+    # off zero, tau0 off 1 and an uneven G make each of them move alpha and beta; the reference is
+    # built from the returns themselves (numpy's mean and sample variance, scipy's Student-t), not
+    # from the running statistics
+    alpha, beta = 0.3, 0.4
+    config = BmcConfig(alpha0=alpha, beta0=beta, a0=1.5, b0=0.8, mu0=0.5, tau0=2.0)
+    policy = EpsilonBmc(N_ACTIONS, config)
+    policy.posterior = BmcPosterior(alpha=alpha, beta=beta, count=3, mean=1.2, m2=0.9)
+    earlier = np.array([1.2 - math.sqrt(0.45), 1.2, 1.2 + math.sqrt(0.45)])  # mean 1.2, m2 0.9
+    policy.on_returns(np.array([2.0]), np.array([0.7]))
+
+    eps = alpha / (alpha + beta)
+    g = (1 - eps) * 2.0 + eps * 0.7
+    returns = np.append(earlier, g)
+    n, mean, variance = 4, returns.mean(), returns.var(ddof=1)
+    a = 1.5 + n / 2
+    b = 0.8 + n / 2 * variance + n / 2 * 2.0 / (2.0 + n) * (mean - 0.5) ** 2
+    scale = math.sqrt(b / a)
+    e_uniform = scipy.stats.t.pdf(g, 2 * a, loc=0.7, scale=scale)
+    e_greedy = scipy.stats.t.pdf(g, 2 * a, loc=2.0, scale=scale)
+    # the posterior over eps is Beta(alpha, beta) times eps e_U + (1 - eps) e_G: weights alpha e_U and
+    # beta e_G on Beta(alpha + 1, beta) and Beta(alpha, beta + 1), matched by its first two moments
+    w_u, w_g = alpha * e_uniform, beta * e_greedy
+    assert w_u + w_g < 1.0  # a normaliser below 1 is a normaliser like any other
+    total = alpha + beta
+    first = (w_u * (alpha + 1) + w_g * alpha) / (total + 1) / (w_u + w_g)
+    second = (w_u * (alpha + 1) * (alpha + 2) + w_g * alpha * (alpha + 1)) / ((total + 1) * (total + 2)) / (w_u + w_g)
+    matched = (first - second) / (second - first ** 2)
+    assert matched < 1.0  # alpha + beta of the matched Beta: below 1 is a Beta like any other
+
+    posterior = policy.posterior
+    assert posterior.count == 4 and posterior.mean == pytest.approx(mean, rel=1e-12)
+    assert posterior.variance == pytest.approx(variance, rel=1e-12)
+    assert posterior.alpha == pytest.approx(first * matched, rel=1e-12)
+    assert posterior.beta == pytest.approx((1 - first) * matched, rel=1e-12)
+
+
+def test_returns_of_no_observation_leave_the_posterior_and_bad_returns_are_refused():
+    policy = EpsilonBmc(N_ACTIONS, BmcConfig(tau0=1e-6))
+    # G 500 from each model in units of a scale near 1: both evidences underflow to 0, and the
+    # posterior keeps its Beta rather than divide by zero
+    policy.on_returns(np.array([1000.0]), np.array([0.0]))
+    assert (policy.posterior.alpha, policy.posterior.beta, policy.posterior.count) == (25.0, 25.01, 1)
+    policy.on_returns(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]))
+    policy.on_returns(np.array([[1.0, 2.0]]), np.array([[0.5, 0.5]]))
+    assert policy.returns == 6  # 1 + 3 + 2 transitions, counted over the calls
+    for greedy, uniform in (([1.0, 2.0], [1.0]), ([1.0], [math.nan]), ([math.inf], [1.0])):
+        with pytest.raises(ValueError, match="must be equal-sized and finite"):
+            policy.on_returns(np.array(greedy), np.array(uniform))
 
 
 def test_the_first_bmc_update_has_zero_variance():

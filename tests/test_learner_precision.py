@@ -135,6 +135,11 @@ def test_the_precision_decision_takes_the_best_of_each_candidates_timings():
     assert precision_from_timings({"float32": [0.61, 0.30, 0.58], "bfloat16": [0.55, 0.20, 0.21]}, 1.3) == "bfloat16"
     assert precision_from_timings({"float32": [0.25], "bfloat16": [0.20]}, 1.3) == "float32"  # 1.25x: not enough
     assert precision_from_timings({"float32": [0.26], "bfloat16": [0.20]}, 1.3) == "bfloat16"  # 1.3x: taken
+    # Found by mutation testing: the learner passes no speedup (choose_learner_precision), so the default is
+    # what runs, AUTO_BFLOAT16_SPEEDUP = 1.3; and a speedup that is passed is the one used
+    assert precision_from_timings({"float32": [0.26], "bfloat16": [0.20]}) == "bfloat16"
+    assert precision_from_timings({"float32": [0.25], "bfloat16": [0.20]}) == "float32"
+    assert precision_from_timings({"float32": [0.26], "bfloat16": [0.20]}, 1.5) == "float32"
 
 
 def spinning_neighbours(count: int) -> list[subprocess.Popen]:

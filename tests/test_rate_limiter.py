@@ -5,12 +5,22 @@ import math
 import pytest
 
 from common.config_values import load_config
-from common.pacing import RateLimit, rate_limit_from_config
+from common.pacing import RateLimit, achieved_ratio, is_unpaced, rate_limit_from_config, start_mark_of
 from replay.rate_limiter import RateLimiter
 
 
 def limiter(per_update=4.0, start_episodes=3, start_steps=100, buffer=2.0, total=None, by_steps=False):
     return RateLimiter(RateLimit(per_update, start_episodes, start_steps, buffer, total, by_steps))
+
+
+def hundred_due(served: int) -> RateLimiter:
+    """Updates started at step 100 (one episode, start_episodes 1); 400 steps later 100 are due; `served` served."""
+    rate = limiter(start_episodes=1, buffer=2.0)
+    rate.on_episode(100, episodes_stored=1)
+    rate.on_episode(400, episodes_stored=2)
+    for _ in range(served):
+        rate.on_served()
+    return rate
 
 
 def serve_all(rate: RateLimiter) -> int:
@@ -190,6 +200,90 @@ def test_state_round_trips_and_bad_state_is_refused():
             limiter().load_state_dict(bad)
 
 
+def test_state_carries_every_counter_and_an_older_state_without_the_newer_ones_loads_as_zero():
+    # Found by mutation testing: the round trip above has no refill, no lost and no recounted update,
+    # so a key misspelt on one side (or a default other than 0) went unseen
+    rate = limiter(start_episodes=2, buffer=2.0)
+    rate.load_state_dict({"version": 1, "env_steps": 1_000, "served": 200, "start_mark": 200.0}, episodes_stored=1)
+    assert (rate.refill_env_steps, rate.lost_updates, rate.recounted_updates) == (0, 0, 0)
+    rate.on_episode(20, episodes_stored=2)  # the refill: 20 steps
+    assert rate.on_learner_start(197) == 3  # 3 lost
+    assert rate.on_learner_updates(199) == 2  # 2 recounted
+    assert rate.state_dict() == {"version": 1, "env_steps": 1_020, "served": 199, "start_mark": 220.0,
+                                 "refill_env_steps": 20, "lost_updates": 3, "recounted_updates": 2}
+    again = limiter(start_episodes=2, buffer=2.0)
+    again.load_state_dict(rate.state_dict(), episodes_stored=2)
+    assert (again.refill_env_steps, again.lost_updates, again.recounted_updates) == (20, 3, 2)
+    with pytest.raises(ValueError, match="rate limiter state version 9, expected 1"):
+        again.load_state_dict({**rate.state_dict(), "version": 9})
+    with pytest.raises(ValueError, match="malformed rate limiter state"):
+        again.load_state_dict({"version": 1})
+
+
+def test_a_loaded_state_is_taken_at_its_bounds_and_refused_past_them_by_name():
+    # Found by mutation testing: each bound of the loaded counters from both sides
+    rate = limiter(start_episodes=2)
+    rate.load_state_dict({"version": 1, "env_steps": 40, "served": 0, "start_mark": None}, episodes_stored=1)
+    assert not rate.started and rate.env_steps == 40  # stage 1, saved before updates started
+    rate.load_state_dict({"version": 1, "env_steps": 40, "served": 0, "start_mark": 0}, episodes_stored=2)
+    assert rate.start_mark == 0.0 and not rate.refilling  # updates started at step 0; the store is full again
+    rate.load_state_dict({"version": 1, "env_steps": 40, "served": 3, "start_mark": 40.0}, episodes_stored=2)
+    assert rate.start_mark == 40.0  # started by the last episode saved
+    good = {"version": 1, "env_steps": 40, "served": 3, "start_mark": 20.0}
+    for bad, message in (({"served": -1}, r"counters must be non-negative integers, got 40, -1"),
+                         ({"start_mark": 41.0}, r"start mark 41.0 must lie in \[0, env_steps\]"),
+                         ({"start_mark": -1.0}, r"start mark -1.0 must lie in \[0, env_steps\]"),
+                         ({"start_mark": None}, "^rate limiter state served batches before updates started$")):
+        with pytest.raises(ValueError, match=message):
+            rate.load_state_dict({**good, **bad}, episodes_stored=2)
+
+
+def test_lost_and_recounted_updates_add_up_over_several_restarts():
+    rate = hundred_due(served=10)
+    assert rate.on_learner_start(10) == 0  # its checkpoint has every update served: nothing lost
+    assert rate.on_learner_start(12) == 0  # ahead of the count: nothing to owe again (the next test's case)
+    assert rate.on_learner_start(0) == 10  # a learner with no checkpoint lost every update served
+    for _ in range(6):
+        rate.on_served()
+    assert rate.on_learner_start(4) == 2 and rate.lost_updates == 12  # the second death adds to the first
+    assert rate.on_learner_updates(7) == 3 and rate.on_learner_updates(9) == 2
+    assert rate.recounted_updates == 5 and rate.served == 9
+
+
+def test_the_replays_stats_name_every_counter_and_decision():
+    # The replay's stats and rate message are these values (replay/service.py); each checked by hand
+    waiting = limiter(start_episodes=2, per_update=4.0, buffer=2.0)
+    waiting.on_episode(30, episodes_stored=1)
+    assert waiting.values() == {
+        "env_steps": 30, "batches_served": 0, "updates_due": 0.0, "start_env_steps": -1.0, "hold_actors": 0,
+        "hold_reason": "", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 0,
+        "recounted_updates": 0, "error_buffer_updates": 2.0, "env_steps_per_update_target": 4.0}  # no ratio yet
+    behind = limiter(start_episodes=1, per_update=4.0, buffer=2.0)
+    behind.on_episode(100, episodes_stored=1)
+    behind.on_episode(40, episodes_stored=2)  # 10 due
+    for _ in range(6):
+        behind.on_served()  # 4 behind, more than B = 2
+    assert behind.on_learner_start(5) == 1
+    assert behind.values() == {
+        "env_steps": 140, "batches_served": 5, "updates_due": 10.0, "start_env_steps": 100.0, "hold_actors": 1,
+        "hold_reason": "behind", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 1,
+        "recounted_updates": 0, "error_buffer_updates": 2.0, "env_steps_per_update_target": 4.0,
+        "env_steps_per_update": 8.0}
+    resumed = limiter(start_episodes=2, per_update=4.0, buffer=1.0, total=1_000)
+    resumed.load_state_dict({"version": 1, "env_steps": 1_000, "served": 200, "start_mark": 200.0,
+                             "refill_env_steps": 5, "lost_updates": 2, "recounted_updates": 4}, episodes_stored=1)
+    assert resumed.values() == {
+        "env_steps": 1_000, "batches_served": 200, "updates_due": 200.0, "start_env_steps": 200.0,
+        "hold_actors": 1, "hold_reason": "budget", "closed": 0, "refilling": 1, "refill_env_steps": 5,
+        "lost_updates": 2, "recounted_updates": 4, "error_buffer_updates": 1.0, "env_steps_per_update_target": 4.0,
+        "env_steps_per_update": 4.0}
+    closed = limiter(start_episodes=1, per_update=4.0, buffer=2.0, total=100)
+    closed.on_episode(100, episodes_stored=1)
+    closed.on_episode(40, episodes_stored=2)
+    assert serve_all(closed) == 12
+    assert closed.values()["closed"] == 1 and closed.values()["env_steps_per_update"] == 40 / 12
+
+
 def test_a_resumed_replay_refills_its_store_before_serving_and_does_not_owe_the_refill():
     rate = limiter(start_episodes=2, buffer=1.0)
     rate.load_state_dict({"version": 1, "env_steps": 1_000, "served": 200, "start_mark": 200.0})
@@ -221,12 +315,44 @@ def test_settings_come_from_the_config():
         RateLimit(4.0, 1, 0, 0.5)
 
 
+def test_the_settings_are_refused_below_their_bounds_and_taken_at_them():
+    # Found by mutation testing (deploy/bench/mutation.py): each bound checked on both sides, and the
+    # message names the setting, so that a user who sets it wrong reads which one
+    RateLimit(0.5, 1, 0, 1.0)  # fewer env steps than updates is a valid ratio: only > 0 is required
+    with pytest.raises(ValueError, match="env_steps_per_update must be > 0, got 0"):
+        RateLimit(0.0, 1, 0, 1.0)
+    with pytest.raises(ValueError, match="start_episodes must be >= 1 and start_steps >= 0, got 0 and 5"):
+        RateLimit(4.0, 0, 5, 1.0)  # the episodes wrong, the steps right: still refused
+    with pytest.raises(ValueError, match="got 1 and -1"):
+        RateLimit(4.0, 1, -1, 1.0)
+    with pytest.raises(ValueError, match="an episode has >= 0 steps, got -1"):
+        limiter().on_episode(-1, episodes_stored=0)
+
+
+def test_the_start_mark_at_the_exact_start_episode_and_the_exact_start_step():
+    by_episodes = RateLimit(4.0, start_episodes=3, start_steps=100, error_buffer=1.0)
+    assert start_mark_of(by_episodes, 50, 80, episodes_stored=2) is None
+    assert start_mark_of(by_episodes, 50, 80, episodes_stored=3) == 80.0  # the third episode: the steps so far
+    by_steps = RateLimit(4.0, start_episodes=3, start_steps=100, error_buffer=1.0, start_by_steps=True)
+    assert start_mark_of(by_steps, 90, 99, episodes_stored=1) is None
+    assert start_mark_of(by_steps, 90, 100, episodes_stored=1) == 100.0  # reaching start_steps exactly starts
+
+
+def test_the_achieved_ratio_is_nan_before_the_start_or_the_first_update_and_exact_after():
+    assert math.isnan(achieved_ratio(500.0, None, 5))  # updates made, but no mark (a restored count)
+    assert math.isnan(achieved_ratio(500.0, 100.0, 0))  # a mark, no update yet: not a division by zero
+    assert achieved_ratio(500.0, 100.0, 1) == 400.0  # from the first update on
+    assert achieved_ratio(500.0, 100.0, 8) == 50.0
+
+
+def test_unpaced_exactly_when_the_buffer_covers_the_whole_budget():
+    # 1,000 env steps at 4 per update pay for 250 updates: a buffer of 250 holds nobody, 249 may
+    assert is_unpaced(250.0, 1_000, 4.0) and not is_unpaced(249.0, 1_000, 4.0)
+    assert not is_unpaced(1e9, None, 4.0)  # no budget: always paced
+
+
 def test_a_resumed_replay_counts_the_updates_a_running_learner_made_beyond_its_saved_counters():
-    rate = limiter(start_episodes=1, buffer=2.0)
-    rate.on_episode(100, episodes_stored=1)
-    rate.on_episode(400, episodes_stored=2)  # 100 due
-    for _ in range(20):
-        rate.on_served()
+    rate = hundred_due(served=20)
     saved = rate.state_dict()
     for _ in range(30):
         rate.on_served()  # served, then the replay dies before saving again

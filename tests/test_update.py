@@ -13,15 +13,16 @@ from torch.utils.flop_counter import FlopCounterMode
 from common.config import LearnerConfig, NetworkConfig
 from common.config_values import load_config
 from common.exploration.bmc import greedy_and_uniform_returns
+from common.network import D3RQN
 from common.options import ConfigError
 from learner.allocator import keep_freed_memory
 from learner.reference_update import paper_reference_loss, same_history_reference_loss
 import learner.update as update_module
 from learner.flops import update_flops
 from learner.update import (
-    DoubleQLearner, TraceArrays, TraceTensors, candidate_paths, choose_update_path, double_q_targets,
-    masked_squared_error,
-    one_pass_loss, to_tensors, trace_pass_loss,
+    DoubleQLearner, TraceArrays, TraceTensors, burnt_in_forward, candidate_paths, choose_update_path,
+    double_q_targets, masked_squared_error,
+    one_pass_loss, one_pass_terms, to_tensors, trace_pass_loss,
 )
 
 TINY = NetworkConfig(frame_height=36, frame_width=36, lstm_units=16, device="cpu")
@@ -104,6 +105,29 @@ def test_a_truncated_last_step_bootstraps():
     # t=2 not terminal: argmax Q(s3) = [2, 4] -> 1, y = 3 + 0.5 * 60 = 33, error^2 = (33 - 1.5)^2 = 992.25
     terms = one_pass_loss(online, target, table_batch(terminated_last=False), 0.5, 1)
     assert terms.loss.item() == pytest.approx((484 + 992.25) / 3, rel=1e-6)
+
+
+def test_the_loss_from_given_q_values_is_the_papers_one_step_target_unless_told():
+    # Found by mutation testing: every caller in the learner passes n_step, so the default went
+    # unchecked; deploy/bench/learner_speed.py relies on it. Same table as above, the trace not
+    # terminal: t=2 bootstraps from s_3 (y = 33), where two steps would have nothing more to add but
+    # t=1 would become 2 + 0.5 * 3 + 0.25 * 60 = 18.5
+    online, target = torch.tensor([ONLINE]), torch.tensor([TARGET])
+    terms = one_pass_terms(online, target[:, 1:], table_batch(terminated_last=False), 0.5, 1)
+    assert terms.loss.item() == pytest.approx((484 + 992.25) / 3, rel=1e-6)
+
+
+def test_without_burn_in_the_online_pass_starts_from_the_given_state():
+    # Found by mutation testing: a stored state with no masked steps (n_mask 0) runs no burn-in, and
+    # that pass must still start from the stored (h, c), not from zeros
+    torch.manual_seed(0)
+    network = D3RQN(TINY)
+    frames = torch.from_numpy(np.random.default_rng(0).integers(0, 256, (2, 3, 36, 36, 3), dtype=np.uint8))
+    state = (torch.rand(1, 2, TINY.lstm_units) - 0.5, torch.rand(1, 2, TINY.lstm_units) - 0.5)
+    with torch.no_grad():
+        from_state = burnt_in_forward(network, frames, state, 0)
+        torch.testing.assert_close(from_state, network(frames, state)[0], rtol=0, atol=0)
+        assert not torch.allclose(from_state, network(frames, None)[0], rtol=0, atol=1e-4)
 
 
 def test_double_q_targets_and_mask_by_hand():
