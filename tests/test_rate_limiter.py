@@ -257,7 +257,7 @@ def test_the_replays_stats_name_every_counter_and_decision():
     assert waiting.values() == {
         "env_steps": 30, "batches_served": 0, "updates_due": 0.0, "start_env_steps": -1.0, "hold_actors": 0,
         "hold_reason": "", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 0,
-        "recounted_updates": 0, "error_buffer_updates": 2.0, "env_steps_per_update_target": 4.0}  # no ratio yet
+        "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0}  # no ratio yet
     behind = limiter(start_episodes=1, per_update=4.0, buffer=2.0)
     behind.on_episode(100, episodes_stored=1)
     behind.on_episode(40, episodes_stored=2)  # 10 due
@@ -267,7 +267,7 @@ def test_the_replays_stats_name_every_counter_and_decision():
     assert behind.values() == {
         "env_steps": 140, "batches_served": 5, "updates_due": 10.0, "start_env_steps": 100.0, "hold_actors": 1,
         "hold_reason": "behind", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 1,
-        "recounted_updates": 0, "error_buffer_updates": 2.0, "env_steps_per_update_target": 4.0,
+        "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0,
         "env_steps_per_update": 8.0}
     resumed = limiter(start_episodes=2, per_update=4.0, buffer=1.0, total=1_000)
     resumed.load_state_dict({"version": 1, "env_steps": 1_000, "served": 200, "start_mark": 200.0,
@@ -275,7 +275,7 @@ def test_the_replays_stats_name_every_counter_and_decision():
     assert resumed.values() == {
         "env_steps": 1_000, "batches_served": 200, "updates_due": 200.0, "start_env_steps": 200.0,
         "hold_actors": 1, "hold_reason": "budget", "closed": 0, "refilling": 1, "refill_env_steps": 5,
-        "lost_updates": 2, "recounted_updates": 4, "error_buffer_updates": 1.0, "env_steps_per_update_target": 4.0,
+        "lost_updates": 2, "recounted_updates": 4, "error_buffer_updates": 1.0, "hold_updates": 1.0, "env_steps_per_update_target": 4.0,
         "env_steps_per_update": 4.0}
     closed = limiter(start_episodes=1, per_update=4.0, buffer=2.0, total=100)
     closed.on_episode(100, episodes_stored=1)
