@@ -431,11 +431,13 @@ class GridStatus:
                   f"ETA {'?' if remaining is None else clock_time(remaining)}")
 
 
-def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: list[int] | None = None) -> int:
-    """Runs every spec; returns the number of runs that failed (an interruption raises KeyboardInterrupt)."""
+def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: list[int] | None = None,
+             total: int | None = None) -> int:
+    """Runs every spec (numbered in a grid of `total` runs: --cell runs one); returns the number of runs that
+    failed (an interruption raises KeyboardInterrupt)."""
     stopping = threading.Event()
     numbers = numbers or list(range(len(specs)))
-    jobs = [RunJob(number, len(specs), spec, options, stopping,
+    jobs = [RunJob(number, total or len(specs), spec, options, stopping,
                    trained_at_start=trained_share(options.run_dir(spec), run_budget(spec, options)))
             for number, spec in zip(numbers, specs)]
     pending, active = deque(jobs), []
@@ -555,6 +557,7 @@ class Plan:
     parallel: int
     report_only: bool
     list_cells: bool
+    grid_size: int
 
 
 def parse_arguments(argv: list[str] | None) -> Plan:
@@ -571,7 +574,7 @@ def parse_arguments(argv: list[str] | None) -> Plan:
             raise ExperimentError(f"--{name.replace('_', '-')}: must be > 0, got {value}")
     specs = grid(strategies, parse_list(args.buffers, int, "buffers"), parse_list(args.seeds, int, "seeds"),
                  parse_list(args.options, str, "options"))
-    numbers = list(range(len(specs)))
+    numbers, grid_size = list(range(len(specs))), len(specs)
     if args.cell is not None:
         if not 0 <= args.cell < len(specs):
             raise ExperimentError(f"--cell {args.cell}: the grid has runs 0 to {len(specs) - 1} (--cells lists them)")
@@ -581,7 +584,7 @@ def parse_arguments(argv: list[str] | None) -> Plan:
     options = Options(args.runs_dir, args.updates, args.trials, args.actors, tuple(extra), args.progress_s,
                       args.export, tuple(args.merge), args.curve_beside)
     check_config_flags(specs, options)
-    return Plan(specs, numbers, options, args.parallel, args.report_only, args.cells)
+    return Plan(specs, numbers, options, args.parallel, args.report_only, args.cells, grid_size)
 
 
 def list_cells(plan: Plan) -> None:
@@ -606,7 +609,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     if not plan.report_only:
         try:
-            failed = run_grid(plan.specs, options, plan.parallel, plan.numbers)
+            failed = run_grid(plan.specs, options, plan.parallel, plan.numbers, plan.grid_size)
         except KeyboardInterrupt:
             print("interrupted: the running stacks checkpointed; the same command resumes", file=sys.stderr)
             return 130

@@ -153,7 +153,7 @@ def test_cells_lists_the_numbered_runs_and_cell_runs_one(tmp_path, capsys):
                                                    ["2", "bmc-b1000-s1"], ["3", "softmax-b1000-s1"]]
     assert all(line.endswith("next: train") for line in lines)
     plan = experiments.parse_arguments([*argv, "--cell", "2"])
-    assert [spec.name for spec in plan.specs] == ["bmc-b1000-s1"] and plan.numbers == [2]
+    assert [spec.name for spec in plan.specs] == ["bmc-b1000-s1"] and plan.numbers == [2] and plan.grid_size == 4
     assert experiments.main([*argv, "--cell", "4"]) == 2
     assert "the grid has runs 0 to 3" in capsys.readouterr().err
 
