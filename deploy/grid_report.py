@@ -203,7 +203,7 @@ def soak_lines(rows: Sequence[dict]) -> list[str]:
         return ["No run of the grid has a soak yet."]
     processes = sorted({key for row in rows for key in row if key.endswith("_mb_per_hour")})
     largest = max(rows, key=lambda row: row["folder_mb"])
-    lines = [f"{len(rows)} runs, {sum(row['hours'] for row in rows):.1f} hours of run time in all, "
+    lines = [f"{_count(len(rows), 'run')}, {sum(row['hours'] for row in rows):.1f} hours of run time in all, "
              f"{sum(row['restarts'] for row in rows)} restarts; the largest run folder {largest['run']} "
              f"({largest['folder_mb']:,.0f} MB).", "",
              "| Process | memory growth in the second half of each run, MB/h: median | largest |", "|---|---:|---:|"]
@@ -257,6 +257,10 @@ def plot_time_to_drive(rows: Sequence[dict], path: Path, budget: int) -> None:
 
 # --- the page --------------------------------------------------------------------------------------------------
 
+def _count(number: int, noun: str) -> str:
+    return f"{number} {noun}{'' if number == 1 else 's'}"
+
+
 def _percent(value) -> str:
     return "–" if value == "" or value is None else f"{100 * float(value):.1f}%"
 
@@ -264,7 +268,7 @@ def _percent(value) -> str:
 def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     per_run = [run_row(item) for item in runs]
     lines = ["# The grid: the exploration strategies past the knee", "",
-             f"{len(runs)} runs. Protocol: docs/experiments.md. Intervals: {100 * bootstrap.confidence:g}% "
+             f"{_count(len(runs), 'run')}. Protocol: docs/experiments.md. Intervals: {100 * bootstrap.confidence:g}% "
              f"percentile, {bootstrap.replicates} bootstrap replicates.", "",
              "## Per run", "",
              "| Strategy | Buffer | Options | Seed | Updates | Updates to drive (env steps) | Held from | "
