@@ -122,10 +122,14 @@ def choice_candidates(run: RunDir) -> list[int]:
 
 
 def read_choice(run: RunDir) -> dict | None:
+    """The run's choice.json; None when missing or not what choose() writes (made again then)."""
     try:
-        return json.loads((run.root / CHOICE_JSON).read_text())
+        choice = json.loads((run.root / CHOICE_JSON).read_text())
     except (OSError, ValueError):
         return None
+    valid = (isinstance(choice, dict) and isinstance(choice.get("updates"), int)
+             and isinstance(choice.get("among"), list))
+    return choice if valid else None
 
 
 def evaluated_updates(run: RunDir) -> int | None:

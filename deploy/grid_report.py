@@ -28,6 +28,7 @@ from typing import Sequence
 
 import numpy as np
 
+from actor.evaluation import EvaluationError
 from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read_curve
 from common.analysis import across_seeds
 from common.analysis.intervals import Bootstrap
@@ -72,10 +73,15 @@ def read_runs(folders: Sequence[Path], warn=print) -> list[GridRun]:
         curve = run.folder / "curve" / CURVE_CSV
         if choice is None or not curve.is_file():
             continue  # a run of the earlier comparison: deploy/report.py reads it
-        rows = sorted((row for row in read_curve(curve) if row["start_set"] == "test"), key=lambda r: int(r["updates"]))
-        episodes, _ = read_episodes_csv(run.layout.evaluation / EPISODES_CSV)
-        runs.append(GridRun(run, rows, choice, _greedy_row(run.layout.evaluation / SUMMARY_CSV, "test"),
-                            start_cfr(episodes)))
+        try:
+            rows = sorted((row for row in read_curve(curve) if row["start_set"] == "test"),
+                          key=lambda r: int(r["updates"]))
+            episodes, _ = read_episodes_csv(run.layout.evaluation / EPISODES_CSV)
+            greedy_test = _greedy_row(run.layout.evaluation / SUMMARY_CSV, "test")
+        except (EvaluationError, ValueError, KeyError, OSError, StopIteration) as error:
+            warn(f"skipped: {run.folder}: {type(error).__name__}: {error}")
+            continue
+        runs.append(GridRun(run, rows, choice, greedy_test, start_cfr(episodes)))
     return sorted(runs, key=lambda item: (item.cell, STRATEGIES.index(item.run.strategy), item.run.seed))
 
 

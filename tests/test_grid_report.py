@@ -95,3 +95,15 @@ def test_the_report_is_written_from_exported_runs_alone(tmp_path):
     assert "Claim 1" in page and "needs 4 seeds a side" in page
     with pytest.raises(ValueError, match="no finished grid run"):
         grid_report.report_on([tmp_path / "out"], tmp_path / "again")
+
+
+def test_a_damaged_export_is_left_out_with_a_line(tmp_path):
+    exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])
+    damaged = exported_run(tmp_path, "bmc", 1, [100, 50, 50, 50])
+    (damaged / "curve" / "curve.csv").write_text("updates,mean_length\nten,x\n")
+    broken_choice = exported_run(tmp_path, "bmc", 2, [100, 50, 50, 50])
+    (broken_choice / "choice.json").write_text("[1, 2]")
+    lines = []
+    runs = grid_report.read_runs([tmp_path], warn=lines.append)
+    assert [item.run.seed for item in runs] == [0]
+    assert any("bmc-b1000-s1" in line for line in lines)
