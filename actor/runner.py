@@ -34,7 +34,8 @@ holds actor.queue_episodes episodes or actor.queue_mb MB, all of the actor's
 simulators wait for room. Episodes still waiting when
 the actor stops are counted as dropped. Each episode carries this process's
 random incarnation, so the replay never stores one twice and counts the ones that
-never arrived.
+never arrived. A sent episode stays in the outbox until the replay says it keeps
+it, and is sent again after a loss, a partition or a replay restart (actor/delivery.py).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ import numpy as np
 import torch
 
 from actor.batched_q import BatchedQ, choose_precision
+from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
 from actor.sim import make_env
 from common.config import Config
 from common.exploration.build import make_strategy, same_strategy, strategy_from_state
@@ -63,7 +65,7 @@ from common.stored_state import no_states
 from common.transport import Keys, publisher, request, subscribe, watch_liveliness
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
-from common.wire.messages import Episode, EpisodeRecord, ExplorationState, Stats, Weights
+from common.wire.messages import Episode, EpisodeAck, EpisodeRecord, ExplorationState, Stats, Weights
 from common.wire.run_shape import stat_number
 
 MEGABYTE = 1 << 20
@@ -76,7 +78,6 @@ log = logging.getLogger("actor")
 
 LATEST_WEIGHTS_TIMEOUT_S = 30.0
 LATEST_WEIGHTS_RETRY_S = 5.0  # asked again while no weights have come: a resuming learner answers late
-REPLAY_WAIT_LOG_S = 10.0
 HOLD_LOG_S = 10.0  # a paced run holds nearly every episode briefly: one line per period counts them
 
 
@@ -356,85 +357,6 @@ class Actor:
         return episode, record
 
 
-class Outbox:
-    """Finished episodes on their way to the replay, in order: bounded by a count and a byte size.
-
-    The driving loop offers episodes and waits while the outbox is full; one sender thread
-    (run) publishes them while the replay listens and waits while it does not."""
-
-    def __init__(self, max_episodes: int, max_bytes: int) -> None:
-        self.max_episodes = max_episodes
-        self.max_bytes = max_bytes
-        self._queue: deque[tuple[Episode, int]] = deque()
-        self._bytes = 0
-        self._changed = threading.Condition()
-        self.sent = 0
-        self.dropped = 0  # episodes given up: unsent when the actor stopped, or failed to send
-
-    def __len__(self) -> int:
-        with self._changed:
-            return len(self._queue)
-
-    def offer(self, episode: Episode, stop: threading.Event) -> bool:
-        """Queues the episode once there is room; False if stopped first (the episode is dropped)."""
-        size = episode.observations.nbytes + episode.actions.nbytes * 3
-        waiting = Every(REPLAY_WAIT_LOG_S)
-        with self._changed:
-            while self._queue and (len(self._queue) >= self.max_episodes or self._bytes + size > self.max_bytes):
-                if stop.is_set():
-                    self.dropped += 1
-                    return False
-                if waiting.due():
-                    log.warning("%d finished episodes (%.1f MB) wait for a replay: holding the next episode",
-                                len(self._queue), self._bytes / MEGABYTE)
-                self._changed.wait(0.1)
-            self._queue.append((episode, size))
-            self._bytes += size
-            self._changed.notify_all()
-        return True
-
-    def run(self, send, listening, stop: threading.Event) -> None:
-        """Sends the oldest episode whenever listening() says a replay is there; until stop."""
-        waiting = Every(REPLAY_WAIT_LOG_S)
-        while not stop.is_set():
-            with self._changed:
-                if not self._queue:
-                    self._changed.wait(0.1)
-                    continue
-                episode, size = self._queue[0]
-            if not listening():
-                if waiting.due():
-                    log.warning("no replay listens; %d finished episodes wait", len(self))
-                stop.wait(0.1)
-                continue
-            try:
-                send(episode)
-                sent = True
-            except Exception as error:  # an episode that cannot be sent must not stop the others
-                log.warning("could not send episode %d: %s; dropped", episode.episode_index, error)
-                sent = False
-            with self._changed:
-                self._queue.popleft()
-                self._bytes -= size
-                self.sent += sent
-                self.dropped += not sent
-                self._changed.notify_all()
-
-    def drain(self, stop: threading.Event) -> None:
-        """Waits until every queued episode is sent, or stop."""
-        with self._changed:
-            while self._queue and not stop.is_set():
-                self._changed.wait(0.1)
-
-    def drop_rest(self) -> int:
-        with self._changed:
-            count = len(self._queue)
-            self._queue.clear()
-            self._bytes = 0
-            self.dropped += count
-            return count
-
-
 class ReplayWatch:
     """Whether the run's replay is alive, from its liveliness token (gone when it dies, back when it returns);
     calls on_gone when the last one goes."""
@@ -468,7 +390,10 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
              "state says otherwise", actor_id, actor.seed, actor.incarnation, len(actor.slots),
              config.exploration.strategy)
     keys = service.keys
-    outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE))
+    outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE),
+                    incarnation=actor.incarnation, actor_id=actor_id, resend_after_s=config.actor.resend_after_s,
+                    keep_within_s=config.actor.resend_after_s + 2 * config.replay.snapshot_period_s,
+                    max_in_flight_bytes=int(config.actor.in_flight_mb * MEGABYTE))
     replay = ReplayWatch(actor.mailbox.replay_gone)  # a restarted replay's rate limiter must see every step
     sending = threading.Event()  # the sender and the stats thread stop once driving is over
     with service.session() as session:
@@ -477,6 +402,7 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
         receivers = {"weights": subscribe(session, keys.weights, actor.mailbox.offer_weights),
                      "exploration": subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
                      "rate": subscribe(session, keys.replay_rate, actor.mailbox.offer_rate),
+                     "acks": subscribe(session, keys.episode_acks(actor_id), outbox.on_ack, expected=EpisodeAck),
                      "liveliness": watch_liveliness(session, keys.liveliness("replay", "0"), replay.on_change)}
         for receiver in receivers.values():
             service.on_close(receiver.undeclare)
@@ -501,13 +427,15 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
         if unsent:
             log.warning("stopping with %d finished episodes unsent: dropped", unsent)
         stats_out.put(_stats(actor, outbox, receivers))
-    log.info("actor %d stopped after %d episodes: %d sent, %d dropped", actor_id, actor.episode_index,
-             outbox.sent, outbox.dropped)
+    counts = outbox.values()
+    log.info("actor %d stopped after %d episodes: %d sent (%d sent again), %d kept by the replay, %d in flight, "
+             "%d dropped, %d released", actor_id, actor.episode_index, counts["episodes_sent"],
+             counts["episodes_resent"], counts["episodes_kept"], counts["episodes_in_flight"],
+             counts["episodes_dropped"], counts["episodes_released"])
 
 
 def _stats(actor: Actor, outbox: Outbox, receivers: dict) -> Stats:
-    values = {"episodes": actor.episode_index, "episodes_sent": outbox.sent, "episodes_dropped": outbox.dropped,
-              "episodes_queued": len(outbox), "weights_version": actor.weights_version,
+    values = {"episodes": actor.episode_index, **outbox.values(), "weights_version": actor.weights_version,
               **actor.rejections.values(),
               **{f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}}
     return Stats(source="actor", time=time.time(), values=values)

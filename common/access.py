@@ -9,7 +9,7 @@ Zenoh's ``access_control`` block, deny by default:
 - only a learner publishes weights and exploration state, and serves ``weights/latest``;
 - only an actor publishes episodes;
 - only a replay answers trace-batch queries (``replay/sample``) and publishes the replay's
-  stats and rate; when the replay is the router itself (the cluster set-up), its own session
+  stats, rate and episode acknowledgements; when the replay is the router itself (the cluster set-up), its own session
   is not behind a link, so no peer may do either;
 - only a learner may draw trace batches (a batch drawn counts against the rate limiter);
 - an observer (the flight recorder, a monitor) reads everything and writes only its own
@@ -50,11 +50,11 @@ GRANTS: dict[str, Grants] = {
         token=("alive/learner/**",)),
     "actor": Grants(
         publish=("episodes", "metrics/actor/**", "metrics/actor_stats/**", "heartbeat/actor/**"),
-        subscribe=("weights/broadcast", "exploration", "replay/rate"),
+        subscribe=("weights/broadcast", "exploration", "replay/rate", "replay/acks/**"),
         query=("weights/latest",),
         token=("alive/actor/**",)),
     "replay": Grants(  # a replay that is not the router
-        publish=("replay/stats", "replay/rate", "metrics/replay/**", "heartbeat/replay/**"),
+        publish=("replay/stats", "replay/rate", "replay/acks/**", "metrics/replay/**", "heartbeat/replay/**"),
         subscribe=("episodes", "exploration"),
         serve=("replay/sample",),
         token=("alive/replay/**",)),

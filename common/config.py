@@ -339,11 +339,19 @@ class ActorConfig:
                                      "for a replay", "episodes")
     queue_mb: float = option(256.0, "the actor holds its next episode while this much of finished episodes waits "
                                     "for a replay", "MB")
+    # Sent episodes stay until the replay says it keeps them (actor/delivery.py).
+    resend_after_s: float = option(5.0, "an episode sent this long ago whose receipt the replay has not "
+                                        "acknowledged is sent again (the replay takes none twice); one received but "
+                                        "not yet kept in a snapshot, after twice replay.snapshot_period_s more", "s")
+    in_flight_mb: float = option(256.0, "sent episodes the replay has not yet said it keeps are held, to be sent "
+                                        "again after a partition or a replay restart, up to this size; past it "
+                                        "the oldest is given up (counted as released)", "MB")
 
     def validate(self) -> None:
         check(self.num_actors >= 0, "num_actors", "must be >= 0")
         check(self.actor_id >= 0, "actor_id", "must be >= 0")
-        check_positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb")
+        check_positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb", "resend_after_s",
+                       "in_flight_mb")
         check(self.inference in INFERENCE_PRECISIONS, "inference",
               f"must be one of {', '.join(INFERENCE_PRECISIONS)}")
 

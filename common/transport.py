@@ -151,6 +151,10 @@ class Keys:
     def replay_stats(self) -> str:
         return f"{self.root}/replay/stats"
 
+    def episode_acks(self, actor_id: int | None = None) -> str:
+        """The replay's EpisodeAcks for one actor (for every actor without one)."""
+        return f"{self.root}/replay/acks/{'*' if actor_id is None else _check_chunk(str(actor_id), 'actor id')}"
+
     @property
     def weights(self) -> str:
         return f"{self.root}/weights/broadcast"
@@ -276,6 +280,14 @@ def publisher(session: zenoh.Session, key: str, *, reliable: bool = True, expres
     congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
     entity = session.declare_publisher(key, congestion_control=congestion, express=express)
     return Publisher(key, shared_memory).attach(entity)
+
+
+def put_once(session: zenoh.Session, key: str, message: Message) -> int:
+    """Encodes and sends one message on a key that has no declared publisher (keys with an id in them);
+    reliable (blocks while congested). Returns the encoded size in bytes."""
+    data = encode(message)
+    session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+    return len(data)
 
 
 SHARED_MEMORY_MESSAGES = 3  # the pool holds this many: one being written while subscribers still read older ones

@@ -20,7 +20,9 @@ a bounded rate; nothing stored is lost because of it.
 
 Every replay.snapshot_period_s the episodes new since the last snapshot and the
 counters go to <run>/replay/snapshot/ (replay/snapshot.py), outside the lock;
-``replay --resume`` restores them.
+``replay --resume`` restores them. Each actor hears, on ``replay/acks/<actor id>``, which of its
+episodes were received, kept (in a snapshot) or refused (replay/acks.py), and sends again
+what was not kept.
 """
 
 from __future__ import annotations
@@ -44,10 +46,11 @@ from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
 from common.stored_state import stored_units
-from common.transport import PendingQuery, RateLimitedLog, publisher, serve_deferred, subscribe
+from common.transport import PendingQuery, RateLimitedLog, publisher, put_once, serve_deferred, subscribe
 from common.wire.errors import WireError
 from common.wire.messages import Episode, ExplorationState, Stats, TraceBatchRequest
 from common.wire.run_shape import RunShape, check_episode
+from replay.acks import AckBook
 from replay.ledger import EpisodeLedger
 from replay.rate_limiter import RateLimiter
 from replay.snapshot import Restored, SnapshotError, Snapshotter, SnapshotView
@@ -62,6 +65,7 @@ REPLY_THREADS = 2
 WAKE_S = 0.1  # reply threads look at expiries and the rate message at least this often
 MEASURE_AFTER_FRAMES = 1_000  # the budget check is repeated once with the measured frame size
 RATE_SOURCE = "rate_limiter"  # the Stats source of replay/rate messages (replay/stats: "replay")
+ACK_PERIOD_S = 0.2  # how often the words on episodes go out (replay/acks.py)
 MAX_PENDING = 32  # held trace-batch requests; beyond, a request is refused at once (the learner keeps 2)
 
 
@@ -108,6 +112,7 @@ class ReplayService:
         self.ledger = EpisodeLedger()
         self.rejections = Rejections(log)
         self.snapshotter = Snapshotter(snapshot_path(config))
+        self.acks = AckBook(durable_on_receipt=config.replay.snapshot_period_s <= 0)
         self._snapshot_lock = threading.Lock()  # one snapshot at a time
         self.snapshot_stats: dict[str, int | float] = {"snapshots_written": 0, "snapshot_failures": 0,
                                                        "snapshot_pause_max_ms": 0.0}
@@ -129,15 +134,21 @@ class ReplayService:
         except WireError as error:
             self.rejections.reject(f"episode_{error.kind}", f"episode {episode.episode_index} of actor "
                                                             f"{episode.actor_id}: {error}")
+            self.acks.refused(episode.actor_id, episode.incarnation, episode.episode_index)
             return
+        name = (episode.actor_id, episode.incarnation, episode.episode_index)
         with self._lock:
             closed = self.limiter.closed
-            admitted = not closed and self.ledger.admit(episode.actor_id, episode.incarnation, episode.episode_index)
+            admitted = not closed and self.ledger.admit(*name)
             if admitted:
                 self._store_locked(episode)
+                self.acks.taken(*name)  # under the lock: a snapshot view taken after it holds the episode
             elif closed:
                 self.late_episodes += 1
                 self.late_env_steps += len(episode.actions)
+                self.acks.refused(*name)
+            else:
+                self.acks.duplicate(*name)
         if closed:
             self._warn_late.info("the run is closed (budget spent and paid for): episode %d of actor %d, %d steps, "
                                  "not taken (%d such so far)", episode.episode_index, episode.actor_id,
@@ -380,14 +391,17 @@ class ReplayService:
             with self._lock:
                 view = SnapshotView(self.store.episodes(), self.store.counters(), self.limiter.state_dict(),
                                     self.ledger.state_dict())
+                token = self.acks.view_taken()
             pause_ms = (time.perf_counter() - paused) * 1000
             try:
                 report = self.snapshotter.write(view)
             except SnapshotError as error:
+                self.acks.view_failed(token)
                 with self._lock:
                     self.snapshot_stats["snapshot_failures"] += 1
                 self._warn_budget.warning("snapshot failed: %s", error)
                 return False
+            self.acks.view_written(token)
             with self._lock:
                 self.snapshot_taken = view.taken
                 stats = self.snapshot_stats
@@ -488,6 +502,8 @@ def run_replay(config: Config, resume: bool = False) -> None:
 
         threads = [threading.Thread(target=service.serve_pending, args=(stop, announce if n == 0 else None),
                                     name=f"reply-{n}", daemon=True) for n in range(REPLY_THREADS)]
+        threads.append(threading.Thread(target=_send_acks, args=(stop, service.acks, session, keys), name="acks",
+                                        daemon=True))
         if config.replay.snapshot_period_s > 0:
             threads.append(threading.Thread(target=_snapshot_every, args=(stop, service, config), name="snapshot",
                                             daemon=True))
@@ -511,6 +527,15 @@ def run_replay(config: Config, resume: bool = False) -> None:
     except OSError as error:
         log.warning("cannot save the rate limiter's counters to %s: %s", path, error)
     log.info("stopped; %s", service.stats())
+
+
+def _send_acks(stop: threading.Event, acks: AckBook, session, keys) -> None:
+    while not stop.wait(ACK_PERIOD_S):
+        for ack in acks.drain():
+            try:
+                put_once(session, keys.episode_acks(ack.actor_id), ack)
+            except Exception as error:  # the actor sends the episode again; the sender must go on
+                log.warning("could not acknowledge episodes of actor %d: %s", ack.actor_id, error)
 
 
 def _snapshot_every(stop: threading.Event, service: ReplayService, config: Config) -> None:

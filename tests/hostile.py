@@ -14,8 +14,8 @@ from common.network import D3RQN, weights_to_numpy
 from common.wire.codecs import Message
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
-from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, Heartbeat, Stats, TraceBatch,
-                                  TraceBatchRequest, Weights)
+from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, Stats,
+                                  TraceBatch, TraceBatchRequest, Weights)
 
 FLOOD_ACTOR = 77  # the actor id of flooded episodes
 
@@ -71,6 +71,8 @@ def examples(config: Config) -> dict[type, Message]:
                                      collided=False, start_set="train", start_index=0, epsilon=1.0,
                                      weights_version=0, wall_time=1.0, time=1.0),
         Heartbeat: Heartbeat(role="x", process_id="0", time=1.0, seq=0),
+        EpisodeAck: EpisodeAck(actor_id=FLOOD_ACTOR, incarnation=0xF100D, received=np.zeros(0, np.int64),
+                               kept=np.arange(3, dtype=np.int64), refused=np.zeros(0, np.int64)),
     }
 
 

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from actor.batched_q import BatchedQ
-from actor.runner import Actor, EpisodeGate, HoldLog, Outbox, ReplayWatch, _drive, actor_seed, env_seed
+from actor.delivery import Outbox
+from actor.runner import Actor, EpisodeGate, HoldLog, ReplayWatch, _drive, actor_seed, env_seed
 from actor.sim import make_env
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy

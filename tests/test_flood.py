@@ -13,7 +13,7 @@ import zenoh
 from common.config_values import load_config
 from common.wire.envelope import decode, encode
 from common.wire.errors import WireError
-from common.wire.messages import Episode, ExplorationState, Stats, TraceBatchRequest, Weights
+from common.wire.messages import Episode, EpisodeAck, ExplorationState, Stats, TraceBatchRequest, Weights
 from common.wire.run_shape import RunShape, check_episode
 from replay.snapshot import Snapshotter
 from tests import hostile
@@ -93,12 +93,15 @@ def flood(run: StackRun, config, shape: RunShape, rng, genuine: Episode) -> tupl
         keys.metrics_source("actor", "0"): Stats, keys.metrics_source("actor_stats", "1"): Stats,
         keys.metrics_source("recorder", "0"): Stats, keys.heartbeat("actor", "0"): Stats,
         keys.replay_sample: TraceBatchRequest, keys.weights_latest: TraceBatchRequest,
+        keys.episode_acks(0): EpisodeAck, keys.episode_acks(1): EpisodeAck,
     }
     misfits = {keys.episodes: hostile.misfit_episodes(config), keys.weights: hostile.misfit_weights(config),
                keys.exploration: hostile.misfit_exploration(config)}
     for key in (keys.replay_stats, keys.replay_rate, keys.metrics_source("learner", "0"),
                 keys.metrics_source("actor_stats", "1")):
         misfits[key] = hostile.misfit_stats()
+    for actor in (0, 1):  # a well-formed word on episodes that are not this actor's
+        misfits[keys.episode_acks(actor)] = {"foreign": encode(examples[EpisodeAck])}
     sent: dict[str, dict[str, int]] = {}
     accepted: set[str] = set()
     refused: set[str] = set()
@@ -180,3 +183,5 @@ def check_refusals(replay: dict, learner: dict, actors: dict, sent: dict) -> Non
         assert values["rejected_weights_network"] >= 3 and values["rejected_weights_wrong_type"] >= 7
         assert values["rejected_rate"] >= 7 and values["malformed_rate"] >= junk
         assert values["malformed_exploration"] >= junk and values["rejected_exploration_wrong_type"] >= 1
+        assert values["malformed_acks"] >= junk + 7 and values["acks_foreign"] >= 1  # words on others' episodes
+        assert values["episodes_released"] == 0 and values["episodes_kept"] >= 1

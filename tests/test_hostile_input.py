@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zstandard
 
-from actor.runner import Actor, Mailbox, Outbox
+from actor.runner import Actor, Mailbox
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
@@ -355,31 +355,6 @@ def test_the_actor_keeps_its_strategy_against_an_unknown_or_broken_state(tmp_pat
     assert actor.strategy.name == "softmax" and actor.strategy.params() == state.params
     counts = actor.rejections.values()
     assert counts["rejected_exploration_invalid"] == 3 and counts["rejected_exploration_wrong_type"] == 1
-
-
-def test_the_outbox_holds_episodes_until_a_replay_listens_and_counts_what_it_drops():
-    outbox, listening, sent = Outbox(max_episodes=2, max_bytes=10**9), threading.Event(), []
-    stop, done = threading.Event(), threading.Event()
-    sender = threading.Thread(target=outbox.run, args=(sent.append, listening.is_set, done))
-    sender.start()
-    try:
-        assert outbox.offer(episode(0), stop) and outbox.offer(episode(1), stop)
-        time.sleep(0.3)
-        assert sent == [] and len(outbox) == 2  # no replay: they wait
-        third = threading.Thread(target=outbox.offer, args=(episode(2), stop))
-        third.start()
-        time.sleep(0.3)
-        assert third.is_alive()  # the outbox is full: the next episode is held
-        listening.set()
-        third.join(5)
-        outbox.drain(stop)
-        assert [e.episode_index for e in sent] == [0, 1, 2] and outbox.sent == 3
-        listening.clear()
-        outbox.offer(episode(3), stop)
-    finally:
-        done.set()
-        sender.join(5)
-    assert outbox.drop_rest() == 1 and outbox.dropped == 1
 
 
 # --- the local stack's live line ---------------------------------------------------------------

@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 from common.wire.envelope import SCHEMA_VERSION, decode, encode
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
-from common.wire.messages import MESSAGE_TYPES, Episode, Heartbeat, Stats, TraceBatch, TraceBatchRequest, Weights
+from common.wire.messages import (MESSAGE_TYPES, Episode, EpisodeAck, Heartbeat, Stats, TraceBatch, TraceBatchRequest,
+                                  Weights)
 from wire_examples import (
     SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_trace_batch, random_frames,
 )
@@ -36,7 +37,7 @@ def test_decode_with_the_expected_type_accepts_it(message):
 
 
 def test_the_envelope_carries_schema_version_and_type_tag():
-    envelope = msgpack.unpackb(encode(EXAMPLES[-1]))
+    envelope = msgpack.unpackb(encode(HEARTBEAT))
     assert envelope["schema"] == SCHEMA_VERSION and envelope["type"] == "Heartbeat"
 
 
@@ -165,6 +166,7 @@ EPISODE = example_episode(steps=4)
 BATCH = example_trace_batch(batch=2, length=3)
 WEIGHTS = Weights(version=1, tensors={"w": np.ones((2, 2), dtype=np.float32)})
 NAN32 = np.array([np.nan], dtype=np.float32).tobytes()
+ACK = EpisodeAck(actor_id=1, incarnation=5, received=np.array([1]), kept=np.array([2, 3]), refused=np.array([4]))
 
 MALFORMED = {
     "schema version": (HEARTBEAT, lambda e: e.__setitem__("schema", SCHEMA_VERSION + 1), "schema version 2 is not supported"),
@@ -200,6 +202,8 @@ MALFORMED = {
         actions={"dtype": "int64", "shape": [0], "data": b""}, rewards={"dtype": "float32", "shape": [0], "data": b""},
         weights_version={"dtype": "int64", "shape": [0], "data": b""}), "at least one step"),
     "negative action": (EPISODE, set_array_part("actions", "data", np.array([0, 1, -1, 2]).tobytes()), "negative action"),
+    "negative ack index": (ACK, set_array_part("kept", "data", np.array([2, -3]).tobytes()),
+                           "EpisodeAck.kept: a negative episode index"),
     "frame blob garbage": (EPISODE, lambda e: e["fields"]["observations"]["blobs"].__setitem__(1, b"garbage"),
                            r"Episode.observations: frame 1: not a zstd frame"),
     "frame blob size": (EPISODE, lambda e: e["fields"]["observations"]["blobs"].__setitem__(0, zstd_blob(10)),

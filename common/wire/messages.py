@@ -207,7 +207,32 @@ class Heartbeat(Message):
     seq: int = wired(COUNT)
 
 
+MAX_ACK_INDICES = 65_536  # indices in one EpisodeAck: far more than an actor has in flight
+
+
+@dataclass(eq=False)
+class EpisodeAck(Message):
+    """The replay's word on episodes of one actor process (actor_id, incarnation), by episode index:
+    received (it holds them: stop resending), kept (held durably, in a snapshot or in memory when
+    snapshots are off: forget them) or refused (never taken, a malformed episode or a closed run:
+    forget them too). Delivery that survives partitions and replay restarts (actor/delivery.py)."""
+    actor_id: int = wired(COUNT)
+    incarnation: int = wired(COUNT)
+    received: np.ndarray = wired(Array("int64", 1))
+    kept: np.ndarray = wired(Array("int64", 1))
+    refused: np.ndarray = wired(Array("int64", 1))
+
+    def check(self) -> None:
+        for name in ("received", "kept", "refused"):
+            indices = getattr(self, name)
+            if len(indices) > MAX_ACK_INDICES:
+                raise WireError(f"EpisodeAck.{name}: {len(indices)} indices, at most {MAX_ACK_INDICES}")
+            if len(indices) and np.min(indices) < 0:
+                raise WireError(f"EpisodeAck.{name}: a negative episode index")
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.__name__: cls
-    for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, EpisodeRecord, Heartbeat)
+    for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, EpisodeRecord, Heartbeat,
+                EpisodeAck)
 }
