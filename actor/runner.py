@@ -78,6 +78,7 @@ log = logging.getLogger("actor")
 
 LATEST_WEIGHTS_TIMEOUT_S = 30.0
 LATEST_WEIGHTS_RETRY_S = 5.0  # asked again while no weights have come: a resuming learner answers late
+STALE_BROADCASTS = 4  # weights this many broadcasts old are reported: the broadcasts are not getting through
 HOLD_LOG_S = 10.0  # a paced run holds nearly every episode briefly: one line per period counts them
 
 
@@ -111,12 +112,15 @@ class Mailbox:
         self.had_weights = threading.Event()  # weights that fit were accepted at least once
         self.shapes = shapes
         self.rejections = rejections or Rejections(log)
+        self.learner_updates = -1  # batches the replay has served, from its rate message: the learner's updates
+        self.superseded = 0  # weights replaced by newer ones before the loop loaded them (a slow link queues them)
 
     def offer_weights(self, message: Weights, key: str = "") -> None:
         """A broadcast: the newest that fits the network replaces what is held."""
         usable = self._usable(message)
         if usable is not None:
             with self._lock:
+                self.superseded += self._weights is not None
                 self._weights, self._heard_weights = usable, True
             self.had_weights.set()
 
@@ -170,10 +174,18 @@ class Mailbox:
             self.rejections.reject("rate", f"replay/rate: {shown} (expected a rate_limiter Stats saying "
                                            f"'', 'behind' or 'budget', with numbers for the others)")
             return
+        served = stat_number(given, "batches_served")
         with self._lock:
             self.hold_reason = reason
             self.updates_started = start >= 0 and not refilling
+            if served is not None and served >= 0:
+                self.learner_updates = int(served)
         self.heard_rate.set()
+
+    def weights_behind(self, version: int) -> int:
+        """Updates between the weights acted on and the learner's latest; 0 while either is unknown."""
+        with self._lock:
+            return max(0, self.learner_updates - version) if version >= 0 and self.learner_updates >= 0 else 0
 
     def replay_gone(self) -> None:
         """No replay is alive, so none counts the steps: hold until a replay's word comes again."""
@@ -231,6 +243,7 @@ class Actor:
                                   choose_precision(self.network, len(self.slots), config.actor.inference))
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
         self.weights_version = -1  # no weights yet: act uniformly at random
+        self.weights_behind_max = 0  # the most updates behind the learner its weights were when the stats looked
         self.episode_index = 0  # episodes ended so far, the number of the next to end
         self.episodes_started = 0
         self._ended: deque[tuple[Episode, EpisodeRecord]] = deque()  # run_episode's, not yet returned
@@ -435,18 +448,28 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
 
 
 def _stats(actor: Actor, outbox: Outbox, receivers: dict) -> Stats:
+    behind = actor.mailbox.weights_behind(actor.weights_version)
+    actor.weights_behind_max = max(actor.weights_behind_max, behind)
     values = {"episodes": actor.episode_index, **outbox.values(), "weights_version": actor.weights_version,
-              **actor.rejections.values(),
+              "weights_behind": behind, "weights_behind_max": actor.weights_behind_max,
+              "weights_superseded": actor.mailbox.superseded, **actor.rejections.values(),
               **{f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}}
     return Stats(source="actor", time=time.time(), values=values)
 
 
 def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop: threading.Event) -> None:
+    stale = STALE_BROADCASTS * actor.config.learner.weights_every
     while not stop.wait(actor.config.actor.log_period_s):
         try:
-            stats_out.put(_stats(actor, outbox, receivers))
+            stats = _stats(actor, outbox, receivers)
+            stats_out.put(stats)
         except Exception:  # the stats must never stop the actor
             log.warning("could not publish the actor's stats", exc_info=True)
+            continue
+        if stats.values["weights_behind"] > stale:
+            log.warning("acting on weights v%d, %d updates behind the learner (broadcasts every %d): no newer "
+                        "broadcast has come through (a slow or broken link?); acting on these meanwhile",
+                        actor.weights_version, stats.values["weights_behind"], actor.config.learner.weights_every)
 
 
 def _await_replays_word(mailbox: Mailbox, stop: threading.Event) -> bool:

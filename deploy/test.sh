@@ -3,5 +3,10 @@
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 "$root/deploy/bootstrap.sh"
+# The network-fault tests drop packets with nftables; as root on Debian, install it once (else they skip).
+if [ "$(id -u)" = 0 ] && ! command -v nft >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then
+    echo "[test] installing nftables for the network-fault tests" >&2
+    apt-get install -y -q nftables >/dev/null 2>&1 || echo "[test] could not install nftables: those tests skip" >&2
+fi
 cd "$root"
 exec "$root/.venv/bin/python" -m pytest "$@"

@@ -32,6 +32,21 @@ def test_mailbox_keeps_the_last_broadcast_whatever_its_version():
     assert mailbox.take() == (None, None)
 
 
+def test_weights_replaced_unloaded_are_counted_and_staleness_is_read_from_the_replays_word():
+    """Broadcasts that queue on a slow link: only the newest is loaded, the older ones are counted."""
+    mailbox = Mailbox()
+    assert mailbox.weights_behind(5) == 0  # the learner's updates unknown: nothing to say
+    for version in (10, 20, 30):
+        mailbox.offer_weights(Weights(version=version, tensors={}))
+    assert mailbox.superseded == 2 and mailbox.take()[0].version == 30
+    mailbox.offer_weights(Weights(version=40, tensors={}))
+    assert mailbox.superseded == 2  # the loop had taken the last one
+    mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "batches_served": 95}))
+    assert mailbox.weights_behind(30) == 65 and mailbox.weights_behind(-1) == 0 and mailbox.weights_behind(99) == 0
+    mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "batches_served": "x"}))
+    assert mailbox.weights_behind(30) == 65  # a value that is no number changes nothing
+
+
 def test_the_start_up_answer_never_replaces_a_broadcast():
     mailbox = Mailbox()
     mailbox.offer_latest(Weights(version=2, tensors={}))

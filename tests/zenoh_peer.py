@@ -8,7 +8,7 @@
 
 `watch` writes a line per EpisodeRecord (actor, weights version), per episode on the episodes
 key (actor, the weights versions its steps were acted with), per learner and replay Stats (a
-few values), per sample of the run whose payload starts with the rogue's marker, and per key
+few values), per actor Stats (all values), per sample of the run whose payload starts with the rogue's marker, and per key
 the first time anything else arrives on it. `rogue` forges what only other roles may send:
 real weights of the run's network with version N on weights/broadcast (every 0.5 s), marker
 bytes on exploration, episodes, replay/stats and replay/rate, and queryables on replay/sample
@@ -54,7 +54,7 @@ class Lines:
 
     def write(self, **fields) -> None:
         with self._lock:
-            self._file.write(json.dumps(fields) + "\n")
+            self._file.write(json.dumps({**fields, "t": time.time()}) + "\n")
 
     def close(self) -> None:
         self._file.close()
@@ -72,13 +72,17 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
                       epsilon=message.epsilon)
         elif isinstance(message, Stats) and message.source == "learner":
             out.write(kind="learner", updates=message.values.get("updates"))
+        elif isinstance(message, Stats) and message.source == "actor":
+            out.write(kind="actor_stats", actor=key.rsplit("/", 1)[-1], values=message.values)
 
     def on_stats(message, key):
-        out.write(kind="replay", inserted=message.values.get("inserted"),
-                  env_steps=message.values.get("env_steps_total"))
+        values = message.values
+        out.write(kind="replay", inserted=values.get("inserted"), env_steps=values.get("env_steps_total"),
+                  missing=values.get("episodes_missing"), duplicates=values.get("rejected_episode_duplicate", 0),
+                  served=values.get("rate_batches_served"), restored=values.get("restored_episodes"))
 
     def on_episode(message, key):
-        out.write(kind="episode", actor=message.actor_id, steps=len(message),
+        out.write(kind="episode", actor=message.actor_id, steps=len(message), index=message.episode_index,
                   versions=sorted({int(version) for version in message.weights_version}))  # acted with
 
     seen: set[str] = set()
