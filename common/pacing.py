@@ -1,5 +1,5 @@
 """The pace of a run, as pure arithmetic the replay's rate limiter (replay/rate_limiter.py), the learner
-(learner/service.py) and the reference loop (learner/reference_loop.py) share: the settings of the one
+(learner/service.py) and the reference loop (deploy/reference_loop.py) share: the settings of the one
 ratio of env steps to updates, where updates start (the start mark), the updates the steps since then
 pay for, the ratio achieved, and whether the error buffer paces anybody at all.
 """

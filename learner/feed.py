@@ -1,7 +1,7 @@
 """Feeding the exploration strategy after each update, what the learner knows and the strategy asks for:
 the env steps of the whole system (decreasing epsilon), Q before and after the update (VDBE), and BMC's
 returns at the rate of exploration.bmc.observations. The learner service (learner/service.py) and the
-reference loop (learner/reference_loop.py) both feed it here.
+reference loop (deploy/reference_loop.py) both feed it here.
 """
 
 from __future__ import annotations

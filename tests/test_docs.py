@@ -30,7 +30,7 @@ COMMANDS = {
     "d3rqn-log": "replay/log/cli.py",  # the next word is its subcommand
     "d3rqn-certs": "common/certs.py",
     "deploy/run.sh": "deploy/stack.py",
-    "learner.reference_loop": "learner/reference_loop.py",
+    "deploy.reference_loop": "deploy/reference_loop.py",
 }
 EXTERNAL = {"pip", "tensorboard", "python3.11", "source", "openssl", "deploy/test.sh"}  # flags not ours
 CONFIG_ENTRY_POINTS = {"add_config_arguments", "parse_service_args"}  # a parser these get has every config flag

@@ -10,7 +10,7 @@ import torch
 from common.config_values import load_config
 from common.exploration.bmc import bmc_observation_count
 from common.exploration.names import STRATEGIES
-from learner import reference_loop
+from deploy import reference_loop
 
 HOOKS = ("start", "act", "on_env_steps", "on_update", "on_returns")
 BUDGET = 300  # env steps: two random episodes, then about 13 updates at the smoke preset's 20 steps per update

@@ -1,6 +1,6 @@
 """Benchmark: the distributed stack against the reference loop, side by side, and the replay flat out.
 
-1. the reference loop (learner/reference_loop.py): act, store, sample, update
+1. the reference loop (deploy/reference_loop.py): act, store, sample, update
    and feed the exploration strategy in one process, one update per
    learner.env_steps_per_update env steps, every strategy hook called;
 2. the local stack (replay + learner + actors over loopback Zenoh), same config;
@@ -34,14 +34,14 @@ from common.config_values import to_toml
 from common.cpu_capability import describe_cpu
 from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
 from common.wire.messages import Stats, TraceBatch, TraceBatchRequest
-from learner.reference_loop import train
+from deploy.reference_loop import train
 from learner.update import DoubleQLearner, TraceArrays
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def reference_loop(config: Config, seconds: float) -> tuple[float, float]:
-    """learner/reference_loop.py for `seconds` once updates start; returns (env steps/s, updates/s) over them."""
+    """deploy/reference_loop.py for `seconds` once updates start; returns (env steps/s, updates/s) over them."""
     if config.learner.update_path == "auto":
         time_update_paths(config)
     result = train(config, evaluate_at_end=False, update_seconds=seconds)

@@ -32,7 +32,7 @@ Each env step:
 Training ends at an episode end once ``learner.total_env_steps`` steps are
 taken; then the greedy policy is evaluated on the evaluation protocol.
 
-    .venv/bin/python -m learner.reference_loop --preset smoke --exploration.strategy vdbe
+    .venv/bin/python -m deploy.reference_loop --preset smoke --exploration.strategy vdbe
 """
 
 from __future__ import annotations

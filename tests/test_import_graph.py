@@ -1,0 +1,50 @@
+"""Roles are peers: actor, learner and replay (with the recorder, replay/log) import only common and their
+own modules, and common imports no role. What composes roles (the stack, the reference loop, the grid
+runner) lives in deploy/. Read from the import statements of every module, so a new arrow fails here."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+ROLES = ("actor", "learner", "replay")
+PACKAGES = (*ROLES, "common", "deploy")
+
+
+def imported(path: Path) -> set[str]:
+    """The absolute module names a file imports (relative imports stay inside their package)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def arrows() -> dict[str, set[str]]:
+    """Module path -> the other top-level packages of this project it imports."""
+    found = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            targets = {name.split(".")[0] for name in imported(path)} & set(PACKAGES) - {package}
+            found[str(path.relative_to(ROOT))] = targets
+    return found
+
+
+def test_no_role_imports_another_and_common_imports_none():
+    wrong = {}
+    for module, targets in arrows().items():
+        allowed = {"common"} if module.split("/")[0] in ROLES else set() if module.startswith("common/") else None
+        if allowed is not None and targets - allowed:
+            wrong[module] = sorted(targets - allowed)
+    assert not wrong, f"arrows between roles, or from common to a role: {wrong}"
+
+
+def test_the_check_sees_an_arrow(tmp_path):
+    """The reader finds every form of import the rule must catch."""
+    sample = tmp_path / "sample.py"
+    sample.write_text("import actor.runner\nfrom replay.store import EpisodeStore\nfrom . import near\n"
+                      "def late():\n    from learner import update\n")
+    assert imported(sample) == {"actor.runner", "replay.store", "learner"}
