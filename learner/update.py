@@ -31,7 +31,7 @@ gives both Q(h_t, .) for t < T (with gradient) and Q(h_t+1, .) for the argmax
 gradient. In the paper's algorithm the next-state passes start from a zero
 state at s_1, so h_t+1 there has seen s_1..s_t+1; here it has seen s_0..s_t+1,
 one frame more, the same history the online Q(h_t, .) is built on. The
-separate-pass versions, with either history, live in learner/reference_update.py.
+separate-pass versions, with either history, live in deploy/bench/reference_update.py.
 
 Two implementations of that one pass give the same loss and gradients within
 rounding: one_pass_loss runs D3RQN.forward under autograd (nn.LSTM; cuDNN on

@@ -16,9 +16,9 @@ from common.exploration.bmc import greedy_and_uniform_returns
 from common.network import D3RQN
 from common.options import ConfigError
 from learner.allocator import keep_freed_memory
-from learner.reference_update import paper_reference_loss, same_history_reference_loss
+from deploy.bench.reference_update import paper_reference_loss, same_history_reference_loss
 import learner.update as update_module
-from learner.flops import update_flops
+from deploy.bench.flops import update_flops
 from learner.update import (
     DoubleQLearner, TraceArrays, TraceTensors, burnt_in_forward, candidate_paths, choose_update_path,
     double_q_targets, masked_squared_error,
@@ -270,7 +270,7 @@ def test_an_unknown_update_path_is_a_config_error():
 
 
 def test_the_flop_count_matches_torchs_counter_on_the_autograd_path():
-    """learner/flops.py against torch.utils.flop_counter on one loss and backward pass of today's code."""
+    """deploy/bench/flops.py against torch.utils.flop_counter on one loss and backward pass of today's code."""
     learner = learner_on("autograd")
     tensors = learner.prepare(random_batch(np.random.default_rng(10)))
     with FlopCounterMode(display=False) as counter:

@@ -16,7 +16,7 @@ taking turns within each round so that noise from other processes hits all alike
 
 The actor's rates are env steps per second of wall time and per second of
 this process's CPU time (steadier on a shared machine: "per actor core"). Then the network's
-FLOPs per env step (learner/flops.py), the one-core peak of a square GEMM in
+FLOPs per env step (deploy/bench/flops.py), the one-core peak of a square GEMM in
 each precision, measured in the same run, and the ceiling they set: the steps/s
 an actor would reach if its network ran at that peak, with the rest of a step
 as measured.
@@ -43,7 +43,7 @@ from common.exploration.build import exploration_message, make_strategy
 from common.network import weights_to_numpy
 from common.wire.messages import Weights
 from env_speed import one_core  # deploy/bench is this script's directory
-from learner.flops import forward_flops
+from deploy.bench.flops import forward_flops
 from learner_speed import Clock, Gemms
 
 SQUARE_GEMM = 2048
@@ -132,7 +132,7 @@ def main() -> None:
 
     peak = {precision: statistics.median(found) for precision, found in peaks.items()}
     flop_per_step = sum(forward_flops(config.network, traces=1, steps=1).values())
-    print(f"\nnetwork: {flop_per_step / 1e6:.1f} MFLOP per env step (learner/flops.py); one-core peak, square GEMM "
+    print(f"\nnetwork: {flop_per_step / 1e6:.1f} MFLOP per env step (deploy/bench/flops.py); one-core peak, square GEMM "
           f"{SQUARE_GEMM}: " + ", ".join(f"{name} {value:.1f} GFLOP/s" for name, value in peak.items())
           + f" (medians of rounds); medians of {args.rounds} rounds of {args.seconds:g} s")
     print(f"{'envs/actor':>10} {'inference':>9} {'actor steps/s':>14} {'per CPU-s':>10} "

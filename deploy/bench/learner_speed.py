@@ -2,7 +2,7 @@
 
 In one run, on one batch and the same initial weights for every variant:
 
-1. the FLOPs of one update, counted from the network's shapes (learner/flops.py);
+1. the FLOPs of one update, counted from the network's shapes (deploy/bench/flops.py);
 2. the machine's fp32 peak: a large square GEMM, and plain GEMMs of the
    update's own shapes (the LSTM projection forward and backward, the
    recurrence, the convolutions as im2col products), whose times add up to the
@@ -38,8 +38,8 @@ from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device, scale_frames
 from common.wire.frames import FrameStack
-from learner.flops import conv_features, conv_multiply_adds, update_flops
-from learner.reference_update import paper_reference_loss
+from deploy.bench.flops import conv_features, conv_multiply_adds, update_flops
+from deploy.bench.reference_update import paper_reference_loss
 from learner.update import DoubleQLearner, TraceArrays, candidate_paths, one_pass_terms, trace_pass_loss
 
 @dataclasses.dataclass(frozen=True)
@@ -317,7 +317,7 @@ def run(config: Config, variants: list[str], rounds: int, updates: int, warmup: 
     cropped = dataclasses.replace(net, frame_height=used_height, frame_width=used_width)
     executed_new = sum(update_flops(cropped, learner_config).values())
 
-    print(f"\nFLOPs of one update (multiply-adds x 2 of convolutions and matrix products; learner/flops.py)")
+    print(f"\nFLOPs of one update (multiply-adds x 2 of convolutions and matrix products; deploy/bench/flops.py)")
     for phase, value in flops.items():
         print(f"  {phase:34s} {value / 1e9:7.3f} GFLOP")
     print(f"  {'total':34s} {update_gflop:7.3f} GFLOP   (+ VDBE after-pass "

@@ -2,7 +2,7 @@
 
 For the paper's learner and each configuration of the study (deploy/study.py CONFIGURATIONS): the bytes one
 stored step takes in the replay (its frame as JPEG, measured on the simulator's own frames, plus actions,
-rewards, versions and any LSTM state row), the GFLOP of one update (learner/flops.py), updates per second
+rewards, versions and any LSTM state row), the GFLOP of one update (deploy/bench/flops.py), updates per second
 (every configuration takes its turn in each round, so that noise from other processes hits all alike;
 median and best round), and what the learner spends per 1,000 env steps at the configuration's update
 ratio. Sizes are the paper's (B = 10, T = 10, RGB 66 x 200, LSTM 512) unless flags say otherwise.
@@ -33,7 +33,7 @@ from common.stored_state import STATE_DTYPE, stored_units
 from common.wire.frames import FrameStack
 from deploy.bench.learner_speed import random_batch
 from deploy.study import CONFIGURATIONS
-from learner.flops import update_flops
+from deploy.bench.flops import update_flops
 from learner.update import DoubleQLearner, TraceArrays
 from replay.store import step_bytes
 
