@@ -58,7 +58,8 @@ from common.stored_state import no_states, state_row, stored_units
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
 from learner.feed import feed_strategy
-from learner.update import DoubleQLearner, TraceArrays
+from learner.trace_batch import TraceArrays
+from learner.update import DoubleQLearner
 from replay.store import EpisodeStore
 
 

@@ -26,7 +26,7 @@ class Prefetcher:
 
     `prepare(batch)`, if given, runs in the worker too, and next() returns what it
     returns: the place to decode frames and stage them on the learner's device
-    (learner.update.BatchStager) while the previous update runs. An exception it
+    (learner.trace_batch.BatchStager) while the previous update runs. An exception it
     raises is raised by the next() that would have returned its result.
     """
 

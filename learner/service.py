@@ -50,7 +50,8 @@ from common.wire.run_shape import RunShape, check_trace_batch, stat_number
 from learner.feed import feed_strategy
 from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
-from learner.update import DoubleQLearner, TraceArrays, TraceTensors
+from learner.trace_batch import TraceArrays, TraceTensors
+from learner.update import DoubleQLearner
 
 log = logging.getLogger("learner")
 
@@ -286,7 +287,7 @@ class LearnerProcess:
             return Admitted(batch, traces, None)
         try:
             return Admitted(batch, self.stager.stage(traces), None)
-        except ValueError as error:  # the sizes the network needs (learner.update.checked_arrays)
+        except ValueError as error:  # the sizes the network needs (learner.trace_batch.checked_arrays)
             return Admitted(batch, None, WireError(str(error), "shape"))
 
     def train_on(self, batch: TraceBatch | Admitted) -> float | None:

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import common.network as network_module
-import learner.update as update_module
+import learner.update_path as path_module
 from common import cpu_capability
 from common.config import LearnerConfig
 from common.config_values import load_config
@@ -25,8 +25,9 @@ from common.wire.messages import Stats
 from deploy.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import LearnerMetrics, LearnerProcess
-from learner.update import (DoubleQLearner, candidate_paths, choose_learner_precision, interleaved_cpu_seconds,
-                            precision_from_timings)
+from learner.loss import one_pass_loss
+from learner.update import DoubleQLearner
+from learner.update_path import candidate_paths, choose_learner_precision, interleaved_cpu_seconds, precision_from_timings
 from tests.cpu_support import needs_bfloat16
 from tests.test_update import (TINY, flat_parameters, one_torch_thread,  # noqa: F401 (an autouse fixture)
                                paying_action_margin, random_batch)
@@ -84,7 +85,7 @@ def test_auto_takes_float32_with_one_log_line_where_the_cpu_has_no_native_bfloat
 @pytest.mark.parametrize("needed, chosen", [(0.0, "bfloat16"), (1e9, "float32")])
 def test_auto_takes_bfloat16_only_when_it_times_fast_enough_and_changes_nothing(monkeypatch, needed, chosen):
     monkeypatch.setattr(cpu_capability, "bfloat16_native", lambda: True)
-    monkeypatch.setattr(update_module, "AUTO_BFLOAT16_SPEEDUP", needed)
+    monkeypatch.setattr(path_module, "AUTO_BFLOAT16_SPEEDUP", needed)
     automatic = learner("auto")
     before = flat_parameters(automatic.online)
     tensors = automatic.prepare(random_batch(np.random.default_rng(2)))
@@ -126,7 +127,7 @@ def test_an_explicit_bfloat16_on_a_float32_only_loss_is_refused(monkeypatch):
     config = dataclasses.replace(LearnerConfig(), precision="bfloat16")
     with pytest.raises(ValueError, match="^learner.precision bfloat16 runs on the trace paths only, not on update "
                                          "path autograd$"):
-        DoubleQLearner(TINY, config, loss_function=update_module.one_pass_loss)
+        DoubleQLearner(TINY, config, loss_function=one_pass_loss)
 
 
 def test_the_precision_decision_takes_the_best_of_each_candidates_timings():

@@ -17,13 +17,14 @@ from common.network import D3RQN
 from common.options import ConfigError
 from learner.allocator import keep_freed_memory
 from deploy.bench.reference_update import paper_reference_loss, same_history_reference_loss
-import learner.update as update_module
+import learner.loss as loss_module
+import learner.update_path as path_module
 from deploy.bench.flops import update_flops
-from learner.update import (
-    DoubleQLearner, TraceArrays, TraceTensors, burnt_in_forward, candidate_paths, choose_update_path,
-    double_q_targets, masked_squared_error,
-    one_pass_loss, one_pass_terms, to_tensors, trace_pass_loss,
-)
+from learner.loss import (burnt_in_forward, double_q_targets, masked_squared_error, one_pass_loss, one_pass_terms,
+                          trace_pass_loss)
+from learner.trace_batch import TraceArrays, TraceTensors, to_tensors
+from learner.update import DoubleQLearner
+from learner.update_path import candidate_paths, choose_update_path
 
 TINY = NetworkConfig(frame_height=36, frame_width=36, lstm_units=16, device="cpu")
 LEARNER = LearnerConfig()  # B = 10, T = 10, n_mask = 7, gamma = 0.99, tau = 0.001, lr = 1e-4
@@ -242,7 +243,7 @@ def test_the_update_paths_stay_together_over_several_updates(path, network, conf
 
 
 def test_auto_times_every_path_once_per_process_and_changes_nothing(monkeypatch):
-    monkeypatch.setattr(update_module, "_chosen_paths", {})
+    monkeypatch.setattr(path_module, "_chosen_paths", {})
     timed = []
     original = DoubleQLearner._update
     monkeypatch.setattr(DoubleQLearner, "_update",
@@ -444,7 +445,7 @@ def test_learns_which_action_pays_on_a_synthetic_task():
     assert margin.min() > 0.5, margin  # reward 1 for the best action, 0 for the others
 
 
-# --- batches staged ahead of their update (learner.update.BatchStager, learner.prefetch) ----
+# --- batches staged ahead of their update (learner.trace_batch.BatchStager, learner.prefetch) ----
 
 def test_a_staged_batch_updates_exactly_like_a_plain_one():
     batch = random_batch(np.random.default_rng(11), terminal_last=True)
@@ -608,9 +609,9 @@ def test_burn_in_steps_of_a_stored_state_batch_carry_no_gradient():
     and they equal one forward pass from the stored state (no gradient changes values)."""
     learner = DoubleQLearner(TINY, STORED)
     tensors = learner.prepare(random_batch(np.random.default_rng(32), stored_state=True))
-    state = update_module.start_state(tensors)
-    q_values = update_module.burnt_in_forward(learner.online, tensors.observations, state, 2)
-    assert update_module.burn_in_steps(tensors, 2) == 2 and q_values.requires_grad
+    state = loss_module.start_state(tensors)
+    q_values = loss_module.burnt_in_forward(learner.online, tensors.observations, state, 2)
+    assert loss_module.burn_in_steps(tensors, 2) == 2 and q_values.requires_grad
     q_values[:, :2].sum().backward(retain_graph=True)
     assert all(p.grad is None or not p.grad.any() for p in learner.online.parameters())
     with torch.no_grad():

@@ -14,7 +14,7 @@ and the online backward pass. The backward pass needs the gradient of the
 weights of every layer and of the inputs of every layer but the first (the
 frames need no gradient), over the frames s_0..s_T-1 only: s_T's online
 Q-values enter the loss detached. `backward_steps=T + 1` counts what a plain
-autograd pass over all T + 1 frames computes (learner.update.one_pass_loss).
+autograd pass over all T + 1 frames computes (learner.loss.one_pass_loss).
 """
 
 from __future__ import annotations

@@ -40,7 +40,10 @@ from common.network import CONV_LAYERS, D3RQN, conv_input_extent, resolve_device
 from common.wire.frames import FrameStack
 from deploy.bench.flops import conv_features, conv_multiply_adds, update_flops
 from deploy.bench.reference_update import paper_reference_loss
-from learner.update import DoubleQLearner, TraceArrays, candidate_paths, one_pass_terms, trace_pass_loss
+from learner.loss import one_pass_terms, trace_pass_loss
+from learner.trace_batch import TraceArrays
+from learner.update import DoubleQLearner
+from learner.update_path import candidate_paths
 
 @dataclasses.dataclass(frozen=True)
 class Variant:

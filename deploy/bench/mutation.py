@@ -13,7 +13,7 @@ project's pyproject.toml carries no mutmut settings and the checkout is never wr
     pacing        common/pacing.py              tests/test_rate_limiter.py tests/test_run_end.py
     rate_limiter  replay/rate_limiter.py        tests/test_rate_limiter.py tests/test_run_end.py
     exploration   common/exploration/*.py       tests/test_exploration.py tests/test_strategies.py
-    update        learner/update.py (its loss math; --all-update for every function)
+    update        learner/loss.py and update_path.py (the loss math; --all-update for every function of the learner's step)
                                                 tests/test_update.py tests/test_update_by_reference.py
                                                 (and precision_from_timings' test)
 
@@ -57,7 +57,7 @@ MUTMUT_VERSION = "3.8.1"
 # them gets the copy there (mutmut takes the checkout itself off sys.path), mutated or not.
 PACKAGES = ("common", "learner", "replay", "actor")
 
-# learner/update.py's loss math: the targets, the masked loss, the burn-in, the start state, the
+# learner/loss.py's math and learner/update_path.py's rule, the targets, the masked loss, the burn-in, the start state, the
 # one-pass and trace-pass losses, and the rule that picks a precision from timings. Left out by
 # default (--all-update puts them back): the learner's methods (its split trace pass, exploration
 # terms, soft update, precision and path switches), the checks and staging of a batch, checkpoints
@@ -88,7 +88,7 @@ TARGETS = {
                            ("tests/test_rate_limiter.py", "tests/test_run_end.py")),
     "exploration": Target("exploration", ("common/exploration/*",),
                           ("tests/test_exploration.py", "tests/test_strategies.py")),
-    "update": Target("update", ("learner/update.py",),
+    "update": Target("update", ("learner/loss.py", "learner/update_path.py", "learner/update.py", "learner/trace_batch.py"),
                      ("tests/test_update.py", "tests/test_update_by_reference.py",
                       # precision_from_timings' own test; the rest of that file times real updates
                       "tests/test_learner_precision.py::"
@@ -334,7 +334,8 @@ def main() -> None:
                         help="rerun only the last run's survivors and timeouts against today's tests")
     parser.add_argument("--table", action="store_true", help="print the report's table from the saved results")
     parser.add_argument("--all-update", action="store_true",
-                        help="mutate every function of learner/update.py, not only its math")
+                        help="mutate every function of the learner's step (learner/update.py, loss.py, "
+                             "update_path.py, trace_batch.py), not only its math")
     args = parser.parse_args()
     if not Path(mutmut_bin()).exists():
         sys.exit(f"no mutmut next to {sys.executable}: "

@@ -34,7 +34,8 @@ from common.wire.frames import FrameStack
 from deploy.bench.learner_speed import random_batch
 from deploy.study import CONFIGURATIONS
 from deploy.bench.flops import update_flops
-from learner.update import DoubleQLearner, TraceArrays
+from learner.trace_batch import TraceArrays
+from learner.update import DoubleQLearner
 from replay.store import step_bytes
 
 

@@ -18,9 +18,8 @@ import functools
 import torch
 
 from common.network import D3RQN
-from learner.update import (
-    LossTerms, TraceTensors, double_q_targets, masked_squared_error, taken_action_values,
-)
+from learner.loss import LossTerms, double_q_targets, masked_squared_error, taken_action_values
+from learner.trace_batch import TraceTensors
 
 
 def separate_pass_loss(online: D3RQN, target: D3RQN, batch: TraceTensors, gamma: float, n_mask: int,

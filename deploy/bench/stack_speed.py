@@ -35,7 +35,8 @@ from common.cpu_capability import describe_cpu
 from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
 from common.wire.messages import Stats, TraceBatch, TraceBatchRequest
 from deploy.reference_loop import train
-from learner.update import DoubleQLearner, TraceArrays
+from learner.trace_batch import TraceArrays
+from learner.update import DoubleQLearner
 
 ROOT = Path(__file__).resolve().parents[2]
 
