@@ -54,6 +54,8 @@ import torch
 
 from actor.batched_q import BatchedQ, choose_precision
 from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
+from actor.gate import HOLD_LOG_S, EpisodeGate, HoldLog
+from actor.mailbox import Mailbox
 from actor.sim import make_env
 from common.config import Config
 from common.exploration.build import make_strategy, same_strategy, strategy_from_state
@@ -63,23 +65,16 @@ from common.rejections import Rejections
 from common.service import Service
 from common.stored_state import no_states
 from common.transport import Keys, publisher, request, subscribe, watch_liveliness
-from common.wire.errors import WireError
 from common.wire.frames import FrameStack
-from common.wire.messages import Episode, EpisodeAck, EpisodeRecord, ExplorationState, Stats, Weights
-from common.wire.run_shape import stat_number
+from common.wire.messages import Episode, EpisodeAck, EpisodeRecord, Stats
 
 MEGABYTE = 1 << 20
-HOLD_REASONS = ("", "behind", "budget")  # what the replay's rate message may say
-HOLD_WHY = {"budget": "the run's step budget is spent",
-            "policy": "updates have started and the learner's weights and exploration state have not come",
-            "replay": "no replay is alive to count the steps (a restart): waiting for its word"}
 
 log = logging.getLogger("actor")
 
 LATEST_WEIGHTS_TIMEOUT_S = 30.0
 LATEST_WEIGHTS_RETRY_S = 5.0  # asked again while no weights have come: a resuming learner answers late
 STALE_BROADCASTS = 4  # weights this many broadcasts old are reported: the broadcasts are not getting through
-HOLD_LOG_S = 10.0  # a paced run holds nearly every episode briefly: one line per period counts them
 
 
 def actor_seed(run_seed: int, actor_id: int) -> int:
@@ -93,116 +88,6 @@ def env_seed(actor_seed: int, env_index: int) -> int:
     if env_index == 0:
         return actor_seed
     return int(np.random.SeedSequence([actor_seed, env_index]).generate_state(1)[0])
-
-
-class Mailbox:
-    """Holds only the newest acceptable message of each kind; written by callbacks, read by the loop.
-
-    ``shapes`` (tensor name -> shape) is what weights must hold; without it any weights are kept."""
-
-    def __init__(self, shapes: dict[str, tuple[int, ...]] | None = None,
-                 rejections: Rejections | None = None) -> None:
-        self._lock = threading.Lock()
-        self._weights: Weights | None = None
-        self._exploration: ExplorationState | None = None
-        self._heard_weights = False  # a broadcast arrived: the answer to the start-up ask is older
-        self.hold_reason = ""  # the replay's word on the next episode: "behind", "budget" or "" (go)
-        self.updates_started = False  # the replay's word: updates have started (and it is not refilling)
-        self.heard_rate = threading.Event()  # a rate message was accepted: the replay's word is known
-        self.had_weights = threading.Event()  # weights that fit were accepted at least once
-        self.shapes = shapes
-        self.rejections = rejections or Rejections(log)
-        self.learner_updates = -1  # batches the replay has served, from its rate message: the learner's updates
-        self.superseded = 0  # weights replaced by newer ones before the loop loaded them (a slow link queues them)
-
-    def offer_weights(self, message: Weights, key: str = "") -> None:
-        """A broadcast: the newest that fits the network replaces what is held."""
-        usable = self._usable(message)
-        if usable is not None:
-            with self._lock:
-                self.superseded += self._weights is not None
-                self._weights, self._heard_weights = usable, True
-            self.had_weights.set()
-
-    def offer_latest(self, message: Weights) -> None:
-        """The learner's answer to the start-up ask: kept unless a broadcast came first."""
-        usable = self._usable(message)
-        if usable is not None:
-            with self._lock:
-                if not self._heard_weights:
-                    self._weights = usable
-            self.had_weights.set()
-
-    def _usable(self, message) -> Weights | None:
-        """The message with its tensors as float32 if it fits the network, else None (counted). Compact
-        weights are widened here, on Zenoh's thread, so the driving loop only loads them."""
-        if not isinstance(message, Weights):
-            self.rejections.reject("weights_wrong_type", f"a {type(message).__name__} where weights belong")
-            return None
-        try:
-            tensors = message.to_float32()
-        except WireError as error:
-            self.rejections.reject(error.kind, f"weights version {message.version}: {error}")
-            return None
-        if self.shapes is not None:
-            shapes = {name: np.shape(array) for name, array in tensors.items()}
-            if shapes != self.shapes:
-                wrong = sorted(set(shapes.items()) ^ set(self.shapes.items()))[:4]
-                self.rejections.reject("weights_network", f"weights version {message.version} are for another "
-                                                          f"network (names or shapes differ: {wrong} ...)")
-                return None
-        return dataclasses.replace(message, tensors=tensors, encoding="float32")
-
-    def offer_exploration(self, message: ExplorationState, key: str = "") -> None:
-        if not isinstance(message, ExplorationState):
-            self.rejections.reject("exploration_wrong_type", f"a {type(message).__name__} on exploration")
-            return
-        with self._lock:
-            self._exploration = message
-
-    def offer_rate(self, message: Stats, key: str = "") -> None:
-        """The replay's rate limiter; kept, not taken: the hold is read repeatedly. A message that
-        does not say "", "behind" or "budget", or whose start mark or refilling flag is not a number, is
-        refused and the last word stands. A replay that gives no start mark has not started updates."""
-        values = message.values if isinstance(message, Stats) and message.source == "rate_limiter" else None
-        reason = values.get("hold_reason") if values is not None else None
-        given = {"start_env_steps": -1.0, "refilling": 0, **(values or {})}
-        start, refilling = stat_number(given, "start_env_steps"), stat_number(given, "refilling")
-        if reason not in HOLD_REASONS or start is None or refilling is None:
-            shown = (f"hold_reason {reason!r}, start_env_steps {given['start_env_steps']!r}, refilling "
-                     f"{given['refilling']!r}" if values is not None else f"a {type(message).__name__}")
-            self.rejections.reject("rate", f"replay/rate: {shown} (expected a rate_limiter Stats saying "
-                                           f"'', 'behind' or 'budget', with numbers for the others)")
-            return
-        served = stat_number(given, "batches_served")
-        with self._lock:
-            self.hold_reason = reason
-            self.updates_started = start >= 0 and not refilling
-            if served is not None and served >= 0:
-                self.learner_updates = int(served)
-        self.heard_rate.set()
-
-    def weights_behind(self, version: int) -> int:
-        """Updates between the weights acted on and the learner's latest; 0 while either is unknown."""
-        with self._lock:
-            return max(0, self.learner_updates - version) if version >= 0 and self.learner_updates >= 0 else 0
-
-    def replay_gone(self) -> None:
-        """No replay is alive, so none counts the steps: hold until a replay's word comes again."""
-        with self._lock:
-            self.hold_reason = "replay"
-
-    def must_hold(self, has_policy: bool = True) -> str:
-        """Why the next episode must wait ("" when it may start); no word from a replay: go. Without
-        the learner's policy (has_policy False) it waits too once updates have started ("policy")."""
-        with self._lock:
-            return self.hold_reason or ("" if has_policy or not self.updates_started else "policy")
-
-    def take(self) -> tuple[Weights | None, ExplorationState | None]:
-        with self._lock:
-            taken = (self._weights, self._exploration)
-            self._weights = self._exploration = None
-            return taken
 
 
 @dataclass
@@ -517,74 +402,3 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox
                          "%d rejected messages", actor.episode_index, steps, float(np.mean(returns)),
                          actor.weights_version, record.epsilon, outbox.sent, len(outbox), actor.rejections.total)
                 returns.clear()
-
-
-class EpisodeGate:
-    """Whether an idle simulator may begin its next episode: while `more` says the actor wants more
-    episodes and the replay's rate limiter does not say hold. Logs the holds.
-
-    A held simulator waits while the actor's others go on with their episodes. The limiter counts an
-    episode's steps when it arrives and bounds the learner's lag by its buffer plus the episodes in
-    flight; a running episode is in flight whether its simulator pauses or not, as on envs_per_actor
-    separate actors, so pausing it would only delay steps that are owed anyway. What keeps the ratio
-    exact is that no simulator begins an episode while the replay says hold.
-
-    Once updates have started, an actor without the learner's policy (`has_policy` False) holds as well.
-
-    A hold, for the log, lasts from the first refused start until the replay lets the next one go: the
-    replay's word holds all of the actor's idle simulators at once."""
-
-    def __init__(self, mailbox: Mailbox, holds: HoldLog, more: Callable[[], bool],
-                 has_policy: Callable[[], bool] = lambda: True) -> None:
-        self.mailbox = mailbox
-        self.holds = holds
-        self.more = more
-        self.has_policy = has_policy
-        self.held = False
-
-    def __call__(self) -> bool:
-        if not self.more():
-            return False
-        reason = self.mailbox.must_hold(self.has_policy())
-        if reason:
-            if not self.held:
-                self.holds.begin()
-                self.held = True
-            self.holds.tick(reason)
-            return False
-        if self.held:
-            self.holds.end()
-            self.held = False
-        return True
-
-
-class HoldLog:
-    """The rate limiter's holds, logged once per period with their count and time, not once per hold."""
-
-    def __init__(self, period_s: float, clock=time.monotonic) -> None:
-        self.period_s = period_s
-        self._clock = clock
-        self._line_at = clock()
-        self._held = 0  # holds begun since the last line (an ongoing one counts again in the next)
-        self._held_s = 0.0  # time held since the last line, but for the ongoing hold
-        self._since: float | None = None  # start of the ongoing hold, or of its part since the last line
-
-    def begin(self) -> None:
-        self._held += 1
-        self._since = self._clock()
-
-    def end(self) -> None:
-        self._held_s += self._clock() - self._since
-        self._since = None
-
-    def tick(self, reason: str) -> None:
-        now = self._clock()
-        if now - self._line_at < self.period_s:
-            return
-        ongoing = self._since is not None
-        held_s = self._held_s + (now - self._since if ongoing else 0.0)
-        why = HOLD_WHY.get(reason, "the learner is behind")
-        log.info("held %d episode(s) for %.0fs of the last %.0fs: %s", self._held, held_s, now - self._line_at, why)
-        self._line_at, self._held, self._held_s = now, int(ongoing), 0.0
-        if ongoing:
-            self._since = now

@@ -4,7 +4,8 @@ import threading
 import numpy as np
 import torch
 
-from actor.runner import Actor, Mailbox, actor_seed
+from actor.mailbox import Mailbox
+from actor.runner import Actor, actor_seed
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import zstandard
 
-from actor.runner import Actor, Mailbox
+from actor.mailbox import Mailbox
+from actor.runner import Actor
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy

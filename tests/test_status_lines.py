@@ -7,7 +7,7 @@ import time
 import pytest
 
 import deploy.experiments as experiments
-from actor.runner import HoldLog
+from actor.gate import HoldLog
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config
 from common.eta import Eta, clock_time

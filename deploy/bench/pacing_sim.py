@@ -4,7 +4,7 @@ ratio strays, against the error buffer and the actors' hold.
 The real code decides: the replay's RateLimiter (replay/rate_limiter.py) counts the steps and the
 batches, its hold goes to each actor's Mailbox as the replay's rate message (a Stats from
 ``limiter.values()``, announced when the hold changes, as the replay's reply thread does), and an idle
-simulator begins its next episode when the actor's EpisodeGate (actor/runner.py) lets it. The learner
+simulator begins its next episode when the actor's EpisodeGate (actor/gate.py) lets it. The learner
 stops when its RunClock (learner/service.py) says the run is closed and paid for. Only time is simulated:
 
 - `actors` actors of one simulator each, at a steady speed drawn per actor from 200-1,000 env steps/s
@@ -35,7 +35,8 @@ import time
 
 import numpy as np
 
-from actor.runner import EpisodeGate, HoldLog, Mailbox
+from actor.gate import EpisodeGate, HoldLog
+from actor.mailbox import Mailbox
 from common.pacing import RateLimit
 from common.wire.messages import Stats
 from learner.service import RunClock
