@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="replay", description=__doc__)
     parser.add_argument("--resume", action="store_true", help=RESUME_HELP)
     args, config = parse_service_args(parser, argv)
-    from replay.service import run_replay
+    from replay.process import run_replay
     run_replay(config, resume=args.resume)
 
 

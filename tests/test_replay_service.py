@@ -15,7 +15,8 @@ from common.transport import Keys, publisher, request, subscribe
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, Stats, TraceBatch, TraceBatchRequest
-from replay.service import ReplayService, counters_path
+from replay.process import counters_path
+from replay.service import ReplayService
 from tests import processes
 from tests.processes import loopback_endpoint, router_client, start, stop
 

@@ -9,7 +9,8 @@ import pytest
 from common.config_values import load_config
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
-from replay.service import ReplayService, counters_path, save_counters
+from replay.process import counters_path, save_counters
+from replay.service import ReplayService
 from replay.snapshot import MANIFEST, Snapshotter
 
 SIZE = 36
