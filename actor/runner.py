@@ -64,7 +64,8 @@ from common.network import initial_network
 from common.rejections import Rejections
 from common.service import Service
 from common.stored_state import no_states
-from common.transport import Keys, publisher, request, subscribe, watch_liveliness
+from common.transport import publisher, request, subscribe, watch_liveliness
+from common.keys import Keys
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, EpisodeAck, EpisodeRecord, Stats
 

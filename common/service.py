@@ -32,7 +32,8 @@ import zenoh
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.logs import setup_logging
-from common.transport import Keys, declare_liveliness, open_session
+from common.transport import declare_liveliness, open_session
+from common.keys import Keys
 
 log = logging.getLogger(__name__)
 

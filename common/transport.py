@@ -1,4 +1,5 @@
-"""Zenoh in one place: the session, the key names, and typed put/subscribe/query helpers.
+"""Zenoh in one place: the session, and typed put/subscribe/query helpers (the key names are
+common/keys.py, the shared-memory pool common/shared_memory.py).
 
 Roles never touch payload bytes: what goes out is encoded with ``common.wire.envelope``
 and what comes in is decoded and checked. Malformed input is logged (rate-limited)
@@ -24,7 +25,6 @@ import logging
 import socket
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -32,6 +32,7 @@ import zenoh
 
 from common.access import acl_config
 from common.config import TransportConfig
+from common.shared_memory import SharedMemory
 from common.wire.codecs import Message
 from common.wire.envelope import decode, encode
 from common.wire.errors import WireError
@@ -108,93 +109,6 @@ def free_port() -> int:
 def loopback_endpoint(port: int | None = None) -> str:
     """A Zenoh endpoint on the loopback interface: the given port, or a free one."""
     return f"tcp/{LOOPBACK}:{port or free_port()}"
-
-
-# --- key names ----------------------------------------------------------------------------
-
-def _check_chunk(text: str, what: str) -> str:
-    if not text or any(char in text for char in "/*$?# "):
-        raise ValueError(f"{what} {text!r} must be a non-empty key chunk without '/', '*', '$', '?', '#' or spaces")
-    return text
-
-
-@dataclass(frozen=True)
-class Keys:
-    """Every key expression of one run, all under ``<namespace>/<run>/``."""
-
-    namespace: str
-    run: str
-
-    def __post_init__(self) -> None:
-        _check_chunk(self.namespace, "namespace")
-        _check_chunk(self.run, "run name")
-
-    @property
-    def root(self) -> str:
-        return f"{self.namespace}/{self.run}"
-
-    @property
-    def all(self) -> str:
-        """Everything of the run, for a recorder."""
-        return f"{self.root}/**"
-
-    @property
-    def episodes(self) -> str:
-        return f"{self.root}/episodes"
-
-    @property
-    def replay_sample(self) -> str:
-        """Queryable: TraceBatchRequest -> TraceBatch."""
-        return f"{self.root}/replay/sample"
-
-    @property
-    def replay_stats(self) -> str:
-        return f"{self.root}/replay/stats"
-
-    def episode_acks(self, actor_id: int | None = None) -> str:
-        """The replay's EpisodeAcks for one actor (for every actor without one)."""
-        return f"{self.root}/replay/acks/{'*' if actor_id is None else _check_chunk(str(actor_id), 'actor id')}"
-
-    @property
-    def weights(self) -> str:
-        return f"{self.root}/weights/broadcast"
-
-    @property
-    def weights_latest(self) -> str:
-        """Queryable: (no request) -> the latest Weights."""
-        return f"{self.root}/weights/latest"
-
-    @property
-    def exploration(self) -> str:
-        return f"{self.root}/exploration"
-
-    @property
-    def replay_rate(self) -> str:
-        """The replay's rate limiter: env steps, batches served, updates due, whether actors hold."""
-        return f"{self.root}/replay/rate"
-
-    def metrics_source(self, role: str, process_id: str | int | None = None) -> str:
-        """Metrics of one process: ``metrics/learner``, ``metrics/actor/3``."""
-        key = f"{self.root}/metrics/{_check_chunk(role, 'role')}"
-        return key if process_id is None else f"{key}/{_check_chunk(str(process_id), 'process id')}"
-
-    @property
-    def metrics_all(self) -> str:
-        return f"{self.root}/metrics/**"
-
-    def heartbeat(self, role: str, process_id: str | int) -> str:
-        return f"{self.root}/heartbeat/{_check_chunk(role, 'role')}/{_check_chunk(str(process_id), 'process id')}"
-
-    @property
-    def heartbeat_all(self) -> str:
-        return f"{self.root}/heartbeat/**"
-
-    def liveliness(self, role: str, process_id: str | int) -> str:
-        return f"{self.root}/alive/{_check_chunk(role, 'role')}/{_check_chunk(str(process_id), 'process id')}"
-
-    @property
-    def liveliness_all(self) -> str:
-        return f"{self.root}/alive/**"
 
 
 # --- logging and closing ---------------------------------------------------------------------
@@ -288,53 +202,6 @@ def put_once(session: zenoh.Session, key: str, message: Message) -> int:
     data = encode(message)
     session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
     return len(data)
-
-
-SHARED_MEMORY_MESSAGES = 3  # the pool holds this many: one being written while subscribers still read older ones
-
-
-class SharedMemory:
-    """A pool of Zenoh shared memory that payloads are put from (zenoh.shm, unstable in zenoh-python 1.x).
-
-    Sized on first use for SHARED_MEMORY_MESSAGES payloads of that size. Where Zenoh has no shared
-    memory (a build without it, no room in /dev/shm) or an allocation fails (subscribers still hold
-    the whole pool), the payload goes over the network instead, and the first time says so in one
-    log line. ``shared`` and ``fallbacks`` count the payloads of each path."""
-
-    def __init__(self) -> None:
-        self._provider: Any = None
-        self._pool_bytes = 0
-        self._warned = False
-        self.shared = 0
-        self.fallbacks = 0
-
-    @classmethod
-    def of(cls, config: TransportConfig) -> SharedMemory | None:
-        """A pool when the transport uses shared memory, else None."""
-        return cls() if config.shared_memory else None
-
-    def payload(self, data: bytes) -> zenoh.ZBytes | bytes:
-        """data copied into a shared-memory buffer, or data itself when there is none to have."""
-        try:
-            buffer = self._allocate(len(data))
-            buffer[:] = data
-        except Exception as error:  # no zenoh.shm, no room, a pool in use: the network path
-            self.fallbacks += 1
-            if not self._warned:
-                self._warned = True
-                log.warning("shared memory unavailable (%s: %s): messages of %.1f MB go over the network",
-                            type(error).__name__, error, len(data) / 1e6)
-            return data
-        self.shared += 1
-        return zenoh.ZBytes(buffer)
-
-    def _allocate(self, size: int):
-        from zenoh import shm  # ModuleNotFoundError when zenoh is built without shared memory
-
-        if size * SHARED_MEMORY_MESSAGES > self._pool_bytes:  # first use, or larger messages than before
-            self._pool_bytes = size * SHARED_MEMORY_MESSAGES
-            self._provider = shm.ShmProvider.default_backend(self._pool_bytes)
-        return self._provider.alloc(size, shm.GarbageCollect())  # frees buffers no one reads any more, then retries
 
 
 class Receiver(Declared):

@@ -43,7 +43,8 @@ from common.eta import Eta
 from common.pacing import updates_paid_for
 from common.run_dir import RunDir, RunStatus
 from common.service import PARENT_ENV
-from common.transport import Keys, free_port, open_session, subscribe
+from common.transport import free_port, open_session, subscribe
+from common.keys import Keys
 from common.wire.messages import EpisodeRecord, Stats
 from common.wire.run_shape import stat_number
 

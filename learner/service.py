@@ -43,7 +43,9 @@ from common.pacing import achieved_ratio, is_unpaced, updates_paid_for
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.service import Service
-from common.transport import Keys, SharedMemory, publisher, request, serve, subscribe
+from common.transport import publisher, request, serve, subscribe
+from common.shared_memory import SharedMemory
+from common.keys import Keys
 from common.wire.errors import WireError
 from common.wire.messages import ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
 from common.wire.run_shape import RunShape, check_trace_batch, stat_number

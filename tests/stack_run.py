@@ -19,7 +19,8 @@ from collections import defaultdict
 from pathlib import Path
 
 from common.config import TransportConfig
-from common.transport import Keys, open_session, subscribe
+from common.transport import open_session, subscribe
+from common.keys import Keys
 from common.wire.messages import Episode, EpisodeRecord, Stats
 from tests.processes import children, free_port, kill_tree
 

@@ -8,7 +8,8 @@ import threading
 import time
 from pathlib import Path
 
-from common.transport import Keys, subscribe
+from common.transport import subscribe
+from common.keys import Keys
 from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from tests.processes import loopback_endpoint, router_client, start, stop
 

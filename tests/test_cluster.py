@@ -14,7 +14,8 @@ import pytest
 
 from common.config import TransportConfig
 from common.config_values import load_config
-from common.transport import Keys, open_session, subscribe
+from common.transport import open_session, subscribe
+from common.keys import Keys
 from common.wire.messages import Stats
 from tests.processes import loopback_endpoint, start, stop
 

@@ -13,7 +13,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from common.config import TransportConfig
 from common.config_values import load_config
-from common.transport import Keys, open_session, publisher
+from common.transport import open_session, publisher
+from common.keys import Keys
 from common.wire.codecs import Message
 from common.wire.envelope import encode
 from common.wire.messages import EpisodeRecord, ExplorationState, Stats

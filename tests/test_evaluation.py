@@ -25,7 +25,8 @@ from common.analysis.tables import bin_labels, failures_by_start, markdown_table
 from common.checkpoint import save_checkpoint
 from common.config import EvaluationConfig, TransportConfig
 from common.config_values import load_config, to_dict
-from common.transport import Keys, open_session, serve
+from common.transport import open_session, serve
+from common.keys import Keys
 from common.wire.messages import Weights
 from learner.update import DoubleQLearner
 from tests.processes import loopback_endpoint

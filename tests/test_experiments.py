@@ -20,7 +20,7 @@ from common.analysis.stats import summarise_all
 from common.analysis.tables import EPISODES_CSV, write_evaluation
 from common.config_values import load_config
 from common.run_dir import log_segments
-from common.transport import Keys
+from common.keys import Keys
 from common.wire.envelope import encode
 from common.wire.messages import EpisodeRecord, Stats
 from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,

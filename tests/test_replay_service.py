@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from common.config_values import load_config
-from common.transport import Keys, publisher, request, subscribe
+from common.transport import publisher, request, subscribe
+from common.keys import Keys
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, Stats, TraceBatch, TraceBatchRequest

@@ -10,7 +10,8 @@ from collections import defaultdict
 import pytest
 
 from common.presets import PRESETS
-from common.transport import Keys, subscribe
+from common.transport import subscribe
+from common.keys import Keys
 from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from tests.processes import loopback_endpoint, router_client, start, stop
 

@@ -10,10 +10,9 @@ import pytest
 import zenoh
 
 from common.config import TransportConfig
-from common.transport import (
-    Keys, RateLimitedLog, alive_keys, declare_liveliness, open_session, publisher, request, serve, subscribe,
-    watch_liveliness, zenoh_config,
-)
+from common.transport import (RateLimitedLog, alive_keys, declare_liveliness, open_session, publisher, request, serve,
+                              subscribe, watch_liveliness, zenoh_config)
+from common.keys import Keys
 from common.wire.envelope import encode
 from common.wire.messages import Heartbeat, Stats, TraceBatchRequest, Weights
 from tests.processes import loopback_endpoint

@@ -8,7 +8,9 @@ import time
 import numpy as np
 
 from common.config import TransportConfig
-from common.transport import Keys, SharedMemory, open_session, publisher, subscribe
+from common.transport import open_session, publisher, subscribe
+from common.shared_memory import SharedMemory
+from common.keys import Keys
 from common.wire.messages import Weights
 
 KEYS = Keys("d3rqn-test", "shm")

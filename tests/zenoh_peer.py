@@ -61,7 +61,8 @@ class Lines:
 
 
 def watch(config: Config, out: Lines, stop: threading.Event) -> None:
-    from common.transport import Keys, open_session, subscribe
+    from common.transport import open_session, subscribe
+    from common.keys import Keys
     from common.wire.messages import Episode, EpisodeRecord, Stats
 
     keys = Keys(config.transport.namespace, config.run.name)
@@ -107,7 +108,8 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
 
 
 def alive(config: Config, out: Lines, stop: threading.Event) -> None:
-    from common.transport import Keys, open_session, watch_liveliness
+    from common.transport import open_session, watch_liveliness
+    from common.keys import Keys
 
     keys = Keys(config.transport.namespace, config.run.name)
     with open_session(config.transport) as session:
@@ -135,7 +137,8 @@ def rogue(config: Config, out: Lines, stop: threading.Event, weights_version: in
     import zenoh
 
     from common.network import D3RQN, weights_to_numpy
-    from common.transport import Keys, open_session
+    from common.transport import open_session
+    from common.keys import Keys
     from common.wire.envelope import encode
     from common.wire.messages import Weights
 

@@ -17,7 +17,8 @@ from common.config_cli import config_from_args
 from common.config_values import from_dict
 from common.network import D3RQN, load_numpy_weights
 from common.run_dir import RunDir
-from common.transport import Keys, open_session, request
+from common.transport import open_session, request
+from common.keys import Keys
 from common.wire.errors import WireError
 from common.wire.messages import Weights
 

@@ -27,7 +27,8 @@ from pathlib import Path
 from common.config import TransportConfig
 from common.cpu_capability import describe_cpu
 from common.run_dir import RunDir
-from common.transport import Keys, free_port, loopback_endpoint, open_session, subscribe
+from common.transport import free_port, loopback_endpoint, open_session, subscribe
+from common.keys import Keys
 from common.wire.envelope import decode
 from common.wire.messages import EpisodeRecord, Stats
 from replay.log.reader import LogFile

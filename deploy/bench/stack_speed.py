@@ -32,7 +32,8 @@ from common.config import Config, TransportConfig
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import describe_cpu
-from common.transport import Keys, free_port, loopback_endpoint, open_session, publisher, request, subscribe
+from common.transport import free_port, loopback_endpoint, open_session, publisher, request, subscribe
+from common.keys import Keys
 from common.wire.messages import Stats, TraceBatch, TraceBatchRequest
 from deploy.reference_loop import train
 from learner.trace_batch import TraceArrays

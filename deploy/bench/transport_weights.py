@@ -26,8 +26,9 @@ import numpy as np
 
 from common.cpu_capability import describe_cpu
 from common.config import NetworkConfig, TransportConfig
-from common.transport import (Keys, SharedMemory, loopback_endpoint, open_session, publisher, request, serve,
-                              subscribe)
+from common.transport import loopback_endpoint, open_session, publisher, request, serve, subscribe
+from common.shared_memory import SharedMemory
+from common.keys import Keys
 from common.wire.envelope import decode, encode
 from common.wire.messages import Weights
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS

@@ -149,7 +149,8 @@ def _clock(ns: int) -> str:
 
 
 def _play(args, config) -> None:
-    from common.transport import Keys, open_session
+    from common.transport import open_session
+    from common.keys import Keys
     from replay.log.play import play
     from replay.log.reader import LogFile
 

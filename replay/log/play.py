@@ -17,7 +17,7 @@ from typing import Callable
 
 import zenoh
 
-from common.transport import Keys
+from common.keys import Keys
 from replay.log.reader import LogError, LogFile
 
 MATCH_POLL_S = 0.05

@@ -31,7 +31,7 @@ from mcap.summary import Summary
 from common.config import Config
 from common.config_values import from_dict
 from common.options import ConfigError
-from common.transport import Keys
+from common.keys import Keys
 from common.wire.codecs import Message
 from common.wire.envelope import decode
 from common.wire.errors import WireError
