@@ -21,7 +21,7 @@ def main(argv: list[str] | None = None) -> None:
     from common.network import resolve_device
     if resolve_device(config.network).type == "cpu":
         exit_if_unrunnable(parser.prog, {"learner.precision": config.learner.precision})
-    from learner.service import run_learner
+    from learner.process import run_learner
     run_learner(config, resume=args.resume)
 
 

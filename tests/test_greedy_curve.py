@@ -27,7 +27,7 @@ from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus
 from learner.keep import PolicyKeeper
-from learner.service import LearnerProcess
+from learner.service import LearnerService
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
 from tests.test_status_lines import FakeClock
 
@@ -36,9 +36,9 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 OLD_CURVE = Path(__file__).resolve().parents[1] / "results" / "time-to-drive" / "ttd-float32-s0" / "curve.csv"
 
 
-def learner(config, clock=time.monotonic, keep_every=0, keep_every_s=0.0) -> LearnerProcess:
+def learner(config, clock=time.monotonic, keep_every=0, keep_every_s=0.0) -> LearnerService:
     config.learner.keep_every, config.learner.keep_every_s = keep_every, keep_every_s
-    process = LearnerProcess(config, clock=clock)
+    process = LearnerService(config, clock=clock)
     process.start_updates()
     return process
 
@@ -97,7 +97,7 @@ def test_a_resumed_run_s_wall_time_carries_on(config):
     first.checkpoint()
     later = FakeClock()
     later.now = 5000.0  # another session: its clock has its own origin
-    resumed = LearnerProcess(config, clock=later)
+    resumed = LearnerService(config, clock=later)
     resumed.resume()
     later.now += 30.0
     train(resumed, batches(2)[1])

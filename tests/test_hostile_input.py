@@ -22,7 +22,7 @@ from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, T
 from common.wire.run_shape import RunShape, check_episode, stat_number
 from deploy.stack import StackMonitor
 from learner.prefetch import Prefetcher
-from learner.service import MAX_FAILED_IN_A_ROW, LearnerProcess
+from learner.service import MAX_FAILED_IN_A_ROW, LearnerService
 from replay.service import MAX_PENDING, ReplayService
 
 SIZE, STEPS = 36, 12
@@ -215,7 +215,7 @@ def trace_batch(config, **changes) -> TraceBatch:
 
 def test_the_learner_drops_batches_that_do_not_fit_and_goes_on(tmp_path):
     config = small_config(tmp_path)
-    process = LearnerProcess(config)
+    process = LearnerService(config)
     process.start_updates()
     good = trace_batch(config)
     blobs = list(good.observations.blobs)
@@ -239,7 +239,7 @@ def test_the_learner_drops_batches_that_do_not_fit_and_goes_on(tmp_path):
 
 def test_batches_are_checked_in_the_prefetch_thread_and_refusals_counted_by_the_loop(tmp_path):
     config = small_config(tmp_path)
-    process = LearnerProcess(config)
+    process = LearnerService(config)
     process.start_updates()
     good = trace_batch(config)
     replies = iter([Stats(source="replay", time=0.0, values={}), good])
@@ -260,7 +260,7 @@ def test_batches_are_checked_in_the_prefetch_thread_and_refusals_counted_by_the_
 
 def test_a_failing_update_is_dropped_counted_and_the_learner_goes_on_unless_it_always_fails(tmp_path):
     config = small_config(tmp_path)
-    process = LearnerProcess(config)
+    process = LearnerService(config)
     process.start_updates()
     real_update, calls = process.learner.update, []
 
@@ -286,7 +286,7 @@ def test_a_failing_update_is_dropped_counted_and_the_learner_goes_on_unless_it_a
     {"env_steps_total": 10**15}, {"env_steps_total": 12.5}, {"env_steps_total": 500, "rate_start_env_steps": 900},
     {"env_steps_total": 500, "rate_start_env_steps": "early"}, {"env_steps_total": 500, "episodes": "ten"}])
 def test_the_learner_reads_replay_numbers_without_trusting_them(tmp_path, values):
-    process = LearnerProcess(small_config(tmp_path))
+    process = LearnerService(small_config(tmp_path))
     process.on_replay_stats(Stats(source="replay", time=0.0, values=values))
     process.on_replay_rate(Stats(source="rate_limiter", time=0.0, values=values))
     process.on_replay_stats(Stats(source="someone", time=0.0, values={"env_steps_total": 7}))
@@ -297,7 +297,7 @@ def test_the_learner_reads_replay_numbers_without_trusting_them(tmp_path, values
 
 
 def test_the_latest_weights_go_only_to_a_plain_query(tmp_path):
-    process = LearnerProcess(small_config(tmp_path))
+    process = LearnerService(small_config(tmp_path))
     process.make_weights()
     assert process.serve_latest_weights(None) is process.latest_weights
     assert process.serve_latest_weights(Stats(source="x", time=0.0, values={})) is None

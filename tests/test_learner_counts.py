@@ -6,7 +6,7 @@ import pytest
 from common.config_values import load_config
 from common.wire.frames import FrameStack
 from common.wire.messages import Stats, TraceBatch
-from learner.service import LearnerProcess, RunClock
+from learner.service import LearnerService, RunClock
 
 SIZE, STEPS, TRACES, MASK = 36, 4, 3, 2  # 3 traces x 2 unmasked steps: 6 transitions per batch
 
@@ -32,7 +32,7 @@ def rate(env_steps: int, start: float) -> Stats:
     return Stats(source="rate_limiter", time=0.0, values={"env_steps": env_steps, "start_env_steps": start})
 
 
-def run_updates(process: LearnerProcess, updates: int, per_update: float, mark: int = 1_000) -> int:
+def run_updates(process: LearnerService, updates: int, per_update: float, mark: int = 1_000) -> int:
     """Updates paced at exactly `per_update` env steps each, as the replay's rate limiter serves them."""
     process.on_replay_rate(rate(mark, mark))
     process.start_updates()
@@ -45,7 +45,7 @@ def run_updates(process: LearnerProcess, updates: int, per_update: float, mark: 
 
 @pytest.mark.parametrize("per_update", [4.0, 2.5, 6.0])
 def test_per_step_bmc_observes_one_transition_per_env_step(tmp_path, per_update):
-    process = LearnerProcess(config_with(tmp_path, **{"learner.env_steps_per_update": per_update}))
+    process = LearnerService(config_with(tmp_path, **{"learner.env_steps_per_update": per_update}))
     assert process.config.exploration.bmc.observations == "per_step"
     env_steps = run_updates(process, 8, per_update)
     assert process.strategy.returns == process.bmc_observations == env_steps  # 32, 20 or 48
@@ -54,7 +54,7 @@ def test_per_step_bmc_observes_one_transition_per_env_step(tmp_path, per_update)
 
 
 def test_per_transition_bmc_observes_every_unmasked_transition(tmp_path):
-    process = LearnerProcess(config_with(tmp_path, **{"exploration.bmc.observations": "per_transition",
+    process = LearnerService(config_with(tmp_path, **{"exploration.bmc.observations": "per_transition",
                                                       "learner.env_steps_per_update": 4.0}))
     env_steps = run_updates(process, 8, 4.0)
     assert process.strategy.returns == 8 * TRACES * (STEPS - MASK) == 48
@@ -62,13 +62,13 @@ def test_per_transition_bmc_observes_every_unmasked_transition(tmp_path):
 
 
 def test_per_step_cannot_observe_more_than_a_batch_holds(tmp_path):
-    process = LearnerProcess(config_with(tmp_path, **{"learner.env_steps_per_update": 20.0}))
+    process = LearnerService(config_with(tmp_path, **{"learner.env_steps_per_update": 20.0}))
     run_updates(process, 3, 20.0)
     assert process.strategy.returns == 3 * 6
 
 
 def test_the_achieved_ratio_counts_from_the_replays_start_mark(tmp_path):
-    process = LearnerProcess(config_with(tmp_path, **{"learner.env_steps_per_update": 4.0}))
+    process = LearnerService(config_with(tmp_path, **{"learner.env_steps_per_update": 4.0}))
     run_updates(process, 10, 4.0, mark=500)
     assert process.env_steps_per_update() == pytest.approx(4.0)
     process.on_replay_rate(rate(548, 500))  # 12 updates due, 10 made
@@ -96,7 +96,7 @@ def test_an_unpaced_run_ends_once_closed_without_paying_the_rest():
 
 
 def test_the_replays_close_comes_on_both_of_its_keys_and_must_be_0_or_1(tmp_path):
-    process = LearnerProcess(config_with(tmp_path, **{"learner.total_env_steps": 1_000}))
+    process = LearnerService(config_with(tmp_path, **{"learner.total_env_steps": 1_000}))
     process.on_replay_rate(Stats(source="rate_limiter", time=0.0, values={
         "env_steps": 1_040, "start_env_steps": 1_000.0, "closed": 1}))
     assert process.clock.closed and not process.finished()  # 10 updates due, none made

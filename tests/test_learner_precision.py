@@ -24,7 +24,7 @@ from common.options import ConfigError
 from common.wire.messages import Stats
 from deploy.stack import StackMonitor
 from learner.prefetch import Prefetcher
-from learner.service import LearnerMetrics, LearnerProcess
+from learner.service import LearnerMetrics, LearnerService
 from learner.loss import one_pass_loss
 from learner.update import DoubleQLearner
 from learner.update_path import candidate_paths, choose_learner_precision, interleaved_cpu_seconds, precision_from_timings
@@ -194,7 +194,7 @@ def test_auto_chooses_under_a_busy_neighbour_as_it_does_quietly_and_the_metrics_
         "network.frame_height": TINY.frame_height, "network.frame_width": TINY.frame_width,
         "network.lstm_units": TINY.lstm_units, "learner.precision": "auto", "learner.update_path": "trace",
         "run.runs_dir": str(tmp_path)})
-    process = LearnerProcess(config)
+    process = LearnerService(config)
     neighbours = spinning_neighbours(os.cpu_count() or 2)
     try:
         process.learner.update(random_batch(np.random.default_rng(5), batch=4))

@@ -9,7 +9,7 @@ from common.config_values import load_config
 from common.options import ConfigError
 from common.wire.frames import FrameStack
 from common.wire.messages import Stats, TraceBatch
-from learner.service import LearnerProcess
+from learner.service import LearnerService
 from tests.test_status_lines import FakeClock
 
 SIZE, STEPS, TRACES = 36, 4, 3
@@ -36,15 +36,15 @@ def batches(count: int) -> list[TraceBatch]:
     return made
 
 
-def train(process: LearnerProcess, batch: TraceBatch) -> None:
+def train(process: LearnerService, batch: TraceBatch) -> None:
     """As in service: the replay's stats move the clock, then the batch is trained on."""
     process.on_replay_stats(Stats(source="replay", time=0.0, values={
         "env_steps_total": batch.env_steps_total, "episodes": batch.episodes_stored}))
     process.train_on(batch)
 
 
-def started(config) -> LearnerProcess:
-    process = LearnerProcess(config)
+def started(config) -> LearnerService:
+    process = LearnerService(config)
     process.start_updates()
     return process
 
@@ -59,7 +59,7 @@ def test_resume_continues_as_if_never_stopped(config):
     for batch in data[:3]:
         train(first, batch)
     first.checkpoint()
-    resumed = LearnerProcess(config)
+    resumed = LearnerService(config)
     resumed.resume()
     assert resumed.updates == 3 and resumed.strategy.started
     for batch in data[3:]:
@@ -84,18 +84,18 @@ def test_checkpoint_is_written_atomically_with_every_section(config):
 
 def test_damaged_or_missing_checkpoint_is_a_clear_error(config, tmp_path):
     with pytest.raises(CheckpointError, match="no checkpoint"):
-        LearnerProcess(config).resume()
+        LearnerService(config).resume()
     process = started(config)
     path = process.checkpoint()
     path.write_bytes(path.read_bytes()[:1000])
     with pytest.raises(CheckpointError, match="cannot read checkpoint"):
-        LearnerProcess(config).resume()
+        LearnerService(config).resume()
 
 
 def test_the_learner_checkpoints_every_n_updates_or_every_period_by_its_clock(config):
     clock = FakeClock()
     config.learner.checkpoint_every, config.learner.checkpoint_every_s = 5, 10.0
-    process = LearnerProcess(config, clock=clock)
+    process = LearnerService(config, clock=clock)
     process.start_updates()
     written = []
     for batch in batches(10):

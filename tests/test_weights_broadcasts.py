@@ -19,7 +19,7 @@ from common.wire.errors import WireError
 from common.wire.messages import Weights
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 from deploy.bench.weights_encoding import BFLOAT16_PASS, compare, drives
-from learner.service import Cadence, LearnerProcess
+from learner.service import Cadence, LearnerService
 from replay.log.arrival import Arrival, peek
 from replay.log.recorder import WeightsSampler
 from tests import weights_peers
@@ -146,7 +146,7 @@ def test_a_value_beyond_the_encodings_range_is_refused_when_sending(encoding, va
 
 
 def test_the_learner_broadcasts_and_serves_its_configured_encoding(tmp_path):
-    process = LearnerProcess(small_config(tmp_path, **{"learner.weights_encoding": "bfloat16"}))
+    process = LearnerService(small_config(tmp_path, **{"learner.weights_encoding": "bfloat16"}))
     weights = process.make_weights()
     assert weights.encoding == "bfloat16" and process.serve_latest_weights(None) is weights
     with torch.no_grad():

@@ -1,0 +1,174 @@
+"""The learner process: its Zenoh session, the training loop that asks the replay for batches and updates
+(prefetched), and what it publishes (weights, exploration state, metrics). The service itself, the
+learner's state and its doors, is learner/service.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+
+import torch
+
+from common.checkpoint import CheckpointError
+from common.config import Config
+from common.logs import Every
+from common.service import Service
+from common.transport import publisher, request, serve, subscribe
+from common.shared_memory import SharedMemory
+from common.keys import Keys
+from common.wire.messages import ExplorationState, Stats, TraceBatchRequest, Weights
+from learner.prefetch import Prefetcher
+from learner.service import (IDLE_POLL_S, SAMPLE_TIMEOUT_S, WAIT_LOG_S, Admitted, Cadence, LearnerMetrics,
+                             LearnerService)
+
+log = logging.getLogger("learner")
+
+
+def run_learner(config: Config, resume: bool = False) -> None:
+    """Trains until the step budget is spent or SIGINT/SIGTERM; checkpoints at exit."""
+    service = Service("learner", config)
+    if config.learner.torch_threads:
+        torch.set_num_threads(config.learner.torch_threads)
+    process = LearnerService(config)
+    if resume:
+        try:
+            process.resume()
+        except CheckpointError as error:
+            log.error("cannot resume: %s", error)
+            raise SystemExit(1) from None
+    log.info("device %s, strategy %s, %d torch threads", process.learner.device,
+             config.exploration.strategy, torch.get_num_threads())
+    keys = service.keys
+    with service.session() as session:
+        # no expected type: a message of another type reaches the process, which counts it
+        process.receivers = {"stats": subscribe(session, keys.replay_stats, process.on_replay_stats),
+                             "rate": subscribe(session, keys.replay_rate, process.on_replay_rate),
+                             "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights)}
+        for receiver in process.receivers.values():
+            service.on_close(receiver.undeclare)
+        outputs = Outputs(session, keys, SharedMemory.of(config.transport))
+        outputs.weights(process.make_weights())
+        _train(process, outputs, service.stop, session, keys)
+
+
+class Outputs:
+    """Everything the learner publishes; weights from shared memory when given some."""
+
+    def __init__(self, session, keys: Keys, shared_memory: SharedMemory | None = None) -> None:
+        self._weights = publisher(session, keys.weights, shared_memory=shared_memory)
+        self._exploration = publisher(session, keys.exploration)
+        self._metrics = publisher(session, keys.metrics_source("learner", "0"))
+        self._last_exploration: dict | None = None
+
+    def weights(self, weights: Weights) -> None:
+        self._weights.put(weights)
+
+    def exploration(self, strategy, force: bool = False) -> None:
+        state = strategy.state_dict()
+        if force or state != self._last_exploration:
+            self._exploration.put(ExplorationState(**state))
+            self._last_exploration = state
+
+    def metrics(self, values: dict) -> None:
+        self._metrics.put(Stats(source="learner", time=time.time(), values=values))
+
+
+def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, session, keys: Keys) -> None:
+    config = process.config.learner
+    heartbeat = Every(config.log_period_s)
+    broadcasts = Cadence(config.weights_every, config.weights_period_s, min_period_s=config.weights_min_period_s)
+
+    def fetch(message: TraceBatchRequest):
+        # Every request states the updates made: the first of this process (its checkpoint's) lets the replay
+        # re-owe what a dead learner lost; a later one, what a replay that died with its counters forgot.
+        message = dataclasses.replace(message, learner_updates=process.updates)
+        return request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S)
+
+    prefetcher = Prefetcher(fetch, config.batch_size, config.trace_length, config.prefetch, prepare=process.admit)
+    if process.strategy.started:  # resumed past the start: actors hold until they have the policy
+        outputs.weights(process.make_weights())
+        outputs.exploration(process.strategy, force=True)
+    batch = _first_batch(process, outputs, prefetcher, stop)
+    if batch is None:
+        prefetcher.close()
+        log.info("stopped before updates started; checkpoint %s", process.checkpoint())
+        return
+    process.start_updates()
+    outputs.exploration(process.strategy, force=True)
+    outputs.weights(process.make_weights())  # actors hold from now until they have the learner's policy
+    with process._lock:
+        mark = process.clock.start_env_steps
+    log.info("updates start: the replay's first batch, at %s env steps (start mark %s) with %s episodes stored",
+             getattr(batch.batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
+             getattr(batch.batch, "episodes_stored", "?"))  # perhaps refused: train_on counts that
+    _warn_if_bmc_starves(process)
+    metrics = LearnerMetrics(process, prefetcher)
+
+    def idle() -> None:  # while no batch comes: the learner is ahead, or the actors hold
+        if heartbeat.due():
+            outputs.metrics(metrics.values())
+            outputs.exploration(process.strategy, force=True)  # a late actor holds until it has the state
+    try:
+        while batch is not None:
+            loss = process.train_on(batch)
+            if loss is not None:  # None: the batch was refused or its update failed (counted)
+                metrics.loss(loss)
+                outputs.exploration(process.strategy)
+                if broadcasts.due(process.updates):
+                    outputs.weights(process.make_weights())
+                process.checkpoint_if_due()
+                process.keep_policy_if_due()
+            if heartbeat.due():
+                outputs.metrics(metrics.values())
+            batch = _next_batch(process, prefetcher, stop, idle)
+    finally:
+        prefetcher.close()
+        outputs.weights(process.make_weights())
+        path = process.checkpoint()
+        process.keep_last_policy()
+        outputs.metrics({**metrics.values(), "final": 1})
+        log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
+                 "checkpoint %s", process.updates, process.clock.env_steps, process.env_steps_per_update(),
+                 config.env_steps_per_update, path)
+
+
+def _next_batch(process: LearnerService, prefetcher: Prefetcher, stop: threading.Event, idle) -> Admitted | None:
+    """The next batch, or None when stopped or when the closed run is paid for; idle() runs while waiting."""
+    while not stop.is_set():
+        if process.finished():
+            return None
+        batch = prefetcher.next(stop, timeout_s=IDLE_POLL_S * 10)
+        if batch is not None:
+            return batch
+        idle()
+    return None
+
+
+def _first_batch(process: LearnerService, outputs: Outputs, prefetcher: Prefetcher,
+                 stop: threading.Event) -> Admitted | None:
+    """Waits for the replay's first batch: it comes the moment the replay's rate limiter starts updates."""
+    config = process.config.learner
+    waiting = Every(WAIT_LOG_S)
+    while not stop.is_set():
+        batch = prefetcher.next(stop, timeout_s=config.log_period_s)
+        if batch is not None:
+            return batch
+        outputs.exploration(process.strategy, force=True)  # late actors learn the state too
+        if waiting.due():
+            log.info("waiting for the replay to start updates: %d/%d episodes stored, %d env steps",
+                     process.episodes_stored, config.start_episodes, process.clock.env_steps)
+    return None
+
+
+def _warn_if_bmc_starves(process: LearnerService) -> None:
+    config = process.config
+    if not process.strategy.needs_returns or config.exploration.bmc.observations != "per_step":
+        return
+    available = config.learner.batch_size * (config.learner.trace_length - config.learner.masked_steps)
+    if config.learner.env_steps_per_update > available:
+        log.warning("exploration.bmc.observations per_step: a batch holds %d unmasked transitions, fewer than "
+                    "learner.env_steps_per_update %g; BMC observes %d per update", available,
+                    config.learner.env_steps_per_update, available)
