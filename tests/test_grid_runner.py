@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 import deploy.experiments as experiments
+import deploy.grid_job as grid_job
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config, to_toml
 from deploy import grid_cells
@@ -24,7 +25,7 @@ KEPT = list(range(1_000, 30_001, 1_000))
 
 
 def options(tmp_path: Path, updates: int = 30_000, extra: tuple[str, ...] = ("--preset", "drive")):
-    return experiments.Options(tmp_path, updates, trials=10, actors=None, extra=extra, progress_s=30.0)
+    return grid_job.Options(tmp_path, updates, trials=10, actors=None, extra=extra, progress_s=30.0)
 
 
 def curve_rows(updates: list[int], start_set: str, cfr: dict[int, float] | None = None) -> list[dict]:
@@ -72,11 +73,11 @@ def test_runs_are_named_by_cell_and_seed_and_the_grid_orders_them():
 
 def test_the_budget_in_updates_sets_each_runs_step_budget_from_its_own_ratio(tmp_path):
     opts = options(tmp_path)
-    command = experiments.stack_command(RunSpec("vdbe", 1000, 2), opts, resume=False)
+    command = grid_job.stack_command(RunSpec("vdbe", 1000, 2), opts, resume=False)
     flags = dict(zip(command[2::2], command[3::2]))
     assert flags["--preset"] == "drive" and flags["--learner.total_env_steps"] == str(BUDGET)
     assert flags["--run.name"] == "vdbe-b1000-s2" and flags["--exploration.strategy"] == "vdbe"
-    ratio2 = experiments.stack_command(RunSpec("bmc", 1000, 0, "ratio2"), opts, resume=True)
+    ratio2 = grid_job.stack_command(RunSpec("bmc", 1000, 0, "ratio2"), opts, resume=True)
     assert ratio2[-1] == "--resume" and ratio2[ratio2.index("--learner.total_env_steps") + 1] == str(28_000 + 60_000)
     assert ratio2[ratio2.index("--learner.env_steps_per_update") + 1] == "2.0"
 
@@ -90,7 +91,7 @@ def test_the_budget_in_updates_sets_each_runs_step_budget_from_its_own_ratio(tmp
 ])
 def test_config_flags_are_checked_before_anything_runs(tmp_path, extra, message):
     with pytest.raises(grid_cells.ExperimentError, match=message):
-        experiments.check_config_flags(grid_cells.grid(["bmc"], [1000], [0]), options(tmp_path, extra=extra))
+        grid_job.check_config_flags(grid_cells.grid(["bmc"], [1000], [0]), options(tmp_path, extra=extra))
 
 
 def test_the_curve_reads_every_policy_to_20000_updates_then_every_2000():
@@ -133,14 +134,14 @@ def test_the_policy_is_chosen_on_the_train_starts_among_the_last_five_kept(tmp_p
 def test_the_curve_passes_ask_only_for_what_is_missing(tmp_path):
     opts = options(tmp_path)
     run = make_run(tmp_path / "run", BUDGET, KEPT)
-    passes = experiments.curve_commands(run, opts)
+    passes = grid_job.curve_commands(run, opts)
     assert [command[command.index("--sets"):command.index("--sets") + 4] for command in passes] == [
         ["--sets", "test", "--to-updates", "20000"], ["--sets", "test", "--from-updates", "20001"]]
     assert passes[1][passes[1].index("--every") + 1] == "2000"
     write_curve(run, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
-    assert len(experiments.curve_commands(run, opts)) == 1
-    assert experiments.choice_command(run, opts)[5:9] == ["--sets", "train", "--from-updates", "26000"]
-    evaluate = experiments.evaluate_command(run, opts, 29_000)
+    assert len(grid_job.curve_commands(run, opts)) == 1
+    assert grid_job.choice_command(run, opts)[5:9] == ["--sets", "train", "--from-updates", "26000"]
+    evaluate = grid_job.evaluate_command(run, opts, 29_000)
     assert evaluate[3:6] == ["--checkpoint", str(run.policy(29_000)), "--out"]
     assert evaluate[-2:] == ["--evaluation.episodes_per_start", "10"]
 
@@ -204,8 +205,8 @@ def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_pa
             fake_evaluation(run.evaluation, [100, 100], updates=json.loads((run.root / "choice.json").read_text())["updates"])
         return FakeChild()
 
-    monkeypatch.setattr(experiments.RunJob, "_start", stand_in)
-    monkeypatch.setattr(experiments, "trains_since", lambda *_: False)  # nothing beside the stand-in stack
+    monkeypatch.setattr(grid_job.RunJob, "_start", stand_in)
+    monkeypatch.setattr(grid_job, "trains_since", lambda *_: False)  # nothing beside the stand-in stack
     assert experiments.run_grid([spec], opts, parallel=1) == 1  # the first stack stops short: an error
     assert calls == ["train"]
     calls.clear()

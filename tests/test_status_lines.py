@@ -7,6 +7,7 @@ import time
 import pytest
 
 import deploy.experiments as experiments
+import deploy.grid_job as grid_job
 from actor.gate import HoldLog
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config
@@ -101,10 +102,10 @@ def test_the_stack_writes_its_status_into_the_run_folder(tmp_path):
     assert status.restarts == {"replay": 0, "recorder": 0, "learner": 0, "actor-0": 0}
 
 
-def job(tmp_path, phase: str, trained_at_start: float = 0.0) -> "experiments.RunJob":
-    options = experiments.Options(tmp_path, 1000, trials=1, actors=None, extra=(), progress_s=30.0)
-    spec = experiments.RunSpec("bmc", 50, 0)
-    run_job = experiments.RunJob(1, 2, spec, options, stopping=None, phase=phase, trained_at_start=trained_at_start)
+def job(tmp_path, phase: str, trained_at_start: float = 0.0) -> "grid_job.RunJob":
+    options = grid_job.Options(tmp_path, 1000, trials=1, actors=None, extra=(), progress_s=30.0)
+    spec = grid_job.RunSpec("bmc", 50, 0)
+    run_job = grid_job.RunJob(1, 2, spec, options, stopping=None, phase=phase, trained_at_start=trained_at_start)
     options.run_dir(spec).mkdir(parents=True, exist_ok=True)
     return run_job
 
@@ -138,7 +139,7 @@ def test_the_grid_line_counts_runs_done_and_the_steps_trained(tmp_path):
     assert line.startswith("grid: 1/2 runs done, 62.5% of the budgets trained, elapsed 0:00, ETA ")
 
 
-def training_job(tmp_path, eta_s: float | None, elapsed_s: float) -> "experiments.RunJob":
+def training_job(tmp_path, eta_s: float | None, elapsed_s: float) -> "grid_job.RunJob":
     running = job(tmp_path, "train")
     running.thread, running.started = Thread(alive=True), time.monotonic() - elapsed_s
     if eta_s is not None:
@@ -188,11 +189,11 @@ def test_what_a_run_has_trained_comes_from_its_checkpoint(tmp_path):
     short, fresh = RunDir(tmp_path / "short"), RunDir(tmp_path / "fresh")
     save_checkpoint(short.checkpoints, {"clock": {"env_steps": 400}})
     fresh.root.mkdir()
-    assert experiments.trained_share(short.root, 1000) == 0.4
-    assert experiments.trained_share(short.root, 300) == 1.0  # trained, waiting for its curve
-    assert experiments.trained_share(fresh.root, 1000) == 0.0
+    assert grid_job.trained_share(short.root, 1000) == 0.4
+    assert grid_job.trained_share(short.root, 300) == 1.0  # trained, waiting for its curve
+    assert grid_job.trained_share(fresh.root, 1000) == 0.0
     short.checkpoint.write_bytes(b"damaged")
-    assert experiments.trained_share(short.root, 1000) == 0.0
+    assert grid_job.trained_share(short.root, 1000) == 0.0
 
 
 def test_a_status_file_that_cannot_be_written_is_said_once_and_the_stack_goes_on(tmp_path, capsys):
