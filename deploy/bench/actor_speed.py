@@ -44,7 +44,7 @@ from common.network import weights_to_numpy
 from common.wire.messages import Weights
 from env_speed import one_core  # deploy/bench is this script's directory
 from deploy.bench.flops import forward_flops
-from learner_speed import Clock, Gemms
+from deploy.bench.gemm_peak import Clock, Gemms
 
 SQUARE_GEMM = 2048
 PEAK_TRIES = 5
