@@ -1,6 +1,7 @@
-"""Roles are peers: actor, learner and replay (with the recorder, replay/log) import only common and their
-own modules, and common imports no role. What composes roles (the stack, the reference loop, the grid
-runner) lives in deploy/. Read from the import statements of every module, so a new arrow fails here."""
+"""The code's shape. Roles are peers: actor, learner and replay (with the recorder, replay/log) import only
+common and their own modules, and common imports no role; what composes roles (the stack, the reference
+loop, the grid runner) lives in deploy/. Read from the import statements of every module, so a new arrow
+fails here. And a module does one thing: none outside the simulator (actor/sim/) exceeds MAX_LINES."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("actor", "learner", "replay")
 PACKAGES = (*ROLES, "common", "deploy")
+MAX_LINES = 450
 
 
 def imported(path: Path) -> set[str]:
@@ -48,3 +50,10 @@ def test_the_check_sees_an_arrow(tmp_path):
     sample.write_text("import actor.runner\nfrom replay.store import EpisodeStore\nfrom . import near\n"
                       "def late():\n    from learner import update\n")
     assert imported(sample) == {"actor.runner", "replay.store", "learner"}
+
+
+def test_no_module_outside_the_simulator_exceeds_the_size_of_one_job():
+    sizes = {str(path.relative_to(ROOT)): len(path.read_text().splitlines())
+             for package in PACKAGES for path in (ROOT / package).rglob("*.py")
+             if (ROOT / "actor" / "sim") not in path.parents}
+    assert not {module: lines for module, lines in sizes.items() if lines > MAX_LINES}
