@@ -32,6 +32,7 @@ import zenoh
 
 from common.access import acl_config
 from common.config import TransportConfig
+from common.logs import ThrottledLog
 from common.shared_memory import SharedMemory
 from common.wire.codecs import Message
 from common.wire.envelope import decode, encode
@@ -39,7 +40,6 @@ from common.wire.errors import WireError
 
 log = logging.getLogger(__name__)
 
-LOG_PERIOD_S = 10.0  # at most one warning of a kind per period per entity
 LOOPBACK = "127.0.0.1"
 
 
@@ -112,34 +112,6 @@ def loopback_endpoint(port: int | None = None) -> str:
 
 
 # --- logging and closing ---------------------------------------------------------------------
-
-class RateLimitedLog:
-    """A log line at most once per period; the next one says how many were suppressed."""
-
-    def __init__(self, period_s: float = LOG_PERIOD_S, clock: Callable[[], float] = time.monotonic) -> None:
-        self.period_s = period_s
-        self._clock = clock
-        self._last = -float("inf")
-        self._suppressed = 0
-        self._lock = threading.Lock()
-
-    def warning(self, message: str, *args: Any, exc_info: bool = False) -> None:
-        self._log(logging.WARNING, message, *args, exc_info=exc_info)
-
-    def info(self, message: str, *args: Any) -> None:
-        self._log(logging.INFO, message, *args)
-
-    def _log(self, level: int, message: str, *args: Any, exc_info: bool = False) -> None:
-        with self._lock:
-            now = self._clock()
-            if now - self._last < self.period_s:
-                self._suppressed += 1
-                return
-            suppressed, self._suppressed, self._last = self._suppressed, 0, now
-        if suppressed:
-            message += f" ({suppressed} similar suppressed)"
-        log.log(level, message, *args, exc_info=exc_info)
-
 
 class Declared:
     """A declared zenoh entity on one key; undeclare() works once, also after the session closed."""
@@ -223,7 +195,7 @@ def subscribe(session: zenoh.Session, key: str, callback: Callable[[Message, str
     Samples that are not a valid message (of type expected, if given; at most
     max_bytes long, if given) are logged and counted in ``rejected``.
     """
-    warn = RateLimitedLog()
+    warn = ThrottledLog(logger=log)
     subscription = Receiver(key)
 
     def on_sample(sample: zenoh.Sample) -> None:
@@ -273,7 +245,7 @@ def serve(session: zenoh.Session, key: str, handler: Callable[[Message | None], 
     A query without payload gives handler(None). A malformed request or a handler
     error is logged, counted, and answered with an error reply; the service goes on.
     """
-    warn = RateLimitedLog()
+    warn = ThrottledLog(logger=log)
     service = Receiver(key)
 
     def on_query(query: zenoh.Query) -> None:
@@ -320,7 +292,7 @@ class PendingQuery:
     requester's get returns no reply); either finalises the query, later calls do nothing.
     """
 
-    def __init__(self, query: zenoh.Query, key: str, request: Message | None, warn: RateLimitedLog) -> None:
+    def __init__(self, query: zenoh.Query, key: str, request: Message | None, warn: ThrottledLog) -> None:
         self.request = request
         self.received = time.monotonic()
         self._query: zenoh.Query | None = query
@@ -367,7 +339,7 @@ def serve_deferred(session: zenoh.Session, key: str, on_query: Callable[[Pending
     on_query runs on zenoh's thread: it must only park the query, never wait. A malformed
     request is logged, counted and answered with an error at once; so is an on_query that raises.
     """
-    warn = RateLimitedLog()
+    warn = ThrottledLog(logger=log)
     service = Receiver(key)
 
     def on_zenoh_query(query: zenoh.Query) -> None:
@@ -425,7 +397,7 @@ def alive_keys(session: zenoh.Session, key: str, timeout_s: float) -> list[str]:
 
 def watch_liveliness(session: zenoh.Session, key: str, callback: Callable[[str, bool], Any]) -> Receiver:
     """Calls callback(token_key, alive) for tokens matching key: for those present now, then on every change."""
-    warn = RateLimitedLog()
+    warn = ThrottledLog(logger=log)
     subscription = Receiver(key)
 
     def on_change(sample: zenoh.Sample) -> None:

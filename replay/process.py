@@ -16,7 +16,8 @@ from common.config import Config
 from common.logs import Every
 from common.run_dir import RunDir
 from common.service import Service
-from common.transport import RateLimitedLog, publisher, put_once, serve_deferred, subscribe
+from common.transport import publisher, put_once, serve_deferred, subscribe
+from common.logs import ThrottledLog
 from common.wire.messages import Stats
 from replay.acks import AckBook
 from replay.service import KILOBYTE, MEGABYTE, RATE_SOURCE, ReplayService
@@ -41,8 +42,8 @@ def save_counters(path: Path, state: dict) -> None:
     os.replace(temporary, path)
 
 
-class RateMeter:
-    """Per-second rates of growing counters between two snapshots."""
+class CounterSpeeds:
+    """How fast growing counters grew, per second, between two looks (the replay's stats)."""
 
     def __init__(self, clock=time.monotonic) -> None:
         self._clock = clock
@@ -197,9 +198,9 @@ def _check_budget_at_start(service: ReplayService, config: Config) -> None:
 
 def _report_until(stop: threading.Event, service: ReplayService, receivers: dict, stats_out, config: Config,
                   path: Path) -> None:
-    meter = RateMeter()
+    meter = CounterSpeeds()
     log_every = Every(config.replay.log_period_s)
-    warn = RateLimitedLog()
+    warn = ThrottledLog(logger=log)
     while not stop.wait(config.replay.stats_period_s):
         values = service.stats()
         # messages that are not wire messages or whose fields are invalid, refused before the service saw them

@@ -43,7 +43,8 @@ from common.pacing import rate_limit_from_config
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.stored_state import stored_units
-from common.transport import PendingQuery, RateLimitedLog
+from common.transport import PendingQuery
+from common.logs import ThrottledLog
 from common.wire.errors import WireError
 from common.wire.messages import Episode, ExplorationState, TraceBatchRequest
 from common.wire.run_shape import RunShape, check_episode
@@ -96,7 +97,7 @@ class ReplayService:
         self.failed_samples = 0
         self.learner_strategy: str | None = None
         self._measured = False
-        self._warn_budget = RateLimitedLog(60.0)
+        self._warn_budget = ThrottledLog(60.0, logger=log)
         self._announced: tuple[str, int, bool] | None = None  # hold reason, env steps, closed: last on replay/rate
         self.shape = RunShape.of(config)
         self.ledger = EpisodeLedger()
@@ -111,7 +112,7 @@ class ReplayService:
         self.restore_skipped = 0
         self.late_episodes = 0  # arrived after the run closed: not taken (replay/rate_limiter.py)
         self.late_env_steps = 0
-        self._warn_late = RateLimitedLog(60.0)
+        self._warn_late = ThrottledLog(60.0, logger=log)
 
     # --- inputs from Zenoh callbacks (never wait) ----------------------------------------
 
@@ -247,7 +248,7 @@ class ReplayService:
         hold changes and at least every stats period. Runs until stop is set; an error is logged
         and the thread goes on."""
         every = Every(self.config.replay.stats_period_s)
-        warn = RateLimitedLog()
+        warn = ThrottledLog(logger=log)
         while not stop.is_set():
             try:
                 self._serve_round(every, announce)

@@ -10,8 +10,9 @@ import pytest
 import zenoh
 
 from common.config import TransportConfig
-from common.transport import (RateLimitedLog, alive_keys, declare_liveliness, open_session, publisher, request, serve,
-                              subscribe, watch_liveliness, zenoh_config)
+from common.transport import (alive_keys, declare_liveliness, open_session, publisher, request, serve, subscribe,
+                              watch_liveliness, zenoh_config)
+from common.logs import ThrottledLog
 from common.keys import Keys
 from common.wire.envelope import encode
 from common.wire.messages import Heartbeat, Stats, TraceBatchRequest, Weights
@@ -326,15 +327,16 @@ def test_undeclaring_twice_or_after_the_session_closed_is_harmless():
         entity.undeclare()
 
 
-# --- rate-limited logging ---------------------------------------------------------------------------
+# --- throttled logging -----------------------------------------------------------------------------
 
-def test_rate_limited_log_reports_what_it_suppressed(caplog):
+def test_a_throttled_log_reports_what_it_suppressed_on_the_logger_it_was_given(caplog):
     now = [0.0]
-    warn = RateLimitedLog(period_s=10.0, clock=lambda: now[0])
-    with caplog.at_level(logging.WARNING, logger="common.transport"):
+    warn = ThrottledLog(period_s=10.0, clock=lambda: now[0], logger=logging.getLogger("replay"))
+    with caplog.at_level(logging.WARNING, logger="replay"):
         warn.warning("bad sample %d", 1)
         warn.warning("bad sample %d", 2)
         warn.warning("bad sample %d", 3)
         now[0] = 10.0
         warn.warning("bad sample %d", 4)
     assert [record.getMessage() for record in caplog.records] == ["bad sample 1", "bad sample 4 (2 similar suppressed)"]
+    assert {record.name for record in caplog.records} == {"replay"}

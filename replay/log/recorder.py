@@ -32,7 +32,8 @@ import zenoh
 from common.config import Config, RecorderConfig
 from common.run_dir import RunDir, next_free_path
 from common.service import Service
-from common.transport import Declared, RateLimitedLog, publisher
+from common.transport import Declared, publisher
+from common.logs import ThrottledLog
 from common.wire.messages import Stats, Weights
 from replay.log.arrival import Arrival, Peek, peek
 from replay.log.tensorboard_events import EventsWriter
@@ -139,7 +140,7 @@ class Recorder:
         self.received = 0
         self.dropped: Counter[str] = Counter()
         self.error: BaseException | None = None
-        self._warn = RateLimitedLog()
+        self._warn = ThrottledLog(logger=log)
         self._thread = threading.Thread(target=self._write_all, name="mcap-writer", daemon=True)
 
     # --- Zenoh's side: copy, stamp, hand off ---------------------------------------------------
