@@ -236,7 +236,7 @@ def plot_curves(runs: Sequence[GridRun], path: Path, cell: CELL) -> None:
         values = np.asarray([[float(next(row for row in item.test_rows if int(row["updates"]) == u)["mean_length"])
                               for item in seeds] for u in shared]).reshape(len(shared), len(seeds))
         ax.plot(shared, np.median(values, axis=1), color=colours[strategy], linewidth=2,
-                label=f"{strategy} ({len(seeds)} seeds)")
+                label=f"{strategy} ({len(seeds)} seed{'' if len(seeds) == 1 else 's'})")
         ax.fill_between(shared, values.min(axis=1), values.max(axis=1), color=colours[strategy], alpha=0.12, linewidth=0)
     ax.axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
     ax.set(xlabel="updates", ylabel="greedy test mean length (steps)")

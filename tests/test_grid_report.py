@@ -107,3 +107,11 @@ def test_a_damaged_export_is_left_out_with_a_line(tmp_path):
     runs = grid_report.read_runs([tmp_path], warn=lines.append)
     assert [item.run.seed for item in runs] == [0]
     assert any("bmc-b1000-s1" in line for line in lines)
+
+
+def test_the_committed_grid_rebuilds_from_its_committed_runs(tmp_path):
+    """results/grid/ is what deploy/grid_report.py makes of results/grid/runs/, on a fresh clone too."""
+    committed = Path(__file__).resolve().parents[1] / "results" / "grid"
+    grid_report.report_on([committed / "runs"], tmp_path, warn=lambda line: pytest.fail(line))
+    for name in ("grid.md", "grid_runs.csv", "grid_strategies.csv"):
+        assert (tmp_path / name).read_text() == (committed / name).read_text(), name
