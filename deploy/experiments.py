@@ -36,7 +36,8 @@ from pathlib import Path
 from common.eta import clock_time
 from common.exploration.names import STRATEGIES
 from common.presets import GRID_UPDATES
-from deploy.grid_cells import FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, grid, next_step
+from deploy.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, grid,
+                               next_step)
 from deploy.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
                              trained_share)
 from deploy.run_results import ExportError
@@ -88,7 +89,10 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: lis
     jobs = [RunJob(number, total or len(specs), spec, options, stopping,
                    trained_at_start=trained_share(options.run_dir(spec), run_budget(spec, options)))
             for number, spec in zip(numbers, specs)]
-    pending, active = deque(jobs), []
+    # runs their folders already hold whole go first: they finish at once, so the counts say so from the start
+    pending = deque(sorted(jobs, key=lambda job: next_step(options.run_dir(job.spec),
+                                                           run_budget(job.spec, options)) != DONE))
+    active = []
     failed = 0
     status = GridStatus(jobs, parallel)
     last_shown = time.monotonic()

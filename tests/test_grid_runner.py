@@ -215,6 +215,10 @@ def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_pa
     assert (tmp_path / "results" / "runs" / spec.name / "choice.json").is_file()
     calls.clear()
     assert experiments.run_grid([spec], opts, parallel=1) == 0 and calls == []
+    started, start = [], grid_job.RunJob.start
+    monkeypatch.setattr(grid_job.RunJob, "start", lambda self: (started.append(self.spec.name), start(self))[1])
+    experiments.run_grid([RunSpec("vdbe", 1000, 0), spec], opts, parallel=1)
+    assert started == [spec.name, "vdbe-b1000-s0"]  # a run already done goes first: counted done at once
 
 
 class FakeChild:
