@@ -13,10 +13,8 @@ import numpy as np
 
 from common.rejections import Rejections
 from common.wire.errors import WireError
-from common.wire.messages import ExplorationState, Stats, Weights
-from common.wire.run_shape import stat_number
+from common.wire.messages import ExplorationState, RateState, Weights
 
-HOLD_REASONS = ("", "behind", "budget")  # what the replay's rate message may say
 
 log = logging.getLogger("actor")
 
@@ -27,7 +25,7 @@ class Mailbox:
     ``shapes`` (tensor name -> shape) is what weights must hold; without it any weights are kept."""
 
     def __init__(self, shapes: dict[str, tuple[int, ...]] | None = None,
-                 rejections: Rejections | None = None) -> None:
+                 rejections: Rejections | None = None, max_env_steps: int | None = None) -> None:
         self._lock = threading.Lock()
         self._weights: Weights | None = None
         self._exploration: ExplorationState | None = None
@@ -38,6 +36,7 @@ class Mailbox:
         self.had_weights = threading.Event()  # weights that fit were accepted at least once
         self.shapes = shapes
         self.rejections = rejections or Rejections(log)
+        self.max_env_steps = max_env_steps  # counts above it come from no replay of this run
         self.learner_updates = -1  # batches the replay has served, from its rate message: the learner's updates
         self.superseded = 0  # weights replaced by newer ones before the loop loaded them (a slow link queues them)
 
@@ -86,26 +85,21 @@ class Mailbox:
         with self._lock:
             self._exploration = message
 
-    def offer_rate(self, message: Stats, key: str = "") -> None:
-        """The replay's rate limiter; kept, not taken: the hold is read repeatedly. A message that
-        does not say "", "behind" or "budget", or whose start mark or refilling flag is not a number, is
-        refused and the last word stands. A replay that gives no start mark has not started updates."""
-        values = message.values if isinstance(message, Stats) and message.source == "rate_limiter" else None
-        reason = values.get("hold_reason") if values is not None else None
-        given = {"start_env_steps": -1.0, "refilling": 0, **(values or {})}
-        start, refilling = stat_number(given, "start_env_steps"), stat_number(given, "refilling")
-        if reason not in HOLD_REASONS or start is None or refilling is None:
-            shown = (f"hold_reason {reason!r}, start_env_steps {given['start_env_steps']!r}, refilling "
-                     f"{given['refilling']!r}" if values is not None else f"a {type(message).__name__}")
-            self.rejections.reject("rate", f"replay/rate: {shown} (expected a rate_limiter Stats saying "
-                                           f"'', 'behind' or 'budget', with numbers for the others)")
+    def offer_rate(self, message: RateState, key: str = "") -> None:
+        """The replay's rate limiter; kept, not taken: the hold is read repeatedly. Anything but a RateState,
+        or one counting more env steps than the run can, is refused and the last word stands (the wire
+        checked the rest)."""
+        if not isinstance(message, RateState):
+            self.rejections.reject("rate", f"replay/rate: a {type(message).__name__}, expected a RateState")
             return
-        served = stat_number(given, "batches_served")
+        if self.max_env_steps is not None and message.env_steps > self.max_env_steps:
+            self.rejections.reject("rate_values", f"replay/rate: {message.env_steps} env steps, more than this run "
+                                                  f"can count ({self.max_env_steps})")
+            return
         with self._lock:
-            self.hold_reason = reason
-            self.updates_started = start >= 0 and not refilling
-            if served is not None and served >= 0:
-                self.learner_updates = int(served)
+            self.hold_reason = message.hold_reason
+            self.updates_started = message.updates_started
+            self.learner_updates = message.batches_served
         self.heard_rate.set()
 
     def weights_behind(self, version: int) -> int:

@@ -21,7 +21,7 @@ Nothing that arrives is taken on trust: weights must be in an encoding this buil
 reads (float32, or compact float16 or bfloat16, widened to float32 on arrival) and
 name the network's tensors with their shapes (and finite values, checked again
 when loaded), an exploration state must describe a strategy completely, a rate
-message must say "", "behind" or "budget". What is refused is counted by kind and
+message must be the replay's typed RateState counting no more env steps than the run can. What is refused is counted by kind and
 logged at a bounded rate; the counts go out on ``metrics/actor_stats/<id>``. The newest acceptable weights win,
 whatever their version: a learner resumed from an older checkpoint counts its
 versions from there.
@@ -61,6 +61,7 @@ from common.config import Config
 from common.exploration.build import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
 from common.network import initial_network
+from common.pacing import env_steps_ceiling
 from common.rejections import Rejections
 from common.service import Service
 from common.stored_state import no_states
@@ -136,7 +137,7 @@ class Actor:
         self.incarnation = secrets.randbits(62) | 1  # names this process's episodes (never 0: unnamed)
         self.rejections = Rejections(log)
         shapes = {name: tuple(tensor.shape) for name, tensor in self.network.state_dict().items()}
-        self.mailbox = Mailbox(shapes, self.rejections)
+        self.mailbox = Mailbox(shapes, self.rejections, env_steps_ceiling(config))
 
     def apply_mail(self) -> None:
         weights, exploration = self.mailbox.take()

@@ -81,3 +81,10 @@ def achieved_ratio(env_steps: float, start_mark: float | None, updates: int) -> 
 def is_unpaced(error_buffer: float, total_env_steps: int | None, env_steps_per_update: float) -> bool:
     """Whether the error buffer holds nobody: it is at least the updates the whole budget pays for."""
     return total_env_steps is not None and error_buffer >= total_env_steps / env_steps_per_update
+
+
+def env_steps_ceiling(config) -> int:
+    """More env steps than this no run of the config can count: actors are held once the budget is spent,
+    and what is still in flight then is less than a full buffer of full-length episodes. Counts above it
+    come from no replay of this run, and the roles refuse them."""
+    return config.learner.total_env_steps + config.replay.capacity * config.env.max_steps

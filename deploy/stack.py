@@ -45,7 +45,7 @@ from common.run_dir import RunDir, RunStatus
 from common.service import PARENT_ENV
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
-from common.wire.messages import EpisodeRecord, Stats
+from common.wire.messages import EpisodeRecord, ReplayStats, Stats
 from common.wire.run_shape import stat_number
 
 STOP_GRACE_S = 20.0
@@ -73,7 +73,7 @@ class StackMonitor:
         self._lock = threading.Lock()
         self.returns: deque[float] = deque(maxlen=100)
         self.episodes = 0
-        self.replay: dict = {}
+        self.replay: ReplayStats | None = None  # the replay's last stats
         self.learner: dict = {}
         self.learner_final = threading.Event()  # the learner's last metrics, sent as it stops
         self.total_env_steps = total_env_steps  # the budget; 0: not shown
@@ -100,19 +100,17 @@ class StackMonitor:
                 self._follow_updates()
 
     def on_replay_stats(self, message, key: str) -> None:
-        if isinstance(message, Stats) and message.source == "replay":
+        if isinstance(message, ReplayStats):
             with self._lock:
-                self.replay = dict(message.values)
-                env_steps = stat_number(self.replay, "env_steps_total", integer=True, minimum=0)
-                if env_steps is not None:
-                    self.env_step_rate.update(env_steps)
-                    if not self.env_steps_per_update:
-                        self.eta.update(env_steps)
+                self.replay = message
+                self.env_step_rate.update(message.env_steps_total)
+                if not self.env_steps_per_update:
+                    self.eta.update(message.env_steps_total)
                 self._follow_updates()
 
     def _follow_updates(self) -> None:
         """A paced run's ETA: the updates owed from the start mark to the budget, at the recent update rate."""
-        start = stat_number(self.replay, "rate_start_env_steps", minimum=0)
+        start = self.replay.rate.start_env_steps if self.replay is not None else None
         updates = stat_number(self.learner, "updates", integer=True, minimum=0)
         if not self.env_steps_per_update or start is None or updates is None:
             return
@@ -124,9 +122,9 @@ class StackMonitor:
     def line(self, restarts: int = 0) -> str:
         with self._lock:
             mean_return = self._mean_return()
-            learner, replay = self.learner, self.replay
+            learner = self.learner
             elapsed = self._clock() - self._started
-            env_steps = _count(replay, "env_steps_total")
+            env_steps = self._replay_count("env_steps_total")
             budget = (f"/{self.total_env_steps:,d} ({100 * env_steps / self.total_env_steps:5.1f}%, "
                       f"ETA {self._eta_text()})" if self.total_env_steps else "")
             return (f"[{elapsed:7.0f}s] env steps {env_steps:>9,d}{budget} | "
@@ -141,12 +139,15 @@ class StackMonitor:
 
     def status(self, phase: str, restarts: dict[str, int], pids: dict[str, int]) -> RunStatus:
         with self._lock:
-            return RunStatus(phase=phase, env_steps=_count(self.replay, "env_steps_total"),
+            return RunStatus(phase=phase, env_steps=self._replay_count("env_steps_total"),
                              total_env_steps=self.total_env_steps, updates=_count(self.learner, "updates"),
                              episodes=self.episodes, mean_return=self._mean_return(),
                              eta_s=self.eta.remaining_s() if self.eta else None,
                              elapsed_s=self._clock() - self._started,
                              restarts=dict(restarts), pids=dict(pids), time=time.time())
+
+    def _replay_count(self, name: str) -> int:
+        return getattr(self.replay, name) if self.replay is not None else 0
 
     def _eta_text(self) -> str:
         return self.eta.text() if self.eta is not None else "?"
@@ -158,7 +159,8 @@ class StackMonitor:
         """The run's figures from the learner's last metrics (and the replay's last stats); `finished`: the
         learner exited by itself, its budget paid for (a stop by hand also sends its final metrics)."""
         with self._lock:
-            learner, replay = dict(self.learner), dict(self.replay)
+            learner = dict(self.learner)
+            replay_steps, replay_episodes = self._replay_count("env_steps_total"), self._replay_count("inserted")
         ratio = stat_number(learner, "env_steps_per_update")
         return {
             "run": config.run.name,
@@ -169,10 +171,10 @@ class StackMonitor:
             "start_env_steps": stat_number(learner, "start_env_steps"),
             "env_steps_per_update": ratio,  # achieved, since the start mark
             "env_steps_per_update_configured": config.learner.env_steps_per_update,
-            "replay_env_steps_total": _count(replay, "env_steps_total"),
+            "replay_env_steps_total": replay_steps,
             # the replay's counters come back with its snapshot, so they count the episodes of a resumed
             # run's earlier stacks too; "episodes" counts only what this stack saw
-            "replay_episodes_total": _count(replay, "inserted"),
+            "replay_episodes_total": replay_episodes,
             "episodes": self.episodes,
             "restarts": dict(restarts or {}),
             # what the learner's updates ran, from its own metrics (learner.precision and update_path "auto"

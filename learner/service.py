@@ -38,12 +38,12 @@ from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
 from common.exploration.build import make_strategy
-from common.pacing import achieved_ratio, is_unpaced, updates_paid_for
+from common.pacing import achieved_ratio, env_steps_ceiling, is_unpaced, updates_paid_for
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.wire.errors import WireError
-from common.wire.messages import Stats, TraceBatch, Weights
-from common.wire.run_shape import RunShape, check_trace_batch, stat_number
+from common.wire.messages import RateState, ReplayStats, TraceBatch, Weights
+from common.wire.run_shape import RunShape, check_trace_batch
 from learner.feed import feed_strategy
 from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
@@ -179,9 +179,7 @@ class LearnerService:
         self.failed_updates = 0
         self._failed_in_a_row = 0
         self.receivers: dict = {}  # door -> transport Receiver, whose `rejected` counts malformed messages
-        # More env steps than this cannot be true: actors are held once the budget is spent, and
-        # what is still in flight then is less than a full buffer of full-length episodes.
-        self.max_env_steps = config.learner.total_env_steps + config.replay.capacity * config.env.max_steps
+        self.max_env_steps = env_steps_ceiling(config)
 
     @property
     def updates(self) -> int:
@@ -189,42 +187,27 @@ class LearnerService:
 
     # --- inputs from Zenoh callbacks ----------------------------------------------------
 
-    def on_replay_stats(self, stats: Stats, key: str = "") -> None:
-        if self._replay_numbers(stats, "replay", "env_steps_total", "rate_", "stats"):
-            episodes = stat_number(stats.values, "episodes", integer=True, minimum=0)
-            if episodes is not None:
-                with self._lock:
-                    self.episodes_stored = episodes
+    def on_replay_stats(self, stats: ReplayStats, key: str = "") -> None:
+        if not isinstance(stats, ReplayStats):
+            self.rejections.reject("stats_wrong_type", f"a {type(stats).__name__} on replay/stats")
+        elif self._replay_numbers(stats.rate, stats.env_steps_total, "stats"):
+            with self._lock:
+                self.episodes_stored = stats.episodes
 
-    def on_replay_rate(self, stats: Stats, key: str = "") -> None:
-        self._replay_numbers(stats, "rate_limiter", "env_steps", "", "rate")
+    def on_replay_rate(self, rate: RateState, key: str = "") -> None:
+        if not isinstance(rate, RateState):
+            self.rejections.reject("rate_wrong_type", f"a {type(rate).__name__} on replay/rate")
+        else:
+            self._replay_numbers(rate, rate.env_steps, "rate")
 
-    def _replay_numbers(self, stats, source: str, steps_name: str, prefix: str, door: str) -> bool:
-        """Observes the env steps, and the rate limiter's start mark and close (named with `prefix`), of a
-        replay message; False (counted) if they are missing, of the wrong type or absurd."""
-        if not isinstance(stats, Stats) or stats.source != source:
-            shown = f"source {stats.source!r}" if isinstance(stats, Stats) else f"a {type(stats).__name__}"
-            self.rejections.reject(f"{door}_wrong_type", f"{shown} on replay/{door}, expected a {source} Stats")
-            return False
-        env_steps = stat_number(stats.values, steps_name, integer=True, minimum=0, maximum=self.max_env_steps)
-        if env_steps is None:
-            self.rejections.reject(f"{door}_values", f"replay/{door}: {steps_name} "
-                                   f"{stats.values.get(steps_name)!r} is missing, not a count, or more than "
+    def _replay_numbers(self, rate: RateState, env_steps: int, door: str) -> bool:
+        """Observes the env steps and the rate limiter's start mark and close; False (counted) if the steps
+        are more than this run can have (the wire checked the rest)."""
+        if env_steps > self.max_env_steps:
+            self.rejections.reject(f"{door}_values", f"replay/{door}: {env_steps} env steps, more than "
                                    f"{self.max_env_steps} (budget plus a full buffer)")
             return False
-        mark_name, closed_name = f"{prefix}start_env_steps", f"{prefix}closed"
-        mark = stats.values.get(mark_name)
-        if mark is not None and mark != -1:  # -1: updates have not started
-            mark = stat_number(stats.values, mark_name, minimum=0, maximum=env_steps)
-            if mark is None:
-                self.rejections.reject(f"{door}_values", f"replay/{door}: {mark_name} "
-                                       f"{stats.values.get(mark_name)!r} is not a number in [0, {env_steps}]")
-                return False
-        closed = stats.values.get(closed_name, 0)
-        if closed not in (0, 1) or isinstance(closed, float):
-            self.rejections.reject(f"{door}_values", f"replay/{door}: {closed_name} {closed!r} is not 0 or 1")
-            return False
-        self._observe(env_steps, mark, bool(closed))
+        self._observe(env_steps, rate.start_env_steps, rate.closed)
         return True
 
     def _observe(self, env_steps: int, start_env_steps: float | None = None, closed: bool | None = None) -> None:

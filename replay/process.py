@@ -18,9 +18,9 @@ from common.run_dir import RunDir
 from common.service import Service
 from common.transport import publisher, put_once, serve_deferred, subscribe
 from common.logs import ThrottledLog
-from common.wire.messages import Stats
+from common.wire.messages import ReplayStats
 from replay.acks import AckBook
-from replay.service import KILOBYTE, MEGABYTE, RATE_SOURCE, ReplayService
+from replay.service import KILOBYTE, MEGABYTE, ReplayService
 from replay.snapshot import SnapshotError
 
 log = logging.getLogger("replay")
@@ -40,6 +40,9 @@ def save_counters(path: Path, state: dict) -> None:
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     temporary.write_text(json.dumps(state))
     os.replace(temporary, path)
+
+
+SPEED_COUNTERS = ("inserted", "traces_served", "env_steps_total")  # the replay's counters given per second too
 
 
 class CounterSpeeds:
@@ -90,10 +93,7 @@ def run_replay(config: Config, resume: bool = False) -> None:
         stats_out = publisher(session, keys.replay_stats)
         rate_out = publisher(session, keys.replay_rate)
 
-        def announce(values: dict) -> None:
-            rate_out.put(Stats(source=RATE_SOURCE, time=time.time(), values=values))
-
-        threads = [threading.Thread(target=service.serve_pending, args=(stop, announce if n == 0 else None),
+        threads = [threading.Thread(target=service.serve_pending, args=(stop, rate_out.put if n == 0 else None),
                                     name=f"reply-{n}", daemon=True) for n in range(REPLY_THREADS)]
         threads.append(threading.Thread(target=_send_acks, args=(stop, service.acks, session, keys), name="acks",
                                         daemon=True))
@@ -119,7 +119,7 @@ def run_replay(config: Config, resume: bool = False) -> None:
         save_counters(path, service.limiter_state())
     except OSError as error:
         log.warning("cannot save the rate limiter's counters to %s: %s", path, error)
-    log.info("stopped; %s", service.stats())
+    _log_stats(service.stats(), "stopped; ")
 
 
 def _send_acks(stop: threading.Event, acks: AckBook, session, keys) -> None:
@@ -202,20 +202,24 @@ def _report_until(stop: threading.Event, service: ReplayService, receivers: dict
     log_every = Every(config.replay.log_period_s)
     warn = ThrottledLog(logger=log)
     while not stop.wait(config.replay.stats_period_s):
-        values = service.stats()
         # messages that are not wire messages or whose fields are invalid, refused before the service saw them
-        values.update({f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()})
-        values["rejected_messages"] = receivers["episodes"].rejected
-        values.update(meter.rates(values, ("inserted", "traces_served", "env_steps_total")))
-        stats_out.put(Stats(source="replay", time=time.time(), values=values))
+        malformed = {f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}
+        stats = service.stats(rejected={**malformed, "rejected_messages": receivers["episodes"].rejected})
+        stats.speeds = meter.rates({name: getattr(stats, name) for name in SPEED_COUNTERS}, SPEED_COUNTERS)
+        stats_out.put(stats)
         try:
             save_counters(path, service.limiter_state())
         except OSError as error:
             warn.warning("cannot save the rate limiter's counters to %s: %s", path, error)
         if log_every.due():
-            log.info("episodes %(episodes)d (%(bytes)d B), env steps %(env_steps_total)d, "
-                     "inserted %(inserted)d, traces served %(traces_served)d, short %(short_dropped)d, "
-                     "malformed %(rejected_messages)d, rejected %(rejected_total)d, missing %(episodes_missing)d; "
-                     "snapshot %(snapshot_episodes)s episodes %(snapshot_age_s).0f s ago; updates due %(rate_updates_due).1f, batches served "
-                     "%(rate_batches_served)d, actors hold: %(rate_hold_reason)s",
-                     {"snapshot_episodes": "no", **values, "rate_hold_reason": values["rate_hold_reason"] or "no"})
+            _log_stats(stats)
+
+
+def _log_stats(stats: ReplayStats, lead: str = "") -> None:
+    rate, snapshot = stats.rate, stats.snapshot.get("snapshot_episodes", "no")
+    age = "" if stats.snapshot_age_s is None else f" {stats.snapshot_age_s:.0f} s ago"
+    log.info("%sepisodes %d (%d B), env steps %d, inserted %d, traces served %d, short %d, malformed %d, rejected %d, "
+             "missing %d; snapshot %s episodes%s; updates due %.1f, batches served %d, actors hold: %s",
+             lead, stats.episodes, stats.bytes, stats.env_steps_total, stats.inserted, stats.traces_served,
+             stats.short_dropped, stats.rejected.get("rejected_messages", 0), stats.rejected.get("rejected_total", 0),
+             stats.episodes_missing, snapshot, age, rate.updates_due, rate.batches_served, rate.hold_reason or "no")

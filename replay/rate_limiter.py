@@ -51,6 +51,7 @@ from __future__ import annotations
 import math
 
 from common.pacing import RateLimit, achieved_ratio, is_unpaced, start_mark_of, updates_paid_for
+from common.wire.messages import RateState
 
 STATE_VERSION = 1
 
@@ -194,28 +195,17 @@ class RateLimiter:
         self.start_mark = None if mark is None else float(mark)
         self.refilling = mark is not None and episodes_stored < self.limit.start_episodes
 
-    def values(self) -> dict[str, int | float | str]:
-        """The counters and decisions, for the replay's stats and the rate message."""
-        values: dict[str, int | float | str] = {
-            "env_steps": self.env_steps,
-            "batches_served": self.served,
-            "updates_due": self.updates_due,
-            "start_env_steps": -1.0 if self.start_mark is None else self.start_mark,
-            "hold_actors": 1 if self.hold_reason() else 0,
-            "hold_reason": self.hold_reason(),
-            "closed": 1 if self.closed else 0,
-            "refilling": 1 if self.refilling else 0,
-            "refill_env_steps": self.refill_env_steps,
-            "lost_updates": self.lost_updates,
-            "recounted_updates": self.recounted_updates,
-            "error_buffer_updates": self.limit.error_buffer,
-            "hold_updates": self.limit.actors_lead,
-            "env_steps_per_update_target": self.limit.env_steps_per_update,
-        }
+    def state(self, now: float) -> RateState:
+        """The counters and decisions as the typed message of replay/rate, stamped `now`."""
         achieved = self.env_steps_per_update()
-        if math.isfinite(achieved):
-            values["env_steps_per_update"] = achieved
-        return values
+        return RateState(time=now, env_steps=self.env_steps, batches_served=self.served,
+                         updates_due=self.updates_due, start_env_steps=self.start_mark,
+                         hold_reason=self.hold_reason(), closed=self.closed, refilling=self.refilling,
+                         refill_env_steps=self.refill_env_steps, lost_updates=self.lost_updates,
+                         recounted_updates=self.recounted_updates, error_buffer_updates=self.limit.error_buffer,
+                         hold_updates=self.limit.actors_lead,
+                         env_steps_per_update_target=self.limit.env_steps_per_update,
+                         env_steps_per_update=achieved if math.isfinite(achieved) else None)
 
 
 def _count(value) -> bool:

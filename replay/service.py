@@ -46,7 +46,7 @@ from common.stored_state import stored_units
 from common.transport import PendingQuery
 from common.logs import ThrottledLog
 from common.wire.errors import WireError
-from common.wire.messages import Episode, ExplorationState, TraceBatchRequest
+from common.wire.messages import Episode, ExplorationState, ReplayStats, TraceBatchRequest
 from common.wire.run_shape import RunShape, check_episode
 from replay.acks import AckBook
 from replay.ledger import EpisodeLedger
@@ -61,7 +61,6 @@ KILOBYTE = 1 << 10
 HOLD_MAX_S = 10.0  # a held request is dropped after this (the learner asks again); below its 30 s timeout
 WAKE_S = 0.1  # reply threads look at expiries and the rate message at least this often
 MEASURE_AFTER_FRAMES = 1_000  # the budget check is repeated once with the measured frame size
-RATE_SOURCE = "rate_limiter"  # the Stats source of replay/rate messages (replay/stats: "replay")
 MAX_PENDING = 32  # held trace-batch requests; beyond, a request is refused at once (the learner keeps 2)
 
 
@@ -244,7 +243,7 @@ class ReplayService:
     # --- the reply threads ---------------------------------------------------------------
 
     def serve_pending(self, stop: threading.Event, announce=None) -> None:
-        """Answers held requests while the limiter allows; calls announce(values) when the actors'
+        """Answers held requests while the limiter allows; calls announce(RateState) when the actors'
         hold changes and at least every stats period. Runs until stop is set; an error is logged
         and the thread goes on."""
         every = Every(self.config.replay.stats_period_s)
@@ -270,13 +269,13 @@ class ReplayService:
                 announce_now = now != self._announced or every.due()
                 if announce_now:
                     self._announced = now
-                    values = self.limiter.values()
+                    state = self.limiter.state(time.time())
             if served is None and not announce_now and not expired:
                 self._changed.wait(WAKE_S)
         for pending in expired:
             pending.drop()
         if announce_now:  # first: the actors' release is what the learner waits for next
-            announce(values)
+            announce(state)
         if served is not None:
             pending, batch = served
             if not pending.reply(batch):
@@ -339,28 +338,26 @@ class ReplayService:
 
     # --- counters ------------------------------------------------------------------------
 
-    def stats(self) -> dict[str, int | float | str]:
-        """The values of the replay/stats message."""
+    def stats(self, rejected: dict[str, int] | None = None, speeds: dict | None = None) -> ReplayStats:
+        """The replay/stats message; `rejected` adds the counts of messages refused before the service saw
+        them, `speeds` the counters' recent rates."""
         with self._lock:
             store = self.store
-            values: dict[str, int | float | str] = {
-                "episodes": len(store), "frames": store.frames, "bytes": store.bytes,
-                "inserted": store.inserted, "evicted": store.evicted,
-                "evicted_for_budget": store.evicted_for_budget, "short_dropped": store.short_dropped,
-                "env_steps_total": store.env_steps_total, "traces_served": self.traces_served,
-                "rejected_requests": self.rejected_requests, "expired_requests": self.expired_requests,
-                "failed_samples": self.failed_samples, "pending_requests": len(self._pending),
-                "episodes_missing": self.ledger.missing, "episode_sources": self.ledger.sources,
-                "restored_episodes": self.restored_episodes, "restore_skipped": self.restore_skipped,
-                "late_episodes": self.late_episodes, "late_env_steps": self.late_env_steps,
-                **self.snapshot_stats,
-                "snapshot_age_s": -1.0 if self.snapshot_taken is None else time.time() - self.snapshot_taken,
-            }
-            if store.frames:
-                values["frame_bytes_mean"] = store.frame_bytes_mean
-            values.update({f"rate_{name}": value for name, value in self.limiter.values().items()})
-        values.update(self.rejections.values())
-        return values
+            stats = ReplayStats(
+                time=time.time(), episodes=len(store), frames=store.frames, bytes=store.bytes,
+                env_steps_total=store.env_steps_total, inserted=store.inserted, evicted=store.evicted,
+                evicted_for_budget=store.evicted_for_budget, short_dropped=store.short_dropped,
+                traces_served=self.traces_served, pending_requests=len(self._pending),
+                rejected_requests=self.rejected_requests, expired_requests=self.expired_requests,
+                failed_samples=self.failed_samples, episodes_missing=self.ledger.missing,
+                episode_sources=self.ledger.sources, restored_episodes=self.restored_episodes,
+                restore_skipped=self.restore_skipped, late_episodes=self.late_episodes,
+                late_env_steps=self.late_env_steps,
+                snapshot_age_s=None if self.snapshot_taken is None else time.time() - self.snapshot_taken,
+                frame_bytes_mean=store.frame_bytes_mean if store.frames else None,
+                rate=self.limiter.state(time.time()), snapshot=dict(self.snapshot_stats),
+                rejected={**self.rejections.values(), **(rejected or {})}, speeds=dict(speeds or {}))
+        return stats
 
     def limiter_state(self) -> dict:
         with self._lock:

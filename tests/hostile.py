@@ -14,8 +14,9 @@ from common.network import D3RQN, weights_to_numpy
 from common.wire.codecs import Message
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
-from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, Stats,
-                                  TraceBatch, TraceBatchRequest, Weights)
+from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, RateState,
+                                  ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights)
+from wire_examples import example_rate, example_replay_stats
 
 FLOOD_ACTOR = 77  # the actor id of flooded episodes
 
@@ -71,6 +72,8 @@ def examples(config: Config) -> dict[type, Message]:
                                      collided=False, start_set="train", start_index=0, epsilon=1.0,
                                      weights_version=0, wall_time=1.0, time=1.0),
         Heartbeat: Heartbeat(role="x", process_id="0", time=1.0, seq=0),
+        RateState: example_rate(),
+        ReplayStats: example_replay_stats(),
         EpisodeAck: EpisodeAck(actor_id=FLOOD_ACTOR, incarnation=0xF100D, received=np.zeros(0, np.int64),
                                kept=np.arange(3, dtype=np.int64), refused=np.zeros(0, np.int64)),
     }
@@ -125,6 +128,20 @@ def misfit_exploration(config: Config) -> dict[str, bytes]:
         "bad_state": encode(dataclasses.replace(state, state={"alpha": float("nan")})),
         "another_strategy": encode(other),  # complete and valid: actors follow it until the learner's next state
     }
+
+
+def misfit_replay_word() -> dict[str, bytes]:
+    """The replay's rate and stats, well formed, whose counts no run of this budget can have, or whose fields
+    break the rules the wire checks (re-packed past the encoder), or an older replay's untyped Stats."""
+    absurd = example_rate(env_steps=10**15, start_env_steps=1e14)
+    mark_past = lambda e: e["fields"].__setitem__("start_env_steps", 9e9)
+    return {"absurd_rate": encode(absurd), "absurd_stats": encode(example_replay_stats(absurd)),
+            "mark_past_steps": tampered(example_rate(), mark_past),
+            "unknown_hold": tampered(example_rate(), lambda e: e["fields"].__setitem__("hold_reason", "forever")),
+            "nested_mark_past_steps": tampered(example_replay_stats(),
+                                               lambda e: mark_past({"fields": e["fields"]["rate"]})),
+            "untyped_rate": encode(Stats(source="rate_limiter", time=1.0, values={"hold_reason": "", "env_steps": 1})),
+            "untyped_stats": encode(Stats(source="replay", time=1.0, values={"env_steps_total": 100}))}
 
 
 def misfit_stats() -> dict[str, bytes]:

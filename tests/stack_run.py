@@ -21,7 +21,7 @@ from pathlib import Path
 from common.config import TransportConfig
 from common.transport import open_session, subscribe
 from common.keys import Keys
-from common.wire.messages import Episode, EpisodeRecord, Stats
+from common.wire.messages import Episode, EpisodeRecord, ReplayStats, Stats, flat_values
 from tests.processes import children, free_port, kill_tree
 
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
@@ -64,9 +64,9 @@ class Watcher:
                 self.actor_stats[key.rsplit("/", 1)[1]] = dict(message.values)
 
     def on_replay(self, message, key: str) -> None:
-        if isinstance(message, Stats) and message.source == "replay" and isinstance(message.values.get("inserted"), int):
+        if isinstance(message, ReplayStats):
             with self.lock:
-                self.replay = dict(message.values)
+                self.replay = flat_values(message)
 
     def on_episode(self, message, key: str) -> None:
         if isinstance(message, Episode) and message.actor_id in self.actor_ids:

@@ -10,6 +10,7 @@ from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire.messages import Stats, Weights
+from wire_examples import example_rate
 from learner.update import DoubleQLearner
 
 
@@ -42,10 +43,11 @@ def test_weights_replaced_unloaded_are_counted_and_staleness_is_read_from_the_re
     assert mailbox.superseded == 2 and mailbox.take()[0].version == 30
     mailbox.offer_weights(Weights(version=40, tensors={}))
     assert mailbox.superseded == 2  # the loop had taken the last one
-    mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "batches_served": 95}))
+    mailbox.offer_rate(example_rate(batches_served=95))
     assert mailbox.weights_behind(30) == 65 and mailbox.weights_behind(-1) == 0 and mailbox.weights_behind(99) == 0
-    mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "batches_served": "x"}))
-    assert mailbox.weights_behind(30) == 65  # a value that is no number changes nothing
+    mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "batches_served": 5}))
+    assert mailbox.weights_behind(30) == 65  # an older replay's untyped word changes nothing
+    assert mailbox.rejections.values()["rejected_rate"] == 1
 
 
 def test_the_start_up_answer_never_replaces_a_broadcast():
@@ -60,7 +62,7 @@ def test_the_start_up_answer_never_replaces_a_broadcast():
 def test_actor_holds_only_while_the_replay_says_so():
     mailbox = Mailbox()
     assert mailbox.must_hold() == ""  # no replay heard of: never hold
-    rate = lambda reason: mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": reason}))
+    rate = lambda reason: mailbox.offer_rate(example_rate(hold_reason=reason))
     rate("behind")
     assert mailbox.must_hold() == "behind"
     assert mailbox.must_hold() == "behind"  # kept, not taken

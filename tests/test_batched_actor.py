@@ -17,8 +17,9 @@ from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
 from common.options import ConfigError
 from common.wire.envelope import decode, encode
-from common.wire.messages import Episode, Stats, Weights
+from common.wire.messages import Episode, Weights
 from replay.service import ReplayService
+from wire_examples import example_rate
 
 
 def config_with(envs: int, tmp_path=None, **overrides):
@@ -180,7 +181,7 @@ def test_three_envs_give_well_formed_episodes_from_each_that_the_replay_takes(tm
 def test_a_held_env_waits_while_the_others_finish_their_episodes():
     actor = Actor(config_with(3), actor_id=0)
     gate = EpisodeGate(actor.mailbox, HoldLog(10.0), lambda: True)
-    rate = lambda reason: actor.mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": reason}))
+    rate = lambda reason: actor.mailbox.offer_rate(example_rate(hold_reason=reason))
     assert actor.step(gate) == [] and len(actor.running) == 3
     rate("behind")
     ended = []
@@ -198,7 +199,7 @@ def test_while_no_replay_is_alive_no_episode_begins_until_a_replays_word_comes_a
     actor = Actor(config_with(1), actor_id=0)
     gate = EpisodeGate(actor.mailbox, HoldLog(10.0), lambda: True)
     watch = ReplayWatch(actor.mailbox.replay_gone)
-    go = Stats(source="rate_limiter", time=0.0, values={"hold_reason": ""})
+    go = example_rate()
     watch.on_change("replay/a", True)
     actor.mailbox.offer_rate(go)
     assert gate()
@@ -217,13 +218,12 @@ def test_once_updates_have_started_an_actor_without_the_learners_policy_starts_n
     # a resumed run or a restarted actor: acting at random would fill the replay with episodes of no policy
     actor = Actor(config_with(2), actor_id=0)
     gate = EpisodeGate(actor.mailbox, HoldLog(10.0), lambda: True, actor.uses_network)
-    rate = lambda **values: actor.mailbox.offer_rate(Stats(source="rate_limiter", time=0.0,
-                                                           values={"hold_reason": "", **values}))
-    rate(start_env_steps=-1.0)  # stage 1: random episodes are what the run wants
+    rate = lambda **changes: actor.mailbox.offer_rate(example_rate(**changes))
+    rate(start_env_steps=None, batches_served=0)  # stage 1: random episodes are what the run wants
     assert gate() and actor.mailbox.must_hold(False) == ""
-    rate(start_env_steps=500.0, refilling=1)  # a resumed replay refilling its lost store: stage 1 again
+    rate(start_env_steps=500.0, refilling=True)  # a resumed replay refilling its lost store: stage 1 again
     assert gate()
-    rate(start_env_steps=500.0, refilling=0)
+    rate(start_env_steps=500.0, refilling=False)
     assert not gate() and actor.mailbox.must_hold(False) == "policy"
     actor.mailbox.offer_weights(Weights(version=7, tensors={name: tensor.numpy() for name, tensor
                                                              in actor.network.state_dict().items()}))

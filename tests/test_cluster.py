@@ -16,7 +16,7 @@ from common.config import TransportConfig
 from common.config_values import load_config
 from common.transport import open_session, subscribe
 from common.keys import Keys
-from common.wire.messages import Stats
+from common.wire.messages import ReplayStats, flat_values
 from tests.processes import loopback_endpoint, start, stop
 
 CONFIGS = Path(__file__).resolve().parents[1] / "deploy" / "configs"
@@ -53,13 +53,13 @@ def test_actor_on_another_host_feeds_only_its_own_run(tmp_path):
     def keep(run: str):
         def on_stats(message, key):
             with lock:
-                latest[run] = dict(message.values)
+                latest[run] = flat_values(message)
         return on_stats
 
     session, subscriptions = None, []
     try:  # from here on the replays stop whatever fails, the session's opening too
         session = open_session(TransportConfig(mode="client", connect=[endpoint], connect_timeout_s=ROUTER_WAIT_S))
-        subscriptions = [subscribe(session, Keys("d3rqn", run).replay_stats, keep(run), expected=Stats)
+        subscriptions = [subscribe(session, Keys("d3rqn", run).replay_stats, keep(run), expected=ReplayStats)
                          for run in ("cluster", "other")]
         actor = start_logged("actor", "actor.main", "--config", str(CONFIGS / "remote-actor.toml"),
                       "--transport.connect", endpoint, "--transport.connect_timeout_s", str(ROUTER_WAIT_S),

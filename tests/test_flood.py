@@ -13,7 +13,8 @@ import zenoh
 from common.config_values import load_config
 from common.wire.envelope import decode, encode
 from common.wire.errors import WireError
-from common.wire.messages import Episode, EpisodeAck, ExplorationState, Stats, TraceBatchRequest, Weights
+from common.wire.messages import (Episode, EpisodeAck, ExplorationState, RateState, ReplayStats, Stats,
+                                  TraceBatchRequest, Weights)
 from common.wire.run_shape import RunShape, check_episode
 from replay.snapshot import Snapshotter
 from tests import hostile
@@ -88,7 +89,7 @@ def flood(run: StackRun, config, shape: RunShape, rng, genuine: Episode) -> tupl
     keys, session = run.keys, run.session
     examples = hostile.examples(config)
     doors = {  # key -> the message type that belongs there
-        keys.episodes: Episode, keys.replay_stats: Stats, keys.replay_rate: Stats, keys.weights: Weights,
+        keys.episodes: Episode, keys.replay_stats: ReplayStats, keys.replay_rate: RateState, keys.weights: Weights,
         keys.exploration: ExplorationState, keys.metrics_source("learner", "0"): Stats,
         keys.metrics_source("actor", "0"): Stats, keys.metrics_source("actor_stats", "1"): Stats,
         keys.metrics_source("recorder", "0"): Stats, keys.heartbeat("actor", "0"): Stats,
@@ -97,9 +98,10 @@ def flood(run: StackRun, config, shape: RunShape, rng, genuine: Episode) -> tupl
     }
     misfits = {keys.episodes: hostile.misfit_episodes(config), keys.weights: hostile.misfit_weights(config),
                keys.exploration: hostile.misfit_exploration(config)}
-    for key in (keys.replay_stats, keys.replay_rate, keys.metrics_source("learner", "0"),
-                keys.metrics_source("actor_stats", "1")):
+    for key in (keys.metrics_source("learner", "0"), keys.metrics_source("actor_stats", "1")):
         misfits[key] = hostile.misfit_stats()
+    for key in (keys.replay_stats, keys.replay_rate):
+        misfits[key] = {**hostile.misfit_stats(), **hostile.misfit_replay_word()}
     for actor in (0, 1):  # a well-formed word on episodes that are not this actor's
         misfits[keys.episode_acks(actor)] = {"foreign": encode(examples[EpisodeAck])}
     sent: dict[str, dict[str, int]] = {}
@@ -175,13 +177,14 @@ def check_refusals(replay: dict, learner: dict, actors: dict, sent: dict) -> Non
     assert replay["malformed_exploration"] >= junk and replay["failed_samples"] == 0
     assert learner["malformed_stats"] >= junk and learner["malformed_rate"] >= junk
     assert learner["rejected_stats_wrong_type"] >= 7 and learner["rejected_rate_wrong_type"] >= 7
-    assert learner["rejected_stats_values"] >= 4 and learner["rejected_rate_values"] >= 4
+    assert learner["rejected_stats_values"] >= 1 and learner["rejected_rate_values"] >= 1  # the absurd counts
     assert learner["rejected_weights_query"] >= 7 and learner["malformed_weights_query"] >= PER_KIND
     assert learner["failed_updates"] == 0 and learner.get("rejected_total", 0) >= 40
     for values in actors.values():
         assert values["malformed_weights"] >= junk + 1  # + the non-finite weights the wire refuses
         assert values["rejected_weights_network"] >= 3 and values["rejected_weights_wrong_type"] >= 7
         assert values["rejected_rate"] >= 7 and values["malformed_rate"] >= junk
+        assert values["rejected_rate_values"] >= 1
         assert values["malformed_exploration"] >= junk and values["rejected_exploration_wrong_type"] >= 1
         assert values["malformed_acks"] >= junk + 7 and values["acks_foreign"] >= 1  # words on others' episodes
         assert values["episodes_released"] == 0 and values["episodes_kept"] >= 1

@@ -18,12 +18,13 @@ from common.network import D3RQN, weights_to_numpy
 from common.rejections import Rejections
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
-from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
+from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights, flat_values
 from common.wire.run_shape import RunShape, check_episode, stat_number
 from deploy.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerService
 from replay.service import MAX_PENDING, ReplayService
+from wire_examples import example_rate, example_replay_stats
 
 SIZE, STEPS = 36, 12
 
@@ -134,7 +135,7 @@ def test_the_replay_stores_only_episodes_that_fit_and_says_why(tmp_path):
         service.on_episode(misfit)
     service.on_episode(Stats(source="x", time=0.0, values={}), "d3rqn/r/episodes")  # a valid message, wrong type
     service.on_episode(episode(2))  # again: a duplicate
-    stats = service.stats()
+    stats = flat_values(service.stats())
     assert {kind: stats.get(f"rejected_episode_{kind}") for kind in (*misfits(), "wrong_type", "duplicate")} == \
         dict.fromkeys((*misfits(), "wrong_type", "duplicate"), 1)
     assert stats["episodes"] == 3 and stats["env_steps_total"] == 3 * STEPS and stats["rejected_total"] == 8
@@ -152,7 +153,7 @@ def test_the_replay_refuses_requests_it_cannot_serve_and_holds_a_bounded_number(
     held = [HeldQuery(TraceBatchRequest(request_id=n, batch_size=3, trace_length=4)) for n in range(MAX_PENDING + 5)]
     for query in held:
         service.on_sample_request(query)  # no episodes yet: held
-    stats = service.stats()
+    stats = flat_values(service.stats())
     assert stats["pending_requests"] == MAX_PENDING and stats["rejected_request_overflow"] == 5
     assert stats["rejected_request_wrong_type"] == 1 and stats["rejected_request_size"] == 1
     assert all(isinstance(query.answer, str) for query in (wrong_type, wrong_size, *held[MAX_PENDING:]))
@@ -168,7 +169,7 @@ def test_the_replay_takes_only_a_complete_exploration_state(tmp_path):
                 dataclasses.replace(state, state={"nonsense": 1})):
         service.on_exploration(bad)
     service.on_exploration(Stats(source="x", time=0.0, values={}))
-    stats = service.stats()
+    stats = flat_values(service.stats())
     assert stats["rejected_exploration_invalid"] >= 2 and stats["rejected_exploration_wrong_type"] == 1
     assert service.learner_strategy is None and not service.limiter.limit.start_by_steps
     service.on_exploration(state)
@@ -194,11 +195,11 @@ def test_a_learner_that_starts_again_is_owed_the_batches_its_predecessor_lost(tm
         service.limiter.on_served()
     service.on_sample_request(HeldQuery(TraceBatchRequest(request_id=0, batch_size=3, trace_length=4,
                                                           learner_updates=0)))
-    stats = service.stats()
+    stats = flat_values(service.stats())
     assert stats["rate_batches_served"] == 0 and stats["rate_lost_updates"] == 2
     service.on_sample_request(HeldQuery(TraceBatchRequest(request_id=0, batch_size=3, trace_length=4,
                                                           learner_updates=99)))  # more than served: ignored
-    assert service.stats()["rate_batches_served"] == 0
+    assert flat_values(service.stats())["rate_batches_served"] == 0
 
 
 # --- the learner -----------------------------------------------------------------------------------
@@ -281,19 +282,21 @@ def test_a_failing_update_is_dropped_counted_and_the_learner_goes_on_unless_it_a
         process.train_on(trace_batch(config))
 
 
-@pytest.mark.parametrize("values", [
-    {}, {"env_steps_total": "many"}, {"env_steps_total": float("nan")}, {"env_steps_total": -5},
-    {"env_steps_total": 10**15}, {"env_steps_total": 12.5}, {"env_steps_total": 500, "rate_start_env_steps": 900},
-    {"env_steps_total": 500, "rate_start_env_steps": "early"}, {"env_steps_total": 500, "episodes": "ten"}])
-def test_the_learner_reads_replay_numbers_without_trusting_them(tmp_path, values):
+ABSURD_RATE = example_rate(env_steps=10**15, start_env_steps=900.0)  # beyond the budget plus a full buffer
+
+
+@pytest.mark.parametrize("stats, rate", [
+    (Stats(source="replay", time=0.0, values={"env_steps_total": 500}),  # an older replay's untyped word
+     Stats(source="rate_limiter", time=0.0, values={"env_steps": 500, "start_env_steps": 400.0})),
+    (example_replay_stats(ABSURD_RATE), ABSURD_RATE),
+    (example_rate(), example_replay_stats()),  # each on the other's key
+    (Weights(version=1, tensors={}), Weights(version=1, tensors={}))], ids=["untyped", "absurd", "swapped", "weights"])
+def test_the_learner_takes_only_the_replays_typed_word_with_counts_that_fit_the_run(tmp_path, stats, rate):
     process = LearnerService(small_config(tmp_path))
-    process.on_replay_stats(Stats(source="replay", time=0.0, values=values))
-    process.on_replay_rate(Stats(source="rate_limiter", time=0.0, values=values))
-    process.on_replay_stats(Stats(source="someone", time=0.0, values={"env_steps_total": 7}))
-    process.on_replay_rate(Weights(version=1, tensors={}))
-    accepted = values.get("episodes") == "ten"  # a bad episode count does not spoil the steps
-    assert process.clock.env_steps == (500 if accepted else 0) and process.clock.start_env_steps is None
-    assert process.rejections.total >= 3 and process.episodes_stored == 0
+    process.on_replay_stats(stats)
+    process.on_replay_rate(rate)
+    assert process.clock.env_steps == 0 and process.clock.start_env_steps is None and process.episodes_stored == 0
+    assert process.rejections.total == 2
 
 
 def test_the_latest_weights_go_only_to_a_plain_query(tmp_path):
@@ -329,19 +332,21 @@ def test_the_actor_refuses_weights_of_another_network_and_keeps_the_good_ones(tm
 
 
 @pytest.mark.parametrize("message", [
-    Stats(source="rate_limiter", time=0.0, values={}),
-    Stats(source="rate_limiter", time=0.0, values={"hold_reason": 3}),
-    Stats(source="rate_limiter", time=0.0, values={"hold_reason": "forever"}),
-    Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "start_env_steps": "soon"}),
-    Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "start_env_steps": float("nan")}),
-    Stats(source="rate_limiter", time=0.0, values={"hold_reason": "", "refilling": [1]}),
-    Stats(source="replay", time=0.0, values={"hold_reason": "budget"}),
-    Weights(version=1, tensors={})])
+    Stats(source="rate_limiter", time=0.0, values={"hold_reason": ""}),  # an older replay's untyped word
+    example_replay_stats(),  # the stats on the rate's key
+    Weights(version=1, tensors={})], ids=["untyped", "stats", "weights"])
 def test_a_rate_message_that_says_nothing_sound_leaves_the_last_word(message):
     mailbox = Mailbox()
-    mailbox.offer_rate(Stats(source="rate_limiter", time=0.0, values={"hold_reason": "behind"}))
+    mailbox.offer_rate(example_rate(hold_reason="behind"))
     mailbox.offer_rate(message)
     assert mailbox.must_hold() == "behind" and mailbox.rejections.values()["rejected_rate"] == 1
+
+
+def test_an_actor_refuses_a_rate_counting_more_env_steps_than_its_run_can(tmp_path):
+    actor = Actor(small_config(tmp_path), actor_id=0)
+    actor.mailbox.offer_rate(example_rate(hold_reason="behind"))
+    actor.mailbox.offer_rate(example_rate(env_steps=10**12))  # beyond the budget plus a full buffer
+    assert actor.mailbox.must_hold() == "behind" and actor.rejections.values()["rejected_rate_values"] == 1
 
 
 def test_the_actor_keeps_its_strategy_against_an_unknown_or_broken_state(tmp_path):

@@ -5,8 +5,9 @@ import pytest
 
 from common.config_values import load_config
 from common.wire.frames import FrameStack
-from common.wire.messages import Stats, TraceBatch
+from common.wire.messages import RateState, Stats, TraceBatch
 from learner.service import LearnerService, RunClock
+from wire_examples import example_rate, example_replay_stats
 
 SIZE, STEPS, TRACES, MASK = 36, 4, 3, 2  # 3 traces x 2 unmasked steps: 6 transitions per batch
 
@@ -28,8 +29,8 @@ def batch(index: int, env_steps_total: int) -> TraceBatch:
         env_steps_total=env_steps_total, episodes_stored=10)
 
 
-def rate(env_steps: int, start: float) -> Stats:
-    return Stats(source="rate_limiter", time=0.0, values={"env_steps": env_steps, "start_env_steps": start})
+def rate(env_steps: int, start: float) -> RateState:
+    return example_rate(env_steps=env_steps, start_env_steps=start, batches_served=0)
 
 
 def run_updates(process: LearnerService, updates: int, per_update: float, mark: int = 1_000) -> int:
@@ -95,18 +96,23 @@ def test_an_unpaced_run_ends_once_closed_without_paying_the_rest():
     assert clock.finished(updates=10, total_env_steps=1_000)
 
 
-def test_the_replays_close_comes_on_both_of_its_keys_and_must_be_0_or_1(tmp_path):
+def test_the_replays_close_comes_on_both_of_its_keys_and_what_does_not_fit_is_refused(tmp_path):
     process = LearnerService(config_with(tmp_path, **{"learner.total_env_steps": 1_000}))
-    process.on_replay_rate(Stats(source="rate_limiter", time=0.0, values={
-        "env_steps": 1_040, "start_env_steps": 1_000.0, "closed": 1}))
+    process.on_replay_rate(example_rate(env_steps=1_040, start_env_steps=1_000.0, closed=True))
     assert process.clock.closed and not process.finished()  # 10 updates due, none made
-    process.on_replay_stats(Stats(source="replay", time=0.0, values={
-        "env_steps_total": 1_040, "rate_start_env_steps": 1_000.0, "rate_closed": 0, "episodes": 5}))
-    assert not process.clock.closed
-    for bad in (2, 0.5, "yes"):
-        process.on_replay_rate(Stats(source="rate_limiter", time=0.0, values={
-            "env_steps": 1_040, "start_env_steps": 1_000.0, "closed": bad}))
-    assert not process.clock.closed and process.rejections.values()["rejected_rate_values"] == 3
+    process.on_replay_stats(example_replay_stats(example_rate(env_steps=1_040, start_env_steps=1_000.0), episodes=5))
+    assert not process.clock.closed and process.episodes_stored == 5
+    closing = example_rate(env_steps=10**12, start_env_steps=1_000.0, closed=True)  # past budget plus buffer
+    process.on_replay_rate(closing)
+    process.on_replay_stats(example_replay_stats(closing))
+    for wrong in (Stats(source="rate_limiter", time=0.0, values={"env_steps": 1_040, "closed": 1}),
+                  example_replay_stats()):  # an older replay's untyped word; the stats on the rate's key
+        process.on_replay_rate(wrong)
+    process.on_replay_stats(example_rate(closed=True))
+    assert not process.clock.closed and process.episodes_stored == 5
+    counts = process.rejections.values()
+    assert (counts["rejected_rate_values"], counts["rejected_stats_values"]) == (1, 1)
+    assert (counts["rejected_rate_wrong_type"], counts["rejected_stats_wrong_type"]) == (2, 1)
 
 
 def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():

@@ -8,9 +8,10 @@ from common.checkpoint import SECTIONS as CHECKPOINT_SECTIONS, CheckpointError, 
 from common.config_values import load_config
 from common.options import ConfigError
 from common.wire.frames import FrameStack
-from common.wire.messages import Stats, TraceBatch
+from common.wire.messages import TraceBatch
 from learner.service import LearnerService
 from tests.test_status_lines import FakeClock
+from wire_examples import example_rate, example_replay_stats
 
 SIZE, STEPS, TRACES = 36, 4, 3
 
@@ -38,8 +39,8 @@ def batches(count: int) -> list[TraceBatch]:
 
 def train(process: LearnerService, batch: TraceBatch) -> None:
     """As in service: the replay's stats move the clock, then the batch is trained on."""
-    process.on_replay_stats(Stats(source="replay", time=0.0, values={
-        "env_steps_total": batch.env_steps_total, "episodes": batch.episodes_stored}))
+    rate = example_rate(env_steps=batch.env_steps_total, start_env_steps=None, batches_served=0)
+    process.on_replay_stats(example_replay_stats(rate, episodes=batch.episodes_stored))
     process.train_on(batch)
 
 

@@ -25,7 +25,8 @@ from common.transport import open_session, publisher, request, subscribe
 from common.keys import Keys
 from common.wire.envelope import decode, encode
 from common.wire.frames import FrameStack
-from common.wire.messages import Episode, EpisodeRecord, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights
+from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, ReplayStats, Stats, TraceBatch,
+                                  TraceBatchRequest, Weights, flat_values)
 from replay.log.arrival import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.log.cli import main as log_main
 from replay.log.export import collect
@@ -264,7 +265,7 @@ def test_the_stack_records_its_run(recorded_run):
                 keys.weights} <= set(log.wire_topics())
         episodes = [m for _, m in log.messages(Episode)]
         records = [m for _, m in log.messages(EpisodeRecord)]
-        replay = [m.values for _, m in log.messages(Stats) if m.source == "replay"]
+        replay = [flat_values(m) for _, m in log.messages(ReplayStats)]
         assert episodes and [e.episode_index for e in episodes] == [r.episode_index for r in records]
         indexes = [e.episode_index for e in episodes]
         assert indexes == list(range(indexes[0], indexes[0] + len(indexes)))  # no episode missing in between
@@ -307,7 +308,8 @@ def test_play_fills_a_fresh_replay_with_the_recorded_episodes(recorded_run, fres
             received.append(sample.payload.to_bytes())
 
     subscriber = session.declare_subscriber(fresh.episodes, on_episode)
-    replay_stats = subscribe(session, fresh.replay_stats, lambda m, k: stats.append(m.values), expected=Stats)
+    replay_stats = subscribe(session, fresh.replay_stats, lambda m, k: stats.append(flat_values(m)),
+                             expected=ReplayStats)
     try:
         play_log = tmp_path / "play.log"
         player = start(["-m", "replay.log.cli", "play", str(recorded_run / "traffic.mcap"), "--keys", "episodes",

@@ -6,6 +6,7 @@ import pytest
 
 from common.config_values import load_config
 from common.pacing import RateLimit, achieved_ratio, is_unpaced, rate_limit_from_config, start_mark_of
+from common.wire.messages import flat_values
 from replay.rate_limiter import RateLimiter
 
 
@@ -89,7 +90,7 @@ def test_actors_hold_past_their_own_lead_while_the_learner_keeps_its_own():
     rate.on_episode(40, episodes_stored=2)  # 10 due, 0 served: error 10, not more than H
     assert rate.hold_reason() == ""
     rate.on_episode(4, episodes_stored=3)  # 11 due: error 11 > 10
-    assert rate.hold_reason() == "behind" and rate.values()["hold_updates"] == 10.0
+    assert rate.hold_reason() == "behind" and rate.state(0.0).hold_updates == 10.0
     assert serve_all(rate) == 13  # the learner's own lead is still B: 11 due + 2
 
 
@@ -150,11 +151,11 @@ def test_the_run_closes_once_the_budget_is_spent_and_every_update_it_pays_for_is
     for _ in range(8):
         rate.on_served()  # 8 updates: 32 steps paid for
     rate.on_episode(50, episodes_stored=2)  # 110 >= 100: budget spent, (110 - 60) / 4 = 12.5 due
-    assert rate.budget_spent and not rate.closed and rate.values()["closed"] == 0
+    assert rate.budget_spent and not rate.closed and not rate.state(0.0).closed
     rate.on_episode(30, episodes_stored=3)  # in flight at the budget: owed too, 20 due
     for _ in range(12):
         rate.on_served()
-    assert rate.served == 20 and rate.closed and rate.values()["closed"] == 1
+    assert rate.served == 20 and rate.closed and rate.state(0.0).closed
 
 
 def test_an_unpaced_run_closes_at_its_budget():
@@ -251,37 +252,37 @@ def test_lost_and_recounted_updates_add_up_over_several_restarts():
 
 
 def test_the_replays_stats_name_every_counter_and_decision():
-    # The replay's stats and rate message are these values (replay/service.py); each checked by hand
+    # The replay's rate message (and the rate inside its stats), flattened as logs keep it; each checked by hand
     waiting = limiter(start_episodes=2, per_update=4.0, buffer=2.0)
     waiting.on_episode(30, episodes_stored=1)
-    assert waiting.values() == {
-        "env_steps": 30, "batches_served": 0, "updates_due": 0.0, "start_env_steps": -1.0, "hold_actors": 0,
+    assert flat_values(waiting.state(5.0)) == {  # no start mark, no ratio yet
+        "time": 5.0, "env_steps": 30, "batches_served": 0, "updates_due": 0.0,
         "hold_reason": "", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 0,
-        "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0}  # no ratio yet
+        "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0}
     behind = limiter(start_episodes=1, per_update=4.0, buffer=2.0)
     behind.on_episode(100, episodes_stored=1)
     behind.on_episode(40, episodes_stored=2)  # 10 due
     for _ in range(6):
         behind.on_served()  # 4 behind, more than B = 2
     assert behind.on_learner_start(5) == 1
-    assert behind.values() == {
-        "env_steps": 140, "batches_served": 5, "updates_due": 10.0, "start_env_steps": 100.0, "hold_actors": 1,
+    assert flat_values(behind.state(5.0)) == {
+        "time": 5.0, "env_steps": 140, "batches_served": 5, "updates_due": 10.0, "start_env_steps": 100.0,
         "hold_reason": "behind", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 1,
         "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0,
         "env_steps_per_update": 8.0}
     resumed = limiter(start_episodes=2, per_update=4.0, buffer=1.0, total=1_000)
     resumed.load_state_dict({"version": 1, "env_steps": 1_000, "served": 200, "start_mark": 200.0,
                              "refill_env_steps": 5, "lost_updates": 2, "recounted_updates": 4}, episodes_stored=1)
-    assert resumed.values() == {
-        "env_steps": 1_000, "batches_served": 200, "updates_due": 200.0, "start_env_steps": 200.0,
-        "hold_actors": 1, "hold_reason": "budget", "closed": 0, "refilling": 1, "refill_env_steps": 5,
+    assert flat_values(resumed.state(5.0)) == {
+        "time": 5.0, "env_steps": 1_000, "batches_served": 200, "updates_due": 200.0, "start_env_steps": 200.0,
+        "hold_reason": "budget", "closed": 0, "refilling": 1, "refill_env_steps": 5,
         "lost_updates": 2, "recounted_updates": 4, "error_buffer_updates": 1.0, "hold_updates": 1.0, "env_steps_per_update_target": 4.0,
         "env_steps_per_update": 4.0}
     closed = limiter(start_episodes=1, per_update=4.0, buffer=2.0, total=100)
     closed.on_episode(100, episodes_stored=1)
     closed.on_episode(40, episodes_stored=2)
     assert serve_all(closed) == 12
-    assert closed.values()["closed"] == 1 and closed.values()["env_steps_per_update"] == 40 / 12
+    assert closed.state(0.0).closed and closed.state(0.0).env_steps_per_update == 40 / 12
 
 
 def test_a_resumed_replay_refills_its_store_before_serving_and_does_not_owe_the_refill():
@@ -363,5 +364,5 @@ def test_a_resumed_replay_counts_the_updates_a_running_learner_made_beyond_its_s
     assert resumed.on_learner_updates(48) == 0 and resumed.served == 50  # a request sent before two came back
     again = limiter(start_episodes=1, buffer=2.0)
     again.load_state_dict(resumed.state_dict(), episodes_stored=2)
-    assert (again.recounted_updates, again.values()["recounted_updates"]) == (30, 30)
+    assert (again.recounted_updates, again.state(0.0).recounted_updates) == (30, 30)
     assert limiter().on_learner_updates(5) == 0  # before updates start there is nothing to count

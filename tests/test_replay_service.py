@@ -15,7 +15,7 @@ from common.transport import publisher, request, subscribe
 from common.keys import Keys
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
-from common.wire.messages import Episode, Stats, TraceBatch, TraceBatchRequest
+from common.wire.messages import Episode, RateState, ReplayStats, TraceBatch, TraceBatchRequest, flat_values
 from replay.process import counters_path
 from replay.service import ReplayService
 from tests import processes
@@ -44,7 +44,7 @@ def replay(tmp_path):
     session = router_client(endpoint)
     stats: list[dict] = []
     subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats,
-                             lambda message, key: stats.append(dict(message.values)), expected=Stats)
+                             lambda message, key: stats.append(flat_values(message)), expected=ReplayStats)
     try:
         yield session, stats, process, tmp_path / "replay.log"
     finally:
@@ -111,8 +111,8 @@ def test_replies_wait_for_steps_and_actors_wait_for_the_learner(replay, tmp_path
     session, stats, process, log_path = replay
     keys = Keys("d3rqn", RUN)
     rates: list[dict] = []
-    rate_subscription = subscribe(session, keys.replay_rate, lambda m, k: rates.append(dict(m.values)),
-                                  expected=Stats)
+    rate_subscription = subscribe(session, keys.replay_rate, lambda m, k: rates.append(flat_values(m)),
+                                  expected=RateState)
     episodes = publisher(session, keys.episodes)
     wait_for(lambda: episodes.matched and rates, "the replay's subscription and rate message")
     try:
@@ -162,8 +162,8 @@ def test_a_resumed_replay_continues_its_counters(tmp_path):
                      "--replay.stats_period_s", "0.2", "--resume"], tmp_path / "replay.log")
     session = router_client(endpoint)
     stats: list[dict] = []
-    subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats, lambda m, k: stats.append(dict(m.values)),
-                             expected=Stats)
+    subscription = subscribe(session, Keys("d3rqn", RUN).replay_stats, lambda m, k: stats.append(flat_values(m)),
+                             expected=ReplayStats)
     try:
         episodes = publisher(session, Keys("d3rqn", RUN).episodes)
         wait_for(lambda: episodes.matched and stats, "the resumed replay")
@@ -214,7 +214,7 @@ def test_budget_evictions_below_capacity_are_counted_and_warned(caplog):
     with caplog.at_level(logging.WARNING, logger="replay"):
         for index in range(3):
             service.on_episode(episode(12, index))
-    values = service.stats()
+    values = flat_values(service.stats())
     assert values["episodes"] == 1 and values["evicted_for_budget"] == 2
     assert "MEMORY BUDGET IS EVICTING" in caplog.text
 
@@ -286,13 +286,13 @@ def test_episodes_after_the_run_closed_are_refused_counted_and_announced(caplog)
             query = FakeQuery(request_id)
             service.on_sample_request(query)
             assert query.done.wait(10) and isinstance(query.answer, TraceBatch)
-        processes.wait_for(lambda: announced and announced[-1]["closed"] == 1, "the close on replay/rate", 10.0)
+        processes.wait_for(lambda: announced and announced[-1].closed, "the close on replay/rate", 10.0)
     finally:
         stop.set()
         thread.join(10)
     with caplog.at_level(logging.INFO):
         service.on_episode(episode(12, 2))  # in flight at the budget, too late
-    values = service.stats()
+    values = flat_values(service.stats())
     assert (values["episodes"], values["late_episodes"], values["late_env_steps"]) == (2, 1, 12)
     assert values["rate_env_steps"] == 36 and values["rate_closed"] == 1
     assert "the run is closed" in caplog.text

@@ -12,7 +12,7 @@ import pytest
 from common.presets import PRESETS
 from common.transport import subscribe
 from common.keys import Keys
-from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import EpisodeRecord, ExplorationState, Stats, flat_values
 from tests.processes import loopback_endpoint, router_client, start, stop
 
 DEADLINE_S = 240.0
@@ -38,7 +38,7 @@ class Observer:
 
     def on_replay(self, message, key):
         with self.lock:
-            self.replay.append(dict(message.values))
+            self.replay.append(flat_values(message))
 
     def on_exploration(self, message, key):
         with self.lock:

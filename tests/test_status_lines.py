@@ -13,7 +13,8 @@ from common.checkpoint import save_checkpoint
 from common.config_values import load_config
 from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus
-from common.wire.messages import EpisodeRecord, Stats
+from common.wire.messages import EpisodeRecord, ReplayStats, Stats
+from wire_examples import example_rate, example_replay_stats
 from deploy.stack import Stack, StackMonitor
 
 
@@ -51,8 +52,9 @@ def test_the_eta_is_unknown_while_the_count_stands_still():
     assert eta.remaining_s() is None
 
 
-def replay_stats(env_steps: int) -> Stats:
-    return Stats(source="replay", time=0.0, values={"env_steps_total": env_steps})
+def replay_stats(env_steps: int, start: float | None = None) -> ReplayStats:
+    rate = example_rate(env_steps=env_steps, start_env_steps=start, batches_served=0)
+    return example_replay_stats(rate)
 
 
 def test_the_stacks_line_and_status_show_the_budget_its_share_and_the_eta():
@@ -75,15 +77,14 @@ def test_a_paced_runs_eta_follows_the_updates_it_still_owes_not_the_random_phase
     clock = FakeClock()
     monitor = StackMonitor(20_000, clock=clock, env_steps_per_update=4.0)
 
-    def report(env_steps: int, start: float, updates: int) -> None:
-        monitor.on_replay_stats(Stats(source="replay", time=0.0, values={
-            "env_steps_total": env_steps, "rate_start_env_steps": start}), "k")
+    def report(env_steps: int, start: float | None, updates: int) -> None:
+        monitor.on_replay_stats(replay_stats(env_steps, start), "k")
         monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": updates}),
                           "d3rqn/r/metrics/learner/0")
 
-    report(5_000, -1.0, 0)
+    report(5_000, None, 0)
     clock.now = 10.0
-    report(10_000, -1.0, 0)  # 500 random steps a second: no guide to the learner's pace
+    report(10_000, None, 0)  # 500 random steps a second: no guide to the learner's pace
     assert "ETA ?" in monitor.line() and monitor.status("training", {}, {}).eta_s is None
     report(10_000, 10_000.0, 0)  # updates start: 2,500 owed to reach 20,000 steps
     clock.now = 60.0

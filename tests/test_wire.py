@@ -11,9 +11,10 @@ from common.wire.envelope import SCHEMA_VERSION, decode, encode
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.messages import (MESSAGE_TYPES, Episode, EpisodeAck, Heartbeat, Stats, TraceBatch, TraceBatchRequest,
-                                  Weights)
+                                  Weights, flat_values)
 from wire_examples import (
-    SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_trace_batch, random_frames,
+    SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_rate, example_replay_stats,
+    example_trace_batch, random_frames,
 )
 
 EXAMPLES = example_messages()
@@ -167,6 +168,12 @@ BATCH = example_trace_batch(batch=2, length=3)
 WEIGHTS = Weights(version=1, tensors={"w": np.ones((2, 2), dtype=np.float32)})
 NAN32 = np.array([np.nan], dtype=np.float32).tobytes()
 ACK = EpisodeAck(actor_id=1, incarnation=5, received=np.array([1]), kept=np.array([2, 3]), refused=np.array([4]))
+RATE = example_rate()
+REPLAY_STATS = example_replay_stats()
+
+
+def set_rate_field(name, value):
+    return lambda envelope: envelope["fields"]["rate"].__setitem__(name, value)
 
 MALFORMED = {
     "schema version": (HEARTBEAT, lambda e: e.__setitem__("schema", SCHEMA_VERSION + 1), "schema version 2 is not supported"),
@@ -220,6 +227,18 @@ MALFORMED = {
     "counter text": (EXAMPLES[4], set_field("counters", {"steps": "ten"}), "ExplorationState.counters.steps: expected int or float"),
     "stats bool value": (EXAMPLES[5], set_field("values", {"ok": True}), "Stats.values.ok: expected int, float or str, got bool"),
     "stats list value": (EXAMPLES[5], set_field("values", {"xs": [1]}), "expected int, float or str, got list"),
+    "unknown hold": (RATE, set_field("hold_reason", "forever"), "RateState.hold_reason: 'forever' is not one of"),
+    "mark past the steps": (RATE, set_field("start_env_steps", 5_000.0), "RateState.start_env_steps: 5000.0 lies past"),
+    "negative mark": (RATE, set_field("start_env_steps", -1.0), r"RateState.start_env_steps: -1.0 is outside"),
+    "served before the start": (RATE, set_field("start_env_steps", None), "48 batches served before updates started"),
+    "closed as a number": (RATE, set_field("closed", 1), "RateState.closed: expected a bool, got int"),
+    "steps as text": (RATE, set_field("env_steps", "many"), "RateState.env_steps: expected an integer"),
+    "nested rate broken": (REPLAY_STATS, set_rate_field("hold_reason", 3), "ReplayStats.rate.hold_reason: expected a string"),
+    "nested rate missing a field": (REPLAY_STATS, lambda e: e["fields"]["rate"].pop("env_steps"),
+                                    r"ReplayStats.rate: missing field\(s\) env_steps"),
+    "nested rate not a map": (REPLAY_STATS, set_field("rate", [1]), "ReplayStats.rate: fields must be a map"),
+    "negative episodes": (REPLAY_STATS, set_field("episodes", -5), "ReplayStats.episodes: -5 is outside"),
+    "stats counts as text": (REPLAY_STATS, set_field("rejected", {"rejected_total": "x"}), "ReplayStats.rejected.rejected_total"),
 }
 
 
@@ -260,6 +279,8 @@ def test_decode_refuses_an_unexpected_message_type():
     (Weights(version=1, tensors={"w": [[1.0], [1.0, 2.0]]}), "Weights.tensors.w: not an array"),
     (Stats(source="s", time=1.0, values={"pair": (1, 2)}), "Stats.values.pair: expected int, float or str, got tuple"),
     (dataclasses.replace(HEARTBEAT, seq=1.0), "Heartbeat.seq: expected an integer, got float"),
+    (dataclasses.replace(REPLAY_STATS, rate=HEARTBEAT), "ReplayStats.rate: expected a RateState, got Heartbeat"),
+    (example_rate(hold_reason="later"), "RateState.hold_reason: 'later'"),
 ])
 def test_encode_refuses_invalid_messages(message, error):
     with pytest.raises(WireError, match=error):
@@ -353,3 +374,15 @@ def test_a_wire_error_names_its_kind(data, kind):
     with pytest.raises(WireError) as raised:
         decode(encode(HEARTBEAT), Episode)
     assert raised.value.kind == "wrong_type"
+
+
+def test_counters_flatten_to_the_rows_logs_keep():
+    """A typed message flattens as older logs' Stats did: the nested rate's fields named rate_<field>, dicts
+    merged, flags as 0 or 1, and what is None (no start mark, no snapshot yet) left out."""
+    rate = example_rate(start_env_steps=None, batches_served=0, env_steps_per_update=None, closed=True)
+    flat = flat_values(example_replay_stats(rate))
+    assert flat["env_steps_total"] == 1_200 and flat["rate_env_steps"] == 1_200 and flat["rate_closed"] == 1
+    assert flat["rejected_total"] == 0 and flat["inserted_per_s"] == 0.5 and flat["snapshots_written"] == 0
+    assert "rate_start_env_steps" not in flat and "snapshot_age_s" not in flat and "rate" not in flat
+    assert flat_values(example_rate())["start_env_steps"] == 1_000.0
+    assert flat_values(Stats(source="x", time=1.0, values={"a": 1})) == {"a": 1}

@@ -8,8 +8,8 @@ import numpy as np
 
 from common.wire.codecs import Message
 from common.wire.frames import FrameStack
-from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, Stats,
-                                  TraceBatch, TraceBatchRequest, Weights)
+from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, RateState,
+                                  ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights)
 
 SMALL_FRAME = (6, 8, 3)
 
@@ -40,6 +40,29 @@ def example_trace_batch(batch: int = 2, length: int = 3, shape=SMALL_FRAME, seed
     )
 
 
+def example_rate(**changes) -> RateState:
+    """A rate limiter's word: updates started at 1,000 env steps, 48 of 50 due served, nobody held;
+    `changes` replace fields (start_env_steps None and batches_served 0: before updates start)."""
+    fields = dict(time=1.0, env_steps=1_200, batches_served=48, updates_due=50.0, start_env_steps=1_000.0,
+                  hold_reason="", closed=False, refilling=False, refill_env_steps=0, lost_updates=0,
+                  recounted_updates=0, error_buffer_updates=50.0, hold_updates=50.0, env_steps_per_update_target=4.0,
+                  env_steps_per_update=4.17)
+    return RateState(**{**fields, **changes})
+
+
+def example_replay_stats(rate: RateState | None = None, **changes) -> ReplayStats:
+    """A replay's stats around `rate` (example_rate()'s by default), its env steps those of the rate unless
+    `changes` say otherwise."""
+    rate = rate or example_rate()
+    fields = dict(time=2.0, episodes=5, frames=1_205, bytes=4_000_000, env_steps_total=rate.env_steps,
+                  inserted=5, evicted=0, evicted_for_budget=0, short_dropped=0, traces_served=480,
+                  pending_requests=1, rejected_requests=0, expired_requests=0, failed_samples=0, episodes_missing=0,
+                  episode_sources=1, restored_episodes=0, restore_skipped=0, late_episodes=0, late_env_steps=0,
+                  snapshot_age_s=None, frame_bytes_mean=3_300.0, rate=rate, snapshot={"snapshots_written": 0},
+                  rejected={"rejected_total": 0}, speeds={"inserted_per_s": 0.5})
+    return ReplayStats(**{**fields, **changes})
+
+
 def example_messages() -> list[Message]:
     rng = np.random.default_rng(2)
     return [
@@ -62,6 +85,8 @@ def example_messages() -> list[Message]:
         Heartbeat(role="actor", process_id="actor-1", time=3.25, seq=8),
         EpisodeAck(actor_id=2, incarnation=0x3FFF_FFFF_FFFF_FFFF, received=np.array([7, 8]),
                    kept=np.arange(5, dtype=np.int64), refused=np.zeros(0, np.int64)),
+        example_rate(start_env_steps=None, batches_served=0, env_steps_per_update=None, hold_reason="budget"),
+        example_replay_stats(snapshot_age_s=12.5),
     ]
 
 
@@ -83,6 +108,8 @@ def _assert_values_equal(left, right, where: str) -> None:
         assert isinstance(right, dict) and left.keys() == right.keys(), where
         for key in left:
             _assert_values_equal(left[key], right[key], f"{where}.{key}")
+    elif isinstance(left, Message):
+        assert_messages_equal(left, right)
     elif isinstance(left, float) and np.isnan(left):
         assert isinstance(right, float) and np.isnan(right), where
     else:

@@ -63,7 +63,7 @@ class Lines:
 def watch(config: Config, out: Lines, stop: threading.Event) -> None:
     from common.transport import open_session, subscribe
     from common.keys import Keys
-    from common.wire.messages import Episode, EpisodeRecord, Stats
+    from common.wire.messages import Episode, EpisodeRecord, ReplayStats, Stats, flat_values
 
     keys = Keys(config.transport.namespace, config.run.name)
 
@@ -77,7 +77,7 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
             out.write(kind="actor_stats", actor=key.rsplit("/", 1)[-1], values=message.values)
 
     def on_stats(message, key):
-        values = message.values
+        values = flat_values(message)
         out.write(kind="replay", inserted=values.get("inserted"), env_steps=values.get("env_steps_total"),
                   missing=values.get("episodes_missing"), duplicates=values.get("rejected_episode_duplicate", 0),
                   served=values.get("rate_batches_served"), restored=values.get("restored_episodes"))
@@ -98,7 +98,7 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
 
     with open_session(config.transport) as session:
         declared = [subscribe(session, keys.metrics_all, on_metric),
-                    subscribe(session, keys.replay_stats, on_stats, expected=Stats),
+                    subscribe(session, keys.replay_stats, on_stats, expected=ReplayStats),
                     subscribe(session, keys.episodes, on_episode, expected=Episode),
                     session.declare_subscriber(keys.all, on_any)]  # as the recorder does
         out.write(kind="up")

@@ -9,6 +9,7 @@ into it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -298,3 +299,48 @@ class Message:
 
     def check(self) -> None:
         pass
+
+
+def field_codecs(cls: type[Message]) -> list[tuple[str, Codec]]:
+    return [(f.name, f.metadata["codec"]) for f in dataclasses.fields(cls)]
+
+
+def pack_fields(message: Message, where: str) -> dict[str, Any]:
+    """The message's fields as msgpack-ready values, each checked by its codec, then the message's check."""
+    fields = {name: codec.pack(getattr(message, name), f"{where}.{name}") for name, codec in field_codecs(type(message))}
+    message.check()
+    return fields
+
+
+def unpack_fields(cls: type[Message], fields: Any, where: str) -> Message:
+    """The message of type cls from its packed fields, every field and the message checked."""
+    if not isinstance(fields, dict):
+        raise _fail(where, "fields must be a map")
+    codecs = field_codecs(cls)
+    names = {name for name, _ in codecs}
+    defaulted = {f.name for f in dataclasses.fields(cls)
+                 if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING}
+    missing, extra = names - set(fields) - defaulted, set(fields) - names
+    if missing:
+        raise _fail(where, f"missing field(s) {', '.join(sorted(missing))}")
+    if extra:
+        raise _fail(where, f"unexpected field(s) {', '.join(sorted(map(str, extra)))}")
+    # a field with a default may be absent: messages of senders that predate it still decode
+    message = cls(**{name: codec.unpack(fields[name], f"{where}.{name}") for name, codec in codecs if name in fields})
+    message.check()
+    return message
+
+
+@dataclass(frozen=True)
+class Nested(Codec):
+    """A message of the given type inside another, written as the map of its fields."""
+
+    cls: type
+
+    def pack(self, value, where):
+        if type(value) is not self.cls:
+            raise _fail(where, f"expected a {self.cls.__name__}, got {_type_name(value)}")
+        return pack_fields(value, where)
+
+    def unpack(self, raw, where):
+        return unpack_fields(self.cls, raw, where)

@@ -5,25 +5,13 @@ and any malformed input raises ``WireError``.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any
-
 import msgpack
 
-from common.wire.codecs import Codec, Message
+from common.wire.codecs import Message, pack_fields, unpack_fields
 from common.wire.errors import WireError
 from common.wire.messages import MESSAGE_TYPES
 
 SCHEMA_VERSION = 1
-
-
-def _codecs(cls: type[Message]) -> list[tuple[str, Codec]]:
-    return [(f.name, f.metadata["codec"]) for f in dataclasses.fields(cls)]
-
-
-def _defaulted(cls: type[Message]) -> set[str]:
-    return {f.name for f in dataclasses.fields(cls)
-            if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING}
 
 
 def encode(message: Message) -> bytes:
@@ -31,8 +19,7 @@ def encode(message: Message) -> bytes:
     tag = type(message).__name__
     if MESSAGE_TYPES.get(tag) is not type(message):
         raise WireError(f"{tag} is not a wire message type")
-    fields = {name: codec.pack(getattr(message, name), f"{tag}.{name}") for name, codec in _codecs(type(message))}
-    message.check()
+    fields = pack_fields(message, tag)
     return msgpack.packb({"schema": SCHEMA_VERSION, "type": tag, "fields": fields}, use_bin_type=True)
 
 
@@ -55,21 +42,4 @@ def decode(data: bytes, expected: type[Message] | None = None) -> Message:
         raise WireError(f"unknown message type {tag!r}", "undecodable")
     if expected is not None and cls is not expected:
         raise WireError(f"expected message type {expected.__name__}, got {tag}", "wrong_type")
-    return _build(cls, envelope["fields"])
-
-
-def _build(cls: type[Message], fields: Any) -> Message:
-    tag = cls.__name__
-    if not isinstance(fields, dict):
-        raise WireError(f"{tag}: fields must be a map")
-    codecs = _codecs(cls)
-    names = {name for name, _ in codecs}
-    missing, extra = names - set(fields) - _defaulted(cls), set(fields) - names
-    if missing:
-        raise WireError(f"{tag}: missing field(s) {', '.join(sorted(missing))}")
-    if extra:
-        raise WireError(f"{tag}: unexpected field(s) {', '.join(sorted(map(str, extra)))}")
-    # a field with a default may be absent: messages of senders that predate it still decode
-    message = cls(**{name: codec.unpack(fields[name], f"{tag}.{name}") for name, codec in codecs if name in fields})
-    message.check()
-    return message
+    return unpack_fields(cls, envelope["fields"], cls.__name__)

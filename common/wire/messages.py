@@ -5,13 +5,14 @@ envelope (common/wire/envelope.py) knows, by class name: the name travels, so it
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from common.wire.codecs import (DTYPES, Array, Flag, Frames, Integer, Message, Nullable, NumberDict, PlainDict,
-                                Real, TensorDict, Text, wired)
+from common.wire.codecs import (DTYPES, Array, Flag, Frames, Integer, Message, Nested, Nullable, NumberDict,
+                                PlainDict, Real, TensorDict, Text, wired)
 from common.stored_state import no_states
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
@@ -184,6 +185,95 @@ class Stats(Message):
     values: dict[str, int | float | str] = wired(NumberDict(text=True))
 
 
+HOLD_REASONS = ("", "behind", "budget")  # why the rate limiter holds actors; "": it does not
+
+
+@dataclass(eq=False)
+class RateState(Message):
+    """The replay's rate limiter (replay/rate_limiter.py), the one authority on the pace: its counters and
+    decisions, on replay/rate when the actors' hold changes and every stats period, and inside ReplayStats."""
+    time: float = wired(Real())
+    env_steps: int = wired(COUNT)  # every step received, stored or not
+    batches_served: int = wired(COUNT)  # since updates started: the learner's updates
+    updates_due: float = wired(Real(min_value=0.0))  # what the steps since the start mark pay for
+    start_env_steps: float | None = wired(Nullable(Real(min_value=0.0)))  # the start mark; None: not started
+    hold_reason: str = wired(Text())  # one of HOLD_REASONS
+    closed: bool = wired(Flag())  # budget spent and paid for: the run takes no more episodes
+    refilling: bool = wired(Flag())  # a resumed replay refilling its store: updates wait
+    refill_env_steps: int = wired(COUNT)
+    lost_updates: int = wired(COUNT)  # served to a learner that died before keeping them: owed again
+    recounted_updates: int = wired(COUNT)  # made by a learner, lost from a resumed replay's counters
+    error_buffer_updates: float = wired(Real(min_value=1.0))  # B: how far the learner may run ahead
+    hold_updates: float = wired(Real(min_value=0.0))  # how far it may fall behind before actors hold
+    env_steps_per_update_target: float = wired(Real(min_value=0.0))
+    env_steps_per_update: float | None = wired(Nullable(Real()))  # achieved; None before the first batch
+
+    @property
+    def updates_started(self) -> bool:
+        """Batches are served: past the start mark and not refilling."""
+        return self.start_env_steps is not None and not self.refilling
+
+    def check(self) -> None:
+        if self.hold_reason not in HOLD_REASONS:
+            raise WireError(f"RateState.hold_reason: {self.hold_reason!r} is not one of {HOLD_REASONS}")
+        if self.start_env_steps is not None and self.start_env_steps > self.env_steps:
+            raise WireError(f"RateState.start_env_steps: {self.start_env_steps} lies past env_steps "
+                            f"{self.env_steps}")
+        if self.start_env_steps is None and self.batches_served:
+            raise WireError(f"RateState: {self.batches_served} batches served before updates started")
+
+
+@dataclass(eq=False)
+class ReplayStats(Message):
+    """The replay's counters, on replay/stats every replay.stats_period_s (replay/process.py)."""
+    time: float = wired(Real())
+    episodes: int = wired(COUNT)  # stored now
+    frames: int = wired(COUNT)
+    bytes: int = wired(COUNT)
+    env_steps_total: int = wired(COUNT)  # steps of every episode taken
+    inserted: int = wired(COUNT)
+    evicted: int = wired(COUNT)
+    evicted_for_budget: int = wired(COUNT)
+    short_dropped: int = wired(COUNT)  # episodes too short for a trace
+    traces_served: int = wired(COUNT)
+    pending_requests: int = wired(COUNT)
+    rejected_requests: int = wired(COUNT)
+    expired_requests: int = wired(COUNT)
+    failed_samples: int = wired(COUNT)
+    episodes_missing: int = wired(COUNT)  # episode indices that never arrived (replay/ledger.py)
+    episode_sources: int = wired(COUNT)  # actor processes heard from
+    restored_episodes: int = wired(COUNT)
+    restore_skipped: int = wired(COUNT)
+    late_episodes: int = wired(COUNT)  # arrived after the run closed: not taken
+    late_env_steps: int = wired(COUNT)
+    snapshot_age_s: float | None = wired(Nullable(Real()))  # None: no snapshot taken yet
+    frame_bytes_mean: float | None = wired(Nullable(Real(min_value=0.0)))  # None: the store is empty
+    rate: RateState = wired(Nested(RateState))
+    snapshot: dict[str, int | float] = wired(NumberDict())  # snapshots_written, snapshot_failures, ...
+    rejected: dict[str, int | float] = wired(NumberDict())  # rejected_<kind>, malformed_<door>, rejected_total
+    speeds: dict[str, int | float] = wired(NumberDict())  # <counter>_per_s over the last period
+
+
+COUNTER_TYPES = (Stats, RateState, ReplayStats)  # the messages of counters that logs keep as flat rows
+
+
+def flat_values(message: Message) -> dict[str, int | float | str]:
+    """A counters message as one flat row, the shape logs and CSVs keep: a Stats' values; a typed message's
+    fields, a nested message's named with its field's prefix, a dict's merged, flags as 0 or 1, None left out."""
+    if isinstance(message, Stats):
+        return dict(message.values)
+    flat: dict[str, int | float | str] = {}
+    for field in dataclasses.fields(message):
+        value = getattr(message, field.name)
+        if isinstance(value, Message):
+            flat.update({f"{field.name}_{name}": item for name, item in flat_values(value).items()})
+        elif isinstance(value, dict):
+            flat.update(value)
+        elif value is not None:
+            flat[field.name] = int(value) if isinstance(value, bool) else value
+    return flat
+
+
 @dataclass(eq=False)
 class EpisodeRecord(Message):
     actor_id: int = wired(COUNT)
@@ -234,5 +324,5 @@ class EpisodeAck(Message):
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.__name__: cls
     for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, EpisodeRecord, Heartbeat,
-                EpisodeAck)
+                EpisodeAck, RateState, ReplayStats)
 }

@@ -2,8 +2,8 @@
 ratio strays, against the error buffer and the actors' hold.
 
 The real code decides: the replay's RateLimiter (replay/rate_limiter.py) counts the steps and the
-batches, its hold goes to each actor's Mailbox as the replay's rate message (a Stats from
-``limiter.values()``, announced when the hold changes, as the replay's reply thread does), and an idle
+batches, its hold goes to each actor's Mailbox as the replay's rate message (the RateState
+of ``limiter.state()``, announced when the hold changes, as the replay's reply thread does), and an idle
 simulator begins its next episode when the actor's EpisodeGate (actor/gate.py) lets it. The learner
 stops when its RunClock (learner/service.py) says the run is closed and paid for. Only time is simulated:
 
@@ -38,7 +38,6 @@ import numpy as np
 from actor.gate import EpisodeGate, HoldLog
 from actor.mailbox import Mailbox
 from common.pacing import RateLimit
-from common.wire.messages import Stats
 from learner.service import RunClock
 from replay.rate_limiter import RateLimiter
 
@@ -122,7 +121,7 @@ class Replay:
         said = (self.limiter.hold_reason(), self.limiter.closed)
         if said != self._announced:
             self._announced = said
-            message = Stats(source="rate_limiter", time=now, values=self.limiter.values())
+            message = self.limiter.state(now)
             for mailbox in self.mailboxes:
                 mailbox.offer_rate(message)
 

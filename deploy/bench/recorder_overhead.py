@@ -30,7 +30,7 @@ from common.run_dir import RunDir
 from common.transport import free_port, loopback_endpoint, open_session, subscribe
 from common.keys import Keys
 from common.wire.envelope import decode
-from common.wire.messages import EpisodeRecord, Stats
+from common.wire.messages import EpisodeRecord, ReplayStats, Stats
 from replay.log.reader import LogFile
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,9 +56,9 @@ class Watch:
         self.updates_per_s: list[float] = []
         self.done = threading.Event()
 
-    def on_replay(self, message: Stats, key: str) -> None:
+    def on_replay(self, message: ReplayStats, key: str) -> None:
         with self.lock:
-            self.samples.append((message.time, int(message.values["env_steps_total"])))
+            self.samples.append((message.time, message.env_steps_total))
             if self.network_from is not None and self.samples[-1][1] >= self.network_from + self.steps:
                 self.done.set()
 
@@ -81,7 +81,7 @@ def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[s
     keys = Keys("d3rqn", name)
     config = TransportConfig(mode="client", connect=[loopback_endpoint(port)], connect_timeout_s=30)
     with open_session(config) as session:
-        subscriptions = [subscribe(session, keys.replay_stats, watch.on_replay, expected=Stats),
+        subscriptions = [subscribe(session, keys.replay_stats, watch.on_replay, expected=ReplayStats),
                          subscribe(session, keys.metrics_all, watch.on_metric)]
         finished = watch.done.wait(RUN_TIMEOUT_S)
         for subscription in subscriptions:
@@ -108,7 +108,7 @@ def log_sizes(path: Path, run: str) -> dict:
         weights = [keys.weights] if keys.weights in log.wire_topics() else []
         weights_bytes = sum(len(record.data) for record in log.records(weights)) if weights else 0
         replay = list(log.records([keys.replay_stats]))
-        logged_steps = int(decode(replay[-1].data).values["env_steps_total"]) if replay else 0
+        logged_steps = decode(replay[-1].data, ReplayStats).env_steps_total if replay else 0
         return {"file_bytes": log.size_bytes, "weights_bytes": weights_bytes,
                 "weights": log.message_counts.get(keys.weights, 0), "logged_steps": logged_steps}
 

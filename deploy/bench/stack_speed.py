@@ -34,7 +34,7 @@ from common.config_values import to_toml
 from common.cpu_capability import describe_cpu
 from common.transport import free_port, loopback_endpoint, open_session, publisher, request, subscribe
 from common.keys import Keys
-from common.wire.messages import Stats, TraceBatch, TraceBatchRequest
+from common.wire.messages import RateState, ReplayStats, TraceBatch, TraceBatchRequest
 from deploy.reference_loop import train
 from learner.trace_batch import TraceArrays
 from learner.update import DoubleQLearner
@@ -72,18 +72,18 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
         stack = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "stack.py"), *flags],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         session = open_session(TransportConfig(mode="client", connect=[loopback_endpoint(port)]))
-        seen: dict[str, float] = {}  # the replay's latest stats
+        seen: dict[str, ReplayStats] = {}  # the replay's latest stats
         keys = Keys(config.transport.namespace, "bench")
-        subscription = subscribe(session, keys.replay_stats, lambda message, key: seen.update(message.values),
-                                 expected=Stats)
+        subscription = subscribe(session, keys.replay_stats, lambda message, key: seen.update(last=message),
+                                 expected=ReplayStats)
         try:
             # Steps the actors took at random-play speed before they heard that updates began are
             # owed updates; measure once the learner has paid them (within the rate limiter's buffer).
-            while not caught_up(seen):
+            while "last" not in seen or not caught_up(seen["last"].rate):
                 time.sleep(0.2)
-            first = (time.monotonic(), seen["env_steps_total"], seen["rate_batches_served"])
+            first = (time.monotonic(), seen["last"].env_steps_total, seen["last"].rate.batches_served)
             time.sleep(seconds)
-            last = (time.monotonic(), seen["env_steps_total"], seen["rate_batches_served"])
+            last = (time.monotonic(), seen["last"].env_steps_total, seen["last"].rate.batches_served)
         finally:
             subscription.undeclare()
             session.close()
@@ -93,13 +93,12 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
     return (last[1] - first[1]) / elapsed, (last[2] - first[2]) / elapsed
 
 
-def caught_up(replay: dict) -> bool:
+def caught_up(rate: RateState) -> bool:
     """Updates have started and the learner is within the actors' lead of what is due (the lag a learner
-    slower than its actors keeps; a replay before replay.hold_updates gives only its error buffer)."""
-    if replay.get("rate_start_env_steps", -1) < 0 or replay.get("rate_batches_served", 0) < 1:
+    slower than its actors keeps)."""
+    if not rate.updates_started or rate.batches_served < 1:
         return False
-    lead = replay.get("rate_hold_updates", replay["rate_error_buffer_updates"])
-    return replay["rate_updates_due"] - replay["rate_batches_served"] <= lead
+    return rate.updates_due - rate.batches_served <= rate.hold_updates
 
 
 def replay_flat_out(config: Config, seconds: float, clients: int) -> tuple[float, float]:

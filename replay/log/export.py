@@ -1,7 +1,7 @@
 """A log as tables (CSV) and as a Foxglove viewing file with the camera frames.
 
 Tables: ``episodes.csv`` (the EpisodeRecords of all actors), ``exploration.csv``, and
-one CSV per key that carries Stats, named after the key below the run
+one CSV per key that carries counters (Stats, RateState, ReplayStats), named after the key below the run
 (``metrics_learner_0.csv``, ``replay_stats.csv``, ``metrics_recorder_0.csv``, ...).
 Every row starts with the log and publish times in seconds since the Unix epoch.
 
@@ -17,7 +17,7 @@ import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import COUNTER_TYPES, EpisodeRecord, ExplorationState
 from replay.log.arrival import relative_key
 from replay.log.reader import LogFile
 from replay.log.views import ViewMaker, json_safe, message_view
@@ -29,7 +29,7 @@ TIME_COLUMNS = ("log_time", "publish_time")
 @dataclass
 class Tables:
     episodes: list[dict] = field(default_factory=list)
-    stats: dict[str, list[dict]] = field(default_factory=dict)  # key below the run -> rows of its Stats
+    stats: dict[str, list[dict]] = field(default_factory=dict)  # key below the run -> rows of its counters
     exploration: list[dict] = field(default_factory=list)
 
 
@@ -37,7 +37,7 @@ def collect(log: LogFile) -> Tables:
     """The metrics of a log as rows of plain values, in log-time order."""
     tables = Tables()
     root = log.keys().root
-    for record, message in log.messages(EpisodeRecord, Stats, ExplorationState):
+    for record, message in log.messages(EpisodeRecord, ExplorationState, *COUNTER_TYPES):
         row = {"log_time": record.log_ns / 1e9, "publish_time": record.publish_ns / 1e9}
         if isinstance(message, ExplorationState):
             row.update({name: value for name, value in message_view(message).items() if name != "counters"
@@ -46,7 +46,7 @@ def collect(log: LogFile) -> Tables:
             tables.exploration.append(row)
             continue
         row.update(message_view(message))
-        if isinstance(message, Stats):
+        if isinstance(message, COUNTER_TYPES):
             tables.stats.setdefault(relative_key(root, record.topic), []).append(row)
         else:
             tables.episodes.append(row)

@@ -1,15 +1,15 @@
 """A run's curves as named scalar series: the one mapping from messages that TensorBoard and `plot` share.
 
-Each recorded EpisodeRecord, Stats and ExplorationState becomes points of series
+Each recorded EpisodeRecord, counters message and ExplorationState becomes points of series
 named by tags, the names TensorBoard shows:
 
 * ``episode/return``, ``episode/return_mean_100`` (the mean over the last 100
   episodes, the paper's curve), ``episode/length``, ``episode/epsilon`` (what the
   episode was acted with), ``episode/collided``: one point per EpisodeRecord;
-* ``<key>/<value>`` for every finite number of a Stats, the key taken below the
+* ``<key>/<value>`` for every finite number of a counters message (flattened), the key taken below the
   run without ``metrics/``: ``learner/0/loss``, ``learner/0/loss_abs_diff``,
   ``learner/0/updates_per_s``, ``learner/0/epsilon``, ``replay/stats/episodes``,
-  ``replay/rate/hold_actors``, ``actor_stats/0/episodes_sent``, ``recorder/0/dropped``...;
+  ``replay/rate/updates_due``, ``actor_stats/0/episodes_sent``, ``recorder/0/dropped``...;
 * ``exploration/epsilon``, ``exploration/kappa``, ``exploration/started`` and
   ``exploration/counters/<name>`` of the learner's exploration state.
 
@@ -30,12 +30,12 @@ from typing import Collection, NamedTuple
 
 from common.analysis.plotting import RETURN_WINDOW
 from common.wire.codecs import Message
-from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import COUNTER_TYPES, EpisodeRecord, ExplorationState, flat_values
 from common.wire.run_shape import stat_number
 from replay.log.arrival import relative_key
 from replay.log.reader import LogFile
 
-CURVE_TYPES = (EpisodeRecord, Stats, ExplorationState)
+CURVE_TYPES = (EpisodeRecord, ExplorationState, *COUNTER_TYPES)
 CURVE_TYPE_NAMES = frozenset(cls.__name__ for cls in CURVE_TYPES)
 ENV_STEP_VALUES = ("env_steps", "env_steps_total")  # Stats values that count the run's env steps
 METRICS_PREFIX = "metrics/"
@@ -74,8 +74,8 @@ class Curves:
         wall_s = log_ns / 1e9
         if isinstance(message, EpisodeRecord):
             return self._episode(message, wall_s)
-        if isinstance(message, Stats):
-            return self._stats(relative_key(self.run_root, key), message.values, wall_s)
+        if isinstance(message, COUNTER_TYPES):
+            return self._stats(relative_key(self.run_root, key), flat_values(message), wall_s)
         if isinstance(message, ExplorationState):
             values = {"epsilon": message.epsilon, "kappa": message.kappa, "started": float(message.started),
                       **{f"counters/{name}": value for name, value in message.counters.items()}}

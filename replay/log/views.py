@@ -28,7 +28,7 @@ import numpy as np
 from common.wire.codecs import Flag, Integer, Message, NumberDict, PlainDict, Real, Text
 from common.wire.envelope import decode
 from common.wire.errors import WireError
-from common.wire.messages import Episode, EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import COUNTER_TYPES, Episode, EpisodeRecord, ExplorationState, Stats, flat_values
 from replay.log.arrival import relative_key
 
 VIEW_ENCODING = "json"
@@ -75,10 +75,14 @@ def message_schema(cls: type[Message]) -> dict:
     return {"title": f"d3rqn.{cls.__name__}", "type": "object", "properties": properties}
 
 
-STATS_SCHEMA = {"title": "d3rqn.Stats", "type": "object",  # values flattened beside source and time
-                "properties": {"source": {"type": "string"}, "time": {"type": "number"}},
-                "additionalProperties": {"type": ["number", "string", "null"]}}
-SCHEMAS = {Stats: STATS_SCHEMA, EpisodeRecord: message_schema(EpisodeRecord),
+def counters_schema(cls: type[Message]) -> dict:
+    """A counters message flattened (common/wire/messages.py flat_values): its time and named numbers."""
+    return {"title": f"d3rqn.{cls.__name__}", "type": "object",
+            "properties": {"source": {"type": "string"}, "time": {"type": "number"}},
+            "additionalProperties": {"type": ["number", "string", "null"]}}
+
+
+SCHEMAS = {**{cls: counters_schema(cls) for cls in COUNTER_TYPES}, EpisodeRecord: message_schema(EpisodeRecord),
            ExplorationState: message_schema(ExplorationState)}
 VIEWED_TYPES = frozenset(cls.__name__ for cls in SCHEMAS)
 
@@ -97,9 +101,11 @@ def json_safe(value: Any) -> Any:
 
 
 def message_view(message: Message) -> dict:
-    """A Stats, EpisodeRecord or ExplorationState as a JSON object (Stats values flattened)."""
+    """A counters message, EpisodeRecord or ExplorationState as a JSON object (counters flattened)."""
     if isinstance(message, Stats):
         return json_safe({**message.values, "source": message.source, "time": message.time})
+    if isinstance(message, COUNTER_TYPES):
+        return json_safe(flat_values(message))
     schema = SCHEMAS[type(message)]
     return json_safe({name: getattr(message, name) for name in schema["properties"]})
 
