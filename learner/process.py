@@ -13,13 +13,15 @@ import time
 import torch
 
 from common.checkpoint import CheckpointError
+from common.exploration.build import exploration_message
 from common.config import Config
 from common.logs import Every
+from common.pacing import rate_limit_from_config
 from common.service import Service
 from common.transport import publisher, request, serve, subscribe
 from common.shared_memory import SharedMemory
 from common.keys import Keys
-from common.wire.messages import ExplorationState, Stats, TraceBatchRequest, Weights
+from common.wire.messages import Stats, TraceBatchRequest, Weights
 from learner.prefetch import Prefetcher
 from learner.service import (IDLE_POLL_S, SAMPLE_TIMEOUT_S, WAIT_LOG_S, Admitted, Cadence, LearnerMetrics,
                              LearnerService)
@@ -49,7 +51,8 @@ def run_learner(config: Config, resume: bool = False) -> None:
                              "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights)}
         for receiver in process.receivers.values():
             service.on_close(receiver.undeclare)
-        outputs = Outputs(session, keys, SharedMemory.of(config.transport))
+        outputs = Outputs(session, keys, SharedMemory.of(config.transport),
+                          rate_limit_from_config(config).start_by_steps)
         outputs.weights(process.make_weights())
         _train(process, outputs, service.stop, session, keys)
 
@@ -57,11 +60,13 @@ def run_learner(config: Config, resume: bool = False) -> None:
 class Outputs:
     """Everything the learner publishes; weights from shared memory when given some."""
 
-    def __init__(self, session, keys: Keys, shared_memory: SharedMemory | None = None) -> None:
+    def __init__(self, session, keys: Keys, shared_memory: SharedMemory | None = None,
+                 start_by_steps: bool | None = None) -> None:
         self._weights = publisher(session, keys.weights, shared_memory=shared_memory)
         self._exploration = publisher(session, keys.exploration)
         self._metrics = publisher(session, keys.metrics_source("learner", "0"))
         self._last_exploration: dict | None = None
+        self._start_by_steps = start_by_steps  # the start rule, stated with every exploration state
 
     def weights(self, weights: Weights) -> None:
         self._weights.put(weights)
@@ -69,7 +74,7 @@ class Outputs:
     def exploration(self, strategy, force: bool = False) -> None:
         state = strategy.state_dict()
         if force or state != self._last_exploration:
-            self._exploration.put(ExplorationState(**state))
+            self._exploration.put(exploration_message(strategy, self._start_by_steps))
             self._last_exploration = state
 
     def metrics(self, values: dict) -> None:

@@ -27,7 +27,6 @@ what was not kept.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import threading
@@ -36,7 +35,6 @@ from collections import deque
 from pathlib import Path
 
 from common.config import Config
-from common.exploration.build import strategy_from_state
 from common.exploration.names import starts_by_steps
 from common.logs import Every
 from common.pacing import rate_limit_from_config
@@ -94,7 +92,7 @@ class ReplayService:
         self.rejected_requests = 0
         self.expired_requests = 0
         self.failed_samples = 0
-        self.learner_strategy: str | None = None
+        self.learner_rule: tuple[str, bool] | None = None  # the learner's strategy and start rule, as last stated
         self._measured = False
         self._warn_budget = ThrottledLog(60.0, logger=log)
         self._announced: tuple[str, int, bool] | None = None  # hold reason, env steps, closed: last on replay/rate
@@ -214,31 +212,32 @@ class ReplayService:
         return None
 
     def on_exploration(self, state: ExplorationState, key: str = "") -> None:
-        """The learner's strategy decides the start rule (decreasing epsilon starts by steps); a state
-        that does not describe a strategy completely is refused."""
+        """The learner states its start rule with its exploration state; the state of a learner that
+        predates that field gives it by its strategy's name (decreasing epsilon starts by steps), and is
+        refused if no strategy has that name."""
         if not isinstance(state, ExplorationState):
             self.rejections.reject("exploration_wrong_type", f"a {type(state).__name__} on {key or 'exploration'}")
             return
-        with self._lock:
-            if state.strategy == self.learner_strategy:
+        by_steps = state.start_by_steps
+        if by_steps is None:
+            try:
+                by_steps = starts_by_steps(state.strategy, self.config.learner.start_by)
+            except ValueError as error:
+                self.rejections.reject("exploration_invalid", str(error))
                 return
-        try:
-            strategy_from_state(dataclasses.asdict(state), self.config.network.n_actions)
-        except ValueError as error:
-            self.rejections.reject("exploration_invalid", str(error))
-            return
         with self._lock:
-            self.learner_strategy = state.strategy
-            by_steps = starts_by_steps(state.strategy, self.config.learner.start_by)
+            if (state.strategy, by_steps) == self.learner_rule:
+                return
+            self.learner_rule = (state.strategy, by_steps)
             changed = by_steps != self.limiter.limit.start_by_steps
             accepted = self.limiter.set_start_by_steps(by_steps)
         if changed and accepted:
-            log.info("the learner's strategy is %s: updates start at %s", state.strategy,
+            log.info("the learner (strategy %s) starts updates at %s", state.strategy,
                      f"{self.config.learner.start_steps} env steps" if by_steps
                      else f"{self.config.learner.start_episodes} episodes")
         elif not accepted:
-            log.warning("the learner's strategy is %s, but updates already started by the other rule "
-                        "(this replay was configured for %s)", state.strategy, self.config.exploration.strategy)
+            log.warning("the learner (strategy %s) starts updates by %s, but they already started by the other "
+                        "rule", state.strategy, "env steps" if by_steps else "episodes")
 
     # --- the reply threads ---------------------------------------------------------------
 

@@ -160,20 +160,20 @@ def test_the_replay_refuses_requests_it_cannot_serve_and_holds_a_bounded_number(
     assert all(query.answer is None for query in held[:MAX_PENDING])
 
 
-def test_the_replay_takes_only_a_complete_exploration_state(tmp_path):
-    config = small_config(tmp_path)
-    service = ReplayService(config)
+def test_the_replay_takes_the_start_rule_the_learner_states_or_its_strategys(tmp_path):
+    service = ReplayService(small_config(tmp_path))  # configured for constant epsilon: by episodes
     state = exploration_message(make_strategy(load_config("smoke", overrides={
-        "exploration.strategy": "decreasing"}).exploration, 5))
-    for bad in (dataclasses.replace(state, strategy="teleport"), dataclasses.replace(state, params={"eps_start": 9.0}),
-                dataclasses.replace(state, state={"nonsense": 1})):
-        service.on_exploration(bad)
+        "exploration.strategy": "decreasing"}).exploration, 5))  # no rule stated: a learner that predates it
+    service.on_exploration(dataclasses.replace(state, strategy="teleport"))  # nor a strategy to read it from
     service.on_exploration(Stats(source="x", time=0.0, values={}))
     stats = flat_values(service.stats())
-    assert stats["rejected_exploration_invalid"] >= 2 and stats["rejected_exploration_wrong_type"] == 1
-    assert service.learner_strategy is None and not service.limiter.limit.start_by_steps
-    service.on_exploration(state)
-    assert service.learner_strategy == "decreasing" and service.limiter.limit.start_by_steps
+    assert stats["rejected_exploration_invalid"] == 1 and stats["rejected_exploration_wrong_type"] == 1
+    assert service.learner_rule is None and not service.limiter.limit.start_by_steps
+    service.on_exploration(state)  # decreasing epsilon's own rule
+    assert service.learner_rule == ("decreasing", True) and service.limiter.limit.start_by_steps
+    stated = ReplayService(small_config(tmp_path))
+    stated.on_exploration(dataclasses.replace(state, start_by_steps=False))  # learner.start_by episodes
+    assert stated.learner_rule == ("decreasing", False) and not stated.limiter.limit.start_by_steps
 
 
 @pytest.mark.parametrize("start_by, by_steps", [("episodes", False), ("steps", True)])
@@ -183,7 +183,7 @@ def test_a_start_rule_for_every_strategy_holds_whatever_the_learners_strategy(tm
     for strategy in ("decreasing", "bmc"):
         service.on_exploration(exploration_message(make_strategy(load_config("smoke", overrides={
             "exploration.strategy": strategy}).exploration, 5)))
-        assert service.learner_strategy == strategy and service.limiter.limit.start_by_steps == by_steps
+        assert service.learner_rule == (strategy, by_steps) and service.limiter.limit.start_by_steps == by_steps
 
 
 def test_a_learner_that_starts_again_is_owed_the_batches_its_predecessor_lost(tmp_path):

@@ -104,6 +104,8 @@ def test_replay_learner_and_two_actors_train_together(stack):
     with observer.lock:
         losses = [v["loss"] for v in observer.learner if v["updates"] > 0]
     assert losses and all(math.isfinite(loss) for loss in losses)
+    with observer.lock:  # the learner states its start rule for the replay (BMC: by episodes)
+        assert observer.exploration and all(s.start_by_steps is False for s in observer.exploration)
 
     # SIGKILL one actor: the other goes on and the replay loses nothing it stored.
     processes["actor0"].kill()

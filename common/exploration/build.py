@@ -62,6 +62,7 @@ def strategy_from_state(state: dict, n_actions: int) -> ExplorationStrategy:
     return strategy
 
 
-def exploration_message(strategy: ExplorationStrategy) -> ExplorationState:
-    """The strategy's state_dict() as the wire message the actors load."""
-    return ExplorationState(**strategy.state_dict())
+def exploration_message(strategy: ExplorationStrategy, start_by_steps: bool | None = None) -> ExplorationState:
+    """The strategy's state_dict() as the wire message the actors load, with the learner's start rule
+    for the replay (common/wire/messages.py)."""
+    return ExplorationState(**strategy.state_dict(), start_by_steps=start_by_steps)
