@@ -9,6 +9,7 @@ import time
 from typing import Callable
 
 from actor.mailbox import Mailbox
+from common.logs import Every
 
 HOLD_WHY = {"budget": "the run's step budget is spent",
             "policy": "updates have started and the learner's weights and exploration state have not come",
@@ -61,7 +62,7 @@ class HoldLog:
     """The rate limiter's holds, logged once per period with their count and time, not once per hold."""
 
     def __init__(self, period_s: float, clock=time.monotonic) -> None:
-        self.period_s = period_s
+        self._every = Every(period_s, clock)
         self._clock = clock
         self._line_at = clock()
         self._held = 0  # holds begun since the last line (an ongoing one counts again in the next)
@@ -77,9 +78,9 @@ class HoldLog:
         self._since = None
 
     def tick(self, reason: str) -> None:
-        now = self._clock()
-        if now - self._line_at < self.period_s:
+        if not self._every.due():
             return
+        now = self._clock()
         ongoing = self._since is not None
         held_s = self._held_s + (now - self._since if ongoing else 0.0)
         why = HOLD_WHY.get(reason, "the learner is behind")

@@ -3,36 +3,33 @@
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections import Counter
 
+from common.logs import LOG_PERIOD_S, ThrottledLog
+
 
 class Rejections:
-    """Refused input by kind: counted, and logged at most once per kind per period (the next line
-    of a kind says how many were not shown). Thread-safe: Zenoh calls back on several threads."""
+    """Refused input by kind: counted, and logged at most once per kind per period by a ThrottledLog of
+    its own (the next line of a kind says how many were not shown). Thread-safe: Zenoh calls back on
+    several threads."""
 
-    def __init__(self, logger: logging.Logger, period_s: float = 10.0, clock=time.monotonic) -> None:
+    def __init__(self, logger: logging.Logger, period_s: float = LOG_PERIOD_S, clock=time.monotonic) -> None:
         self._log = logger
         self._period_s = period_s
         self._clock = clock
         self._lock = threading.Lock()
         self.counts: Counter[str] = Counter()
-        self._last: dict[str, float] = {}
-        self._unshown: Counter[str] = Counter()
+        self._lines: dict[str, ThrottledLog] = {}
 
     def reject(self, kind: str, text: str) -> None:
         with self._lock:
             self.counts[kind] += 1
-            now = self._clock()
-            if now - self._last.get(kind, -math.inf) < self._period_s:
-                self._unshown[kind] += 1
-                return
-            self._last[kind] = now
-            unshown, self._unshown[kind] = self._unshown[kind], 0
-        more = f" ({unshown} more of this kind since the last line)" if unshown else ""
-        self._log.warning("rejected (%s): %s%s", kind, text[:500], more)
+            line = self._lines.get(kind)
+            if line is None:
+                line = self._lines[kind] = ThrottledLog(self._period_s, self._clock, self._log)
+        line.warning("rejected (%s): %s", kind, text[:500])
 
     @property
     def total(self) -> int:

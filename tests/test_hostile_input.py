@@ -105,7 +105,7 @@ def test_rejections_count_every_one_and_log_one_line_per_kind_per_period(caplog)
         rejections.reject("junk", "bad again")
     assert rejections.values() == {"rejected_junk": 51, "rejected_other": 1, "rejected_total": 52}
     lines = [record.getMessage() for record in caplog.records]
-    assert len(lines) == 3 and "49 more of this kind" in lines[2]
+    assert len(lines) == 3 and "(49 similar suppressed)" in lines[2]
 
 
 # --- the replay ------------------------------------------------------------------------------------
