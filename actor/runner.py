@@ -63,7 +63,7 @@ from common.logs import Every
 from common.network import initial_network
 from common.pacing import env_steps_ceiling
 from common.rejections import Rejections
-from common.service import Service
+from common.shell import Service
 from common.stored_state import no_states
 from common.transport import publisher, request, subscribe, watch_liveliness
 from common.keys import Keys

@@ -42,7 +42,7 @@ from common.cpu_capability import exit_if_unrunnable
 from common.eta import Eta
 from common.pacing import updates_paid_for
 from common.run_dir import RunDir, RunStatus
-from common.service import PARENT_ENV
+from common.shell import PARENT_ENV
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
 from common.wire.messages import EpisodeRecord, ReplayStats, Stats

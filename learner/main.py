@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.service import parse_service_args
+from common.shell import parse_service_args
 
 
 def main(argv: list[str] | None = None) -> None:

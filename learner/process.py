@@ -17,7 +17,7 @@ from common.exploration.build import exploration_message
 from common.config import Config
 from common.logs import Every
 from common.pacing import rate_limit_from_config
-from common.service import Service
+from common.shell import Service
 from common.transport import publisher, request, serve, subscribe
 from common.shared_memory import SharedMemory
 from common.keys import Keys

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.service import parse_service_args
+from common.shell import parse_service_args
 
 RESUME_HELP = ("continue the run's earlier replay: restore its episodes from its snapshot "
                "(<run.runs_dir>/<run.name>/replay/snapshot/) and its rate limiter's counters "

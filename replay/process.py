@@ -15,7 +15,7 @@ from pathlib import Path
 from common.config import Config
 from common.logs import Every
 from common.run_dir import RunDir
-from common.service import Service
+from common.shell import Service
 from common.transport import publisher, put_once, serve_deferred, subscribe
 from common.logs import ThrottledLog
 from common.wire.messages import ReplayStats

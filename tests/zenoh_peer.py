@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     args, config = parse_config_or_exit(parser, argv)
     if args.command == "probe":
         return probe(config)
-    from common.service import stop_on_signals
+    from common.shell import stop_on_signals
 
     out = Lines(args.out)
     stop = stop_on_signals()

@@ -31,7 +31,7 @@ import zenoh
 
 from common.config import Config, RecorderConfig
 from common.run_dir import RunDir, next_free_path
-from common.service import Service
+from common.shell import Service
 from common.transport import Declared, publisher
 from common.logs import ThrottledLog
 from common.wire.messages import Stats, Weights

@@ -1,4 +1,4 @@
-"""The service shell (common/service.py): a role stops cleanly on SIGTERM with its liveliness
+"""The service shell (common/shell.py): a role stops cleanly on SIGTERM with its liveliness
 token gone, a session that cannot open is one clear line and exit code 1, and leaving the
 session by an error still closes everything, in order. Every session lives in its own process."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from common.config_values import load_config
-from common.service import PARENT_ENV, Service, stop_with_parent
+from common.shell import PARENT_ENV, Service, stop_with_parent
 from tests.processes import loopback_endpoint, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines
 
@@ -92,7 +92,7 @@ def test_leaving_by_an_error_sets_stop_runs_the_callbacks_newest_first_then_clos
 def test_a_role_started_by_a_stack_stops_when_the_stack_is_killed(tmp_path):
     """The stack sets D3RQN_STOP_WITH_PARENT to its pid: a role whose stack dies (SIGKILL, a crash) stops by
     itself instead of running on alone. A shell stands in for the stack, a small Python process for the role."""
-    role = ("import threading; from common.service import stop_with_parent; stop = threading.Event(); "
+    role = ("import threading; from common.shell import stop_with_parent; stop = threading.Event(); "
             "stop_with_parent(stop); print('up', flush=True); stop.wait(60); print('stopped', flush=True)")
     out = tmp_path / "role.out"
     stack = subprocess.Popen(["/bin/sh", "-c", f'{PARENT_ENV}=$$ "{sys.executable}" -c "{role}" > "{out}" & wait'],
