@@ -58,13 +58,13 @@ from actor.gate import HOLD_LOG_S, EpisodeGate, HoldLog
 from actor.mailbox import Mailbox
 from actor.sim import make_env
 from common.config import Config
-from common.exploration.build import make_strategy, same_strategy, strategy_from_state
+from common.strategy_build import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
 from common.network import initial_network
 from common.pacing import env_steps_ceiling
 from common.rejections import Rejections
 from common.shell import Service
-from common.stored_state import no_states
+from common.wire.state_rows import no_states
 from common.transport import publisher, request, subscribe, watch_liveliness
 from common.keys import Keys
 from common.wire.frames import FrameStack

@@ -2,7 +2,7 @@
 
 A config is a tree of dataclasses, one per section (``Config.learner``, ``Config.exploration.bmc``, ...);
 a strategy's section is declared next to its rule (common/exploration/). Each field is declared with
-``option()`` (common/options.py), whose one documentation string (with the unit and choices) is the
+``option()`` (common/options/), whose one documentation string (with the unit and choices) is the
 flag's ``--help`` line, and every section checks its values (``validate``); a bad one raises
 ``ConfigError`` whose one-line message names the key.
 

@@ -13,7 +13,7 @@ import time
 import torch
 
 from common.checkpoint import CheckpointError
-from common.exploration.build import exploration_message
+from common.strategy_build import exploration_message
 from common.config import Config
 from common.logs import Every
 from common.pacing import rate_limit_from_config

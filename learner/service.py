@@ -37,7 +37,7 @@ from common.cpu_capability import cpu_model
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
-from common.exploration.build import make_strategy
+from common.strategy_build import make_strategy
 from common.pacing import achieved_ratio, env_steps_ceiling, is_unpaced, updates_paid_for
 from common.rejections import Rejections
 from common.run_dir import RunDir

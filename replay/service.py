@@ -40,7 +40,7 @@ from common.logs import Every
 from common.pacing import rate_limit_from_config
 from common.rejections import Rejections
 from common.run_dir import RunDir
-from common.stored_state import stored_units
+from common.wire.state_rows import stored_units
 from common.transport import PendingQuery
 from common.logs import ThrottledLog
 from common.wire.errors import WireError

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.stored_state import STATE_DTYPE, bytes_per_step, no_states
+from common.wire.state_rows import STATE_DTYPE, bytes_per_step, no_states
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, TraceBatch
 

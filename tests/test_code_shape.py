@@ -1,7 +1,8 @@
 """The code's shape. Roles are peers: actor, learner and replay (with the recorder, replay/log) import only
 common and their own modules, and common imports no role; what composes roles (the stack, the reference
 loop, the grid runner) lives in deploy/. Read from the import statements of every module, so a new arrow
-fails here. And a module does one thing: none outside the simulator (actor/sim/) exceeds MAX_LINES."""
+fails here. Inside common, no two folders import each other (the root's modules count as one folder). And a
+module does one thing: none outside the simulator (actor/sim/) exceeds MAX_LINES."""
 
 from __future__ import annotations
 
@@ -42,6 +43,37 @@ def test_no_role_imports_another_and_common_imports_none():
         if allowed is not None and targets - allowed:
             wrong[module] = sorted(targets - allowed)
     assert not wrong, f"arrows between roles, or from common to a role: {wrong}"
+
+
+def folder_of(module: str) -> str:
+    """The folder of a dotted module name inside this project: common.wire.messages -> common/wire; a package
+    (a folder with __init__.py) is its own folder: common.options -> common/options."""
+    parts = module.split(".")
+    return "/".join(parts) if (ROOT.joinpath(*parts) / "__init__.py").exists() else "/".join(parts[:-1])
+
+
+def folder_loops(package: str = "common") -> list[tuple[str, str]]:
+    """Pairs of folders of the package that import each other, directly or through others."""
+    edges: dict[str, set[str]] = {}
+    for path in sorted((ROOT / package).rglob("*.py")):
+        own = str(path.parent.relative_to(ROOT))
+        targets = {folder_of(name) for name in imported(path) if name.split(".")[0] == package}
+        edges.setdefault(own, set()).update(targets - {own})
+
+    def reach(start: str) -> set[str]:
+        seen, todo = set(), [start]
+        while todo:
+            for target in edges.get(todo.pop(), ()):
+                if target not in seen:
+                    seen.add(target)
+                    todo.append(target)
+        return seen
+
+    return sorted((a, b) for a in edges for b in reach(a) if a < b and a in reach(b))
+
+
+def test_no_two_folders_of_common_import_each_other():
+    assert not folder_loops(), "folders of common/ that import each other (a loop)"
 
 
 def test_the_check_sees_an_arrow(tmp_path):

@@ -8,7 +8,7 @@ import pytest
 from common.analysis.figures import EPSILON_STRATEGIES
 from common.config import ExplorationConfig
 from common.config_values import load_config
-from common.exploration.build import STRATEGY_CLASSES, make_strategy
+from common.strategy_build import STRATEGY_CLASSES, make_strategy
 from common.exploration.names import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
                                       strategy_rank)
 from common.options import ConfigError

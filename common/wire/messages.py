@@ -13,7 +13,7 @@ import numpy as np
 
 from common.wire.codecs import (DTYPES, Array, Flag, Frames, Integer, Message, Nested, Nullable, NumberDict,
                                 PlainDict, Real, TensorDict, Text, wired)
-from common.stored_state import no_states
+from common.wire.state_rows import no_states
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS, decode_tensor, encode_tensor
@@ -42,7 +42,7 @@ class Episode(Message):
     # replay stores none twice and counts the indices that never arrived. 0: unnamed (older senders).
     incarnation: int = wired(COUNT, default=0)
     # learner.stored_state: the LSTM state (h, c) before each step, [L, 2, lstm_units]; (0, 2, 0) when not
-    # recorded (common/stored_state.py)
+    # recorded (common/wire/state_rows.py)
     recurrent_state: np.ndarray = wired(STATES, default_factory=no_states)
 
     def __len__(self) -> int:

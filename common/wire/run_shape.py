@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from common.stored_state import stored_units
+from common.wire.state_rows import stored_units
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, TraceBatch

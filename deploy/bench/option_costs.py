@@ -29,7 +29,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import load_config
 from common.cpu_capability import PrecisionUnavailable, describe_cpu
 from common.eta import Eta
-from common.stored_state import STATE_DTYPE, stored_units
+from common.wire.state_rows import STATE_DTYPE, stored_units
 from common.wire.frames import FrameStack
 from deploy.bench.learner_speed import random_batch
 from deploy.study import CONFIGURATIONS
