@@ -11,10 +11,10 @@ far a run got. Only this module knows what the file holds:
 
 The policies the learner keeps for greedy learning curves (learner.keep_every,
 <run>/policies/) are files of their own, KeptPolicy: the online weights only.
-A policy shipped with the project (deploy/ship_policy.py) is a KeptPolicy too,
+A policy shipped with the project (deploy/tools/ship_policy.py) is a KeptPolicy too,
 its weights in 16 bits (POLICY_ENCODINGS), half the size; reading it widens
 them to float32. So is the mean of several kept policies' weights
-(deploy/average_policies.py), which names the updates of those it averaged.
+(deploy/tools/average_policies.py), which names the updates of those it averaged.
 """
 
 from __future__ import annotations

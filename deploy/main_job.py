@@ -18,11 +18,11 @@ from pathlib import Path
 from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
-from deploy.experiments import preset_flags
-from deploy.grid_job import Options, choice_command, curve_commands, evaluate_command
-from deploy.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
+from deploy.studies.experiments import preset_flags
+from deploy.studies.grid_job import Options, choice_command, curve_commands, evaluate_command
+from deploy.studies.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
                                next_step, read_choice)
-from deploy.run_results import greedy_headline
+from deploy.studies.run_results import greedy_headline
 from deploy.stack import build_parser
 
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"

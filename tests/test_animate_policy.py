@@ -1,4 +1,4 @@
-"""Watching a policy drive (deploy/animate_policy.py): the video holds a frame every --stride steps and the
+"""Watching a policy drive (deploy/tools/animate_policy.py): the video holds a frame every --stride steps and the
 last, of the stated size, and the episode is the evaluation's own for that start and trial."""
 
 import cv2
@@ -10,7 +10,7 @@ from actor.sim import make_env
 from common.checkpoint import KeptPolicy
 from common.config_values import load_config, to_dict
 from common.network import D3RQN
-from deploy import animate_policy
+from deploy.tools import animate_policy
 
 FRAME_SIZE = (900, 300)  # width, height: the 198 x 600 camera frame and its caption beside the 300 x 300 view
 

@@ -1,4 +1,4 @@
-"""The mean of kept policies' weights (deploy/average_policies.py): hand-computed means, the file names what it
+"""The mean of kept policies' weights (deploy/tools/average_policies.py): hand-computed means, the file names what it
 averages, and what cannot be averaged is refused with the reason."""
 
 import pytest
@@ -10,7 +10,7 @@ from common.checkpoint import CheckpointError, KeptPolicy, write_atomically
 from common.config_values import load_config, to_dict
 from common.network import D3RQN
 from common.run_dir import RunDir
-from deploy import average_policies
+from deploy.tools import average_policies
 
 
 @pytest.fixture

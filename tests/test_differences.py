@@ -7,8 +7,8 @@ import pytest
 
 from common.analysis.intervals import Bootstrap
 from common.analysis.stats import EvaluationEpisode, episode_cell, summarise
-from deploy.comparison import ComparisonRow
-from deploy.differences import (chance_apart, chances_apart, compared_pairs, differences, differences_markdown, lie_apart,
+from deploy.studies.comparison import ComparisonRow
+from deploy.studies.differences import (chance_apart, chances_apart, compared_pairs, differences, differences_markdown, lie_apart,
                                 observed_statistics)
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from common.config_values import config_fields
-from deploy import option_reference
+from deploy.tools import option_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -116,7 +116,7 @@ def command_flags(line: str) -> tuple[str, frozenset[str] | None]:
     by_subcommand = parser_flags(source)
     flags = set(by_subcommand.get(None, frozenset({"--help"})))
     subcommand = next((later for later in words[1:] if later in by_subcommand), None)
-    if subcommand is not None:  # `d3rqn-log info ...`, `deploy/study.py run ...`: that subcommand's flags too
+    if subcommand is not None:  # `d3rqn-log info ...`, `deploy/studies/study.py run ...`: that subcommand's flags too
         flags |= by_subcommand[subcommand]
     return word, frozenset(flags)
 
@@ -216,7 +216,7 @@ def test_the_option_reference_is_the_config_schemas():
     page = option_reference.PAGE.read_text()
     assert option_reference.BEGIN in page and option_reference.END in page
     assert option_reference.current_reference(page) == option_reference.reference(), (
-        "docs/configuration.md's option reference is stale: run `.venv/bin/python deploy/option_reference.py "
+        "docs/configuration.md's option reference is stale: run `.venv/bin/python deploy/tools/option_reference.py "
         "--write`")
 
 

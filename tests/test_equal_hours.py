@@ -1,11 +1,11 @@
-"""Equal hours (deploy/equal_hours.py): runs of one CPU model read at equal measured wall time."""
+"""Equal hours (deploy/studies/equal_hours.py): runs of one CPU model read at equal measured wall time."""
 
 import csv
 
 import pytest
 
-from deploy import equal_hours
-from deploy.study import find_runs
+from deploy.studies import equal_hours
+from deploy.studies.study import find_runs
 from tests.study_runs import write_run
 
 

@@ -23,10 +23,10 @@ from common.run_dir import log_segments
 from common.keys import Keys
 from common.wire.envelope import encode
 from common.wire.messages import EpisodeRecord, Stats
-from deploy.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
+from deploy.studies.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
-from deploy.performance_profile import plot_performance_profiles
-from deploy.run_results import greedy_headline
+from deploy.studies.performance_profile import plot_performance_profiles
+from deploy.studies.run_results import greedy_headline
 from replay.log.arrival import Arrival, peek
 from replay.log.reader import LogError
 from replay.log.run_curves import read_run_curves

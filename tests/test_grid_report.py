@@ -1,4 +1,4 @@
-"""The grid's report (deploy/grid_report.py) on exported runs made by hand: each figure against values
+"""The grid's report (deploy/studies/grid_report.py) on exported runs made by hand: each figure against values
 computed by hand."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from common.config_values import load_config, to_toml
-from deploy import grid_report
+from deploy.studies import grid_report
 from tests.grid_runs import fake_evaluation
 
 CURVE = {1000: 200, 2000: 1200, 3000: 800, 4000: 1100, 6000: 1500}  # updates: greedy test mean length
@@ -110,7 +110,7 @@ def test_a_damaged_export_is_left_out_with_a_line(tmp_path):
 
 
 def test_the_committed_grid_rebuilds_from_its_committed_runs(tmp_path):
-    """results/grid/ is what deploy/grid_report.py makes of results/grid/runs/, on a fresh clone too."""
+    """results/grid/ is what deploy/studies/grid_report.py makes of results/grid/runs/, on a fresh clone too."""
     committed = Path(__file__).resolve().parents[1] / "results" / "grid"
     grid_report.report_on([committed / "runs"], tmp_path, warn=lambda line: pytest.fail(line))
     for name in ("grid.md", "grid_runs.csv", "grid_strategies.csv"):

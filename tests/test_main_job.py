@@ -9,7 +9,7 @@ import pytest
 
 from common.run_dir import RunDir
 from deploy import main_job
-from deploy.grid_cells import curve_wanted, read_choice
+from deploy.studies.grid_cells import curve_wanted, read_choice
 from tests.grid_runs import fake_evaluation
 from tests.test_grid_runner import BUDGET, KEPT, curve_rows, make_run, write_curve
 

@@ -1,4 +1,4 @@
-"""Finished runs exported small (deploy/run_results.py) and the report rebuilt from them alone (deploy/report.py):
+"""Finished runs exported small (deploy/studies/run_results.py) and the report rebuilt from them alone (deploy/studies/report.py):
 what an export holds, how exports from several folders merge, and a report with no run folder left."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import pytest
 from common.analysis.tables import COVERAGE, COVERAGE_COLUMNS
 from common.config_values import load_config, to_toml
 from common.run_dir import RunDir
-from deploy import report
-from deploy.run_results import (LEARNER_CSV, TRAINING_CSV, ExportError, collect, export_run, read_exported)
+from deploy.studies import report
+from deploy.studies.run_results import (LEARNER_CSV, TRAINING_CSV, ExportError, collect, export_run, read_exported)
 from tests.grid_runs import fake_evaluation, make_run
 from tests.test_experiments import assert_png, learner_report, record, write_log
 

@@ -1,4 +1,4 @@
-"""A policy shipped in 16 bits (deploy/ship_policy.py): it reads back as float32 weights within the rounding
+"""A policy shipped in 16 bits (deploy/tools/ship_policy.py): it reads back as float32 weights within the rounding
 of its encoding, acts as the float32 policy does, is half the size, and a damaged one is a clear error."""
 
 import numpy as np
@@ -14,7 +14,7 @@ from common.config_values import load_config, to_dict
 from common.network import D3RQN
 from common.run_dir import RunDir
 from common.wire.messages import Weights
-from deploy import ship_policy
+from deploy.tools import ship_policy
 from deploy.bench.weights_encoding import as_sent, drives, q_values
 from learner.update import DoubleQLearner
 from tests.test_weights_broadcasts import TOLERANCE  # docs/architecture.md's, for compact weights

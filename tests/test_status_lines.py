@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-import deploy.experiments as experiments
-import deploy.grid_job as grid_job
+import deploy.studies.experiments as experiments
+import deploy.studies.grid_job as grid_job
 from actor.gate import HoldLog
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config

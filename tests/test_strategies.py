@@ -12,7 +12,7 @@ from common.strategy_build import STRATEGY_CLASSES, make_strategy
 from common.exploration.names import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
                                       strategy_rank)
 from common.options import ConfigError
-from deploy.comparison import STRATEGY_NAMES
+from deploy.studies.comparison import STRATEGY_NAMES
 
 SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}
 

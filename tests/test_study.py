@@ -1,4 +1,4 @@
-"""The study at a fixed budget (deploy/study.py): which configuration a run is, its table and verdicts."""
+"""The study at a fixed budget (deploy/studies/study.py): which configuration a run is, its table and verdicts."""
 
 import csv
 import json
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.config_values import flat_items, load_config
-from deploy import study
+from deploy.studies import study
 from tests.study_runs import write_run
 
 

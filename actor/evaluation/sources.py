@@ -37,7 +37,7 @@ class PolicySource:
 
 def checkpoint_source(path: Path, args: argparse.Namespace) -> PolicySource:
     """A checkpoint file, a run folder or its checkpoints folder, or a policy the learner kept
-    (policies/policy-u<updates>.pt) or that was shipped in 16 bits (deploy/ship_policy.py)."""
+    (policies/policy-u<updates>.pt) or that was shipped in 16 bits (deploy/tools/ship_policy.py)."""
     saved = load_checkpoint_or_policy(path)
     if isinstance(saved, KeptPolicy):
         config = checkpoint_config(saved.config, args)

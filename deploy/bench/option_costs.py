@@ -1,6 +1,6 @@
 """The cost of each learner option beyond the paper, side by side in one run on one machine.
 
-For the paper's learner and each configuration of the study (deploy/study.py CONFIGURATIONS): the bytes one
+For the paper's learner and each configuration of the study (deploy/studies/study.py CONFIGURATIONS): the bytes one
 stored step takes in the replay (its frame as JPEG, measured on the simulator's own frames, plus actions,
 rewards, versions and any LSTM state row), the GFLOP of one update (deploy/bench/flops.py), updates per second
 (every configuration takes its turn in each round, so that noise from other processes hits all alike;
@@ -32,7 +32,7 @@ from common.eta import Eta
 from common.wire.state_rows import STATE_DTYPE, stored_units
 from common.wire.frames import FrameStack
 from deploy.bench.learner_speed import random_batch
-from deploy.study import CONFIGURATIONS
+from deploy.studies.study import CONFIGURATIONS
 from deploy.bench.flops import update_flops
 from learner.trace_batch import TraceArrays
 from learner.update import DoubleQLearner

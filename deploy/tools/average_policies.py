@@ -1,7 +1,7 @@
 """The mean of several kept policies' weights: one policy that smooths the swing between neighbouring ones.
 
-    .venv/bin/python deploy/average_policies.py runs/bmc --last 5 --out runs/bmc/averaged/last5.pt
-    .venv/bin/python deploy/average_policies.py runs/bmc/policies/policy-u0079000.pt \\
+    .venv/bin/python deploy/tools/average_policies.py runs/bmc --last 5 --out runs/bmc/averaged/last5.pt
+    .venv/bin/python deploy/tools/average_policies.py runs/bmc/policies/policy-u0079000.pt \\
         runs/bmc/policies/policy-u0080000.pt --out runs/bmc/averaged/two.pt
 
 Beyond the paper, and outside training: nothing the learner does changes. A greedy curve swings by hundreds
@@ -38,7 +38,7 @@ DEFAULT_LAST = 5
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="deploy/average_policies.py",
+        prog="deploy/tools/average_policies.py",
         description="Writes the mean of several kept policies' weights (of one network) as a kept policy that "
                     "evaluate --checkpoint reads. Beyond the paper: the learner is not changed.")
     parser.add_argument("sources", type=Path, nargs="+", metavar="PATH",

@@ -1,4 +1,4 @@
-"""The grid's report, from exported runs only (deploy/run_results.py), so that it rebuilds from a fresh clone
+"""The grid's report, from exported runs only (deploy/studies/run_results.py), so that it rebuilds from a fresh clone
 and merges runs of several machines:
 
 - per run: the time to drive (updates and env steps until the greedy test mean length first reaches 1,000
@@ -12,7 +12,7 @@ and merges runs of several machines:
 - figures: the greedy test curves (median over seeds, band their range), and each seed's time to drive;
 - the soak across the grid: hours, restarts, memory growth per process, the largest run folder.
 
-    .venv/bin/python deploy/grid_report.py results/grid/runs --out results/grid
+    .venv/bin/python deploy/studies/grid_report.py results/grid/runs --out results/grid
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ from common.analysis.intervals import Bootstrap
 from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
 from common.exploration.names import STRATEGIES
-from deploy.comparison import read_episodes_csv
-from deploy.grid_cells import read_choice
-from deploy.run_results import ExportedRun, collect
+from deploy.studies.comparison import read_episodes_csv
+from deploy.studies.grid_cells import read_choice
+from deploy.studies.run_results import ExportedRun, collect
 
 # The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
 PAPER_TEST_CFR = {"vdbe_softmax": 87.54, "bmc": 86.71, "max_boltzmann": 84.14, "softmax": 82.25, "vdbe": 61.77,
@@ -72,7 +72,7 @@ def read_runs(folders: Sequence[Path], warn=print) -> list[GridRun]:
         choice = read_choice(run.layout)
         curve = run.folder / "curve" / CURVE_CSV
         if choice is None or not curve.is_file():
-            continue  # a run of the earlier comparison: deploy/report.py reads it
+            continue  # a run of the earlier comparison: deploy/studies/report.py reads it
         try:
             rows = sorted((row for row in read_curve(curve) if row["start_set"] == "test"),
                           key=lambda r: int(r["updates"]))
@@ -358,7 +358,7 @@ def report_on(folders: Sequence[Path], out: Path, bootstrap: Bootstrap | None = 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="deploy/grid_report.py", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="deploy/studies/grid_report.py", description=__doc__.splitlines()[0])
     parser.add_argument("folders", type=Path, nargs="+", help="folders of exported runs (the first copy of a run wins)")
     parser.add_argument("--out", type=Path, required=True, help="where grid.md, the CSVs and the figures go")
     args = parser.parse_args(argv)

@@ -38,7 +38,7 @@ import numpy as np
 
 from common.analysis.across_seeds import smallest_p_value
 from common.analysis.intervals import Bootstrap, Interval, bootstrap_weights, cell_statistics, percentile_interval
-from deploy.comparison import BASELINES, STRATEGY_NAMES, ComparisonRow
+from deploy.studies.comparison import BASELINES, STRATEGY_NAMES, ComparisonRow
 
 DIFFERENCES_CSV = "differences.csv"
 SHOWN = ("mean_length", "iqm_length")  # the statistics results.md lists; the CSV has every one

@@ -1,9 +1,9 @@
 """Watch a policy drive: one greedy episode as a video, the front camera (what the network sees) beside a
 top-down view of the neighbourhood around the car.
 
-    .venv/bin/python deploy/animate_policy.py --checkpoint results/bmc/policy.pt --start-set test --start 0 \\
+    .venv/bin/python deploy/tools/animate_policy.py --checkpoint results/bmc/policy.pt --start-set test --start 0 \\
         --out /tmp/drive.mp4
-    .venv/bin/python deploy/animate_policy.py --checkpoint runs/bmc --start-set train --start 3 --trial 2 \\
+    .venv/bin/python deploy/tools/animate_policy.py --checkpoint runs/bmc --start-set train --start 3 --trial 2 \\
         --stride 4 --max-steps 800 --out /tmp/drive.mp4
 
 The episode is the evaluation's (actor/evaluation/episodes.py): the simulator of evaluation_env_config,
@@ -65,7 +65,7 @@ class AnimationError(RuntimeError):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="deploy/animate_policy.py",
+        prog="deploy/tools/animate_policy.py",
         description="Drives the greedy policy of a checkpoint or kept policy from one start pose, as the evaluation "
                     "does, and writes a video: the front camera (the network's input) beside a top-down view. "
                     "The config is the checkpoint's, changed only by --config FILE and the flags given.")

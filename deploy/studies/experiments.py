@@ -1,21 +1,21 @@
 """The grid runner: trains a grid of cells (strategy x replay capacity x learner option set) x seeds on the
-protocol of deploy/grid_cells.py, each run read on its greedy test curve, then reports.
+protocol of deploy/studies/grid_cells.py, each run read on its greedy test curve, then reports.
 
 Each run goes through the real distributed stack (deploy/stack.py, a subprocess) in
 <runs-dir>/<run name>/ with the soak sampled beside it (deploy/soak.py), then `evaluate --curve` (its greedy
 test curve), the choice of its policy on the train starts among its last five kept, and `evaluate
---checkpoint` of that policy on both start sets. Each finished run is exported (deploy/run_results.py) to
---export, small enough to commit; the report (deploy/grid_report.py) reads exported runs only, so runs from
+--checkpoint` of that policy on both start sets. Each finished run is exported (deploy/studies/run_results.py) to
+--export, small enough to commit; the report (deploy/studies/grid_report.py) reads exported runs only, so runs from
 several machines merge (--merge) and it rebuilds from a fresh clone.
 
-One run's steps and commands are deploy/grid_job.py. `--cells` lists the grid's runs, numbered from 0; `--cell I` runs only the I-th, so a scheduler (a Slurm
+One run's steps and commands are deploy/studies/grid_job.py. `--cells` lists the grid's runs, numbered from 0; `--cell I` runs only the I-th, so a scheduler (a Slurm
 array, a Kubernetes indexed job) can spread a grid over machines. Running the same command again resumes
 every run from what its folder holds.
 
-    .venv/bin/python deploy/experiments.py --buffers 1000 --seeds 0,1,2          # the comparison's 21 runs
-    .venv/bin/python deploy/experiments.py --buffers 1000 --seeds 0,1,2 --cells  # its numbered runs
-    .venv/bin/python deploy/experiments.py --buffers 1000 --seeds 0,1,2 --cell 7 # one of them
-    .venv/bin/python deploy/experiments.py --strategies bmc --buffers 1000 --options nstep3,batch20 --seeds 0,1
+    .venv/bin/python deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2          # the comparison's 21 runs
+    .venv/bin/python deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2 --cells  # its numbered runs
+    .venv/bin/python deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2 --cell 7 # one of them
+    .venv/bin/python deploy/studies/experiments.py --strategies bmc --buffers 1000 --options nstep3,batch20 --seeds 0,1
 
 Every other flag is a config flag passed to every run's stack and evaluation (--preset, default drive;
 --config FILE, --env.max_steps 500, ...; see deploy/stack.py --help).
@@ -36,11 +36,11 @@ from pathlib import Path
 from common.eta import clock_time
 from common.exploration.names import STRATEGIES
 from common.presets import GRID_UPDATES
-from deploy.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, grid,
+from deploy.studies.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, grid,
                                next_step)
-from deploy.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
+from deploy.studies.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
                              trained_share)
-from deploy.run_results import ExportError
+from deploy.studies.run_results import ExportError
 
 
 # --- the grid ----------------------------------------------------------------------------------------------------------
@@ -147,7 +147,7 @@ def parse_list(text: str, kind, what: str) -> list:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="deploy/experiments.py", description=__doc__, allow_abbrev=False,
+    parser = argparse.ArgumentParser(prog="deploy/studies/experiments.py", description=__doc__, allow_abbrev=False,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--strategies", default=",".join(STRATEGIES),
                         help="comma-separated exploration strategies of the grid (default: all seven)")
@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
             list_cells(plan)
             return 0
     except ExperimentError as error:
-        print(f"deploy/experiments.py: error: {error}", file=sys.stderr)
+        print(f"deploy/studies/experiments.py: error: {error}", file=sys.stderr)
         return 2
     started, options = time.monotonic(), plan.options
     print(f"grid: {len(plan.specs)} runs under {options.runs_dir}/, {options.updates:,d} updates each, "
@@ -268,11 +268,11 @@ def main(argv: list[str] | None = None) -> int:
     if not options.export_dir.is_dir():
         print(f"grid: no run has finished yet ({options.export_dir} is empty); no report", flush=True)
         return 1 if failed else 0
-    from deploy.grid_report import report_on  # the report's figures import matplotlib: not before a run
+    from deploy.studies.grid_report import report_on  # the report's figures import matplotlib: not before a run
     try:
         paths = report_on([options.export_dir, *options.merge], options.runs_dir / RESULTS_DIR)
     except (ValueError, ExportError) as error:
-        print(f"deploy/experiments.py: cannot write the report: {error}", file=sys.stderr)
+        print(f"deploy/studies/experiments.py: cannot write the report: {error}", file=sys.stderr)
         return 1
     print(f"grid finished in {clock_time(time.monotonic() - started)}; {failed} failed; report: "
           + ", ".join(str(path) for path in paths), flush=True)

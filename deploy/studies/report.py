@@ -1,13 +1,13 @@
 """The comparison's report (the paper's tables 3-6 and its figures) from exported runs alone.
 
-Each finished run of the grid is exported (deploy/run_results.py): its evaluation, config, run summary and
+Each finished run of the grid is exported (deploy/studies/run_results.py): its evaluation, config, run summary and
 training curves, small enough to commit. This report reads exported runs from one or more folders, merged so
 that each strategy, capacity and seed counts once (the first folder listed wins), and writes into --out:
 results.md and results.csv (pooled rows with bootstrap intervals over the seeds, and one row per seed, with
-every run's updates) and the figures of common/analysis/figures.py and deploy/performance_profile.py. No run
+every run's updates) and the figures of common/analysis/figures.py and deploy/studies/performance_profile.py. No run
 folder, checkpoint or log is needed: a fresh clone rebuilds the committed tables.
 
-    .venv/bin/python deploy/report.py results/comparison/runs [another-machine/runs ...] --out results/comparison
+    .venv/bin/python deploy/studies/report.py results/comparison/runs [another-machine/runs ...] --out results/comparison
 """
 
 from __future__ import annotations
@@ -22,12 +22,12 @@ from common.analysis.figures import (EPSILON_STRATEGIES, RunCurves, plot_epsilon
                                      plot_reward_bins, plot_reward_curves)
 from common.analysis.intervals import Bootstrap, bootstrap_of
 from common.analysis.tables import bin_labels
-from deploy.comparison import (PRIVILEGED, RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow,
+from deploy.studies.comparison import (PRIVILEGED, RANDOM, RESULTS_CSV, RESULTS_MD, STRATEGY_NAMES, ComparisonRow,
                                comparison_markdown, comparison_rows, write_comparison_csv)
-from deploy.differences import (DIFFERENCES_CSV, Difference, chances_apart, differences, differences_markdown,
+from deploy.studies.differences import (DIFFERENCES_CSV, Difference, chances_apart, differences, differences_markdown,
                                 write_differences_csv)
-from deploy.performance_profile import plot_performance_profiles
-from deploy.run_results import ExportedRun, ExportError, collect
+from deploy.studies.performance_profile import plot_performance_profiles
+from deploy.studies.run_results import ExportedRun, ExportError, collect
 
 FIGURES = {"reward_curves.png": "mean return of the last 100 training episodes",
            "epsilon.png": "epsilon against env steps (epsilon-based strategies)",
@@ -128,7 +128,7 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
         lines += ["## Which differences the intervals support", "",
                   "Each pair of strategies on one start set and capacity (and each strategy at two capacities): "
                   f"the difference first minus second with a {level} interval of the differences of the two rows' "
-                  "bootstrap replicates, the rows drawn independently (deploy/differences.py). Supported: the "
+                  "bootstrap replicates, the rows drawn independently (deploy/studies/differences.py). Supported: the "
                   "interval leaves out 0. With one run a side it compares two policies, not two strategies. "
                   "Runs apart: every run of one strategy, its statistic on its own episodes, beyond every run of "
                   "the other; with two seeds a run-level bootstrap narrows. By chance alone runs lie apart "
@@ -139,7 +139,7 @@ def results_markdown(rows: list[ComparisonRow], edges: list[float], facts: dict[
 
 
 def main(argv: list[str] | None = None, warn: Callable[[str], None] = print) -> int:
-    parser = argparse.ArgumentParser(prog="deploy/report.py", description=__doc__, allow_abbrev=False,
+    parser = argparse.ArgumentParser(prog="deploy/studies/report.py", description=__doc__, allow_abbrev=False,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="+", type=Path, help="folders of exported runs, the first winning a tie")
     parser.add_argument("--out", type=Path, required=True, help="where results.md, results.csv and the figures go")
@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None, warn: Callable[[str], None] = print) -> 
                  "date": datetime.datetime.now().isoformat(timespec="seconds")}
         paths = write_report(runs, args.out, facts, warn=warn)
     except ValueError as error:  # ExportError, ComparisonError, or data a figure cannot draw
-        print(f"deploy/report.py: error: {error}", file=sys.stderr)
+        print(f"deploy/studies/report.py: error: {error}", file=sys.stderr)
         return 1
     print(f"{len(runs)} runs; wrote " + ", ".join(str(path) for path in paths))
     return 0

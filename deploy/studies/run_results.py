@@ -1,5 +1,5 @@
 """A finished run's small outputs, kept where its run folder is not: committed with the code, or brought from
-another machine, so that the comparison's report rebuilds from them alone (deploy/report.py).
+another machine, so that the comparison's report rebuilds from them alone (deploy/studies/report.py).
 
 An exported run is a folder <strategy>-b<capacity>-s<seed>/ that holds what the tables and figures read and
 nothing large:
@@ -9,7 +9,7 @@ nothing large:
     evaluation/      evaluate's episodes.csv, summary.csv, summary.md, facts.json and config.toml
     training.csv     one row per training episode, in the order the episodes ended: return, length, epsilon
     learner.csv      one row per learner report: updates, |loss_k - loss_k-1|
-    cell.json        a grid run's cell: strategy, capacity, learner option set, seed, budget (deploy/grid_cells.py)
+    cell.json        a grid run's cell: strategy, capacity, learner option set, seed, budget (deploy/studies/grid_cells.py)
     choice.json      a grid run's policy, chosen on the train starts among its last kept
     curve/           its greedy curve: curve.csv, curve_summary.json and .md, curve.png
     soak/            its soak: soak.csv, soak_summary.json and .md, soak.png (deploy/soak.py)
@@ -37,8 +37,8 @@ from common.config import Config
 from common.config_values import load_config
 from common.options import ConfigError
 from common.run_dir import RunDir
-from deploy.comparison import EvaluatedRun
-from deploy.grid_cells import CELL_JSON, CHOICE_JSON, read_cell, run_name
+from deploy.studies.comparison import EvaluatedRun
+from deploy.studies.grid_cells import CELL_JSON, CHOICE_JSON, read_cell, run_name
 from replay.log.reader import LogError
 from replay.log.run_curves import read_run_curves
 
@@ -46,7 +46,7 @@ CONFIG_TOML = "config.toml"  # evaluate's copy of its config, in evaluation/
 TRAINING_CSV = "training.csv"
 LEARNER_CSV = "learner.csv"
 EVALUATION_FILES = (EPISODES_CSV, SUMMARY_CSV, SUMMARY_MD, FACTS_JSON, CONFIG_TOML)
-# a grid run's files (deploy/experiments.py), by their path in the run folder and in the export
+# a grid run's files (deploy/studies/experiments.py), by their path in the run folder and in the export
 GRID_FILES = (CELL_JSON, CHOICE_JSON, *(f"curve/{name}" for name in (CURVE_CSV, SUMMARY_JSON, CURVE_SUMMARY_MD,
                                                                       CURVE_PNG)),
               *(f"soak/{name}" for name in ("soak.csv", "soak.png", "soak_summary.json", "soak_summary.md")))

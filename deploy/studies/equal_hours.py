@@ -1,13 +1,13 @@
 """What equal hours buy: the greedy test curves of runs that trained on one CPU model, read at equal measured
 wall time (issue 25: the long run beside the paper's method).
 
-The study (deploy/study.py) compares configurations at equal updates and derives their wall time, since its
+The study (deploy/studies/study.py) compares configurations at equal updates and derives their wall time, since its
 runs trained on different CPUs in different sessions. Runs that each trained alone on one CPU model can be read
 at equal measured hours instead. At each mark, every run gives the last kept policy it had by then, and the
 mean over the policies it kept in the span before the mark: a greedy curve swings by hundreds of steps
 between neighbouring policies, so one reading can be luck.
 
-    .venv/bin/python deploy/equal_hours.py results/long-run/study-combination-s0 \\
+    .venv/bin/python deploy/studies/equal_hours.py results/long-run/study-combination-s0 \\
         results/long-run/study-paper-s0 --out results/long-run/equal-hours
 """
 
@@ -25,7 +25,7 @@ import numpy as np
 from actor.evaluation.curve import DRIVE_LENGTH, MILESTONES, first_reaching
 from common.analysis.plotting import finish_figure, pyplot
 from common.eta import clock_time
-from deploy.study import StudyRun, find_runs
+from deploy.studies.study import StudyRun, find_runs
 
 SPAN_S = 1800.0  # the marks' spacing, and the span each mark's mean reads
 
@@ -36,7 +36,7 @@ def one_cpu(runs: Sequence[StudyRun]) -> str:
     models = {row["trained_on"] for run in runs for row in run.test_rows}
     if len(models) != 1:
         raise SystemExit("equal_hours: the runs trained on " + " and ".join(sorted(models)) + "; measured hours "
-                         "compare only on one CPU model (deploy/study.py derives wall time instead)")
+                         "compare only on one CPU model (deploy/studies/study.py derives wall time instead)")
     return models.pop()
 
 

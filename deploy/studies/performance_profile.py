@@ -17,7 +17,7 @@ import numpy as np
 
 from common.analysis.figures import strategy_colour
 from common.analysis.intervals import Bootstrap, bootstrap_weights, profile_band
-from deploy.comparison import STRATEGY_NAMES, ComparisonRow
+from deploy.studies.comparison import STRATEGY_NAMES, ComparisonRow
 
 POINTS = 201  # thresholds per curve, from 0 to the longest episode
 

@@ -1,14 +1,14 @@
 """The study's report (issue 24): the paper's learner and each option beyond it, 2 seeds each, read on greedy
 learning curves at a fixed budget.
 
-The study's configurations are the grid runner's learner option sets (deploy/grid_cells.py OPTION_SETS); a
-run of one is trained, read on its curve and exported by deploy/experiments.py (`--options NAME`). The study's
+The study's configurations are the grid runner's learner option sets (deploy/studies/grid_cells.py OPTION_SETS); a
+run of one is trained, read on its curve and exported by deploy/studies/experiments.py (`--options NAME`). The study's
 own runs (results/study/runs, results/time-to-drive) were trained on the `local` preset before the runner
 took over, and this report rebuilds from them. The CPU differs between sessions, so wall time is derived:
 the updates a configuration needs times its seconds per update, from one run of deploy/bench/option_costs.py
 on one machine.
 
-    .venv/bin/python deploy/study.py results/study/runs results/time-to-drive \\
+    .venv/bin/python deploy/studies/study.py results/study/runs results/time-to-drive \\
         --costs results/option-costs/option_costs.json --out results/study
 
 A run's configuration is read from its config.toml (the options below that it sets), not from its name, so
@@ -33,10 +33,10 @@ from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read
 from common.analysis.plotting import finish_figure, pyplot
 from common.config_values import flat_items, load_config
 from common.options import ConfigError
-from deploy.differences import chance_apart, lie_apart
-from deploy.grid_cells import OPTION_SETS
+from deploy.studies.differences import chance_apart, lie_apart
+from deploy.studies.grid_cells import OPTION_SETS
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PRESET = "local"  # the preset the study's runs were trained on
 KEEP_EVERY = 1000  # updates between kept policies: the curve's resolution
 # The budget: both seed-0 runs of the paper's learner first drove at about 21,000 updates (results/time-to-drive).

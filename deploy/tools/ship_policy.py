@@ -1,13 +1,13 @@
 """A trained policy small enough to ship with the project: the online weights only, in 16 bits.
 
-    .venv/bin/python deploy/ship_policy.py runs/bmc/policies/policy-u0021000.pt --out results/bmc/policy.pt
-    .venv/bin/python deploy/ship_policy.py runs/bmc --out results/bmc/policy.pt --encoding bfloat16
+    .venv/bin/python deploy/tools/ship_policy.py runs/bmc/policies/policy-u0021000.pt --out results/bmc/policy.pt
+    .venv/bin/python deploy/tools/ship_policy.py runs/bmc --out results/bmc/policy.pt --encoding bfloat16
 
 The source is a kept policy (<run>/policies/policy-u<updates>.pt), a learner checkpoint or a run folder (its
 latest checkpoint). The file written is a kept policy (KeptPolicy, common/checkpoint.py): the run's config,
 which rebuilds the network, the updates, env steps and wall time it was kept at, and the online weights, in
 float16 (the default) or bfloat16: 24.3 MB at the paper's sizes against 48.6 MB in float32.
-`evaluate --checkpoint FILE`, `deploy/animate_policy.py --checkpoint FILE` and `evaluate --curve` (as a
+`evaluate --checkpoint FILE`, `deploy/tools/animate_policy.py --checkpoint FILE` and `evaluate --curve` (as a
 file of a run's policies/) read it and widen the weights to float32, exactly, on any CPU.
 
 float16 by default: a trained network's weights lie far inside its range (+-65,504; a weight beyond it is
@@ -37,7 +37,7 @@ MB = 1e6
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="deploy/ship_policy.py",
+        prog="deploy/tools/ship_policy.py",
         description="Writes a policy's online weights in 16 bits, with its run's config and the updates and env "
                     "steps it was kept at: a file evaluate --checkpoint reads, half the size of a kept policy.")
     parser.add_argument("source", type=Path, metavar="PATH",

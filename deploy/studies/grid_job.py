@@ -1,6 +1,6 @@
-"""One run of a grid, step by step (deploy/grid_cells.py decides the steps from its folder): its config and
+"""One run of a grid, step by step (deploy/studies/grid_cells.py decides the steps from its folder): its config and
 commands (the stack, the greedy test curve, the choice, the final evaluation), and RunJob, which runs them
-as children with the soak beside the stack. deploy/experiments.py runs a grid of these.
+as children with the soak beside the stack. deploy/studies/experiments.py runs a grid of these.
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ from common.eta import clock_time
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.child_process import Child
-from deploy.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
+from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps, choice_candidates,
                                choose, curve_read, curve_wanted, next_step, read_cell, read_choice, write_cell)
-from deploy.run_results import ExportError, export_run, greedy_headline
+from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
-STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
-SOAK_SCRIPT = Path(__file__).resolve().parent / "soak.py"
+STACK_SCRIPT = Path(__file__).resolve().parents[1] / "stack.py"
+SOAK_SCRIPT = Path(__file__).resolve().parents[1] / "soak.py"
 RESULTS_DIR = "results"
 EXPORTED_RUNS = "runs"
 # Keys the grid sets for each run; giving them as config flags would contradict it.
@@ -47,7 +47,7 @@ class Options:
     actors: int | None
     extra: tuple[str, ...]  # config flags for every stack and evaluation
     progress_s: float
-    export: Path | None = None  # where finished runs go (deploy/run_results.py); None: <runs-dir>/results/runs
+    export: Path | None = None  # where finished runs go (deploy/studies/run_results.py); None: <runs-dir>/results/runs
     merge: tuple[Path, ...] = ()  # more folders of exported runs for the report (another machine's)
     curve_beside: bool = False  # follow the curve while the run trains (spare cores), not after
 
@@ -65,8 +65,8 @@ class Options:
 # --- a run's config and commands -----------------------------------------------------------------------------
 
 def config_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="deploy/experiments.py", add_help=False,
-                                     usage="deploy/experiments.py [options] [config flags of deploy/stack.py --help]")
+    parser = argparse.ArgumentParser(prog="deploy/studies/experiments.py", add_help=False,
+                                     usage="deploy/studies/experiments.py [options] [config flags of deploy/stack.py --help]")
     add_config_arguments(parser)
     return parser
 
@@ -196,7 +196,7 @@ def trains_since(run: RunDir, since: float) -> bool:
 
 @dataclass
 class RunJob:
-    """One run of the grid, stepped through its steps (deploy/grid_cells.py) on its own thread."""
+    """One run of the grid, stepped through its steps (deploy/studies/grid_cells.py) on its own thread."""
 
     number: int
     total: int

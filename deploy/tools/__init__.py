@@ -1,0 +1,1 @@
+"""Policy tools (ship, average, animate) and the generator of the option reference."""
