@@ -197,7 +197,7 @@ def simulate(scenario: Scenario) -> Outcome:
         actor = min(range(len(ends)), key=ends.__getitem__)
         now = min(ends[actor], learner.free_at)
         if now == NEVER:
-            raise RuntimeError(f"deadlock: every actor held and the learner waiting ({limiter.values()})")
+            raise RuntimeError(f"deadlock: every actor held and the learner waiting ({limiter.state(now)})")
         if ends[actor] <= learner.free_at:
             ends[actor] = NEVER
             outcome.refused += not replay.take(steps[actor])
