@@ -157,8 +157,8 @@ def main() -> None:
             per = 1000 / count if count else 0.0
             print(f"{label:40s} {count:8d} {written / 2**20:10.1f} {seconds:8.3f} {pause:8.2f} "
                   f"{seconds * per:11.3f} {written / 2**20 * per:12.1f}")
-        print(f"snapshot on disk: {service.stats()['snapshot_bytes'] / 2**20:.1f} MB for "
-              f"{service.stats()['snapshot_episodes']} episodes")
+        print(f"snapshot on disk: {service.snapshot_stats['snapshot_bytes'] / 2**20:.1f} MB for "
+              f"{service.snapshot_stats['snapshot_episodes']} episodes")
         fresh = ReplayService(config)
         restored, took = timed(lambda: fresh.snapshotter.load(shape))
         _, took_restore = timed(lambda: fresh.restore(restored, None))
@@ -167,7 +167,7 @@ def main() -> None:
         for label, every in (("no snapshots", None), ("a snapshot every 0.5 s", 0.5)):
             service.snapshot_stats["snapshot_pause_max_ms"] = 0.0
             result = under_load(service, episodes, args.seconds, args.sample_rate, every)
-            held = service.stats()["snapshot_pause_max_ms"]
+            held = service.snapshot_stats["snapshot_pause_max_ms"]
             print(f"  {label:24s} lock wait: insert slowest {result['slowest_insert_ms']:6.2f} ms (p99 "
                   f"{result['p99_insert_ms']:5.2f}), sample slowest {result['slowest_sample_ms']:6.2f} ms (p99 "
                   f"{result['p99_sample_ms']:5.2f}); a whole insert: slowest {result['slowest_insert_total_ms']:6.1f} "
