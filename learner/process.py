@@ -97,19 +97,14 @@ def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, ses
         outputs.weights(process.make_weights())
         outputs.exploration(process.strategy, force=True)
     batch = _first_batch(process, outputs, prefetcher, stop)
-    if batch is None:
+    if batch is None and not process.finished():
         prefetcher.close()
         log.info("stopped before updates started; checkpoint %s", process.checkpoint())
         return
-    process.start_updates()
-    outputs.exploration(process.strategy, force=True)
-    outputs.weights(process.make_weights())  # actors hold from now until they have the learner's policy
-    with process._lock:
-        mark = process.clock.start_env_steps
-    log.info("updates start: the replay's first batch, at %s env steps (start mark %s) with %s episodes stored",
-             getattr(batch.batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
-             getattr(batch.batch, "episodes_stored", "?"))  # perhaps refused: train_on counts that
-    _warn_if_bmc_starves(process)
+    if batch is None:
+        log.info("resumed with every update the closed run pays for already made (%d): it ends", process.updates)
+    else:
+        _announce_start(process, outputs, batch)
     metrics = LearnerMetrics(process, prefetcher)
 
     def idle() -> None:  # while no batch comes: the learner is ahead, or the actors hold
@@ -152,15 +147,31 @@ def _next_batch(process: LearnerService, prefetcher: Prefetcher, stop: threading
     return None
 
 
+def _announce_start(process: LearnerService, outputs: Outputs, batch: Admitted) -> None:
+    process.start_updates()
+    outputs.exploration(process.strategy, force=True)
+    outputs.weights(process.make_weights())  # actors hold from now until they have the learner's policy
+    with process._lock:
+        mark = process.clock.start_env_steps
+    log.info("updates start: the replay's first batch, at %s env steps (start mark %s) with %s episodes stored",
+             getattr(batch.batch, "env_steps_total", "?"), "unknown" if mark is None else f"{mark:.0f}",
+             getattr(batch.batch, "episodes_stored", "?"))  # perhaps refused: train_on counts that
+    _warn_if_bmc_starves(process)
+
+
 def _first_batch(process: LearnerService, outputs: Outputs, prefetcher: Prefetcher,
                  stop: threading.Event) -> Admitted | None:
-    """Waits for the replay's first batch: it comes the moment the replay's rate limiter starts updates."""
+    """Waits for the replay's first batch: it comes the moment the replay's rate limiter starts updates.
+    None when stopped, or when the run is closed and paid for already (a learner resumed after its last
+    update: no batch will come)."""
     config = process.config.learner
     waiting = Every(WAIT_LOG_S)
     while not stop.is_set():
         batch = prefetcher.next(stop, timeout_s=config.log_period_s)
         if batch is not None:
             return batch
+        if process.finished():
+            return None
         outputs.exploration(process.strategy, force=True)  # late actors learn the state too
         if waiting.due():
             log.info("waiting for the replay to start updates: %d/%d episodes stored, %d env steps",

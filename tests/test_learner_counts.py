@@ -1,11 +1,15 @@
 """What the learner counts: BMC observations per env step, the achieved ratio, when the run is paid for."""
 
+import math
+import threading
+
 import numpy as np
 import pytest
 
 from common.config_values import load_config
 from common.wire.frames import FrameStack
 from common.wire.messages import RateState, Stats, TraceBatch
+from learner.process import _first_batch
 from learner.service import LearnerService, RunClock
 from wire_examples import example_rate, example_replay_stats
 
@@ -123,3 +127,30 @@ def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():
     again = RunClock(env_steps_per_update=4.0, error_buffer=1.0)
     again.load_state_dict(clock.state_dict())
     assert (again.env_steps, again.start_env_steps) == (500, 100)
+
+
+def test_a_learner_resumed_after_its_last_update_ends_without_waiting_for_a_batch(tmp_path):
+    """A closed run whose updates are all made gets no batch from the replay: the wait for the first one must
+    end by itself, or the resumed stack never ends (seen in the chaos run's closing stack)."""
+    process = LearnerService(config_with(tmp_path, **{"learner.total_env_steps": 1_000,
+                                                      "learner.log_period_s": 0.05}))
+    process.on_replay_rate(example_rate(env_steps=1_000, start_env_steps=0.0, closed=True, batches_served=50))
+    process.learner.updates = math.ceil(process.clock.updates_due())
+    stop = threading.Event()
+    guard = threading.Timer(20.0, stop.set)  # the wait must end before this stops it
+    guard.start()
+
+    class NoBatch:
+        def next(self, stop, timeout_s):
+            stop.wait(timeout_s)
+            return None
+
+    class Outputs:
+        def exploration(self, strategy, force=False):
+            pass
+
+    try:
+        assert process.finished() and _first_batch(process, Outputs(), NoBatch(), stop) is None
+        assert not stop.is_set()
+    finally:
+        guard.cancel()
