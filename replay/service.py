@@ -340,10 +340,11 @@ class ReplayService:
     def stats(self, rejected: dict[str, int] | None = None, speeds: dict | None = None) -> ReplayStats:
         """The replay/stats message; `rejected` adds the counts of messages refused before the service saw
         them, `speeds` the counters' recent rates."""
+        now = time.time()
         with self._lock:
             store = self.store
             stats = ReplayStats(
-                time=time.time(), episodes=len(store), frames=store.frames, bytes=store.bytes,
+                time=now, episodes=len(store), frames=store.frames, bytes=store.bytes,
                 env_steps_total=store.env_steps_total, inserted=store.inserted, evicted=store.evicted,
                 evicted_for_budget=store.evicted_for_budget, short_dropped=store.short_dropped,
                 traces_served=self.traces_served, pending_requests=len(self._pending),
@@ -352,9 +353,9 @@ class ReplayService:
                 episode_sources=self.ledger.sources, restored_episodes=self.restored_episodes,
                 restore_skipped=self.restore_skipped, late_episodes=self.late_episodes,
                 late_env_steps=self.late_env_steps,
-                snapshot_age_s=None if self.snapshot_taken is None else time.time() - self.snapshot_taken,
+                snapshot_age_s=None if self.snapshot_taken is None else now - self.snapshot_taken,
                 frame_bytes_mean=store.frame_bytes_mean if store.frames else None,
-                rate=self.limiter.state(time.time()), snapshot=dict(self.snapshot_stats),
+                rate=self.limiter.state(now), snapshot=dict(self.snapshot_stats),
                 rejected={**self.rejections.values(), **(rejected or {})}, speeds=dict(speeds or {}))
         return stats
 
