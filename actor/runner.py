@@ -1,6 +1,7 @@
 """The actor loop: drive the simulator with the newest policy and publish whole episodes.
 
-An actor steps actor.envs_per_actor simulators in lockstep: one batched forward
+An actor steps actor.envs_per_actor simulators in lockstep on the acting core
+(actor/lockstep.py, which the evaluation and the reference loop use too): one batched forward
 pass of the network per step (actor/batched_q.py, shared with the evaluation),
 each simulator with its own seed, LSTM state (zeroed when its episode starts),
 exploration draws and episodes. Weights and exploration state arrive on Zenoh
@@ -46,7 +47,7 @@ import secrets
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -55,6 +56,7 @@ import torch
 from actor.batched_q import BatchedQ, choose_precision
 from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
 from actor.gate import HOLD_LOG_S, EpisodeGate, HoldLog
+from actor.lockstep import Lockstep, Trajectory, episode_message
 from actor.mailbox import Mailbox
 from actor.sim import make_env
 from common.config import Config
@@ -64,10 +66,8 @@ from common.network import initial_network
 from common.pacing import env_steps_ceiling
 from common.rejections import Rejections
 from common.shell import Service
-from common.wire.state_rows import no_states
 from common.transport import publisher, request, subscribe, watch_liveliness
 from common.keys import Keys
-from common.wire.frames import FrameStack
 from common.wire.messages import Episode, EpisodeAck, EpisodeRecord, Stats
 
 MEGABYTE = 1 << 20
@@ -93,25 +93,13 @@ def env_seed(actor_seed: int, env_index: int) -> int:
 
 
 @dataclass
-class EpisodeBuffer:
-    frames: list[np.ndarray] = field(default_factory=list)
-    actions: list[int] = field(default_factory=list)
-    rewards: list[float] = field(default_factory=list)
-    versions: list[int] = field(default_factory=list)
-    states: list[np.ndarray] = field(default_factory=list)  # learner.stored_state: (2, lstm_units) a step
-    collided: bool = False
-    started: float = field(default_factory=time.monotonic)
-
-
-@dataclass
 class EnvSlot:
-    """One of an actor's simulators: its seed, its own exploration draws, and its episode (None: idle)."""
+    """One of an actor's simulators: its seed and its own exploration draws."""
 
     index: int
     env: Any
     seed: int
     rng: np.random.Generator
-    episode: EpisodeBuffer | None = None
 
 
 class Actor:
@@ -124,6 +112,7 @@ class Actor:
         seeds = [env_seed(self.seed, index) for index in range(config.actor.envs_per_actor)]
         self.slots = [EnvSlot(index, make_env(config.env, seed=seed), seed, np.random.default_rng(seed))
                       for index, seed in enumerate(seeds)]
+        self.lockstep = Lockstep([slot.env for slot in self.slots])
         # the learner's initial network (learner.seed): what the random phase runs for its stored states
         self.network = initial_network(config.network, config.learner.seed).eval()
         self.batched_q = BatchedQ(self.network, len(self.slots),
@@ -170,31 +159,22 @@ class Actor:
 
     @property
     def running(self) -> list[EnvSlot]:
-        return [slot for slot in self.slots if slot.episode is not None]
+        return [slot for slot in self.slots if slot.index in self.lockstep.running]
 
     def step(self, may_start: Callable[[], bool] = lambda: True) -> list[tuple[Episode, EpisodeRecord]]:
         """One lockstep step: each idle simulator begins an episode if may_start() says so, then every
         running one takes one action. Returns the episodes that ended, in simulator order."""
         self.apply_mail()
         for slot in self.slots:
-            if slot.episode is None and may_start():
+            if slot.index not in self.lockstep.running and may_start():
                 self._begin(slot)
         running = self.running
         if running and self.config.learner.stored_state:  # the state each network takes this step's frame in
             for slot, row in zip(running, self.batched_q.state_rows([slot.index for slot in running])):
-                slot.episode.states.append(row)
-        ended = []
-        for slot, action in zip(running, self._actions(running)):
-            observation, reward, terminated, truncated, info = slot.env.step(action)
-            episode = slot.episode
-            episode.collided = episode.collided or bool(info.get("collision", False))
-            episode.frames.append(observation)
-            episode.actions.append(action)
-            episode.rewards.append(float(reward))
-            episode.versions.append(self.weights_version)
-            if terminated or truncated:
-                ended.append(self._finish(slot, terminated, truncated, info))
-        return ended
+                self.lockstep.running[slot.index].states.append(row)
+        actions = dict(zip([slot.index for slot in running], self._actions(running)))
+        return [self._finish(self.slots[index], trajectory)
+                for index, trajectory in self.lockstep.step(actions, tag=self.weights_version)]
 
     def run_episode(self, stop: threading.Event) -> tuple[Episode, EpisodeRecord] | None:
         """The next episode to end, every idle simulator starting its next at once (no rate limiter):
@@ -206,10 +186,8 @@ class Actor:
         return self._ended.popleft()
 
     def _begin(self, slot: EnvSlot) -> None:
-        started = time.monotonic()
-        observation, _ = slot.env.reset(options={"start_set": "train"})
+        self.lockstep.begin(slot.index, options={"start_set": "train"})
         self.batched_q.reset(slot.index)
-        slot.episode = EpisodeBuffer(frames=[observation], started=started)
         self.episodes_started += 1
 
     def _actions(self, running: list[EnvSlot]) -> list[int]:
@@ -227,32 +205,17 @@ class Actor:
 
     def _q_values(self, running: list[EnvSlot]) -> torch.Tensor:
         """The running simulators' Q-values on their latest frames; advances their LSTM states."""
-        return self.batched_q.q_values([slot.index for slot in running], [slot.episode.frames[-1] for slot in running])
+        return self.batched_q.q_values([slot.index for slot in running], [self.lockstep.running[slot.index].observation for slot in running])
 
-    def _finish(self, slot: EnvSlot, terminated: bool, truncated: bool, info: dict) -> tuple[Episode, EpisodeRecord]:
-        buffer, slot.episode = slot.episode, None
+    def _finish(self, slot: EnvSlot, trajectory: Trajectory) -> tuple[Episode, EpisodeRecord]:
         epsilon = float(self.strategy.epsilon) if self.uses_network() else 1.0
-        episode = Episode(
-            observations=FrameStack.from_array(np.stack(buffer.frames)),
-            actions=np.asarray(buffer.actions, dtype=np.int64),
-            rewards=np.asarray(buffer.rewards, dtype=np.float32),
-            terminated=bool(terminated),
-            truncated=bool(truncated and not terminated),
-            actor_id=self.actor_id,
-            start_set=str(info.get("start_set", "train")),
-            start_index=int(info.get("start_index", -1)),
-            weights_version=np.asarray(buffer.versions, dtype=np.int64),
-            epsilon=epsilon,
-            seed=slot.seed,
-            episode_index=self.episode_index,
-            incarnation=self.incarnation,
-            recurrent_state=np.stack(buffer.states) if buffer.states else no_states(),
-        )
+        episode = episode_message(trajectory, actor_id=self.actor_id, seed=slot.seed,
+                                  episode_index=self.episode_index, epsilon=epsilon, incarnation=self.incarnation)
         record = EpisodeRecord(
-            actor_id=self.actor_id, episode_index=self.episode_index, length=len(buffer.actions),
-            episode_return=float(sum(buffer.rewards)), collided=buffer.collided,
+            actor_id=self.actor_id, episode_index=self.episode_index, length=trajectory.length,
+            episode_return=float(sum(trajectory.rewards)), collided=trajectory.collided,
             start_set=episode.start_set, start_index=episode.start_index, epsilon=epsilon,
-            weights_version=self.weights_version, wall_time=time.monotonic() - buffer.started, time=time.time())
+            weights_version=self.weights_version, wall_time=time.monotonic() - trajectory.started, time=time.time())
         self.episode_index += 1
         return episode, record
 

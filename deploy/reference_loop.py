@@ -4,7 +4,8 @@ The distributed roles split this loop over processes: actors act
 (actor/runner.py), the replay stores episodes and samples traces (replay/),
 the learner updates and feeds the exploration strategy (learner/service.py).
 Here it is one loop over env steps built from the same parts, with no copy of
-them: the env of ``actor.sim.make_env``, the D3RQN of common/network.py, the
+them: the env of ``actor.sim.make_env`` stepped by the acting core of the actors
+and the evaluation (actor/lockstep.py), the D3RQN of common/network.py, the
 episode store of replay/store.py, the learner step of learner/update.py, the
 strategies of common/exploration/ and the evaluation of actor/evaluation/.
 Read it to follow the method, run it to check the stack against, and
@@ -48,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from actor.lockstep import Lockstep, episode_message
 from actor.runner import actor_seed
 from actor.sim import make_env
 from common.config import Config
@@ -55,9 +57,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit, print_
 from common.strategy_build import make_strategy
 from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of, updates_paid_for
 from common.stored_state import state_row
-from common.wire.state_rows import no_states, stored_units
-from common.wire.frames import FrameStack
-from common.wire.messages import Episode
+from common.wire.state_rows import stored_units
 from learner.feed import feed_strategy
 from learner.trace_batch import TraceArrays
 from learner.update import DoubleQLearner
@@ -89,6 +89,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     seed = actor_seed(config.run.seed, 0)  # the seed actor 0 of the stack would use
     rng = np.random.default_rng(seed)
     env = make_env(config.env, seed=seed)
+    core = Lockstep([env])  # the actors' acting core, with one simulator
     learner = DoubleQLearner(config.network, learner_config)
     acting = copy.deepcopy(learner.online).requires_grad_(False)
     strategy = make_strategy(config.exploration, config.network.n_actions)
@@ -107,51 +108,39 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     env_steps = episodes = 0
     returns: deque[float] = deque(maxlen=100)
     result = None
-    episode_over = True
     while True:
-        if episode_over:  # a new episode: reset the env and the LSTM state
-            observation, info = env.reset(options={"start_set": "train"})
+        if not core.running:  # a new episode: reset the env and the LSTM state
+            core.begin(0, options={"start_set": "train"})
             state = acting.initial_state(1)
-            frames, actions, rewards, versions, states = [observation], [], [], [], []
-            episode_over = False
+        episode = core.running[0]
 
         # 1. act (learner.stored_state: first record the state the network takes this frame in)
         if learner_config.stored_state:
-            states.append(state_row(*state))
+            episode.states.append(state_row(*state))
         if strategy.started or learner_config.stored_state:  # the random phase too: real stored states
             torch.set_num_threads(1)  # one frame: more threads only wait for each other
             with torch.inference_mode():
-                frame = torch.from_numpy(observation).view(1, 1, *observation.shape).to(learner.device)
-                q_values, state = acting(frame, state)
+                frame = torch.from_numpy(episode.observation).view(1, 1, *episode.observation.shape)
+                q_values, state = acting(frame.to(learner.device), state)
             torch.set_num_threads(update_threads)
         if strategy.started:
             action = strategy.act(q_values[0, 0].cpu().numpy(), rng)
         else:
             action = int(rng.integers(config.network.n_actions))
-        observation, reward, terminated, truncated, info = env.step(action)
+        episode_over = bool(core.step({0: action}, tag=acting_version))
         env_steps += 1
-        frames.append(observation)
-        actions.append(action)
-        rewards.append(float(reward))
-        versions.append(acting_version)
 
-        # 2. store
-        if terminated or truncated:
-            store.add(Episode(
-                observations=FrameStack.from_array(np.stack(frames)), actions=np.asarray(actions, dtype=np.int64),
-                rewards=np.asarray(rewards, dtype=np.float32), terminated=bool(terminated),
-                truncated=bool(truncated and not terminated), actor_id=0, start_set=str(info["start_set"]),
-                start_index=int(info["start_index"]), weights_version=np.asarray(versions, dtype=np.int64),
-                epsilon=float(strategy.epsilon), seed=seed, episode_index=episodes,
-                recurrent_state=np.stack(states) if states else no_states()))
+        # 2. store: a finished episode goes in whole, as an actor sends it
+        if episode_over:
+            store.add(episode_message(episode, actor_id=0, seed=seed, episode_index=episodes,
+                                      epsilon=float(strategy.epsilon)))
             episodes += 1
-            returns.append(sum(rewards))
-            episode_over = True
+            returns.append(sum(episode.rewards))
 
         # 3. start: the episode just stored may start the updates, by the replay's rate limiter's rule
         # (common/pacing.py: by episodes, the steps so far are the start mark; by steps, start_steps)
         if start_mark is None and episode_over:
-            start_mark = start_mark_of(pace, env_steps - len(actions), env_steps, len(store))
+            start_mark = start_mark_of(pace, env_steps - episode.length, env_steps, len(store))
             if start_mark is not None:
                 started_at = time.monotonic()
                 strategy.start()

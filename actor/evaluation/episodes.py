@@ -1,7 +1,8 @@
 """Evaluation episodes: which to run, the policies that drive them, and lockstep stepping.
 
 One worker process holds ``envs_per_worker`` simulators (fewer for a short
-queue: workers.worker_layout) and steps them in lockstep: at every step the
+queue: workers.worker_layout) and steps them in lockstep, on the acting core
+that steps the training episodes (actor/lockstep.py): at every step the
 greedy network sees all its running episodes in one batched forward pass,
 each with its own LSTM state, which is zeroed when that slot starts a new
 episode. A slot whose episode ends takes the next job
@@ -25,13 +26,14 @@ import dataclasses
 import math
 import os
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator, Protocol
 
 import numpy as np
 import torch
 
 from actor.batched_q import BatchedQ
+from actor.lockstep import Lockstep, Trajectory
 from actor.sim import START_SETS, make_env, start_poses
 from actor.sim.neighbourhood import place_counts
 from actor.sim.privileged import PrivilegedDriver
@@ -141,25 +143,19 @@ def make_policies(config: Config, weights: dict[str, np.ndarray] | None, n_slots
 
 # --- lockstep stepping -------------------------------------------------------------------------
 
-@dataclass
-class RunningEpisode:
-    job: EpisodeJob
-    observation: np.ndarray
-    pose: Pose
-    actions: list[int] = field(default_factory=list)
-    rewards: list[float] = field(default_factory=list)
-    progress_m: float = math.nan  # the simulator's info["progress_m"] after the latest step
-    places: tuple[str, ...] | None = None  # its info["streets_visited"] after the latest step
-
-    def finish(self, end: str, reward_edges: list[float]) -> EvaluationEpisode:
-        job = self.job
-        streets, junctions = coverage_of(self.places)
-        return EvaluationEpisode(
-            policy=job.policy, start_set=job.start_set, start_index=job.start_index, trial=job.trial,
-            seed=job.seed, length=len(self.actions), end=end, episode_return=float(sum(self.rewards)),
-            reward_bin_counts=reward_bin_counts(self.rewards, reward_edges),
-            actions_digest=digest_of_actions(self.actions), progress_m=self.progress_m,
-            streets=streets, junctions=junctions)
+def evaluation_episode(job: EpisodeJob, trajectory: Trajectory, max_steps: int,
+                       reward_edges: list[float]) -> EvaluationEpisode:
+    """The record of an ended evaluation episode."""
+    info = trajectory.info
+    # the simulator cut it at its own cap: evaluation_env_config makes that max_steps
+    end = end_reason(info, trajectory.terminated, trajectory.length, max_steps) or "cap"
+    streets, junctions = coverage_of(info.get("streets_visited"))
+    return EvaluationEpisode(
+        policy=job.policy, start_set=job.start_set, start_index=job.start_index, trial=job.trial,
+        seed=job.seed, length=trajectory.length, end=end, episode_return=float(sum(trajectory.rewards)),
+        reward_bin_counts=reward_bin_counts(trajectory.rewards, reward_edges),
+        actions_digest=digest_of_actions(trajectory.actions), progress_m=progress_of(info),
+        streets=streets, junctions=junctions)
 
 
 def end_reason(info: dict, terminated: bool, length: int, max_steps: int) -> str | None:
@@ -196,9 +192,11 @@ def coverage_of(places: tuple[str, ...] | None) -> tuple[float, float]:
 
 def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Policy], max_steps: int,
                  reward_edges: list[float], on_episode: Callable[[EvaluationEpisode], None]) -> None:
-    """Runs every job on the envs, len(envs) at a time; calls on_episode as each one ends."""
+    """Runs every job on the envs, len(envs) at a time, on the acting core (actor/lockstep.py) that steps
+    the training episodes; calls on_episode as each one ends."""
     pending: Iterator[EpisodeJob] = iter(jobs)
-    running: dict[int, RunningEpisode] = {}
+    core = Lockstep(envs, max_steps, keep_frames=False)
+    jobs_of: dict[int, EpisodeJob] = {}
 
     def start_next(slot: int) -> None:
         job = next(pending, None)
@@ -206,38 +204,26 @@ def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Pol
             return
         if job.policy not in policies:
             raise ValueError(f"no {job.policy!r} policy in this worker (have {sorted(policies)})")
-        observation, _ = envs[slot].reset(seed=job.seed, options={"start_set": job.start_set,
-                                                                  "start_index": job.start_index})
-        pose = envs[slot].unwrapped.pose
-        policies[job.policy].begin(slot, job, pose)
-        running[slot] = RunningEpisode(job, observation, pose)
+        core.begin(slot, seed=job.seed, options={"start_set": job.start_set, "start_index": job.start_index})
+        policies[job.policy].begin(slot, job, envs[slot].unwrapped.pose)
+        jobs_of[slot] = job
 
     for slot in range(len(envs)):
         start_next(slot)
-    while running:
-        for slot, action in choose_actions(running, policies).items():
-            episode = running[slot]
-            observation, reward, terminated, _, info = envs[slot].step(action)
-            episode.actions.append(action)
-            episode.rewards.append(float(reward))
-            episode.progress_m = progress_of(info)
-            episode.places = info.get("streets_visited")
-            episode.observation, episode.pose = observation, envs[slot].unwrapped.pose
-            end = end_reason(info, terminated, len(episode.actions), max_steps)
-            if end is not None:
-                on_episode(episode.finish(end, reward_edges))
-                del running[slot]
-                start_next(slot)
+    while core.running:
+        for slot, trajectory in core.step(choose_actions(core, jobs_of, policies)):
+            on_episode(evaluation_episode(jobs_of.pop(slot), trajectory, max_steps, reward_edges))
+            start_next(slot)
 
 
-def choose_actions(running: dict[int, RunningEpisode], policies: dict[str, Policy]) -> dict[int, int]:
-    """One call per policy over all the slots it drives."""
+def choose_actions(core: Lockstep, jobs_of: dict[int, EpisodeJob], policies: dict[str, Policy]) -> dict[int, int]:
+    """One call per policy over all the running slots it drives."""
     actions: dict[int, int] = {}
     for name, policy in policies.items():
-        slots = [slot for slot, episode in running.items() if episode.job.policy == name]
+        slots = [slot for slot in core.running if jobs_of[slot].policy == name]
         if slots:
-            chosen = policy.act(slots, [running[slot].observation for slot in slots],
-                                [running[slot].pose for slot in slots])
+            chosen = policy.act(slots, [core.running[slot].observation for slot in slots],
+                                [core.envs[slot].unwrapped.pose for slot in slots])
             actions.update(zip(slots, chosen))
     return actions
 
