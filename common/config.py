@@ -50,73 +50,17 @@ class NetworkConfig:
         check(self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda"), "device", "must be 'auto', 'cpu' or 'cuda[:N]'")
 
 
-@dataclass
-class ReplayConfig:
-    """The replay service: the episode store, its memory cap, the rate limiter, snapshots."""
-
-    capacity: int = option(1000, "episodes the replay holds; beyond it the oldest is dropped (the paper studies "
-                                 "1,000 and 2,000)", "episodes")
-    # 4.1 KB a frame at most, measured on random drives: front camera 2.6 KB, top-down 3.5 KB.
-    memory_budget_mb: float = option(
-        16384.0, "cap on the compressed frames plus metadata the replay holds, not an allocation; 16 GB holds 2,000 "
-                 "episodes of env.max_steps = 2,000 steps at up to 4.1 KB a frame. At start the replay logs how many "
-                 "full-length episodes fit and warns loudly when fewer than capacity do; once episodes arrive it "
-                 "checks again with the measured frame size", "MB")
-    frame_kb_estimate: float = option(3.2, "size of one compressed frame, for the start-up memory check until "
-                                           "frames are measured", "KB")
-    max_message_mb: float = option(64.0, "larger episode messages are rejected", "MB")
-    max_batch_size: int = option(256, "largest trace batch one query may ask for", "traces")
-    error_buffer_updates: float = option(
-        50.0, "the rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one update per "
-              "learner.env_steps_per_update env steps: it holds trace batches while the learner is this many updates "
-              "ahead, and the actors' next episode while it is this many (or hold_updates, if more) behind. The "
-              "whole run's ratio is off by at most this many updates. A buffer of at least the updates the budget pays for (1e9) holds nobody: the "
-              "run is unpaced and ends at the budget", "updates")
-    hold_updates: float = option(
-        1500.0, "the actors hold their next episode while the learner is more than this many updates behind "
-               "(never fewer than error_buffer_updates). A let-go actor delivers nothing until its whole next "
-               "episode ends, so a fast learner needs this lead to keep busy (docs/architecture.md, the pace of a "
-               "fast learner); it does not change the run's ratio at the end, which the learner pays for before "
-               "the run closes", "updates")
-    stats_period_s: float = option(1.0, "how often the replay publishes its stats and checks the actors' hold", "s")
-    log_period_s: float = option(10.0, "how often the replay logs a status line", "s")
-    seed: int = option(0, "seed of the replay's trace sampling")
-    reward_limit: float = option(100.0, "an episode (or trace batch) with a reward of larger magnitude is refused as "
-                                        "absurd; the env's rewards exp(-beta d) lie in [0, 1]")
-    snapshot_period_s: float = option(
-        30.0, "how often the replay writes its episodes and counters to <runs_dir>/<run>/replay/snapshot/ (and at "
-              "exit); only episodes new since the last snapshot are written, `replay --resume` restores them; 0 turns "
-              "snapshots off", "s")
-
-    def validate(self) -> None:
-        check_positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
-                       "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
-        check(self.error_buffer_updates >= 1, "error_buffer_updates",
-              f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
-        check(self.hold_updates >= 0, "hold_updates", f"must be >= 0, got {self.hold_updates!r}")
-        check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
-
-
-UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
-LEARNER_PRECISIONS = ("float32", "bfloat16", "auto")  # learner.precision
-START_RULES = ("strategy", "episodes", "steps")  # learner.start_by
+START_RULES = ("strategy", "episodes", "steps")  # pace.start_by
 
 
 @dataclass
-class LearnerConfig:
-    """Training: the double dueling recurrent Q-learning update, its pace, weights and checkpoints."""
+class PaceConfig:
+    """The run's pace, which the replay's rate limiter keeps (replay/rate_limiter.py): when updates start, one
+    update per so many env steps, how far either side may run ahead, and when the run ends."""
 
-    lr: float = option(1e-4, "Adam's learning rate")
-    gamma: float = option(0.99, "discount factor of future rewards, in [0, 1]")
-    tau: float = option(0.001, "soft target update before every gradient step: target <- tau online + (1 - tau) "
-                               "target, in (0, 1]")
-    batch_size: int = option(10, "traces per batch", "traces")
-    trace_length: int = option(10, "steps per trace (trace_length + 1 observations)", "steps")
-    n_mask: int = option(7, "leading errors of each trace that are masked out of the loss (the LSTM's warm-up)",
-                         "steps")
     env_steps_per_update: float = option(
         4.0, "one update per this many env steps of the whole system, counted from the start of updates; the "
-             "replay's rate limiter holds whichever side runs ahead (replay.error_buffer_updates)", "env steps")
+             "replay's rate limiter holds whichever side runs ahead (pace.error_buffer_updates)", "env steps")
     start_episodes: int = option(999, "updates start the moment the replay holds this many episodes", "episodes")
     start_steps: int = option(50_000, "used instead of start_episodes when the learner's strategy is decreasing "
                                       "epsilon, or for every strategy with start_by = steps", "env steps")
@@ -130,6 +74,78 @@ class LearnerConfig:
                                              "closes the run (later episodes refused, counted as late_episodes) "
                                              "and the learner stops once it has paid for every step taken",
                                   "env steps")
+    error_buffer_updates: float = option(
+        50.0, "the rate limiter (replay/rate_limiter.py, after Reverb's SampleToInsertRatio) keeps one update per "
+              "pace.env_steps_per_update env steps: it holds trace batches while the learner is this many updates "
+              "ahead, and the actors' next episode while it is this many (or hold_updates, if more) behind. The "
+              "whole run's ratio is off by at most this many updates. A buffer of at least the updates the budget pays for (1e9) holds nobody: the "
+              "run is unpaced and ends at the budget", "updates")
+    hold_updates: float = option(
+        1500.0, "the actors hold their next episode while the learner is more than this many updates behind "
+               "(never fewer than error_buffer_updates). A let-go actor delivers nothing until its whole next "
+               "episode ends, so a fast learner needs this lead to keep busy (docs/architecture.md, the pace of a "
+               "fast learner); it does not change the run's ratio at the end, which the learner pays for before "
+               "the run closes", "updates")
+
+    def validate(self) -> None:
+        check_positive(self, "env_steps_per_update", "total_env_steps")
+        check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
+        check(self.start_steps >= 0, "start_steps", "must be >= 0")
+        check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")
+        check(self.error_buffer_updates >= 1, "error_buffer_updates",
+              f"must be >= 1 (a narrower buffer can block both sides), got {self.error_buffer_updates!r}")
+        check(self.hold_updates >= 0, "hold_updates", f"must be >= 0, got {self.hold_updates!r}")
+
+
+@dataclass
+class ReplayConfig:
+    """The replay service: the episode store, its memory cap, snapshots (its rate limiter keeps the pace)."""
+
+    capacity: int = option(1000, "episodes the replay holds; beyond it the oldest is dropped (the paper studies "
+                                 "1,000 and 2,000)", "episodes")
+    # 4.1 KB a frame at most, measured on random drives: front camera 2.6 KB, top-down 3.5 KB.
+    memory_budget_mb: float = option(
+        16384.0, "cap on the compressed frames plus metadata the replay holds, not an allocation; 16 GB holds 2,000 "
+                 "episodes of env.max_steps = 2,000 steps at up to 4.1 KB a frame. At start the replay logs how many "
+                 "full-length episodes fit and warns loudly when fewer than capacity do; once episodes arrive it "
+                 "checks again with the measured frame size", "MB")
+    frame_kb_estimate: float = option(3.2, "size of one compressed frame, for the start-up memory check until "
+                                           "frames are measured", "KB")
+    max_message_mb: float = option(64.0, "larger episode messages are rejected", "MB")
+    max_batch_size: int = option(256, "largest trace batch one query may ask for", "traces")
+    stats_period_s: float = option(1.0, "how often the replay publishes its stats and checks the actors' hold", "s")
+    log_period_s: float = option(10.0, "how often the replay logs a status line", "s")
+    seed: int = option(0, "seed of the replay's trace sampling")
+    reward_limit: float = option(100.0, "an episode (or trace batch) with a reward of larger magnitude is refused as "
+                                        "absurd; the env's rewards exp(-beta d) lie in [0, 1]")
+    snapshot_period_s: float = option(
+        30.0, "how often the replay writes its episodes and counters to <runs_dir>/<run>/replay/snapshot/ (and at "
+              "exit); only episodes new since the last snapshot are written, `replay --resume` restores them; 0 turns "
+              "snapshots off", "s")
+
+    def validate(self) -> None:
+        check_positive(self, "capacity", "memory_budget_mb", "frame_kb_estimate", "max_message_mb",
+                       "max_batch_size", "stats_period_s", "log_period_s", "reward_limit")
+        check(self.snapshot_period_s >= 0, "snapshot_period_s", "must be >= 0 (0: no snapshots)")
+
+
+UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
+LEARNER_PRECISIONS = ("float32", "bfloat16", "auto")  # learner.precision
+START_RULES = ("strategy", "episodes", "steps")  # pace.start_by
+
+
+@dataclass
+class LearnerConfig:
+    """Training: the double dueling recurrent Q-learning update, weights and checkpoints."""
+
+    lr: float = option(1e-4, "Adam's learning rate")
+    gamma: float = option(0.99, "discount factor of future rewards, in [0, 1]")
+    tau: float = option(0.001, "soft target update before every gradient step: target <- tau online + (1 - tau) "
+                               "target, in (0, 1]")
+    batch_size: int = option(10, "traces per batch", "traces")
+    trace_length: int = option(10, "steps per trace (trace_length + 1 observations)", "steps")
+    n_mask: int = option(7, "leading errors of each trace that are masked out of the loss (the LSTM's warm-up)",
+                         "steps")
     weights_every: int = option(50, "broadcast the weights to the actors every this many updates", "updates")
     weights_period_s: float = option(
         0.0, "also broadcast the weights once this long has passed since the last broadcast (after an update), "
@@ -204,8 +220,7 @@ class LearnerConfig:
         check(self.precision in LEARNER_PRECISIONS, "precision", f"must be one of {', '.join(LEARNER_PRECISIONS)}")
         check(not (self.precision == "bfloat16" and self.update_path == "autograd"), "precision",
               "bfloat16 runs on the trace paths only: set learner.update_path to trace, trace-split or auto")
-        check_positive(self, "lr", "batch_size", "trace_length", "env_steps_per_update",
-                       "total_env_steps", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
+        check_positive(self, "lr", "batch_size", "trace_length", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
         check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
         check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
         check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")
@@ -213,9 +228,6 @@ class LearnerConfig:
         check(0 <= self.burn_in < self.trace_length, "burn_in", "must lie in [0, trace_length)")
         check(self.stored_state or self.burn_in == 0, "burn_in",
               "needs learner.stored_state true (a trace from the zero state masks learner.n_mask steps instead)")
-        check(self.start_episodes >= 1, "start_episodes", "must be >= 1")
-        check(self.start_steps >= 0, "start_steps", "must be >= 0")
-        check(self.start_by in START_RULES, "start_by", f"must be one of {', '.join(START_RULES)}")
         check(self.torch_threads >= 0, "torch_threads", "must be >= 0 (0: torch's default)")
         check(self.update_path in UPDATE_PATHS, "update_path", f"must be one of {', '.join(UPDATE_PATHS)}")
         check(self.weights_period_s >= 0, "weights_period_s", "must be >= 0 (0: by updates only)")
@@ -401,6 +413,7 @@ class Config:
     network: NetworkConfig = field(default_factory=NetworkConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
+    pace: PaceConfig = field(default_factory=PaceConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
     actor: ActorConfig = field(default_factory=ActorConfig)
@@ -416,8 +429,8 @@ class Config:
                 section.validate()
             except ConfigError as error:
                 raise ConfigError(f"{path}.{error}" if path else str(error)) from None
-        check(self.learner.start_episodes <= self.replay.capacity, "learner.start_episodes",
-              f"{self.learner.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
+        check(self.pace.start_episodes <= self.replay.capacity, "pace.start_episodes",
+              f"{self.pace.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
         return self
 
 

@@ -12,7 +12,7 @@ import textwrap
 from typing import Any
 
 from common.config import Config
-from common.config_values import config_fields, flat_items, load_config, to_toml, toml_value
+from common.config_values import MOVED_KEYS, config_fields, flat_items, load_config, to_toml, toml_value
 from common.options import ConfigError
 from common.presets import PRESETS, Preset
 
@@ -37,6 +37,8 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
         choices = f.metadata["choices"]
         metavar = "{" + ",".join(choices) + "}" if choices else _metavar(defaults[key])
         flags[key] = group.add_argument(f"--{key}", dest=_dest(key), default=None, metavar=metavar)
+    for old, key in MOVED_KEYS.items():  # an earlier version's flag still works, unlisted
+        parser.add_argument(f"--{old}", dest=_dest(key), default=None, help=argparse.SUPPRESS)
     _show_defaults(flags, "paper")
 
 

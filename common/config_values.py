@@ -40,15 +40,24 @@ def load_config(preset: str = "paper", toml_path: str | Path | None = None,
 
 # Keys of earlier versions; a checkpoint's or log's config that holds one still loads (from_dict).
 RETIRED_KEYS = {
-    "learner.ratio_tolerance": "replaced by replay.error_buffer_updates (a number of updates)",
-    "actor.pace_with_learner": "the replay's rate limiter paces the actors; replay.error_buffer_updates 1e9 lets them run free",
+    "learner.ratio_tolerance": "replaced by pace.error_buffer_updates (a number of updates)",
+    "actor.pace_with_learner": "the replay's rate limiter paces the actors; pace.error_buffer_updates 1e9 lets them run free",
+}
+
+
+# Keys that moved to another section: a run folder's, checkpoint's or user's config that holds one still loads.
+MOVED_KEYS = {
+    **{f"learner.{name}": f"pace.{name}" for name in
+       ("env_steps_per_update", "start_episodes", "start_steps", "start_by", "total_env_steps")},
+    **{f"replay.{name}": f"pace.{name}" for name in ("error_buffer_updates", "hold_updates")},
 }
 
 
 def set_value(config: Config, dotted_key: str, value: Any) -> None:
-    """Set one field by its dotted path, converting and type-checking the value."""
+    """Set one field by its dotted path (a moved key by its new one), converting and type-checking the value."""
     if dotted_key in RETIRED_KEYS:
         raise ConfigError(f"{dotted_key}: retired key; {RETIRED_KEYS[dotted_key]}")
+    dotted_key = MOVED_KEYS.get(dotted_key, dotted_key)
     *parents, name = dotted_key.split(".")
     target: Any = config
     for part in parents:

@@ -14,8 +14,8 @@ from common.exploration.names import starts_by_steps
 
 @dataclass(frozen=True)
 class RateLimit:
-    """The limiter's settings, from learner.env_steps_per_update, learner.start_episodes,
-    learner.start_steps, learner.total_env_steps, replay.error_buffer_updates and replay.hold_updates."""
+    """The limiter's settings, from pace.env_steps_per_update, pace.start_episodes,
+    pace.start_steps, pace.total_env_steps, pace.error_buffer_updates and pace.hold_updates."""
 
     env_steps_per_update: float
     start_episodes: int
@@ -45,15 +45,15 @@ class RateLimit:
 
 def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
     """The RateLimit of a Config; `strategy` (the learner's, when known) picks the start rule."""
-    learner = config.learner
+    pace = config.pace
     return RateLimit(
-        env_steps_per_update=learner.env_steps_per_update,
-        start_episodes=learner.start_episodes,
-        start_steps=learner.start_steps,
-        error_buffer=config.replay.error_buffer_updates,
-        hold_buffer=config.replay.hold_updates,
-        total_env_steps=learner.total_env_steps,
-        start_by_steps=starts_by_steps(strategy or config.exploration.strategy, learner.start_by),
+        env_steps_per_update=pace.env_steps_per_update,
+        start_episodes=pace.start_episodes,
+        start_steps=pace.start_steps,
+        error_buffer=pace.error_buffer_updates,
+        hold_buffer=pace.hold_updates,
+        total_env_steps=pace.total_env_steps,
+        start_by_steps=starts_by_steps(strategy or config.exploration.strategy, pace.start_by),
     )
 
 
@@ -87,4 +87,4 @@ def env_steps_ceiling(config) -> int:
     """More env steps than this no run of the config can count: actors are held once the budget is spent,
     and what is still in flight then is less than a full buffer of full-length episodes. Counts above it
     come from no replay of this run, and the roles refuse them."""
-    return config.learner.total_env_steps + config.replay.capacity * config.env.max_steps
+    return config.pace.total_env_steps + config.replay.capacity * config.env.max_steps

@@ -15,8 +15,8 @@ class Preset(dict):
 
 
 LOCAL = {
-    "learner.total_env_steps": 60_000,
-    "learner.start_steps": 10_000,
+    "pace.total_env_steps": 60_000,
+    "pace.start_steps": 10_000,
     "learner.checkpoint_every": 1_000,
     "learner.keep_every": 1_000,  # about 12 policies a run for its greedy curve
     "exploration.decreasing.n_start": 10_000,
@@ -34,14 +34,14 @@ GRID_DECREASING_N_ANN = round((GRID_TOTAL_ENV_STEPS - GRID_START_STEPS) * 400_00
 
 DRIVE = {
     **LOCAL,
-    "learner.start_by": "steps",
-    "learner.start_steps": GRID_START_STEPS,
-    "learner.total_env_steps": GRID_TOTAL_ENV_STEPS,
+    "pace.start_by": "steps",
+    "pace.start_steps": GRID_START_STEPS,
+    "pace.total_env_steps": GRID_TOTAL_ENV_STEPS,
     "learner.precision": "auto",
     # The pace the grid's first runs trained at, pinned so that every cell on every machine acts alike: actors
     # held 50 updates behind, weights every 50 updates whatever the learner's speed (a cell is its updates and
     # ratio, not the clock). The defaults since keep a fast learner busier (docs/architecture.md).
-    "replay.hold_updates": 50.0,
+    "pace.hold_updates": 50.0,
     "learner.weights_min_period_s": 0.0,
     "exploration.decreasing.n_start": GRID_START_STEPS,
     "exploration.decreasing.n_ann": GRID_DECREASING_N_ANN,
@@ -60,7 +60,7 @@ PRESETS: dict[str, Preset] = {
         "112,000 env steps, about 21,000 updates (by then 3 of the study's 4 runs of the paper's learner drove, "
         "the fourth 189 updates later); as in local, the agent, buffer and ratio are the paper's", {
             **LOCAL,
-            "learner.total_env_steps": 112_000,
+            "pace.total_env_steps": 112_000,
             "learner.precision": "auto",
         }),
     "drive": Preset(
@@ -73,13 +73,13 @@ PRESETS: dict[str, Preset] = {
         "seconds-long runs for tests: tiny buffer, short episodes, early updates", {
             "replay.capacity": 50,
             "replay.stats_period_s": 0.5,
-            "replay.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
-            "replay.hold_updates": 2.0,  # as tight: 700 would be 14,000 of the 20,000 steps, and hold nobody
+            "pace.error_buffer_updates": 2.0,  # short runs: the run's ratio within 2 updates
+            "pace.hold_updates": 2.0,  # as tight: 700 would be 14,000 of the 20,000 steps, and hold nobody
             "learner.batch_size": 4,
-            "learner.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
-            "learner.start_episodes": 2,
-            "learner.start_steps": 100,
-            "learner.total_env_steps": 20_000,
+            "pace.env_steps_per_update": 20.0,  # the random phase's backlog clears in seconds
+            "pace.start_episodes": 2,
+            "pace.start_steps": 100,
+            "pace.total_env_steps": 20_000,
             "learner.weights_every": 5,
             "learner.weights_min_period_s": 0.0,  # every 5 updates, however fast: the tests watch the versions
             "learner.checkpoint_every": 50,

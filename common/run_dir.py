@@ -170,7 +170,7 @@ class RunStatus:
 
     phase: str  # "training" while the processes run, then "stopping", then "finished" or "stopped"
     env_steps: int = 0  # of the whole system, as the replay counts them
-    total_env_steps: int = 0  # the budget, learner.total_env_steps
+    total_env_steps: int = 0  # the budget, pace.total_env_steps
     updates: int = 0
     episodes: int = 0  # episodes finished while this stack watched
     mean_return: float | None = None  # of the last 100 of those; None before the first

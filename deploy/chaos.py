@@ -11,7 +11,7 @@ What it checks, into <run>/chaos/report.json and report.md (exit code 0 when all
   before the kill, none of them skipped as damaged;
 - ratio: once the run is closed (the stack resumed with a budget just past its env steps, so that it ends
   by itself), the learner's updates pay for every env step the replay took, at most
-  replay.error_buffer_updates more;
+  pace.error_buffer_updates more;
 - log: every flight-log segment of the run reads to its end (a killed recorder's up to its last flush).
 
 It samples the processes' memory and the run folder's size as deploy/soak.py does, into <run>/soak/.
@@ -165,7 +165,7 @@ def close_run(chaos: Chaos, out: Path, timeout_s: float) -> int | None:
     counters = json.loads(chaos.run.replay_counters.read_text())
     budget = int(counters["env_steps"]) + 1
     chaos.facts["closing_budget"] = budget
-    stack = start_stack([*chaos.stack_flags, "--resume", "--learner.total_env_steps", str(budget)], out)
+    stack = start_stack([*chaos.stack_flags, "--resume", "--pace.total_env_steps", str(budget)], out)
     try:
         return stack.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -187,9 +187,9 @@ def stop_stack(stack: subprocess.Popen, timeout_s: float = 120.0) -> int:
 def check_ratio(chaos: Chaos) -> bool:
     config = load_config(toml_path=chaos.run.config)
     counters = json.loads(chaos.run.replay_counters.read_text())
-    due = (counters["env_steps"] - counters["start_mark"]) / config.learner.env_steps_per_update
+    due = (counters["env_steps"] - counters["start_mark"]) / config.pace.env_steps_per_update
     updates = Checkpoint.load(chaos.run.checkpoint).updates
-    buffer = config.replay.error_buffer_updates
+    buffer = config.pace.error_buffer_updates
     chaos.facts.update(updates=updates, updates_due=round(due, 2), error_buffer_updates=buffer,
                        env_steps=counters["env_steps"], lost_updates=counters.get("lost_updates", 0),
                        recounted_updates=counters.get("recounted_updates", 0),
@@ -239,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="how long the closing run may take to end by itself (default 900)")
     args, stack_flags = parser.parse_known_args(argv)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # SIGTERM unwinds, so the stacks started are stopped
-    stack_flags = stack_flags or ["--preset", "local", "--run.name", "chaos", "--learner.total_env_steps", "100000000"]
+    stack_flags = stack_flags or ["--preset", "local", "--run.name", "chaos", "--pace.total_env_steps", "100000000"]
     config = load_config_of(stack_flags)
     chaos = Chaos(RunDir.of(config), stack_flags)
     out = chaos.run.root / "chaos" / "stack.out"

@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
               f"(--learner.keep_every {KEEP_EVERY})", flush=True)
         flags += ["--learner.keep_every", str(KEEP_EVERY)]
         _, config = parse_config_or_exit(build_parser(), flags)
-    run, budget = RunDir.of(config), config.learner.total_env_steps
+    run, budget = RunDir.of(config), config.pace.total_env_steps
     if next_step(run.root, budget) in (TRAIN, RESUME):
         call([sys.executable, str(STACK_SCRIPT), *flags])
     try:

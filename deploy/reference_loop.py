@@ -20,17 +20,17 @@ Each env step:
    actor runs (the updates get ``learner.torch_threads``);
 2. store: a finished episode goes into the store whole (traces are sampled
    inside episodes: Bootstrapped Random Updates);
-3. start: updates start the moment the store holds ``learner.start_episodes``
-   episodes (decreasing epsilon: at ``learner.start_steps`` env steps), the
+3. start: updates start the moment the store holds ``pace.start_episodes``
+   episodes (decreasing epsilon: at ``pace.start_steps`` env steps), the
    replay's rate limiter's rule and start mark (common/pacing.py);
-4. sample and update: one update per ``learner.env_steps_per_update`` env steps
+4. sample and update: one update per ``pace.env_steps_per_update`` env steps
    since the start mark, exactly;
 5. feed the strategy what the learner feeds it: the env step count (decreasing
    epsilon), Q before and after each update (VDBE), and BMC's returns at the
    rate of ``exploration.bmc.observations``, with the learner's own function
    (learner/feed.py).
 
-Training ends at an episode end once ``learner.total_env_steps`` steps are
+Training ends at an episode end once ``pace.total_env_steps`` steps are
 taken; then the greedy policy is evaluated on the evaluation protocol.
 
     .venv/bin/python -m deploy.reference_loop --preset smoke --exploration.strategy vdbe
@@ -166,7 +166,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
                   f"epsilon {strategy.epsilon:.3f}, mean return (last 100) {np.mean(returns) if returns else 0:.2f}",
                   file=sys.stderr, flush=True)
         out_of_time = update_seconds is not None and started_at is not None and now - started_at >= update_seconds
-        if out_of_time or (episode_over and env_steps >= learner_config.total_env_steps):
+        if out_of_time or (episode_over and env_steps >= config.pace.total_env_steps):
             break
 
     env.close()

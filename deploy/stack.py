@@ -170,7 +170,7 @@ class StackMonitor:
             "env_steps": _count(learner, "env_steps"),
             "start_env_steps": stat_number(learner, "start_env_steps"),
             "env_steps_per_update": ratio,  # achieved, since the start mark
-            "env_steps_per_update_configured": config.learner.env_steps_per_update,
+            "env_steps_per_update_configured": config.pace.env_steps_per_update,
             "replay_env_steps_total": replay_steps,
             # the replay's counters come back with its snapshot, so they count the episodes of a resumed
             # run's earlier stacks too; "episodes" counts only what this stack saw
@@ -407,7 +407,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    monitor = StackMonitor(config.learner.total_env_steps, env_steps_per_update=config.learner.env_steps_per_update)
+    monitor = StackMonitor(config.pace.total_env_steps, env_steps_per_update=config.pace.env_steps_per_update)
     stack.start_all()
     watcher_config = config.transport
     watcher_config.mode, watcher_config.connect, watcher_config.listen = "client", [endpoint], []
@@ -437,7 +437,7 @@ def main(argv: list[str] | None = None) -> int:
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
     print(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps per "
-          f"update (configured {config.learner.env_steps_per_update:g}); {run.summary}", flush=True)
+          f"update (configured {config.pace.env_steps_per_update:g}); {run.summary}", flush=True)
     restarted = ", ".join(f"{name} {count}" for name, count in stack.restarts.items() if count) or "none"
     print(f"stopped; restarts: {restarted}; logs in {run.logs}/", flush=True)
     return code

@@ -32,5 +32,5 @@ def bmc_returns(result: UpdateResult, config: Config) -> tuple[np.ndarray, np.nd
     newest of each trace first (the authors' rate); "per_transition" every unmasked one."""
     if config.exploration.bmc.observations == "per_transition":
         return result.g_greedy, result.g_uniform
-    count = bmc_observation_count(result.update, config.learner.env_steps_per_update)
+    count = bmc_observation_count(result.update, config.pace.env_steps_per_update)
     return newest_transitions(result.g_greedy, result.g_uniform, count)

@@ -1,6 +1,6 @@
 """Learner: trains on the replay's trace batches, which the replay's rate limiter starts serving
-when it holds learner.start_episodes episodes and then paces at one update per
-learner.env_steps_per_update environment steps of the whole system; broadcasts weights every
+when it holds pace.start_episodes episodes and then paces at one update per
+pace.env_steps_per_update environment steps of the whole system; broadcasts weights every
 learner.weights_every updates (or learner.weights_period_s seconds, whichever comes first), in
 learner.weights_encoding, and the exploration state (which the actors follow) on every change,
 and checkpoints to <run.runs_dir>/<run.name>/checkpoints.

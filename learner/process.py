@@ -132,7 +132,7 @@ def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, ses
         outputs.metrics({**metrics.values(), "final": 1})
         log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
                  "checkpoint %s", process.updates, process.clock.env_steps, process.env_steps_per_update(),
-                 config.env_steps_per_update, path)
+                 process.config.pace.env_steps_per_update, path)
 
 
 def _next_batch(process: LearnerService, prefetcher: Prefetcher, stop: threading.Event, idle) -> Admitted | None:
@@ -175,7 +175,7 @@ def _first_batch(process: LearnerService, outputs: Outputs, prefetcher: Prefetch
         outputs.exploration(process.strategy, force=True)  # late actors learn the state too
         if waiting.due():
             log.info("waiting for the replay to start updates: %d/%d episodes stored, %d env steps",
-                     process.episodes_stored, config.start_episodes, process.clock.env_steps)
+                     process.episodes_stored, process.config.pace.start_episodes, process.clock.env_steps)
     return None
 
 
@@ -184,7 +184,7 @@ def _warn_if_bmc_starves(process: LearnerService) -> None:
     if not process.strategy.needs_returns or config.exploration.bmc.observations != "per_step":
         return
     available = config.learner.batch_size * (config.learner.trace_length - config.learner.masked_steps)
-    if config.learner.env_steps_per_update > available:
+    if config.pace.env_steps_per_update > available:
         log.warning("exploration.bmc.observations per_step: a batch holds %d unmasked transitions, fewer than "
-                    "learner.env_steps_per_update %g; BMC observes %d per update", available,
-                    config.learner.env_steps_per_update, available)
+                    "pace.env_steps_per_update %g; BMC observes %d per update", available,
+                    config.pace.env_steps_per_update, available)

@@ -5,7 +5,7 @@ strategy, broadcast what changed, checkpoint now and then, and keep the policy
 for the greedy learning curve (learner.keep_every, learner/keep.py). The pacing is not
 here: the replay's rate limiter (replay/rate_limiter.py) answers the first
 batch request the moment updates start and holds replies back while the
-learner is ahead of one update per `learner.env_steps_per_update` env steps.
+learner is ahead of one update per `pace.env_steps_per_update` env steps.
 The learner only counts, from the replay's numbers, the achieved ratio and
 when the step budget is paid for.
 
@@ -163,7 +163,7 @@ class LearnerService:
         # update runs (pinned buffers, a side stream); on a CPU the arrays are used where they lie.
         self.stager = self.learner.stager() if self.learner.device.type == "cuda" else None
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
-        self.clock = RunClock(config.learner.env_steps_per_update, config.replay.error_buffer_updates, clock)
+        self.clock = RunClock(config.pace.env_steps_per_update, config.pace.error_buffer_updates, clock)
         self.checkpoints = Cadence(config.learner.checkpoint_every, config.learner.checkpoint_every_s, clock)
         keeping = config.learner.keep_every > 0 or config.learner.keep_every_s > 0
         cadence = Cadence(config.learner.keep_every, config.learner.keep_every_s, clock) if keeping else None
@@ -236,7 +236,7 @@ class LearnerService:
     def finished(self) -> bool:
         """The step budget is spent and the learner has made the updates it pays for."""
         with self._lock:
-            return self.clock.finished(self.updates, self.config.learner.total_env_steps)
+            return self.clock.finished(self.updates, self.config.pace.total_env_steps)
 
     def env_steps_per_update(self) -> float:
         """The run's achieved ratio: env steps since the replay's start mark per update."""

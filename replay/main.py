@@ -3,7 +3,7 @@ replay.capacity of them (oldest evicted first, within replay.memory_budget_mb), 
 trace-batch queries on <namespace>/<run>/replay/sample and publishes stats. Every episode is
 checked against the run's config (frames, actions, rewards) before it is stored, and the store
 is snapshotted every replay.snapshot_period_s seconds. Its rate limiter keeps one learner update
-per learner.env_steps_per_update env steps: it holds batch replies while the learner is ahead
+per pace.env_steps_per_update env steps: it holds batch replies while the learner is ahead
 and tells actors on <namespace>/<run>/replay/rate to hold their next episode while it is behind.
 """
 

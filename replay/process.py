@@ -104,8 +104,8 @@ def run_replay(config: Config, resume: bool = False) -> None:
             thread.start()
         log.info("serving run %r: capacity %d episodes, budget %.0f MB, traces of %d steps, "
                  "1 update per %g env steps within %g updates; %s", config.run.name, config.replay.capacity,
-                 config.replay.memory_budget_mb, config.learner.trace_length, config.learner.env_steps_per_update,
-                 config.replay.error_buffer_updates,
+                 config.replay.memory_budget_mb, config.learner.trace_length, config.pace.env_steps_per_update,
+                 config.pace.error_buffer_updates,
                  f"a snapshot every {config.replay.snapshot_period_s:g} s to {service.snapshotter.directory}"
                  if config.replay.snapshot_period_s > 0 else "no snapshots")
         _report_until(stop, service, receivers, stats_out, config, path)

@@ -82,9 +82,9 @@ class ReplayService:
         self.limiter = RateLimiter(rate_limit_from_config(config))
         self.max_trace_batch = config.replay.max_batch_size
         # No learner makes more updates than the budget pays for, plus its buffer and a buffer of episodes in flight.
-        self.max_learner_updates = math.ceil((config.learner.total_env_steps + config.replay.capacity
-                                              * config.env.max_steps) / config.learner.env_steps_per_update
-                                             + config.replay.error_buffer_updates)
+        self.max_learner_updates = math.ceil((config.pace.total_env_steps + config.replay.capacity
+                                              * config.env.max_steps) / config.pace.env_steps_per_update
+                                             + config.pace.error_buffer_updates)
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._pending: deque[PendingQuery] = deque()
@@ -221,7 +221,7 @@ class ReplayService:
         by_steps = state.start_by_steps
         if by_steps is None:
             try:
-                by_steps = starts_by_steps(state.strategy, self.config.learner.start_by)
+                by_steps = starts_by_steps(state.strategy, self.config.pace.start_by)
             except ValueError as error:
                 self.rejections.reject("exploration_invalid", str(error))
                 return
@@ -233,8 +233,8 @@ class ReplayService:
             accepted = self.limiter.set_start_by_steps(by_steps)
         if changed and accepted:
             log.info("the learner (strategy %s) starts updates at %s", state.strategy,
-                     f"{self.config.learner.start_steps} env steps" if by_steps
-                     else f"{self.config.learner.start_episodes} episodes")
+                     f"{self.config.pace.start_steps} env steps" if by_steps
+                     else f"{self.config.pace.start_episodes} episodes")
         elif not accepted:
             log.warning("the learner (strategy %s) starts updates by %s, but they already started by the other "
                         "rule", state.strategy, "env steps" if by_steps else "episodes")

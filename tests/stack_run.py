@@ -28,7 +28,7 @@ STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
 # Small and quick on a shared 2-core machine: a small LSTM, 2 traces of 5 steps, one torch thread.
 SMALL = ["--preset", "smoke", "--network.lstm_units", "16", "--learner.batch_size", "2",
          "--learner.trace_length", "5", "--learner.n_mask", "2", "--learner.torch_threads", "1",
-         "--learner.total_env_steps", "1000000", "--replay.stats_period_s", "0.5"]
+         "--pace.total_env_steps", "1000000", "--replay.stats_period_s", "0.5"]
 
 
 def episode_digest(blobs, actions, rewards) -> str:

@@ -20,9 +20,9 @@ def test_paper_preset_holds_the_reference_values():
     assert config.learner.gamma == 0.99
     assert config.learner.tau == 0.001
     assert (config.learner.batch_size, config.learner.trace_length, config.learner.n_mask) == (10, 10, 7)
-    assert config.learner.env_steps_per_update == 4
-    assert config.learner.start_episodes == 999
-    assert config.learner.total_env_steps == 1_000_000
+    assert config.pace.env_steps_per_update == 4
+    assert config.pace.start_episodes == 999
+    assert config.pace.total_env_steps == 1_000_000
     assert config.replay.capacity == 1000
     assert config.network.lstm_units == 512 and config.network.n_actions == 5
     assert (config.network.frame_height, config.network.frame_width) == (66, 200)
@@ -74,11 +74,11 @@ def test_overrides_apply_over_file_over_preset(tmp_path):
     ("run.name", "a/b", "run.name: must be a non-empty key chunk"),
     ("learner.nope", 1, "learner.nope: unknown key"),
     ("nope.lr", 1, "nope.lr: unknown key"),
-    ("replay.error_buffer_updates", 0.5, "replay.error_buffer_updates: must be >= 1"),
+    ("pace.error_buffer_updates", 0.5, "pace.error_buffer_updates: must be >= 1"),
     ("replay.frame_kb_estimate", 0, "replay.frame_kb_estimate: must be > 0"),
     ("exploration.bmc.observations", "per_batch", "exploration.bmc.observations: must be one of per_step, per_transition"),
-    ("learner.start_episodes", 1001, "learner.start_episodes: 1001 exceeds replay.capacity 1000"),
-    ("learner.ratio_tolerance", 0.1, "learner.ratio_tolerance: retired key; replaced by replay.error_buffer_updates"),
+    ("pace.start_episodes", 1001, "pace.start_episodes: 1001 exceeds replay.capacity 1000"),
+    ("learner.ratio_tolerance", 0.1, "learner.ratio_tolerance: retired key; replaced by pace.error_buffer_updates"),
     ("actor.pace_with_learner", False, "actor.pace_with_learner: retired key; the replay's rate limiter"),
 ])
 def test_bad_values_name_their_key(key, value, message):
@@ -96,11 +96,31 @@ def test_a_saved_config_with_retired_pacing_keys_still_loads():
     assert from_dict(saved) == load_config("smoke")
 
 
+def test_a_config_with_the_pace_in_its_earlier_sections_loads_into_pace(tmp_path):
+    """Run folders, checkpoints and users' files written before the pace had its own section."""
+    from common.config_values import from_dict, to_dict
+    saved = to_dict(load_config("smoke"))
+    pace = saved.pop("pace")
+    saved["learner"].update(total_env_steps=12_345, start_by="steps", start_steps=pace["start_steps"],
+                            env_steps_per_update=pace["env_steps_per_update"], start_episodes=pace["start_episodes"])
+    saved["replay"].update(error_buffer_updates=7.0, hold_updates=pace["hold_updates"])
+    loaded = from_dict(saved)
+    assert (loaded.pace.total_env_steps, loaded.pace.start_by, loaded.pace.error_buffer_updates) == (12_345, "steps", 7.0)
+    old_file = tmp_path / "old.toml"
+    old_file.write_text("[learner]\ntotal_env_steps = 777\n[replay]\nhold_updates = 3.0\n")
+    assert (load_config("smoke", old_file).pace.total_env_steps, load_config("smoke", old_file).pace.hold_updates) \
+        == (777, 3.0)
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    _, config = parse_config_or_exit(parser, ["--preset", "smoke", "--learner.total_env_steps", "999"])
+    assert config.pace.total_env_steps == 999
+
+
 def test_the_pacing_and_buffer_defaults():
     config = load_config("paper")
-    assert config.replay.error_buffer_updates == 50 and config.replay.memory_budget_mb == 16384
+    assert config.pace.error_buffer_updates == 50 and config.replay.memory_budget_mb == 16384
     assert config.exploration.bmc.observations == "per_step"
-    assert load_config("smoke").replay.error_buffer_updates == 2
+    assert load_config("smoke").pace.error_buffer_updates == 2
 
 
 def test_bad_toml_file_is_a_config_error(tmp_path):
@@ -155,7 +175,7 @@ ENUMERATED = {
     "learner.keep_encoding": ("float32", "float16", "bfloat16"),
     "actor.inference": ("float32", "bfloat16", "auto"),
     "learner.precision": ("float32", "bfloat16", "auto"),
-    "learner.start_by": ("strategy", "episodes", "steps"),
+    "pace.start_by": ("strategy", "episodes", "steps"),
 }
 
 
@@ -220,15 +240,15 @@ def test_help_shows_each_options_doc_unit_choices_and_default(capsys):
 def test_help_shows_the_defaults_of_the_chosen_preset(capsys):
     paper = help_entries(config_help(capsys))
     local = help_entries(config_help(capsys, "--preset", "local"))
-    assert paper["--learner.total_env_steps"].endswith("(default: 1000000)")
-    assert local["--learner.total_env_steps"].endswith("(default of preset local: 60000)")
+    assert paper["--pace.total_env_steps"].endswith("(default: 1000000)")
+    assert local["--pace.total_env_steps"].endswith("(default of preset local: 60000)")
     assert local["--learner.lr"].endswith("(default: 0.0001)")  # local keeps the paper's
 
 
 def test_the_fast_preset_is_local_but_for_the_deviations_its_help_names(capsys):
     local, fast = flat_items(load_config("local")), flat_items(load_config("fast"))
     changed = sorted(key for key in fast if fast[key] != local[key])
-    assert changed == ["learner.precision", "learner.total_env_steps"]
+    assert changed == ["learner.precision", "pace.total_env_steps"]
     assert all(key in PRESETS["fast"].doc for key in ("learner.precision auto", "112,000 env steps"))
     entries = help_entries(config_help(capsys, "--preset", "fast"))
     assert entries["--learner.precision"].endswith(f"(default of preset fast: {toml_value('auto')})")
@@ -247,7 +267,7 @@ def test_the_stack_help_follows_its_preset():
     result = subprocess.run([sys.executable, str(stack), "--preset", "local", "--help"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0
-    assert help_entries(result.stdout)["--learner.total_env_steps"].endswith("(default of preset local: 60000)")
+    assert help_entries(result.stdout)["--pace.total_env_steps"].endswith("(default of preset local: 60000)")
 
 
 @pytest.mark.parametrize("argv, typed, suggestion", [
@@ -278,4 +298,4 @@ def test_full_flag_names_still_set_their_keys():
     parser = argparse.ArgumentParser()
     add_config_arguments(parser)
     _, config = parse_config_or_exit(parser, ["--run.name=x", "--preset", "local", "--env.camera", "topdown"])
-    assert (config.run.name, config.env.camera, config.learner.total_env_steps) == ("x", "topdown", 60_000)
+    assert (config.run.name, config.env.camera, config.pace.total_env_steps) == ("x", "topdown", 60_000)

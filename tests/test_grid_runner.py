@@ -75,18 +75,18 @@ def test_the_budget_in_updates_sets_each_runs_step_budget_from_its_own_ratio(tmp
     opts = options(tmp_path)
     command = grid_job.stack_command(RunSpec("vdbe", 1000, 2), opts, resume=False)
     flags = dict(zip(command[2::2], command[3::2]))
-    assert flags["--preset"] == "drive" and flags["--learner.total_env_steps"] == str(BUDGET)
+    assert flags["--preset"] == "drive" and flags["--pace.total_env_steps"] == str(BUDGET)
     assert flags["--run.name"] == "vdbe-b1000-s2" and flags["--exploration.strategy"] == "vdbe"
     ratio2 = grid_job.stack_command(RunSpec("bmc", 1000, 0, "ratio2"), opts, resume=True)
-    assert ratio2[-1] == "--resume" and ratio2[ratio2.index("--learner.total_env_steps") + 1] == str(28_000 + 60_000)
-    assert ratio2[ratio2.index("--learner.env_steps_per_update") + 1] == "2.0"
+    assert ratio2[-1] == "--resume" and ratio2[ratio2.index("--pace.total_env_steps") + 1] == str(28_000 + 60_000)
+    assert ratio2[ratio2.index("--pace.env_steps_per_update") + 1] == "2.0"
 
 
 @pytest.mark.parametrize("extra, message", [
     (("--preset", "drive", "--replay.capacity", "5"), "set by the grid"),
-    (("--preset", "drive", "--learner.total_env_steps=4"), "set by the grid"),
+    (("--preset", "drive", "--pace.total_env_steps=4"), "set by the grid"),
     (("--preset", "drive", "--learner.lr", "oops"), "learner.lr: expected a number"),
-    (("--preset", "local"), "learner.start_by steps"),  # the 999 random episodes end at another step per run
+    (("--preset", "local"), "pace.start_by steps"),  # the 999 random episodes end at another step per run
     (("--preset", "drive", "--learner.keep_every", "0"), "learner.keep_every"),  # no curve to read
 ])
 def test_config_flags_are_checked_before_anything_runs(tmp_path, extra, message):

@@ -172,13 +172,13 @@ def test_the_replay_takes_the_start_rule_the_learner_states_or_its_strategys(tmp
     service.on_exploration(state)  # decreasing epsilon's own rule
     assert service.learner_rule == ("decreasing", True) and service.limiter.limit.start_by_steps
     stated = ReplayService(small_config(tmp_path))
-    stated.on_exploration(dataclasses.replace(state, start_by_steps=False))  # learner.start_by episodes
+    stated.on_exploration(dataclasses.replace(state, start_by_steps=False))  # pace.start_by episodes
     assert stated.learner_rule == ("decreasing", False) and not stated.limiter.limit.start_by_steps
 
 
 @pytest.mark.parametrize("start_by, by_steps", [("episodes", False), ("steps", True)])
 def test_a_start_rule_for_every_strategy_holds_whatever_the_learners_strategy(tmp_path, start_by, by_steps):
-    service = ReplayService(small_config(tmp_path, **{"learner.start_by": start_by}))
+    service = ReplayService(small_config(tmp_path, **{"pace.start_by": start_by}))
     assert service.limiter.limit.start_by_steps == by_steps
     for strategy in ("decreasing", "bmc"):
         service.on_exploration(exploration_message(make_strategy(load_config("smoke", overrides={

@@ -50,7 +50,7 @@ def run_updates(process: LearnerService, updates: int, per_update: float, mark: 
 
 @pytest.mark.parametrize("per_update", [4.0, 2.5, 6.0])
 def test_per_step_bmc_observes_one_transition_per_env_step(tmp_path, per_update):
-    process = LearnerService(config_with(tmp_path, **{"learner.env_steps_per_update": per_update}))
+    process = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": per_update}))
     assert process.config.exploration.bmc.observations == "per_step"
     env_steps = run_updates(process, 8, per_update)
     assert process.strategy.returns == process.bmc_observations == env_steps  # 32, 20 or 48
@@ -60,20 +60,20 @@ def test_per_step_bmc_observes_one_transition_per_env_step(tmp_path, per_update)
 
 def test_per_transition_bmc_observes_every_unmasked_transition(tmp_path):
     process = LearnerService(config_with(tmp_path, **{"exploration.bmc.observations": "per_transition",
-                                                      "learner.env_steps_per_update": 4.0}))
+                                                      "pace.env_steps_per_update": 4.0}))
     env_steps = run_updates(process, 8, 4.0)
     assert process.strategy.returns == 8 * TRACES * (STEPS - MASK) == 48
     assert process.strategy.returns / env_steps == 1.5
 
 
 def test_per_step_cannot_observe_more_than_a_batch_holds(tmp_path):
-    process = LearnerService(config_with(tmp_path, **{"learner.env_steps_per_update": 20.0}))
+    process = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": 20.0}))
     run_updates(process, 3, 20.0)
     assert process.strategy.returns == 3 * 6
 
 
 def test_the_achieved_ratio_counts_from_the_replays_start_mark(tmp_path):
-    process = LearnerService(config_with(tmp_path, **{"learner.env_steps_per_update": 4.0}))
+    process = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": 4.0}))
     run_updates(process, 10, 4.0, mark=500)
     assert process.env_steps_per_update() == pytest.approx(4.0)
     process.on_replay_rate(rate(548, 500))  # 12 updates due, 10 made
@@ -101,7 +101,7 @@ def test_an_unpaced_run_ends_once_closed_without_paying_the_rest():
 
 
 def test_the_replays_close_comes_on_both_of_its_keys_and_what_does_not_fit_is_refused(tmp_path):
-    process = LearnerService(config_with(tmp_path, **{"learner.total_env_steps": 1_000}))
+    process = LearnerService(config_with(tmp_path, **{"pace.total_env_steps": 1_000}))
     process.on_replay_rate(example_rate(env_steps=1_040, start_env_steps=1_000.0, closed=True))
     assert process.clock.closed and not process.finished()  # 10 updates due, none made
     process.on_replay_stats(example_replay_stats(example_rate(env_steps=1_040, start_env_steps=1_000.0), episodes=5))
@@ -132,7 +132,7 @@ def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():
 def test_a_learner_resumed_after_its_last_update_ends_without_waiting_for_a_batch(tmp_path):
     """A closed run whose updates are all made gets no batch from the replay: the wait for the first one must
     end by itself, or the resumed stack never ends (seen in the chaos run's closing stack)."""
-    process = LearnerService(config_with(tmp_path, **{"learner.total_env_steps": 1_000,
+    process = LearnerService(config_with(tmp_path, **{"pace.total_env_steps": 1_000,
                                                       "learner.log_period_s": 0.05}))
     process.on_replay_rate(example_rate(env_steps=1_000, start_env_steps=0.0, closed=True, batches_served=50))
     process.learner.updates = math.ceil(process.clock.updates_due())

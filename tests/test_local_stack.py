@@ -61,7 +61,7 @@ def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):
     output = open(tmp_path / "stack.out", "wb")
     stack = subprocess.Popen([sys.executable, str(STACK), "--preset", "smoke", "--actors", "1",
                               "--run.runs_dir", str(tmp_path), "--run.name", "ratio", "--record.enabled", "false",
-                              "--learner.total_env_steps", str(budget),
+                              "--pace.total_env_steps", str(budget),
                               # small updates (a small LSTM, 2 traces of 5 steps, one thread on a shared
                               # machine): half a minute, not minutes
                               "--network.lstm_units", "16", "--learner.batch_size", "2",
@@ -76,7 +76,7 @@ def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):
             stack.kill()
             stack.wait()
     summary = json.loads((tmp_path / "ratio" / "summary.json").read_text())
-    configured = PRESETS["smoke"]["learner.env_steps_per_update"]
+    configured = PRESETS["smoke"]["pace.env_steps_per_update"]
     assert summary["learner_finished"] and summary["env_steps_per_update_configured"] == configured
     assert summary["env_steps"] >= budget and summary["updates"] >= 200
     assert summary["env_steps_per_update"] == pytest.approx(

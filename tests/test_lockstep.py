@@ -116,7 +116,7 @@ def test_the_actor_the_evaluation_and_the_reference_loop_all_step_on_the_core(mo
                  [make_env(evaluation_env_config(config))],
                  {"greedy": GreedyPolicy(network, 1)}, 20, config.evaluation.reward_bins, lambda episode: None)
     by_evaluation, stepped[:] = len(stepped), []
-    loop = reference_loop.train(load_config("smoke", overrides={"learner.total_env_steps": 30,
+    loop = reference_loop.train(load_config("smoke", overrides={"pace.total_env_steps": 30,
                                                                 "network.lstm_units": 16}), evaluate_at_end=False)
     assert by_actor > 0 and by_evaluation > 0
     assert len(stepped) == loop.env_steps

@@ -239,9 +239,9 @@ def recorded_run(tmp_path_factory):
     base = tmp_path_factory.mktemp("stack")
     log = base / "stack.log"
     process = start(["deploy/stack.py", "--preset", "smoke", "--actors", "1", "--run.name", RUN,
-                     "--run.runs_dir", str(base / "runs"), "--learner.total_env_steps", str(STACK_ENV_STEPS),
+                     "--run.runs_dir", str(base / "runs"), "--pace.total_env_steps", str(STACK_ENV_STEPS),
                      "--record.flush_period_s", "0.5", "--tensorboard",
-                     "--replay.error_buffer_updates", "1e9"],  # neither the actor nor the learner waits for the other
+                     "--pace.error_buffer_updates", "1e9"],  # neither the actor nor the learner waits for the other
                     log, cwd=ROOT)
     try:
         code = process.wait(STACK_TIMEOUT_S)

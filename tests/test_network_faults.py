@@ -36,7 +36,7 @@ from tests.processes import wait_for
 from tests.zenoh_peer import PATH as PEER
 from tests.zenoh_peer import read_lines
 
-FLAGS = ["--preset", "smoke", "--network.lstm_units", "16", "--learner.total_env_steps", "100000000",
+FLAGS = ["--preset", "smoke", "--network.lstm_units", "16", "--pace.total_env_steps", "100000000",
          "--replay.snapshot_period_s", "4", "--actor.resend_after_s", "3"]
 RUNS = ["--run.runs_dir", "runs"]
 WEIGHTS_MB = 1.68  # the smoke network with 16 LSTM units, float32

@@ -8,10 +8,10 @@ import dataclasses
 
 import pytest
 
-from common.config import ReplayConfig
+from common.config import PaceConfig
 from deploy.bench.pacing_sim import Scenario, row, simulate
 
-DEFAULTS = ReplayConfig()
+DEFAULTS = PaceConfig()
 SHORT = Scenario(updates_per_s=300.0, error_buffer=DEFAULTS.error_buffer_updates, hold_buffer=DEFAULTS.hold_updates,
                  free_over_need=1.2, episodes="mixed", start_steps=8_000, budget_updates=12_000)
 

@@ -305,12 +305,12 @@ def test_settings_come_from_the_config():
     limit = rate_limit_from_config(config)
     assert (limit.env_steps_per_update, limit.start_episodes, limit.start_steps, limit.total_env_steps) == \
         (4.0, 999, 50_000, 1_000_000)
-    assert limit.error_buffer == config.replay.error_buffer_updates and not limit.start_by_steps
-    assert limit.hold_buffer == config.replay.hold_updates
+    assert limit.error_buffer == config.pace.error_buffer_updates and not limit.start_by_steps
+    assert limit.hold_buffer == config.pace.hold_updates
     assert rate_limit_from_config(config, strategy="decreasing").start_by_steps
-    same_start = load_config("paper", overrides={"learner.start_by": "steps"})
+    same_start = load_config("paper", overrides={"pace.start_by": "steps"})
     assert rate_limit_from_config(same_start, strategy="bmc").start_by_steps
-    by_episodes = load_config("paper", overrides={"learner.start_by": "episodes"})
+    by_episodes = load_config("paper", overrides={"pace.start_by": "episodes"})
     assert not rate_limit_from_config(by_episodes, strategy="decreasing").start_by_steps
     with pytest.raises(ValueError, match="error_buffer"):
         RateLimit(4.0, 1, 0, 0.5)

@@ -52,7 +52,7 @@ def spied(monkeypatch):
 def smoke(strategy: str, **overrides):
     """The smoke preset, with a narrower LSTM so that seven trainings take seconds (the command test
     below runs the preset's own network)."""
-    return load_config("smoke", overrides={"exploration.strategy": strategy, "learner.total_env_steps": BUDGET,
+    return load_config("smoke", overrides={"exploration.strategy": strategy, "pace.total_env_steps": BUDGET,
                                            "network.lstm_units": 64, **overrides})
 
 
@@ -61,13 +61,13 @@ def test_the_loop_trains_and_feeds_every_hook_of_the_strategy(name, spied):
     config = smoke(name)
     result = reference_loop.train(config, evaluate_at_end=False, log_period_s=1e9)
     ((strategy, calls),) = spied
-    per_update = config.learner.env_steps_per_update
+    per_update = config.pace.env_steps_per_update
 
     assert result.env_steps >= BUDGET and result.episodes >= 3
-    if name == "decreasing":  # starts at learner.start_steps env steps, the others at start_episodes episodes
-        assert result.start_env_steps == config.learner.start_steps
+    if name == "decreasing":  # starts at pace.start_steps env steps, the others at start_episodes episodes
+        assert result.start_env_steps == config.pace.start_steps
     else:
-        assert result.start_env_steps < config.learner.start_steps
+        assert result.start_env_steps < config.pace.start_steps
     assert result.updates == math.ceil((result.env_steps - result.start_env_steps) / per_update) >= 8
     assert math.isfinite(result.loss)
 
@@ -101,7 +101,7 @@ def test_bmc_per_transition_feeds_every_unmasked_step(spied):
 
 
 def test_the_command_trains_then_evaluates(spied, capsys):
-    reference_loop.main(["--preset", "smoke", "--learner.total_env_steps", "200", "--learner.log_period_s", "1000",
+    reference_loop.main(["--preset", "smoke", "--pace.total_env_steps", "200", "--learner.log_period_s", "1000",
                          "--evaluation.max_steps", "20"])
     out = capsys.readouterr().out
     assert "env steps per update since updates started" in out

@@ -272,8 +272,8 @@ def test_a_reply_thread_survives_a_failing_sample(caplog):
 
 
 def test_episodes_after_the_run_closed_are_refused_counted_and_announced(caplog):
-    config = load_config("smoke", overrides={"learner.total_env_steps": 30, "learner.start_episodes": 1,
-                                             "learner.env_steps_per_update": 4.0, "replay.error_buffer_updates": 2.0})
+    config = load_config("smoke", overrides={"pace.total_env_steps": 30, "pace.start_episodes": 1,
+                                             "pace.env_steps_per_update": 4.0, "pace.error_buffer_updates": 2.0})
     service = ReplayService(config)
     service.on_episode(episode(12, 0))  # the start mark: 12 steps
     service.on_episode(episode(24, 1))  # 36 >= 30: the budget is spent, 6 updates due
@@ -299,7 +299,7 @@ def test_episodes_after_the_run_closed_are_refused_counted_and_announced(caplog)
 
 
 def test_a_request_stating_more_updates_than_the_budget_pays_for_is_refused():
-    config = load_config("smoke", overrides={"learner.total_env_steps": 400, "replay.capacity": 5})
+    config = load_config("smoke", overrides={"pace.total_env_steps": 400, "replay.capacity": 5})
     service = ReplayService(config)  # (400 + 5 x 60) / 20 + 2 = 37 updates at most
     query = FakeQuery(3)
     query.request = dataclasses.replace(query.request, learner_updates=38)

@@ -1,5 +1,5 @@
 """The run's end with long episodes in flight: every episode the replay stored is paid for, and the run's
-ratio stays within replay.error_buffer_updates, however long the episodes.
+ratio stays within pace.error_buffer_updates, however long the episodes.
 
 The real RateLimiter (the replay's) and RunClock (the learner's) on a simulated clock: several actors drive
 episodes of up to env.max_steps steps, obey the replay's hold at episode boundaries, and deliver each episode

@@ -73,7 +73,7 @@ def stack(tmp_path):
     subscriptions = [subscribe(session, keys.metrics_all, observer.on_metric),
                      subscribe(session, keys.replay_stats, observer.on_replay),
                      subscribe(session, keys.exploration, observer.on_exploration)]
-    processes["learner"] = start_role("learner", client + ["--learner.total_env_steps", "100000"], logs)
+    processes["learner"] = start_role("learner", client + ["--pace.total_env_steps", "100000"], logs)
     for actor_id in (0, 1):
         processes[f"actor{actor_id}"] = start_role("actor", client + ["--actor.actor_id", str(actor_id)], logs)
     try:

@@ -97,7 +97,7 @@ def test_the_stack_writes_its_status_into_the_run_folder(tmp_path):
     config = load_config("smoke", overrides={"run.runs_dir": str(tmp_path), "run.name": "s"})
     run = RunDir.of(config)
     stack = Stack(config, run, "tcp/127.0.0.1:1", actors=1, resume=False)  # nothing started
-    stack.report(StackMonitor(config.learner.total_env_steps), "training")
+    stack.report(StackMonitor(config.pace.total_env_steps), "training")
     status = RunStatus.read(run.status)
     assert (status.phase, status.total_env_steps, status.pids) == ("training", 20_000, {})
     assert status.restarts == {"replay": 0, "recorder": 0, "learner": 0, "actor-0": 0}

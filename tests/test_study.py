@@ -21,7 +21,7 @@ def test_a_run_is_the_configuration_its_config_sets():
     assert study.configuration_of(items(**{"learner.n_step": 3})) == "nstep3"
     assert study.configuration_of(items(**{"learner.stored_state": True, "learner.burn_in": 2})) == "stored-burnin2"
     assert study.configuration_of(items(**{"learner.stored_state": True})) == "stored"
-    assert study.configuration_of(items(**{"learner.env_steps_per_update": 2})) == "ratio2"
+    assert study.configuration_of(items(**{"pace.env_steps_per_update": 2})) == "ratio2"
     combined = {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}
     assert study.configuration_of(items(**combined)) == "combination"
     assert study.configuration_of(items(**{**combined, "learner.precision": "bfloat16"})) is None  # forced, not auto
@@ -36,7 +36,7 @@ def test_the_report_reads_each_seed_at_the_budget_and_says_which_differences_the
     write_run(runs, "c", 0, {"learner.n_step": 3}, [80, 1_200, 1_500])  # drives at 2,000 updates
     write_run(runs, "d", 1, {"learner.n_step": 3}, [90, 900, 1_100])  # at 3,000
     write_run(runs, "e", 0, {"learner.stored_state": True}, [90, 200, 350])  # one seed only
-    write_run(runs, "f", 1, {"learner.env_steps_per_update": 2.0}, [1_100, 900, 1_300])  # drives, swings, drives
+    write_run(runs, "f", 1, {"pace.env_steps_per_update": 2.0}, [1_100, 900, 1_300])  # drives, swings, drives
     costs = tmp_path / "costs.json"
     costs.write_text(json.dumps({"rows": [{"configuration": "nstep3", "updates_per_s": 2.0},
                                           {"configuration": "paper", "updates_per_s": 2.5}]}))

@@ -17,7 +17,7 @@ class Strategy:
     display_name: str  # the paper's name, in tables and figures
     sections: tuple[str, ...]  # the exploration.<section> configs of its params, in its class's argument order
     epsilon_group: str | None  # the panel of the epsilon figure that draws it; None: it has no epsilon
-    starts_by_steps: bool = False  # updates start at learner.start_steps env steps, not learner.start_episodes
+    starts_by_steps: bool = False  # updates start at pace.start_steps env steps, not pace.start_episodes
 
 
 REGISTRY = (
@@ -49,7 +49,7 @@ def strategy_rank(name: str) -> int:
 
 
 def starts_by_steps(name: str, start_by: str = "strategy") -> bool:
-    """Whether a run of this strategy starts updates by env steps rather than episodes, by learner.start_by:
+    """Whether a run of this strategy starts updates by env steps rather than episodes, by pace.start_by:
     "strategy" is the paper's rule (decreasing epsilon by steps), "steps" and "episodes" hold for every strategy."""
     if start_by == "strategy":
         return strategy_named(name).starts_by_steps

@@ -176,8 +176,8 @@ class ExplorationState(Message):
     started: bool = wired(Flag())  # before updates start every strategy acts uniformly
     counters: dict[str, int | float] = wired(NumberDict())
     state: dict[str, Any] = wired(PlainDict())  # the strategy's own serialisable state
-    # The learner's start rule (learner.start_by with its strategy), which the replay's rate limiter keeps:
-    # updates start at learner.start_steps env steps (True) or learner.start_episodes episodes (False).
+    # The learner's start rule (pace.start_by with its strategy), which the replay's rate limiter keeps:
+    # updates start at pace.start_steps env steps (True) or pace.start_episodes episodes (False).
     # None: a learner that predates the field; the replay then derives it from the strategy's name.
     start_by_steps: bool | None = wired(Nullable(Flag()), default=None)
 

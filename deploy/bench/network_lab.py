@@ -26,7 +26,7 @@ from pathlib import Path
 from common.eta import clock_time
 from deploy.netns_lab import Lab, config_flags, why_no_lab
 
-BASE = ["--preset", "smoke", "--learner.total_env_steps", "100000000", "--run.runs_dir", "runs"]
+BASE = ["--preset", "smoke", "--pace.total_env_steps", "100000000", "--run.runs_dir", "runs"]
 STATUS = re.compile(r"updates (\d+), env steps (\d+),")
 BEHIND = re.compile(r"acting on weights v\d+, (\d+) updates behind")
 WARM_UP_S = 240.0

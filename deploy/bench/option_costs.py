@@ -102,7 +102,7 @@ def table(configs: dict[str, Config], seconds: dict[str, list[float]], frame: fl
             "gflop_per_update": sum(update_flops(config.network, learner).values()) / 1e9,
             "updates_per_s": 1.0 / per_update,
             "updates_per_s_best": 1.0 / min(seconds[name]),
-            "learner_s_per_1000_env_steps": 1000.0 / learner.env_steps_per_update * per_update,
+            "learner_s_per_1000_env_steps": 1000.0 / config.pace.env_steps_per_update * per_update,
         })
     return rows
 

@@ -50,7 +50,7 @@ NEVER = math.inf
 @dataclasses.dataclass(frozen=True)
 class Scenario:
     updates_per_s: float
-    error_buffer: float  # replay.error_buffer_updates: the learner's lead
+    error_buffer: float  # pace.error_buffer_updates: the learner's lead
     hold_buffer: float | None = None  # the actors' lead (None: the error buffer, as before issue 40)
     free_over_need: float | None = None  # None: the actors' speeds as drawn
     episodes: str = "mixed"
@@ -272,7 +272,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=lambda text: text.split(","), default=["mixed", "long"])
     parser.add_argument("--pacings", type=lambda text: [pacing(part) for part in text.split(",")],
                         default=[(50.0, None), (700.0, None)],
-                        help="B or B/H: the learner's lead and the actors' (H: replay.hold_updates)")
+                        help="B or B/H: the learner's lead and the actors' (H: pace.hold_updates)")
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--budget-updates", type=int, default=30_000)
     args = parser.parse_args()

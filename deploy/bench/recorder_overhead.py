@@ -10,7 +10,7 @@ learner's updates/s over the same span is shown too. Log size per 1,000 env step
 is given for the whole file and without the Weights channel (a few 48 MB weights
 per run, whatever its length). Flags after `--` go to the stack.
 
-    .venv/bin/python deploy/bench/recorder_overhead.py [--steps 3000] [--rounds 2] [-- --replay.error_buffer_updates 1e9]
+    .venv/bin/python deploy/bench/recorder_overhead.py [--steps 3000] [--rounds 2] [-- --pace.error_buffer_updates 1e9]
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ class Watch:
 def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[str]) -> dict:
     port = free_port()
     command = [sys.executable, "deploy/stack.py", "--preset", "smoke", "--actors", "1", "--port", str(port),
-               "--run.name", name, "--run.runs_dir", str(runs_dir), "--learner.total_env_steps", str(NEVER),
+               "--run.name", name, "--run.runs_dir", str(runs_dir), "--pace.total_env_steps", str(NEVER),
                "--record.enabled", "true" if record else "false", *extra]
     watch = Watch(steps)
     stack = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)

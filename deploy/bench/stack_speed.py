@@ -2,7 +2,7 @@
 
 1. the reference loop (deploy/reference_loop.py): act, store, sample, update
    and feed the exploration strategy in one process, one update per
-   learner.env_steps_per_update env steps, every strategy hook called;
+   pace.env_steps_per_update env steps, every strategy hook called;
 2. the local stack (replay + learner + actors over loopback Zenoh), same config;
 3. the replay service queried for trace batches as fast as it answers.
 
@@ -106,8 +106,8 @@ def replay_flat_out(config: Config, seconds: float, clients: int) -> tuple[float
     endpoint = loopback_endpoint()
     # The rate limiter let loose: updates start at the first episode, and 1e9 updates of error buffer never hold.
     replay = subprocess.Popen([sys.executable, "-m", "replay.main", "--run.name", "flat", "--transport.mode", "router",
-                               "--transport.listen", endpoint, "--learner.start_episodes", "1",
-                               "--replay.error_buffer_updates", "1e9"],
+                               "--transport.listen", endpoint, "--pace.start_episodes", "1",
+                               "--pace.error_buffer_updates", "1e9"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     session = open_session(TransportConfig(mode="client", connect=[endpoint]))
     keys = Keys(config.transport.namespace, "flat")
@@ -153,10 +153,10 @@ def main() -> None:
     add_config_arguments(parser)
     args, config = parse_config_or_exit(parser)
     print(f"CPU: {describe_cpu()}", flush=True)
-    config.learner.start_episodes = min(config.learner.start_episodes, 50)  # both sides: a short fill
+    config.pace.start_episodes = min(config.pace.start_episodes, 50)  # both sides: a short fill
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; B={config.learner.batch_size} "
           f"T={config.learner.trace_length}, LSTM {config.network.lstm_units}, "
-          f"{config.learner.env_steps_per_update:g} env steps per update; {args.seconds:.0f} s windows", flush=True)
+          f"{config.pace.env_steps_per_update:g} env steps per update; {args.seconds:.0f} s windows", flush=True)
     print("1/3 reference loop (one process) ...", flush=True)
     loop = reference_loop(config, args.seconds)
     print(f"2/3 local stack with {args.actors} actor(s) ...", flush=True)
@@ -165,10 +165,10 @@ def main() -> None:
     for name, (steps, updates) in (("reference loop", loop), (f"local stack, {args.actors} actor(s)", stack)):
         print(f"    {name:28} {steps:12.1f} {updates:10.2f} {steps / updates:13.2f}")
     print(f"    {'stack / reference loop':28} {stack[0] / loop[0]:11.2f}x {stack[1] / loop[1]:9.2f}x", flush=True)
-    if abs(stack[0] / stack[1] / config.learner.env_steps_per_update - 1) > 0.1:
+    if abs(stack[0] / stack[1] / config.pace.env_steps_per_update - 1) > 0.1:
         print(f"    (the stack's window is short against the rate limiter's error buffer of "
-              f"{config.replay.error_buffer_updates:g} updates, so its steps per update are off the configured "
-              f"{config.learner.env_steps_per_update:g}: compare updates/s, or lengthen --seconds)", flush=True)
+              f"{config.pace.error_buffer_updates:g} updates, so its steps per update are off the configured "
+              f"{config.pace.env_steps_per_update:g}: compare updates/s, or lengthen --seconds)", flush=True)
     print(f"3/3 replay flat out, {args.clients} client threads ...", flush=True)
     traces, megabytes = replay_flat_out(config, min(args.seconds, 20.0), args.clients)
     print(f"    traces served/s {traces:8.1f}   ({megabytes:.1f} MB/s of compressed frames)")

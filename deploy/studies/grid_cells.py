@@ -5,7 +5,7 @@ one of the options beyond it the study compared); a run is a cell and a seed, in
 Every run goes through the same steps, each decided from what its folder holds, so that stopping and
 running again resumes:
 
-    train     the stack to the budget in updates (learner.total_env_steps = start_steps + updates x ratio),
+    train     the stack to the budget in updates (pace.total_env_steps = start_steps + updates x ratio),
               keeping a policy every learner.keep_every updates; the soak sampled beside it
     curve     the greedy test curve at CURVE_TRIALS trials per start (evaluate --curve): every kept policy up
               to CURVE_DENSE_UNTIL updates, then those at multiples of CURVE_LATE_EVERY
@@ -43,7 +43,7 @@ OPTION_SETS: dict[str, tuple[str, dict[str, Any]]] = {
     "stored-burnin2": ("stored LSTM state, 2 steps of burn-in", {"learner.stored_state": True, "learner.burn_in": 2}),
     "stored": ("stored LSTM state, no burn-in", {"learner.stored_state": True, "learner.burn_in": 0}),
     "batch20": ("20 traces per batch", {"learner.batch_size": 20}),
-    "ratio2": ("1 update per 2 env steps", {"learner.env_steps_per_update": 2.0}),
+    "ratio2": ("1 update per 2 env steps", {"pace.env_steps_per_update": 2.0}),
     "bfloat16": ("bfloat16 learner (same math)", {"learner.precision": "bfloat16"}),
     "combination": ("stored LSTM state, 2 steps of burn-in, bfloat16 where native (fast preset + stored state)",
                     {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}),
@@ -89,7 +89,7 @@ def grid(strategies: list[str], capacities: list[int], seeds: list[int], option_
 
 
 def budget_env_steps(start_steps: int, env_steps_per_update: float, updates: int) -> int:
-    """learner.total_env_steps of a budget in updates, with updates from start_steps (learner.start_by steps)."""
+    """pace.total_env_steps of a budget in updates, with updates from start_steps (pace.start_by steps)."""
     return int(start_steps + round(updates * env_steps_per_update))
 
 

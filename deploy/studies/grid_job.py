@@ -33,7 +33,7 @@ EXPORTED_RUNS = "runs"
 # Keys the grid sets for each run; giving them as config flags would contradict it.
 GRID_KEYS = {"run.name": "the run names", "run.seed": "--seeds", "run.runs_dir": "--runs-dir",
              "exploration.strategy": "--strategies", "replay.capacity": "--buffers",
-             "learner.total_env_steps": "--updates", "evaluation.episodes_per_start": "--trials"}
+             "pace.total_env_steps": "--updates", "evaluation.episodes_per_start": "--trials"}
 POLL_S = 0.5
 SOAK_EVERY_S = 60.0
 FOLLOW_NICE = 15  # a curve followed beside training yields to it
@@ -83,10 +83,10 @@ def run_config(spec: RunSpec, options: Options) -> Config:
                                                                 *identity_flags(spec, options)]))
     except ConfigError as error:
         raise ExperimentError(f"{spec.name}: config error: {error}") from None
-    if config.learner.start_by != "steps":
+    if config.pace.start_by != "steps":
         raise ExperimentError(f"{spec.name}: a budget in updates needs every strategy to start at the same env "
-                              f"step (learner.start_by steps, as the drive preset has); got "
-                              f"{config.learner.start_by!r}")
+                              f"step (pace.start_by steps, as the drive preset has); got "
+                              f"{config.pace.start_by!r}")
     if config.learner.keep_every <= 0:
         raise ExperimentError(f"{spec.name}: the grid reads a run on the policies it keeps every "
                               "learner.keep_every updates; it is 0")
@@ -94,14 +94,14 @@ def run_config(spec: RunSpec, options: Options) -> Config:
 
 
 def run_budget(spec: RunSpec, options: Options) -> int:
-    """The run's learner.total_env_steps: its budget in updates from the env step its updates start at."""
-    learner = run_config(spec, options).learner
-    return budget_env_steps(learner.start_steps, learner.env_steps_per_update, options.updates)
+    """The run's pace.total_env_steps: its budget in updates from the env step its updates start at."""
+    pace = run_config(spec, options).pace
+    return budget_env_steps(pace.start_steps, pace.env_steps_per_update, options.updates)
 
 
 def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
     command = [sys.executable, str(STACK_SCRIPT), *options.extra, *spec.option_flags(),
-               *identity_flags(spec, options), "--learner.total_env_steps", str(run_budget(spec, options))]
+               *identity_flags(spec, options), "--pace.total_env_steps", str(run_budget(spec, options))]
     command += ["--actors", str(options.actors)] if options.actors else []
     return command + (["--resume"] if resume else [])
 

@@ -69,7 +69,7 @@ def write_report(runs: Sequence[ExportedRun], out: Path, facts: dict[str, str], 
 
 def run_facts(runs: Sequence[ExportedRun]) -> dict[str, str]:
     """What the report says of its runs, read from their configs: which, budgets, trials."""
-    budgets = sorted({run.config.learner.total_env_steps for run in runs})
+    budgets = sorted({run.config.pace.total_env_steps for run in runs})
     trials = sorted({run.evaluation_config().evaluation.episodes_per_start for run in runs})
     return {"runs": ", ".join(run.name for run in sorted(runs, key=lambda run: (run.capacity, run.seed))) or "none",
             "budget": " or ".join(f"{budget:,d}" for budget in budgets) + " env steps per run",
