@@ -68,8 +68,7 @@ def default_actor_count() -> int:
 class StackMonitor:
     """Collects the system's metrics from Zenoh and renders the live line and the status."""
 
-    def __init__(self, total_env_steps: int = 0, clock=time.monotonic, env_steps_per_update: float | None = None
-                 ) -> None:
+    def __init__(self, total_env_steps: int = 0, clock=time.monotonic) -> None:
         self._lock = threading.Lock()
         self.returns: deque[float] = deque(maxlen=100)
         self.episodes = 0
@@ -77,11 +76,10 @@ class StackMonitor:
         self.learner: dict = {}
         self.learner_final = threading.Event()  # the learner's last metrics, sent as it stops
         self.total_env_steps = total_env_steps  # the budget; 0: not shown
-        # A paced run (env_steps_per_update given) ends when the learner has made the updates the budget owes:
-        # its ETA follows the update rate once updates start, and is unknown before (the random phase runs
-        # many times faster than the learner will). Without pacing, the ETA follows the env-step rate.
-        self.env_steps_per_update = env_steps_per_update
-        self.eta: Eta | None = None if env_steps_per_update else Eta(total_env_steps, ETA_WINDOW_S, clock)
+        # A paced run ends when the learner has made the updates the budget owes: its ETA follows the update
+        # rate once updates start, and is unknown before (the random phase runs many times faster than the
+        # learner will). An unpaced run's (the replay's rate limiter says which) follows the env-step rate.
+        self.eta: Eta | None = None
         self.env_step_rate = Eta(total_env_steps, STEP_RATE_WINDOW_S, clock)
         self._clock = clock
         self._started = clock()
@@ -104,18 +102,21 @@ class StackMonitor:
             with self._lock:
                 self.replay = message
                 self.env_step_rate.update(message.env_steps_total)
-                if not self.env_steps_per_update:
+                if message.rate.unpaced:
+                    self.eta = self.eta or Eta(self.total_env_steps, ETA_WINDOW_S, self._clock)
                     self.eta.update(message.env_steps_total)
                 self._follow_updates()
 
     def _follow_updates(self) -> None:
-        """A paced run's ETA: the updates owed from the start mark to the budget, at the recent update rate."""
-        start = self.replay.rate.start_env_steps if self.replay is not None else None
+        """A paced run's ETA: the updates owed from the limiter's start mark to the budget, at its ratio and
+        the recent update rate."""
+        rate = self.replay.rate if self.replay is not None else None
         updates = stat_number(self.learner, "updates", integer=True, minimum=0)
-        if not self.env_steps_per_update or start is None or updates is None:
+        if rate is None or rate.unpaced or rate.start_env_steps is None or updates is None:
             return
         if self.eta is None:
-            owed = updates_paid_for(max(self.total_env_steps, start), start, self.env_steps_per_update)
+            start = rate.start_env_steps
+            owed = updates_paid_for(max(self.total_env_steps, start), start, rate.env_steps_per_update_target)
             self.eta = Eta(owed, ETA_WINDOW_S, self._clock)
         self.eta.update(updates)
 
@@ -407,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    monitor = StackMonitor(config.pace.total_env_steps, env_steps_per_update=config.pace.env_steps_per_update)
+    monitor = StackMonitor(config.pace.total_env_steps)
     stack.start_all()
     watcher_config = config.transport
     watcher_config.mode, watcher_config.connect, watcher_config.listen = "client", [endpoint], []

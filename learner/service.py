@@ -38,7 +38,7 @@ from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
 from common.strategy_build import make_strategy
-from common.pacing import achieved_ratio, env_steps_ceiling, is_unpaced, updates_paid_for
+from common.pacing import achieved_ratio, env_steps_ceiling
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.wire.errors import WireError
@@ -60,22 +60,22 @@ CPU_MODEL = cpu_model()  # recorded in each kept policy: its wall time is this m
 
 
 class RunClock:
-    """The run's env steps, start mark and close as the replay counts them, the updates they pay for,
-    and the run's wall time.
+    """The run's env steps, start mark and end as the replay's rate limiter states them (RateState), and
+    the run's wall time.
 
-    Reports arrive from batches and two replay keys, not in order, so the count only grows. The learner
-    stops once the replay has closed the run (budget spent, every update it pays for served, no more
-    episodes taken: replay/rate_limiter.py) and its updates pay for every step the replay took. The
-    wall time is this learner session's plus that of the sessions before a resume, so that a
-    resumed run's greedy curve (kept policies) carries on where it stopped.
+    The limiter is the one authority on the pace: the learner re-derives nothing. Reports arrive from
+    batches and two replay keys, not in order, so the step count only grows, and the limiter's word is
+    its latest state with the most steps. The learner stops once the limiter has closed the run (budget
+    spent, every update it pays for served, no more episodes taken: replay/rate_limiter.py) and the
+    learner has made the updates the limiter says are due (an unpaced run: none more). The wall time is
+    this learner session's plus that of the sessions before a resume, so that a resumed run's greedy
+    curve (kept policies) carries on where it stopped.
     """
 
-    def __init__(self, env_steps_per_update: float, error_buffer: float, wall_clock=time.monotonic) -> None:
-        self.env_steps_per_update = env_steps_per_update
-        self.error_buffer = error_buffer
+    def __init__(self, wall_clock=time.monotonic) -> None:
         self.env_steps = 0  # env steps of the whole system, as the replay last reported them
         self.start_env_steps: float | None = None  # the replay's start mark
-        self.closed = False  # the replay's word: it takes no more episodes
+        self.rate: RateState | None = None  # the limiter's word: its latest state with the most steps
         self.earlier_wall_s = 0.0  # the run's wall time before this session (a resumed run's checkpoint)
         self._wall_clock = wall_clock
         self._session_start = wall_clock()
@@ -83,30 +83,32 @@ class RunClock:
     def wall_s(self) -> float:
         return self.earlier_wall_s + self._wall_clock() - self._session_start
 
-    def observe(self, env_steps: int, start_env_steps: float | None = None, closed: bool | None = None) -> None:
+    def observe(self, env_steps: int) -> None:
+        """A batch's count of the env steps."""
         self.env_steps = max(self.env_steps, int(env_steps))
-        if start_env_steps is not None and start_env_steps >= 0:
-            self.start_env_steps = float(start_env_steps)
-        if closed is not None:
-            self.closed = closed
+
+    def observe_rate(self, rate: RateState) -> None:
+        if self.rate is None or rate.env_steps >= self.rate.env_steps:
+            self.rate = rate
+        self.observe(rate.env_steps)
+        if rate.start_env_steps is not None:
+            self.start_env_steps = float(rate.start_env_steps)
 
     def updates_due(self) -> float | None:
-        if self.start_env_steps is None:
-            return None
-        return updates_paid_for(self.env_steps, self.start_env_steps, self.env_steps_per_update)
+        """What the limiter last said the steps since its start mark pay for; None before it said."""
+        return None if self.rate is None else self.rate.updates_due
+
+    @property
+    def closed(self) -> bool:
+        return self.rate is not None and self.rate.closed
 
     def env_steps_per_update_achieved(self, updates: int) -> float:
         return achieved_ratio(self.env_steps, self.start_env_steps, updates)
 
-    def finished(self, updates: int, total_env_steps: int) -> bool:
-        """The run is closed and its steps paid for (updates >= due). An unpaced run (B at least the updates
-        the whole budget pays for: nobody is ever held) ends once closed, at the budget."""
-        if not self.closed or self.env_steps < total_env_steps:
-            return False
-        if is_unpaced(self.error_buffer, total_env_steps, self.env_steps_per_update):
-            return True
-        due = self.updates_due()
-        return due is not None and updates >= due
+    def finished(self, updates: int) -> bool:
+        """The limiter has closed the run and the learner has made every update it says is due."""
+        rate = self.rate
+        return rate is not None and rate.closed and (rate.unpaced or updates >= rate.updates_due)
 
     def state_dict(self) -> dict:
         # Checkpoint.env_steps reads "env_steps": the grid runner and evaluate ask it how far a run got.
@@ -163,7 +165,7 @@ class LearnerService:
         # update runs (pinned buffers, a side stream); on a CPU the arrays are used where they lie.
         self.stager = self.learner.stager() if self.learner.device.type == "cuda" else None
         self.strategy = make_strategy(config.exploration, config.network.n_actions)
-        self.clock = RunClock(config.pace.env_steps_per_update, config.pace.error_buffer_updates, clock)
+        self.clock = RunClock(clock)
         self.checkpoints = Cadence(config.learner.checkpoint_every, config.learner.checkpoint_every_s, clock)
         keeping = config.learner.keep_every > 0 or config.learner.keep_every_s > 0
         cadence = Cadence(config.learner.keep_every, config.learner.keep_every_s, clock) if keeping else None
@@ -207,11 +209,10 @@ class LearnerService:
             self.rejections.reject(f"{door}_values", f"replay/{door}: {env_steps} env steps, more than "
                                    f"{self.max_env_steps} (budget plus a full buffer)")
             return False
-        self._observe(env_steps, rate.start_env_steps, rate.closed)
+        self._observe(env_steps, rate)
         return True
 
-    def _observe(self, env_steps: int, start_env_steps: float | None = None, closed: bool | None = None) -> None:
-        mark = start_env_steps if isinstance(start_env_steps, (int, float)) and start_env_steps >= 0 else None
+    def _observe(self, env_steps: int, rate: RateState | None = None) -> None:
         with self._lock:
             resumed = self._resumed_env_steps
             if resumed is not None:
@@ -220,8 +221,11 @@ class LearnerService:
                     log.warning("the replay counts %d env steps, fewer than this checkpoint's %d: it was started "
                                 "without --resume and lost the run's counters; the step budget now waits for "
                                 "its new count", env_steps, resumed)
-                    self.clock.env_steps = 0
-            self.clock.observe(int(env_steps), mark, closed)
+                    self.clock.env_steps, self.clock.rate = 0, None
+            if rate is None:
+                self.clock.observe(env_steps)
+            else:
+                self.clock.observe_rate(rate)
 
     def serve_latest_weights(self, request_message) -> Weights | None:
         """A query without payload gets the latest weights; one carrying a message is refused."""
@@ -236,7 +240,7 @@ class LearnerService:
     def finished(self) -> bool:
         """The step budget is spent and the learner has made the updates it pays for."""
         with self._lock:
-            return self.clock.finished(self.updates, self.config.pace.total_env_steps)
+            return self.clock.finished(self.updates)
 
     def env_steps_per_update(self) -> float:
         """The run's achieved ratio: env steps since the replay's start mark per update."""

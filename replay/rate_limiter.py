@@ -205,7 +205,8 @@ class RateLimiter:
                          recounted_updates=self.recounted_updates, error_buffer_updates=self.limit.error_buffer,
                          hold_updates=self.limit.actors_lead,
                          env_steps_per_update_target=self.limit.env_steps_per_update,
-                         env_steps_per_update=achieved if math.isfinite(achieved) else None)
+                         env_steps_per_update=achieved if math.isfinite(achieved) else None,
+                         unpaced=self.unpaced)
 
 
 def _count(value) -> bool:

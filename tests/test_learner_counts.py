@@ -80,24 +80,25 @@ def test_the_achieved_ratio_counts_from_the_replays_start_mark(tmp_path):
     assert process.env_steps_per_update() == pytest.approx(4.8)
 
 
-def test_the_run_ends_when_the_replay_closed_it_and_its_steps_are_paid_for():
-    clock = RunClock(env_steps_per_update=4.0, error_buffer=5.0)
-    clock.observe(980, start_env_steps=100)
-    assert not clock.finished(updates=300, total_env_steps=1_000)  # budget not spent
-    clock.observe(1_020)  # 230 updates due, but episodes still in flight may come: not closed
-    assert not clock.finished(updates=240, total_env_steps=1_000)
-    clock.observe(1_100)  # an episode in flight at the budget arrived: 250 due, owed like any other
-    clock.observe(1_100, closed=True)
-    assert not clock.finished(updates=249, total_env_steps=1_000)
-    assert clock.finished(updates=250, total_env_steps=1_000)
+def test_the_run_ends_when_the_limiter_closed_it_and_the_updates_it_says_are_due_are_made():
+    clock = RunClock()
+    clock.observe_rate(example_rate(env_steps=980, start_env_steps=100.0, updates_due=220.0))
+    assert not clock.finished(updates=300)  # not closed: the budget is not spent
+    clock.observe_rate(example_rate(env_steps=1_100, start_env_steps=100.0, updates_due=250.0, closed=True))
+    clock.observe_rate(example_rate(env_steps=1_020, start_env_steps=100.0, updates_due=230.0))  # late, older
+    assert clock.closed and not clock.finished(updates=249)
+    assert clock.finished(updates=250)  # the limiter's count, not the learner's own: 250 due, not 230
+    clock.observe(5_000)  # a batch's count moves the steps, not the limiter's word
+    assert clock.finished(updates=250)
 
 
 def test_an_unpaced_run_ends_once_closed_without_paying_the_rest():
-    clock = RunClock(env_steps_per_update=4.0, error_buffer=1e9)  # more than the 250 updates 1,000 steps pay
-    clock.observe(1_020, start_env_steps=100)
-    assert not clock.finished(updates=10, total_env_steps=1_000)
-    clock.observe(1_020, closed=True)
-    assert clock.finished(updates=10, total_env_steps=1_000)
+    clock = RunClock()
+    clock.observe_rate(example_rate(env_steps=1_020, start_env_steps=100.0, updates_due=230.0, unpaced=True))
+    assert not clock.finished(updates=10)
+    clock.observe_rate(example_rate(env_steps=1_020, start_env_steps=100.0, updates_due=230.0, unpaced=True,
+                                    closed=True))
+    assert clock.finished(updates=10)
 
 
 def test_the_replays_close_comes_on_both_of_its_keys_and_what_does_not_fit_is_refused(tmp_path):
@@ -120,11 +121,12 @@ def test_the_replays_close_comes_on_both_of_its_keys_and_what_does_not_fit_is_re
 
 
 def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():
-    clock = RunClock(env_steps_per_update=4.0, error_buffer=1.0)
-    clock.observe(500, start_env_steps=100)
+    clock = RunClock()
+    clock.observe_rate(example_rate(env_steps=500, start_env_steps=100.0, updates_due=100.0))
     clock.observe(480)  # an older batch, answered late
+    clock.observe_rate(example_rate(env_steps=490, start_env_steps=100.0, updates_due=97.5))  # an older word
     assert clock.env_steps == 500 and clock.updates_due() == 100
-    again = RunClock(env_steps_per_update=4.0, error_buffer=1.0)
+    again = RunClock()
     again.load_state_dict(clock.state_dict())
     assert (again.env_steps, again.start_env_steps) == (500, 100)
 

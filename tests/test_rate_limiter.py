@@ -258,7 +258,8 @@ def test_the_replays_stats_name_every_counter_and_decision():
     assert flat_values(waiting.state(5.0)) == {  # no start mark, no ratio yet
         "time": 5.0, "env_steps": 30, "batches_served": 0, "updates_due": 0.0,
         "hold_reason": "", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 0,
-        "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0}
+        "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0,
+        "unpaced": 0}
     behind = limiter(start_episodes=1, per_update=4.0, buffer=2.0)
     behind.on_episode(100, episodes_stored=1)
     behind.on_episode(40, episodes_stored=2)  # 10 due
@@ -269,7 +270,7 @@ def test_the_replays_stats_name_every_counter_and_decision():
         "time": 5.0, "env_steps": 140, "batches_served": 5, "updates_due": 10.0, "start_env_steps": 100.0,
         "hold_reason": "behind", "closed": 0, "refilling": 0, "refill_env_steps": 0, "lost_updates": 1,
         "recounted_updates": 0, "error_buffer_updates": 2.0, "hold_updates": 2.0, "env_steps_per_update_target": 4.0,
-        "env_steps_per_update": 8.0}
+        "env_steps_per_update": 8.0, "unpaced": 0}
     resumed = limiter(start_episodes=2, per_update=4.0, buffer=1.0, total=1_000)
     resumed.load_state_dict({"version": 1, "env_steps": 1_000, "served": 200, "start_mark": 200.0,
                              "refill_env_steps": 5, "lost_updates": 2, "recounted_updates": 4}, episodes_stored=1)
@@ -277,12 +278,14 @@ def test_the_replays_stats_name_every_counter_and_decision():
         "time": 5.0, "env_steps": 1_000, "batches_served": 200, "updates_due": 200.0, "start_env_steps": 200.0,
         "hold_reason": "budget", "closed": 0, "refilling": 1, "refill_env_steps": 5,
         "lost_updates": 2, "recounted_updates": 4, "error_buffer_updates": 1.0, "hold_updates": 1.0, "env_steps_per_update_target": 4.0,
-        "env_steps_per_update": 4.0}
+        "env_steps_per_update": 4.0, "unpaced": 0}
     closed = limiter(start_episodes=1, per_update=4.0, buffer=2.0, total=100)
     closed.on_episode(100, episodes_stored=1)
     closed.on_episode(40, episodes_stored=2)
     assert serve_all(closed) == 12
     assert closed.state(0.0).closed and closed.state(0.0).env_steps_per_update == 40 / 12
+    free = limiter(start_episodes=1, per_update=4.0, buffer=1e9, total=100)
+    assert free.state(0.0).unpaced and not closed.state(0.0).unpaced
 
 
 def test_a_resumed_replay_refills_its_store_before_serving_and_does_not_owe_the_refill():

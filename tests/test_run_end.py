@@ -45,12 +45,12 @@ def simulate(seed: int, actors: int = 4, per_update: float = 4.0, buffer: float 
     rng = np.random.default_rng(seed)
     limiter = RateLimiter(RateLimit(per_update, start_episodes=20, start_steps=0, error_buffer=buffer,
                                     total_env_steps=budget))
-    clock = RunClock(per_update, buffer)
+    clock = RunClock()
     left = [0.0] * actors  # steps left of each actor's episode; 0: idle, waiting for the replay's word
     length = [0] * actors
     ended = Ended(limiter, updates=0)
     stored, credit, learning = 0, 0.0, True
-    heard = (0, None, False)  # the replay's numbers as the learner last heard them
+    heard = None  # the limiter's state as the learner last heard it
     while learning or any(left):
         for actor in range(actors):
             if left[actor] > 0:
@@ -68,8 +68,9 @@ def simulate(seed: int, actors: int = 4, per_update: float = 4.0, buffer: float 
                 length[actor] = int(rng.integers(10, MAX_STEPS + 1))
                 left[actor] = float(length[actor])
         if learning:
-            clock.observe(*heard)
-            if clock.finished(ended.updates, budget):
+            if heard is not None:
+                clock.observe_rate(heard)
+            if clock.finished(ended.updates):
                 learning = False
                 continue
             credit += updates_per_s * TICK_S
@@ -78,7 +79,7 @@ def simulate(seed: int, actors: int = 4, per_update: float = 4.0, buffer: float 
                 ended.updates += 1
                 credit -= 1
             credit = min(credit, 1.0)
-            heard = (limiter.env_steps, limiter.start_mark, limiter.closed)
+            heard = limiter.state(0.0)
     return ended
 
 

@@ -52,17 +52,17 @@ def test_the_eta_is_unknown_while_the_count_stands_still():
     assert eta.remaining_s() is None
 
 
-def replay_stats(env_steps: int, start: float | None = None) -> ReplayStats:
-    rate = example_rate(env_steps=env_steps, start_env_steps=start, batches_served=0)
+def replay_stats(env_steps: int, start: float | None = None, unpaced: bool = False) -> ReplayStats:
+    rate = example_rate(env_steps=env_steps, start_env_steps=start, batches_served=0, unpaced=unpaced)
     return example_replay_stats(rate)
 
 
 def test_the_stacks_line_and_status_show_the_budget_its_share_and_the_eta():
     clock = FakeClock()
     monitor = StackMonitor(20_000, clock=clock)
-    monitor.on_replay_stats(replay_stats(1_000), "k")
+    monitor.on_replay_stats(replay_stats(1_000, unpaced=True), "k")
     clock.now = 10.0
-    monitor.on_replay_stats(replay_stats(2_000), "k")  # 100 steps/s: 18,000 steps in 3 minutes
+    monitor.on_replay_stats(replay_stats(2_000, unpaced=True), "k")  # 100 steps/s: 18,000 steps in 3 minutes
     monitor.on_metric(EpisodeRecord(actor_id=0, episode_index=0, length=5, episode_return=4.5, collided=True,
                                     start_set="train", start_index=0, epsilon=1.0, weights_version=0,
                                     wall_time=0.1, time=1.0), "d3rqn/r/metrics/actor/0")
@@ -75,7 +75,7 @@ def test_the_stacks_line_and_status_show_the_budget_its_share_and_the_eta():
 
 def test_a_paced_runs_eta_follows_the_updates_it_still_owes_not_the_random_phase():
     clock = FakeClock()
-    monitor = StackMonitor(20_000, clock=clock, env_steps_per_update=4.0)
+    monitor = StackMonitor(20_000, clock=clock)
 
     def report(env_steps: int, start: float | None, updates: int) -> None:
         monitor.on_replay_stats(replay_stats(env_steps, start), "k")
@@ -208,7 +208,7 @@ def test_a_status_file_that_cannot_be_written_is_said_once_and_the_stack_goes_on
 
 def test_the_lines_step_rate_is_over_a_minute_so_bursts_from_held_actors_do_not_read_as_zero():
     clock = FakeClock()
-    monitor = StackMonitor(100_000, clock=clock, env_steps_per_update=4.0)
+    monitor = StackMonitor(100_000, clock=clock)
     env_steps = 30_000
     for second in range(61):  # an actor held by the rate limiter sends a 300-step burst every 10 s
         clock.now = float(second)

@@ -211,6 +211,7 @@ class RateState(Message):
     hold_updates: float = wired(Real(min_value=0.0))  # how far it may fall behind before actors hold
     env_steps_per_update_target: float = wired(Real(min_value=0.0))
     env_steps_per_update: float | None = wired(Nullable(Real()))  # achieved; None before the first batch
+    unpaced: bool = wired(Flag(), default=False)  # B holds nobody: the run closes at its budget, the rest unpaid
 
     @property
     def updates_started(self) -> bool:

@@ -140,8 +140,7 @@ class Learner:
     def __init__(self, scenario: Scenario, limiter: RateLimiter) -> None:
         self.limiter = limiter
         self.seconds_per_update = 1.0 / scenario.updates_per_s
-        self.budget = scenario.limit().total_env_steps
-        self.clock = RunClock(scenario.env_steps_per_update, scenario.error_buffer)
+        self.clock = RunClock()
         self.free_at = NEVER  # the end of the update in progress; NEVER while it waits
         self.waiting_since: float | None = 0.0
         self.first_update_at: float | None = None
@@ -152,8 +151,8 @@ class Learner:
     def ask(self, now: float) -> None:
         """At `now` the learner wants a batch: it takes one if served, or waits (idle once started)."""
         limiter = self.limiter
-        self.clock.observe(limiter.env_steps, limiter.start_mark, limiter.closed)
-        if self.clock.finished(self.updates, self.budget):
+        self.clock.observe_rate(limiter.state(now))
+        if self.clock.finished(self.updates):
             self.stopped, self.free_at = True, NEVER
             self._end_wait(now)
             return
