@@ -23,7 +23,7 @@ class Eta:
         while len(self._samples) > 2 and now - self._samples[1][0] >= self.window_s:
             self._samples.popleft()
 
-    def rate(self) -> float | None:
+    def per_s(self) -> float | None:
         """Count per second over the window; None until time has passed between two samples."""
         if len(self._samples) < 2:
             return None
@@ -32,10 +32,10 @@ class Eta:
 
     def remaining_s(self) -> float | None:
         """Seconds to the total; None until the count has grown."""
-        rate = self.rate()
-        if rate is None or rate <= 0.0:
+        speed = self.per_s()
+        if speed is None or speed <= 0.0:
             return None
-        return max(self.total - self._samples[-1][1], 0.0) / rate
+        return max(self.total - self._samples[-1][1], 0.0) / speed
 
     def text(self) -> str:
         remaining = self.remaining_s()

@@ -57,7 +57,7 @@ WATCHER_CONNECT_S = 180.0  # how long the stack waits for its replay's router: a
 STATUS_PERIOD_S = 1.0  # the status file and the live line
 LOGGED_LINE_PERIOD_S = 30.0  # the live line, logged, when stdout is not a terminal
 ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
-STEP_RATE_WINDOW_S = 60.0  # the line's steps/s: actors held by the rate limiter send episodes in bursts
+STEP_SPEED_WINDOW_S = 60.0  # the line's steps/s: actors held by the rate limiter send episodes in bursts
 
 
 def default_actor_count() -> int:
@@ -80,7 +80,7 @@ class StackMonitor:
         # rate once updates start, and is unknown before (the random phase runs many times faster than the
         # learner will). An unpaced run's (the replay's rate limiter says which) follows the env-step rate.
         self.eta: Eta | None = None
-        self.env_step_rate = Eta(total_env_steps, STEP_RATE_WINDOW_S, clock)
+        self.env_step_speed = Eta(total_env_steps, STEP_SPEED_WINDOW_S, clock)
         self._clock = clock
         self._started = clock()
 
@@ -101,7 +101,7 @@ class StackMonitor:
         if isinstance(message, ReplayStats):
             with self._lock:
                 self.replay = message
-                self.env_step_rate.update(message.env_steps_total)
+                self.env_step_speed.update(message.env_steps_total)
                 if message.rate.unpaced:
                     self.eta = self.eta or Eta(self.total_env_steps, ETA_WINDOW_S, self._clock)
                     self.eta.update(message.env_steps_total)
@@ -134,7 +134,7 @@ class StackMonitor:
                     f"eps {_number(learner, 'epsilon', 1.0):.3f} | "
                     f"return(100) {math.nan if mean_return is None else mean_return:8.2f} | "
                     f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
-                    f"steps/s {self.env_step_rate.rate() or 0.0:6.1f} | "
+                    f"steps/s {self.env_step_speed.per_s() or 0.0:6.1f} | "
                     f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
                     f"restarts {restarts}")
 

@@ -53,12 +53,12 @@ class CounterSpeeds:
         self._last_time = clock()
         self._last: dict[str, float] = {}
 
-    def rates(self, counters: dict[str, float], names: tuple[str, ...]) -> dict[str, float]:
+    def speeds(self, counters: dict[str, float], names: tuple[str, ...]) -> dict[str, float]:
         now = self._clock()
         elapsed = max(now - self._last_time, 1e-9)
-        rates = {f"{name}_per_s": (counters[name] - self._last.get(name, 0)) / elapsed for name in names}
+        speeds = {f"{name}_per_s": (counters[name] - self._last.get(name, 0)) / elapsed for name in names}
         self._last_time, self._last = now, dict(counters)
-        return rates
+        return speeds
 
 
 def physical_memory_bytes() -> int | None:
@@ -205,7 +205,7 @@ def _report_until(stop: threading.Event, service: ReplayService, receivers: dict
         # messages that are not wire messages or whose fields are invalid, refused before the service saw them
         malformed = {f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}
         stats = service.stats(rejected={**malformed, "rejected_messages": receivers["episodes"].rejected})
-        stats.speeds = meter.rates({name: getattr(stats, name) for name in SPEED_COUNTERS}, SPEED_COUNTERS)
+        stats.speeds = meter.speeds({name: getattr(stats, name) for name in SPEED_COUNTERS}, SPEED_COUNTERS)
         stats_out.put(stats)
         try:
             save_counters(path, service.limiter_state())

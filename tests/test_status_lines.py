@@ -221,9 +221,9 @@ def test_a_rate_needs_time_between_two_samples():
     clock = FakeClock()
     eta = Eta(10, clock=clock)
     eta.update(3)
-    assert eta.rate() is None
+    assert eta.per_s() is None
     eta.update(4)
-    assert eta.rate() is None
+    assert eta.per_s() is None
     clock.now = 2.0
     eta.update(3)
-    assert eta.rate() == 0.0 and eta.remaining_s() is None
+    assert eta.per_s() == 0.0 and eta.remaining_s() is None

@@ -49,9 +49,9 @@ class EvaluationStatus:
 def evaluation_line(done: int, total: int, steps: int, elapsed_s: float) -> str:
     rate = done / elapsed_s if elapsed_s > 0 else 0.0
     eta = clock_time((total - done) / rate) if rate > 0 else "?"
-    step_rate = steps / elapsed_s if elapsed_s > 0 else 0.0
+    step_speed = steps / elapsed_s if elapsed_s > 0 else 0.0
     return (f"{PREFIX}{done}/{total} episodes ({100 * done / max(total, 1):.1f}%), {rate:.2f} episodes/s, "
-            f"{step_rate:.0f} steps/s, elapsed {clock_time(elapsed_s)}, ETA {eta}")
+            f"{step_speed:.0f} steps/s, elapsed {clock_time(elapsed_s)}, ETA {eta}")
 
 
 def is_evaluation_line(line: str) -> bool:

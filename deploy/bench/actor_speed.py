@@ -12,7 +12,7 @@ taking turns within each round so that noise from other processes hits all alike
   few dozen steps, so resets are frequent, as in early training. Sending
   episodes (the outbox thread) is not included;
 * network alone: the same batched forward pass (actor/batched_q.py) on random
-  frames, by CPU time (inference_rate, which evaluation_speed.py shares).
+  frames, by CPU time (inference_speed, which evaluation_speed.py shares).
 
 The actor's rates are env steps per second of wall time and per second of
 this process's CPU time (steadier on a shared machine: "per actor core"). Then the network's
@@ -50,7 +50,7 @@ SQUARE_GEMM = 2048
 PEAK_TRIES = 5
 
 
-def inference_rate(policy: GreedyPolicy, n_envs: int, seconds: float, shape: tuple[int, ...],
+def inference_speed(policy: GreedyPolicy, n_envs: int, seconds: float, shape: tuple[int, ...],
                    clock=time.perf_counter) -> float:
     """Env-steps/s of the policy's batched forward pass over random frames, by wall time or another clock."""
     slots = list(range(n_envs))
@@ -78,7 +78,7 @@ def acting_actor(config: Config, envs: int, inference: str = "float32") -> Actor
     return actor
 
 
-def actor_rates(actor: Actor, seconds: float) -> tuple[float, float]:
+def actor_speeds(actor: Actor, seconds: float) -> tuple[float, float]:
     """(wall, CPU) env steps/s of the actor's lockstep loop: every simulator acts at every step."""
     calls, wall, cpu = 0, time.perf_counter(), time.process_time()
     while time.perf_counter() - wall < seconds:
@@ -125,9 +125,9 @@ def main() -> None:
         for precision in precisions:
             peaks[precision].append(peak_gflops(gemms[precision]))
         for case, actor in actors.items():
-            network = inference_rate(networks[case], case[0], args.seconds, actor.network.frame_shape,
+            network = inference_speed(networks[case], case[0], args.seconds, actor.network.frame_shape,
                                      clock=time.process_time)
-            measured[case].append((*actor_rates(actor, args.seconds), network))
+            measured[case].append((*actor_speeds(actor, args.seconds), network))
         print(f"round {round_number + 1}/{args.rounds} done", flush=True)
 
     peak = {precision: statistics.median(found) for precision, found in peaks.items()}
@@ -138,11 +138,11 @@ def main() -> None:
     print(f"{'envs/actor':>10} {'inference':>9} {'actor steps/s':>14} {'per CPU-s':>10} "
           f"{'network alone, per CPU-s':>25} {'net % peak':>11} {'rest ms/step':>13} {'ceiling steps/s':>16}")
     for (envs, inference), rows in measured.items():
-        wall, cpu_rate, network = (statistics.median(column) for column in zip(*rows))
-        rest_s = 1.0 / cpu_rate - 1.0 / network
+        wall, cpu_speed, network = (statistics.median(column) for column in zip(*rows))
+        rest_s = 1.0 / cpu_speed - 1.0 / network
         ceiling = 1.0 / (flop_per_step / (peak[inference] * 1e9) + rest_s)
         share = flop_per_step * network / (peak[inference] * 1e9)
-        print(f"{envs:>10} {inference:>9} {wall:>14,.0f} {cpu_rate:>10,.0f} {network:>25,.0f} "
+        print(f"{envs:>10} {inference:>9} {wall:>14,.0f} {cpu_speed:>10,.0f} {network:>25,.0f} "
               f"{100 * share:>10.0f}% {1e3 * rest_s:>13.3f} {ceiling:>16,.0f}")
     print("rest: everything of a step but the forward pass (simulator, camera, exploration, episode ends); "
           "ceiling: the actor's steps/s with its network at the measured peak of its precision")

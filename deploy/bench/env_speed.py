@@ -54,7 +54,7 @@ def one_core() -> int:
     return cpu
 
 
-def random_actions_rate(env: NeighbourhoodEnv, steps: int, seed: int = 0) -> float:
+def random_actions_speed(env: NeighbourhoodEnv, steps: int, seed: int = 0) -> float:
     rng = np.random.default_rng(seed)
     actions = rng.integers(env.action_space.n, size=steps)
     env.reset(seed=seed)
@@ -66,7 +66,7 @@ def random_actions_rate(env: NeighbourhoodEnv, steps: int, seed: int = 0) -> flo
     return steps / (time.perf_counter() - start)
 
 
-def privileged_rate(env: NeighbourhoodEnv, steps: int) -> float:
+def privileged_speed(env: NeighbourhoodEnv, steps: int) -> float:
     driver = PrivilegedDriver(env.env_config, seed=0)
     done, start = 0, time.perf_counter()
     while done < steps:
@@ -79,7 +79,7 @@ def privileged_rate(env: NeighbourhoodEnv, steps: int) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def highway_road_step_rate(env: NeighbourhoodEnv, steps: int) -> float:
+def highway_road_step_speed(env: NeighbourhoodEnv, steps: int) -> float:
     """highway-env's own stepping of the ego car on our road (no observation)."""
     env.reset(options={"start_set": "train", "start_index": 0})
     env.vehicle.action = {"steering": 0.0, "acceleration": 0.0}
@@ -129,13 +129,13 @@ def main() -> None:
     print(f"pinned to CPU {cpu}; cv2 threads {cv2.getNumThreads()}; speed {config.speed} m/s, "
           f"{config.policy_frequency} Hz decisions, {config.simulation_frequency} Hz simulation")
     rows = {
-        "front": ("front camera, random actions, resets included", random_actions_rate(front, args.steps)),
-        "topdown": ("top-down camera, random actions, resets included", random_actions_rate(topdown, args.steps)),
+        "front": ("front camera, random actions, resets included", random_actions_speed(front, args.steps)),
+        "topdown": ("top-down camera, random actions, resets included", random_actions_speed(topdown, args.steps)),
         "highway": ("highway-env GrayscaleObservation (200x66), random actions",
-                    random_actions_rate(grayscale, args.highway_steps)),
-        "privileged": ("front camera, privileged driver", privileged_rate(front, args.steps)),
+                    random_actions_speed(grayscale, args.highway_steps)),
+        "privileged": ("front camera, privileged driver", privileged_speed(front, args.steps)),
         "road_step": ("highway-env Road.step only, no observation",
-                      highway_road_step_rate(NeighbourhoodEnv(config), args.highway_steps)),
+                      highway_road_step_speed(NeighbourhoodEnv(config), args.highway_steps)),
     }
     for name, rate in rows.values():
         print(f"{name:<62} {rate:10,.0f} steps/s")

@@ -48,7 +48,7 @@ import torch
 from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, Policy, PrivilegedPolicy, episode_jobs,
                                        evaluation_env_config, run_lockstep)
 from actor.sim import START_SETS, make_env, start_poses
-from actor_speed import acting_actor, actor_rates, inference_rate  # deploy/bench is this script's directory
+from actor_speed import acting_actor, actor_speeds, inference_speed  # deploy/bench is this script's directory
 from common.config import Config
 from common.cpu_capability import describe_cpu
 from env_speed import one_core
@@ -60,7 +60,7 @@ def _spin() -> None:
         pass
 
 
-def rates_beside_busy_cores(network, n_envs: int, seconds: float, shape: tuple[int, ...], busy: int
+def speeds_beside_busy_cores(network, n_envs: int, seconds: float, shape: tuple[int, ...], busy: int
                             ) -> dict[int, float]:
     """Inference env-steps/s per torch thread count (1, then every core) while `busy` processes spin."""
     spinners = [multiprocessing.get_context("spawn").Process(target=_spin, daemon=True) for _ in range(busy)]
@@ -70,7 +70,7 @@ def rates_beside_busy_cores(network, n_envs: int, seconds: float, shape: tuple[i
         rates = {}
         for threads in sorted({1, len(os.sched_getaffinity(0))}):
             torch.set_num_threads(threads)
-            rates[threads] = inference_rate(GreedyPolicy(network, n_envs), n_envs, seconds, shape)
+            rates[threads] = inference_speed(GreedyPolicy(network, n_envs), n_envs, seconds, shape)
         return rates
     finally:
         for spinner in spinners:
@@ -128,7 +128,7 @@ def privileged_drives(config: Config, jobs: list[EpisodeJob]) -> dict[EpisodeJob
     return recording.actions
 
 
-def lockstep_rates(config: Config, envs: list, policy: PaidReplay, jobs: list[EpisodeJob]
+def lockstep_speeds(config: Config, envs: list, policy: PaidReplay, jobs: list[EpisodeJob]
                    ) -> tuple[float, float, float]:
     """(CPU, wall) env-steps/s of one worker's lockstep loop over the jobs, one per env, and the episodes' mean
     length (the cap, unless the driver crashed)."""
@@ -159,7 +159,7 @@ def main() -> None:
     shape = network.frame_shape
     if args.busy:
         n_envs = config.evaluation.envs_per_worker
-        rates = rates_beside_busy_cores(network, n_envs, args.seconds, shape, args.busy)
+        rates = speeds_beside_busy_cores(network, n_envs, args.seconds, shape, args.busy)
         print(f"beside {args.busy} spinning process(es), {n_envs} envs, inference env-steps/s: "
               + ", ".join(f"{threads} torch thread(s) {rate:,.0f}" for threads, rate in rates.items()), flush=True)
     cpu = one_core()
@@ -176,10 +176,10 @@ def main() -> None:
     acting: list[float] = []
     for round_number in range(args.rounds):
         for n_envs in sizes:
-            evaluation[n_envs].append(lockstep_rates(config, envs[n_envs], replays[n_envs], jobs[n_envs]))
-            alone[n_envs].append(inference_rate(replays[n_envs].greedy, n_envs, args.seconds, shape,
+            evaluation[n_envs].append(lockstep_speeds(config, envs[n_envs], replays[n_envs], jobs[n_envs]))
+            alone[n_envs].append(inference_speed(replays[n_envs].greedy, n_envs, args.seconds, shape,
                                                 clock=time.process_time))
-        acting.append(actor_rates(actor, args.seconds)[1])
+        acting.append(actor_speeds(actor, args.seconds)[1])
         print(f"round {round_number + 1}/{args.rounds} done", flush=True)
     report(paper, evaluation, alone, statistics.median(acting), args)
 

@@ -58,7 +58,7 @@ def wait_for_updates(lab: Lab, log: Path) -> None:
         time.sleep(1.0)
 
 
-def rates_over(lab: Lab, log: Path, seconds: float, label: str) -> tuple[float, float]:
+def speeds_over(lab: Lab, log: Path, seconds: float, label: str) -> tuple[float, float]:
     """(updates/s, env steps/s) over the next `seconds`, with progress and an ETA."""
     first, started = learner_counts(log), time.monotonic()
     while (elapsed := time.monotonic() - started) < seconds:
@@ -79,7 +79,7 @@ def hosts(args) -> None:
             try:
                 log = Path(directory) / "hub-learner.log"
                 wait_for_updates(lab, log)
-                rows.append((count, *rates_over(lab, log, args.seconds, f"{count} actor host(s)")))
+                rows.append((count, *speeds_over(lab, log, args.seconds, f"{count} actor host(s)")))
             finally:
                 lab.teardown()
     print("\n| actor hosts | learner updates/s | env steps/s |\n|---:|---:|---:|")
@@ -95,9 +95,9 @@ def cap(args) -> None:
             try:
                 log = Path(directory) / "hub-learner.log"
                 wait_for_updates(lab, log)
-                free = rates_over(lab, log, args.seconds, f"{encoding}, uncapped")
+                free = speeds_over(lab, log, args.seconds, f"{encoding}, uncapped")
                 lab.cap("a1", args.mbit)
-                capped = rates_over(lab, log, args.seconds, f"{encoding}, actor 1 at {args.mbit} Mbit/s")
+                capped = speeds_over(lab, log, args.seconds, f"{encoding}, actor 1 at {args.mbit} Mbit/s")
                 lab.heal("a1")
                 actor_log = Path(directory) / "a1-actor.log"
                 behind = [int(n) for n in BEHIND.findall(actor_log.read_text(errors="replace"))]
@@ -106,8 +106,8 @@ def cap(args) -> None:
                 lab.teardown()
     print(f"\n| weights | learner updates/s uncapped | with actor 1 at {args.mbit} Mbit/s | env steps/s capped | "
           "actor 1's weights, most updates behind | its warnings |\n|---|---:|---:|---:|---:|---:|")
-    for encoding, free_rate, capped_rate, steps, most, warnings in rows:
-        print(f"| {encoding} | {free_rate:.2f} | {capped_rate:.2f} | {steps:.1f} | {most} | {warnings} |")
+    for encoding, free_speed, capped_speed, steps, most, warnings in rows:
+        print(f"| {encoding} | {free_speed:.2f} | {capped_speed:.2f} | {steps:.1f} | {most} | {warnings} |")
 
 
 def main() -> None:

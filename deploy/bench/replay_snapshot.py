@@ -76,9 +76,9 @@ def timed(function):
     return result, time.perf_counter() - started
 
 
-def under_load(service: ReplayService, episodes: Episodes, seconds: float, sample_rate: float,
+def under_load(service: ReplayService, episodes: Episodes, seconds: float, sample_speed: float,
                snapshot_every: float | None) -> dict:
-    """Inserts flat out and samples at sample_rate (and snapshots, if asked): how long each waited for
+    """Inserts flat out and samples at sample_speed (and snapshots, if asked): how long each waited for
     the replay's lock, and how long an insert took in all (its frames are checked outside the lock)."""
     stop = threading.Event()
     waits: dict[str, list[float]] = {"insert": [], "sample": [], "insert_total": []}
@@ -97,7 +97,7 @@ def under_load(service: ReplayService, episodes: Episodes, seconds: float, sampl
             waits["insert_total"].append(time.perf_counter() - started)
 
     def samples():
-        while not stop.wait(1.0 / sample_rate):
+        while not stop.wait(1.0 / sample_speed):
             asked = time.perf_counter()
             with service._lock:  # as a reply thread does
                 waits["sample"].append(time.perf_counter() - asked)
@@ -163,10 +163,10 @@ def main() -> None:
         restored, took = timed(lambda: fresh.snapshotter.load(shape))
         _, took_restore = timed(lambda: fresh.restore(restored, None))
         print(f"restore: {len(restored.episodes)} episodes read in {took:.2f} s, taken in {took_restore:.3f} s")
-        print(f"\nunder load ({args.seconds:g} s, inserts flat out, {args.sample_rate:g} samples/s of 10 traces):")
+        print(f"\nunder load ({args.seconds:g} s, inserts flat out, {args.sample_speed:g} samples/s of 10 traces):")
         for label, every in (("no snapshots", None), ("a snapshot every 0.5 s", 0.5)):
             service.snapshot_stats["snapshot_pause_max_ms"] = 0.0
-            result = under_load(service, episodes, args.seconds, args.sample_rate, every)
+            result = under_load(service, episodes, args.seconds, args.sample_speed, every)
             held = service.snapshot_stats["snapshot_pause_max_ms"]
             print(f"  {label:24s} lock wait: insert slowest {result['slowest_insert_ms']:6.2f} ms (p99 "
                   f"{result['p99_insert_ms']:5.2f}), sample slowest {result['slowest_sample_ms']:6.2f} ms (p99 "

@@ -190,7 +190,7 @@ def animate(config: Config, weights: dict[str, np.ndarray], job: EpisodeJob, max
             if show_progress and time.monotonic() - shown >= PROGRESS_EVERY_S:
                 shown = time.monotonic()
                 print(f"animate: step {step:,} of at most {max_steps:,}, {video.count:,} frames, "
-                      f"{eta.rate() or 0:.0f} steps/s, at most {eta.text()} left", file=sys.stderr, flush=True)
+                      f"{eta.per_s() or 0:.0f} steps/s, at most {eta.text()} left", file=sys.stderr, flush=True)
         video.close()
     finally:
         env.close()
