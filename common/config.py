@@ -419,7 +419,7 @@ class Config:
     actor: ActorConfig = field(default_factory=ActorConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
-    record: RecorderConfig = field(default_factory=RecorderConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
 
     def validate(self) -> "Config":
         for path, section in sections(self):

@@ -50,6 +50,9 @@ MOVED_KEYS = {
     **{f"learner.{name}": f"pace.{name}" for name in
        ("env_steps_per_update", "start_episodes", "start_steps", "start_by", "total_env_steps")},
     **{f"replay.{name}": f"pace.{name}" for name in ("error_buffer_updates", "hold_updates")},
+    **{f"record.{name}": f"recorder.{name}" for name in
+       ("enabled", "weights_every_versions", "flush_period_s", "chunk_mb", "queue_messages", "queue_mb", "views",
+        "images", "image_format", "stats_period_s")},
 }
 
 

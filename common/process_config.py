@@ -96,7 +96,7 @@ IMAGE_FORMATS = ("png", "jpeg")
 
 @dataclass
 class RecorderConfig:
-    """The flight recorder (replay/log): what it keeps of a run's messages and how it writes the MCAP file."""
+    """The flight recorder (replay/recorder): what it keeps of a run's messages and how it writes the MCAP file."""
 
     enabled: bool = option(True, "the local stack starts a recorder writing <runs_dir>/<run>/traffic.mcap")
     # A paper run has ~250,000 weight versions of 48 MB each.

@@ -38,7 +38,7 @@ from common.config_values import load_config
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy import soak
 from deploy.stack import build_parser
-from replay.log.reader import LogError, LogFile
+from replay.recorder.reader import LogError, LogFile
 from replay.snapshot import manifest_held
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -231,9 +231,9 @@ class Stack:
         client = ["--transport.mode", "client", "--transport.connect", endpoint]
         self.roles: dict[str, Role] = {"replay": Role("replay", "replay.main", [
             "--transport.mode", "router", "--transport.listen", endpoint])}
-        if config.record.enabled:  # the flight recorder writes the run's wire log
+        if config.recorder.enabled:  # the flight recorder writes the run's wire log
             curves = ["--tensorboard", str(run.tensorboard)] if tensorboard else []
-            self.roles["recorder"] = Role("recorder", "replay.log.cli record", client + curves)
+            self.roles["recorder"] = Role("recorder", "replay.recorder.cli record", client + curves)
         self.roles["learner"] = Role("learner", "learner.main", client)
         self.learner_finished = False  # the learner exited by itself: the budget is paid for
         self.status_failed = False
@@ -358,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--tensorboard", action="store_true",
                         help="the recorder also writes the run's curves as TensorBoard event files into <run "
                              "folder>/tensorboard/ while it trains (`tensorboard --logdir <run.runs_dir>`); "
-                             "needs record.enabled")
+                             "needs recorder.enabled")
     add_config_arguments(parser)
     return parser
 
@@ -393,8 +393,8 @@ def open_watcher(transport, stop: threading.Event):
 def main(argv: list[str] | None = None) -> int:
     args, config = parse_config_or_exit(build_parser(), argv)
     exit_if_unrunnable("deploy/run.sh", stack_precisions(config))
-    if args.tensorboard and not config.record.enabled:
-        print("deploy/run.sh: --tensorboard needs the recorder, but record.enabled is false", file=sys.stderr)
+    if args.tensorboard and not config.recorder.enabled:
+        print("deploy/run.sh: --tensorboard needs the recorder, but recorder.enabled is false", file=sys.stderr)
         return 2
     run = RunDir.of(config)
     run.root.mkdir(parents=True, exist_ok=True)

@@ -138,7 +138,7 @@ class StackRun:
             module = words[2] if len(words) > 2 else ""
             if module == "actor.main":
                 found[f"actor-{words[words.index('--actor.actor_id') + 1]}"] = pid
-            elif module == "replay.log.cli":
+            elif module == "replay.recorder.cli":
                 found["recorder"] = pid
             elif module in ("replay.main", "learner.main"):
                 found[module.split(".")[0]] = pid

@@ -1,4 +1,4 @@
-"""The code's shape. Roles are peers: actor, learner and replay (with the recorder, replay/log) import only
+"""The code's shape. Roles are peers: actor, learner and replay (with the recorder, replay/recorder) import only
 common and their own modules, and common imports no role; what composes roles (the stack, the reference
 loop, the grid runner) lives in deploy/. Read from the import statements of every module, so a new arrow
 fails here. Inside common, no two folders import each other (the root's modules count as one folder). And a

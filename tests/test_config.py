@@ -170,7 +170,7 @@ ENUMERATED = {
     "learner.update_path": UPDATE_PATHS,
     "exploration.bmc.observations": BMC_OBSERVATIONS,
     "transport.mode": ("peer", "client", "router"),
-    "record.image_format": ("png", "jpeg"),
+    "recorder.image_format": ("png", "jpeg"),
     "learner.weights_encoding": ("float32", "float16", "bfloat16"),
     "learner.keep_encoding": ("float32", "float16", "bfloat16"),
     "actor.inference": ("float32", "bfloat16", "auto"),
@@ -288,7 +288,7 @@ def test_an_unknown_or_abbreviated_flag_is_refused_with_a_suggestion(capsys, arg
 
 
 def test_a_subcommands_unknown_flag_gets_the_suggestion_too(capsys):
-    from replay.log.cli import build_parser
+    from replay.recorder.cli import build_parser
     with pytest.raises(SystemExit):
         parse_flags(build_parser(), ["record", "--run.nam", "x"])
     assert capsys.readouterr().err.strip().endswith("--run.nam: did you mean --run.name?")
@@ -299,3 +299,11 @@ def test_full_flag_names_still_set_their_keys():
     add_config_arguments(parser)
     _, config = parse_config_or_exit(parser, ["--run.name=x", "--preset", "local", "--env.camera", "topdown"])
     assert (config.run.name, config.env.camera, config.pace.total_env_steps) == ("x", "topdown", 60_000)
+
+
+def test_a_config_with_the_recorders_earlier_section_name_loads():
+    from common.config_values import from_dict, to_dict
+    saved = to_dict(load_config("smoke"))
+    saved["record"] = {**saved.pop("recorder"), "enabled": False, "chunk_mb": 3.0}
+    loaded = from_dict(saved)
+    assert (loaded.recorder.enabled, loaded.recorder.chunk_mb) == (False, 3.0)

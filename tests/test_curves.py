@@ -19,17 +19,17 @@ from common.wire.codecs import Message
 from common.wire.envelope import encode
 from common.wire.messages import EpisodeRecord, ExplorationState, Stats
 from deploy.stack import main as stack_main
-from replay.log.arrival import Arrival, peek
-from replay.log.cli import main as log_main
-from replay.log.plot import updates_start
-from replay.log.reader import LogError, LogFile
-from replay.log.recorder import Recorder
-from replay.log.scalars import RETURN_MEAN, read_series
-from replay.log.tensorboard_events import EventsWriter
-from replay.log.writer import LogWriter
+from replay.recorder.arrival import Arrival, peek
+from replay.recorder.cli import main as log_main
+from replay.recorder.plot import updates_start
+from replay.recorder.reader import LogError, LogFile
+from replay.recorder.recorder import Recorder
+from replay.recorder.scalars import RETURN_MEAN, read_series
+from replay.recorder.tensorboard_events import EventsWriter
+from replay.recorder.writer import LogWriter
 from tests.processes import loopback_endpoint, start, stop, wait_for
 
-CONFIG = load_config("smoke", overrides={"record.flush_period_s": 0.05})
+CONFIG = load_config("smoke", overrides={"recorder.flush_period_s": 0.05})
 KEYS = Keys("d3rqn", CONFIG.run.name)
 SECOND = 1_000_000_000
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -148,7 +148,7 @@ def test_export_tensorboard_refuses_a_folder_that_holds_event_files(tmp_path, ca
 
 def test_the_recorder_writes_the_same_curves_live_as_the_export(tmp_path):
     board = tmp_path / "live"
-    recorder = Recorder(LogWriter(tmp_path / "log.mcap", CONFIG, None), CONFIG.record,
+    recorder = Recorder(LogWriter(tmp_path / "log.mcap", CONFIG, None), CONFIG.recorder,
                         EventsWriter(board, KEYS.root))
     recorder.start()
     for number, (key, message) in enumerate(run_messages(), start=1):
@@ -175,7 +175,7 @@ class BrokenBoard:
 
 
 def test_a_failing_tensorboard_writer_is_dropped_and_recording_goes_on(tmp_path):
-    recorder = Recorder(LogWriter(tmp_path / "log.mcap", CONFIG, None), CONFIG.record, BrokenBoard())
+    recorder = Recorder(LogWriter(tmp_path / "log.mcap", CONFIG, None), CONFIG.recorder, BrokenBoard())
     recorder.start()
     for number, (key, message) in enumerate(run_messages(), start=1):
         recorder.offer(key, encode(message), number * SECOND)
@@ -220,8 +220,8 @@ def test_a_running_recorder_s_log_and_curves_can_be_read_while_it_records(tmp_pa
     endpoint = loopback_endpoint()
     session = open_session(TransportConfig(mode="peer", listen=[endpoint]))
     path, board, recorder_log = tmp_path / "traffic.mcap", tmp_path / "board", tmp_path / "recorder.log"
-    recorder = start(["-m", "replay.log.cli", "record", "--preset", "smoke", "--transport.connect", endpoint,
-                      "--record.flush_period_s", "0.2", "--output", str(path), "--tensorboard", str(board)],
+    recorder = start(["-m", "replay.recorder.cli", "record", "--preset", "smoke", "--transport.connect", endpoint,
+                      "--recorder.flush_period_s", "0.2", "--output", str(path), "--tensorboard", str(board)],
                      recorder_log)
     try:
         publishers = {key: publisher(session, key) for key in {key for key, _ in run_messages()}}
@@ -238,7 +238,7 @@ def test_a_running_recorder_s_log_and_curves_can_be_read_while_it_records(tmp_pa
                 return 0
 
         wait_for(lambda: episodes_on_disk() == 3, "the episodes on disk", 30, [recorder_log])
-        outputs = [subprocess.run([sys.executable, "-m", "replay.log.cli", *command], capture_output=True,
+        outputs = [subprocess.run([sys.executable, "-m", "replay.recorder.cli", *command], capture_output=True,
                                   text=True, timeout=60).stdout
                    for command in (["info", str(path)], ["plot", str(path), "--x", "episodes", "--output",
                                                          str(tmp_path / "p.png")])]
@@ -263,7 +263,7 @@ def test_an_unfinished_log_reads_like_the_finished_one(tmp_path, chunk_bytes):
     messages = [message for n in range(1, 13) for message in (
         (KEYS.metrics_source("actor", 0), stats("actor", episodes=n)),
         (KEYS.metrics_source("actor", n), stats("actor", episodes=n)))] + run_messages() * 3
-    config = load_config("smoke", overrides={"record.chunk_mb": chunk_bytes / 2**20})
+    config = load_config("smoke", overrides={"recorder.chunk_mb": chunk_bytes / 2**20})
     writer = LogWriter(tmp_path / "log.mcap", config, None)
     for number, (key, message) in enumerate(messages, start=1):
         data = encode(message)
@@ -306,5 +306,5 @@ def test_a_file_cut_between_records_is_read_and_one_cut_inside_a_record_is_refus
 
 
 def test_the_stack_refuses_tensorboard_without_the_recorder(capsys):
-    assert stack_main(["--preset", "smoke", "--tensorboard", "--record.enabled", "false"]) == 2
-    assert "record.enabled" in capsys.readouterr().err
+    assert stack_main(["--preset", "smoke", "--tensorboard", "--recorder.enabled", "false"]) == 2
+    assert "recorder.enabled" in capsys.readouterr().err

@@ -27,7 +27,7 @@ COMMANDS = {
     "learner": "learner/main.py", "learner.main": "learner/main.py",
     "actor": "actor/main.py", "actor.main": "actor/main.py",
     "evaluate": "actor/evaluate.py",
-    "d3rqn-log": "replay/log/cli.py",  # the next word is its subcommand
+    "d3rqn-log": "replay/recorder/cli.py",  # the next word is its subcommand
     "d3rqn-certs": "common/certs.py",
     "deploy/run.sh": "deploy/stack.py",
     "deploy.reference_loop": "deploy/reference_loop.py",

@@ -27,10 +27,10 @@ from deploy.studies.comparison import (ComparisonError, EvaluatedRun, comparison
                                read_episodes_csv, write_comparison_csv)
 from deploy.studies.performance_profile import plot_performance_profiles
 from deploy.studies.run_results import greedy_headline
-from replay.log.arrival import Arrival, peek
-from replay.log.reader import LogError
-from replay.log.run_curves import read_run_curves
-from replay.log.writer import LogWriter
+from replay.recorder.arrival import Arrival, peek
+from replay.recorder.reader import LogError
+from replay.recorder.run_curves import read_run_curves
+from replay.recorder.writer import LogWriter
 from tests.grid_runs import EDGES, episode, fake_evaluation
 
 ROOT = Path(__file__).resolve().parents[1]

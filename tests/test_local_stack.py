@@ -20,7 +20,7 @@ STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
 def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
     output = open(tmp_path / "stack.out", "wb")
     stack = subprocess.Popen([sys.executable, str(STACK), "--preset", "smoke", "--actors", "1",
-                              "--run.runs_dir", str(tmp_path), "--run.name", "main", "--record.enabled", "false"],
+                              "--run.runs_dir", str(tmp_path), "--run.name", "main", "--recorder.enabled", "false"],
                              stdout=output, stderr=subprocess.STDOUT, cwd=tmp_path)
     run_dir = tmp_path / "main"
     try:
@@ -60,7 +60,7 @@ def test_a_smoke_run_keeps_the_configured_ratio_within_one_percent(tmp_path):
     budget = 4_500
     output = open(tmp_path / "stack.out", "wb")
     stack = subprocess.Popen([sys.executable, str(STACK), "--preset", "smoke", "--actors", "1",
-                              "--run.runs_dir", str(tmp_path), "--run.name", "ratio", "--record.enabled", "false",
+                              "--run.runs_dir", str(tmp_path), "--run.name", "ratio", "--recorder.enabled", "false",
                               "--pace.total_env_steps", str(budget),
                               # small updates (a small LSTM, 2 traces of 5 steps, one thread on a shared
                               # machine): half a minute, not minutes

@@ -27,14 +27,14 @@ from common.wire.envelope import decode, encode
 from common.wire.frames import FrameStack
 from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, ReplayStats, Stats, TraceBatch,
                                   TraceBatchRequest, Weights, flat_values)
-from replay.log.arrival import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
-from replay.log.cli import main as log_main
-from replay.log.export import collect
-from replay.log.reader import LogError, LogFile
-from replay.log.recorder import HandOff, Recorder, WeightsSampler
-from replay.log.recover import recover
-from replay.log.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns
-from replay.log.writer import LogWriter
+from replay.recorder.arrival import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
+from replay.recorder.cli import main as log_main
+from replay.recorder.export import collect
+from replay.recorder.reader import LogError, LogFile
+from replay.recorder.recorder import HandOff, Recorder, WeightsSampler
+from replay.recorder.recover import recover
+from replay.recorder.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns
+from replay.recorder.writer import LogWriter
 from tests.processes import loopback_endpoint, router_client, start, stop, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -112,14 +112,14 @@ def make_episode(steps: int, index: int) -> Episode:
 
 
 def small_config(**overrides) -> Config:
-    return load_config("smoke", overrides={"record.flush_period_s": 0.05, **overrides})
+    return load_config("smoke", overrides={"recorder.flush_period_s": 0.05, **overrides})
 
 
 def test_recorder_writes_bytes_times_views_and_counters(tmp_path):
-    config = small_config(**{"record.images": True})
+    config = small_config(**{"recorder.images": True})
     keys = Keys("d3rqn", config.run.name)
     path = tmp_path / "log.mcap"
-    recorder = Recorder(LogWriter(path, config, ViewMaker(keys.root, 0.1, images=True)), config.record)
+    recorder = Recorder(LogWriter(path, config, ViewMaker(keys.root, 0.1, images=True)), config.recorder)
     recorder.start()
     episode = make_episode(steps=4, index=0)
     sent = {
@@ -160,8 +160,8 @@ def test_recorder_writes_bytes_times_views_and_counters(tmp_path):
 
 
 def test_a_full_handoff_drops_and_counts_instead_of_waiting(tmp_path):
-    config = small_config(**{"record.queue_messages": 2})
-    recorder = Recorder(LogWriter(tmp_path / "log.mcap", config, None), config.record)  # writer not started
+    config = small_config(**{"recorder.queue_messages": 2})
+    recorder = Recorder(LogWriter(tmp_path / "log.mcap", config, None), config.recorder)  # writer not started
     results = [recorder.offer("d3rqn/x/episodes", b"m", 0) for _ in range(10)]
     assert results == [True, True] + [False] * 8
     assert recorder.snapshot()["dropped"] == 8 and recorder.snapshot()["dropped:d3rqn/x/episodes"] == 8
@@ -240,7 +240,7 @@ def recorded_run(tmp_path_factory):
     log = base / "stack.log"
     process = start(["deploy/stack.py", "--preset", "smoke", "--actors", "1", "--run.name", RUN,
                      "--run.runs_dir", str(base / "runs"), "--pace.total_env_steps", str(STACK_ENV_STEPS),
-                     "--record.flush_period_s", "0.5", "--tensorboard",
+                     "--recorder.flush_period_s", "0.5", "--tensorboard",
                      "--pace.error_buffer_updates", "1e9"],  # neither the actor nor the learner waits for the other
                     log, cwd=ROOT)
     try:
@@ -312,7 +312,7 @@ def test_play_fills_a_fresh_replay_with_the_recorded_episodes(recorded_run, fres
                              expected=ReplayStats)
     try:
         play_log = tmp_path / "play.log"
-        player = start(["-m", "replay.log.cli", "play", str(recorded_run / "traffic.mcap"), "--keys", "episodes",
+        player = start(["-m", "replay.recorder.cli", "play", str(recorded_run / "traffic.mcap"), "--keys", "episodes",
                         "--to-run", "fresh", "--speed", "0", "--transport.mode", "client",
                         "--transport.connect", endpoint], play_log)
         assert player.wait(60) == 0, play_log.read_text()
@@ -351,8 +351,8 @@ def test_a_killed_recorder_leaves_a_recoverable_file(tmp_path):
     session = open_session(TransportConfig(mode="peer", listen=[endpoint]))
     path = tmp_path / "traffic.mcap"
     recorder_log = tmp_path / "recorder.log"
-    recorder = start(["-m", "replay.log.cli", "record", "--preset", "smoke", "--run.name", "killed",
-                      "--transport.connect", endpoint, "--record.flush_period_s", "0.2", "--output", str(path)],
+    recorder = start(["-m", "replay.recorder.cli", "record", "--preset", "smoke", "--run.name", "killed",
+                      "--transport.connect", endpoint, "--recorder.flush_period_s", "0.2", "--output", str(path)],
                      recorder_log)
     try:
         metrics = publisher(session, keys.metrics_source("learner", 0))
@@ -367,7 +367,7 @@ def test_a_killed_recorder_leaves_a_recoverable_file(tmp_path):
         recorder.wait(10)
         with pytest.raises(LogError, match="recover"):
             LogFile(path)
-        done = subprocess.run([sys.executable, "-m", "replay.log.cli", "recover", str(path),
+        done = subprocess.run([sys.executable, "-m", "replay.recorder.cli", "recover", str(path),
                                str(tmp_path / "fixed.mcap")], capture_output=True, text=True, timeout=30)
         assert done.returncode == 0, done.stderr
         with LogFile(tmp_path / "fixed.mcap") as log:
@@ -428,7 +428,7 @@ def test_a_truncated_log_is_one_line_and_no_traceback(recorded_run, tmp_path):
     data = (recorded_run / "traffic.mcap").read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[:len(data) // 2])
-    done = subprocess.run([sys.executable, "-m", "replay.log.cli", "info", str(cut)], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-m", "replay.recorder.cli", "info", str(cut)], capture_output=True, text=True,
                           timeout=30)
     assert done.returncode == 1
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr and "recover" in done.stderr

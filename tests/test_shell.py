@@ -19,7 +19,7 @@ from tests.zenoh_peer import PATH as PEER, read_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "shell"
-ROLES = {"replay": ["-m", "replay.main"], "recorder": ["-m", "replay.log.cli", "record"]}
+ROLES = {"replay": ["-m", "replay.main"], "recorder": ["-m", "replay.recorder.cli", "record"]}
 
 
 def run_flags(tmp_path, *transport: str) -> list[str]:

@@ -20,8 +20,8 @@ from common.wire.messages import Weights
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 from deploy.bench.weights_encoding import BFLOAT16_PASS, compare, drives
 from learner.service import Cadence, LearnerService
-from replay.log.arrival import Arrival, peek
-from replay.log.recorder import WeightsSampler
+from replay.recorder.arrival import Arrival, peek
+from replay.recorder.recorder import WeightsSampler
 from tests import weights_peers
 from tests.cpu_support import needs_bfloat16
 from tests.test_status_lines import FakeClock

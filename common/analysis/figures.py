@@ -1,6 +1,6 @@
 """The paper's comparison figures, several runs to a figure, as PNGs (matplotlib, Agg backend).
 
-A run's training curves come from its logs (``RunCurves``, read by replay/log/run_curves.py).
+A run's training curves come from its logs (``RunCurves``, read by replay/recorder/run_curves.py).
 The figures:
 
 * ``plot_reward_curves``: mean return of the last 100 episodes against episodes,
@@ -40,7 +40,7 @@ BAND_NOTE = "\n(a line per strategy: the mean over its runs; band: their range)"
 
 @dataclass
 class RunCurves:
-    """One run's training curves, read from its logs (replay/log/run_curves.py)."""
+    """One run's training curves, read from its logs (replay/recorder/run_curves.py)."""
 
     label: str
     strategy: str

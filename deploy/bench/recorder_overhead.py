@@ -31,7 +31,7 @@ from common.transport import free_port, loopback_endpoint, open_session, subscri
 from common.keys import Keys
 from common.wire.envelope import decode
 from common.wire.messages import EpisodeRecord, ReplayStats, Stats
-from replay.log.reader import LogFile
+from replay.recorder.reader import LogFile
 
 ROOT = Path(__file__).resolve().parents[2]
 RUN_TIMEOUT_S = 900.0
@@ -75,7 +75,7 @@ def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[s
     port = free_port()
     command = [sys.executable, "deploy/stack.py", "--preset", "smoke", "--actors", "1", "--port", str(port),
                "--run.name", name, "--run.runs_dir", str(runs_dir), "--pace.total_env_steps", str(NEVER),
-               "--record.enabled", "true" if record else "false", *extra]
+               "--recorder.enabled", "true" if record else "false", *extra]
     watch = Watch(steps)
     stack = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     keys = Keys("d3rqn", name)

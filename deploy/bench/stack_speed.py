@@ -67,7 +67,7 @@ def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, flo
     with TemporaryDirectory() as runs:
         port = free_port()
         flags = ["--config", str(Path(runs) / "bench.toml"), "--run.runs_dir", runs, "--run.name", "bench",
-                 "--actors", str(actors), "--port", str(port), "--record.enabled", "false"]
+                 "--actors", str(actors), "--port", str(port), "--recorder.enabled", "false"]
         (Path(runs) / "bench.toml").write_text(to_toml(config))
         stack = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "stack.py"), *flags],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -39,8 +39,8 @@ from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.studies.comparison import EvaluatedRun
 from deploy.studies.grid_cells import CELL_JSON, CHOICE_JSON, read_cell, run_name
-from replay.log.reader import LogError
-from replay.log.run_curves import read_run_curves
+from replay.recorder.reader import LogError
+from replay.recorder.run_curves import read_run_curves
 
 CONFIG_TOML = "config.toml"  # evaluate's copy of its config, in evaluation/
 TRAINING_CSV = "training.csv"

@@ -6,12 +6,12 @@ bounded hand-off, so the recorder never slows a publisher: what does not fit is
 dropped and counted (per key, in the recorder's Stats and in the file's
 ``d3rqn.recorder`` metadata; the per-key sequence numbers show the gaps). A
 writer thread does everything else: time stamps, weights sampling, views,
-compression, and a flush every ``record.flush_period_s`` that closes the open
+compression, and a flush every ``recorder.flush_period_s`` that closes the open
 chunk, so a recorder killed with SIGKILL leaves a file readable up to that flush
 (``d3rqn-log recover``).
 
 Weights (48 MB each) are kept sparsely: the first, one per
-``record.weights_every_versions`` versions, and the newest one when recording stops.
+``recorder.weights_every_versions`` versions, and the newest one when recording stops.
 Queries (trace batches, latest weights) are not publications and are not recorded.
 
 With a TensorBoard folder, the writer thread also turns what it writes into the run's
@@ -35,10 +35,10 @@ from common.shell import Service
 from common.transport import Declared, publisher
 from common.logs import ThrottledLog
 from common.wire.messages import Stats, Weights
-from replay.log.arrival import Arrival, Peek, peek
-from replay.log.tensorboard_events import EventsWriter
-from replay.log.views import ViewMaker
-from replay.log.writer import MEGABYTE, LogWriter
+from replay.recorder.arrival import Arrival, Peek, peek
+from replay.recorder.tensorboard_events import EventsWriter
+from replay.recorder.views import ViewMaker
+from replay.recorder.writer import MEGABYTE, LogWriter
 
 log = logging.getLogger("recorder")
 
@@ -245,12 +245,12 @@ def run_recorder(config: Config, output: Path | None = None, tensorboard: Path |
     path = next_free_path(output or default_log_path(config))
     path.parent.mkdir(parents=True, exist_ok=True)
     views = None
-    if config.record.views:
-        views = ViewMaker(keys.root, 1.0 / config.env.policy_frequency, config.record.images,
-                          config.record.image_format)
+    if config.recorder.views:
+        views = ViewMaker(keys.root, 1.0 / config.env.policy_frequency, config.recorder.images,
+                          config.recorder.image_format)
     board = None if tensorboard is None else EventsWriter(tensorboard, keys.root)
     with service.session() as session:
-        recorder = Recorder(LogWriter(path, config, views), config.record, board)
+        recorder = Recorder(LogWriter(path, config, views), config.recorder, board)
         recorder.start()
         service.on_close(recorder.stop)  # once nothing more arrives: after the subscription's undeclare
         subscription = Declared(keys.all).attach(session.declare_subscriber(keys.all, recorder.on_sample))
@@ -258,7 +258,7 @@ def run_recorder(config: Config, output: Path | None = None, tensorboard: Path |
         service.on_close(subscription.undeclare)
         service.on_close(stats_out.undeclare)
         log.info("recording %s into %s%s", keys.all, path, "" if board is None else f", curves into {tensorboard}")
-        while recorder.alive and not service.stop.wait(config.record.stats_period_s):
+        while recorder.alive and not service.stop.wait(config.recorder.stats_period_s):
             values = recorder.snapshot()
             stats_out.put(Stats(source="recorder", time=time.time(), values=values))
             log.info("received %(received)d, written %(written)d, dropped %(dropped)d, "

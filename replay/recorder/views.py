@@ -29,7 +29,7 @@ from common.wire.codecs import Flag, Integer, Message, NumberDict, PlainDict, Re
 from common.wire.envelope import decode
 from common.wire.errors import WireError
 from common.wire.messages import COUNTER_TYPES, Episode, EpisodeRecord, ExplorationState, Stats, flat_values
-from replay.log.arrival import relative_key
+from replay.recorder.arrival import relative_key
 
 VIEW_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"

@@ -18,7 +18,7 @@ from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Me
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 from mcap.writer import Writer
 
-from replay.log.reader import DAMAGED, MCAP_MAGIC, LogError, whole_records_end
+from replay.recorder.reader import DAMAGED, MCAP_MAGIC, LogError, whole_records_end
 
 
 @dataclass

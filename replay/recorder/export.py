@@ -7,7 +7,7 @@ Every row starts with the log and publish times in seconds since the Unix epoch.
 
 The viewing file (``--images``) holds the JSON views of ``views.py`` for every
 message of the log, camera frames included: the recorder leaves frames out by
-default (``record.images``) because encoding them costs CPU and doubles the size
+default (``recorder.images``) because encoding them costs CPU and doubles the size
 of the episodes, so this offline step makes them when someone wants to watch.
 """
 
@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from common.wire.messages import COUNTER_TYPES, EpisodeRecord, ExplorationState
-from replay.log.arrival import relative_key
-from replay.log.reader import LogFile
-from replay.log.views import ViewMaker, json_safe, message_view
-from replay.log.writer import LogWriter
+from replay.recorder.arrival import relative_key
+from replay.recorder.reader import LogFile
+from replay.recorder.views import ViewMaker, json_safe, message_view
+from replay.recorder.writer import LogWriter
 
 TIME_COLUMNS = ("log_time", "publish_time")
 

@@ -18,7 +18,7 @@ from typing import Callable
 import zenoh
 
 from common.keys import Keys
-from replay.log.reader import LogError, LogFile
+from replay.recorder.reader import LogError, LogFile
 
 MATCH_POLL_S = 0.05
 

@@ -35,7 +35,7 @@ from common.keys import Keys
 from common.wire.codecs import Message
 from common.wire.envelope import decode
 from common.wire.errors import WireError
-from replay.log.arrival import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING
+from replay.recorder.arrival import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 # What the mcap library raises on damaged input: its own errors and those of struct, zstd and plain Python.

@@ -13,7 +13,7 @@ from typing import Sequence
 
 from common.analysis.figures import RunCurves
 from common.wire.messages import EpisodeRecord, Stats
-from replay.log.reader import LogError, LogFile
+from replay.recorder.reader import LogError, LogFile
 
 
 def read_run_curves(paths: Sequence[Path], label: str | None = None) -> RunCurves:

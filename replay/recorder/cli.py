@@ -1,4 +1,4 @@
-"""`d3rqn-log`: record a run's messages into an MCAP log, and inspect, replay, export, plot or recover logs.
+"""`d3rqn-log`: record a run's messages into an MCAP log, and inspect, play back, export, plot or recover logs.
 
     d3rqn-log record --config runs/R/config.toml --transport.mode client --transport.connect tcp/127.0.0.1:7447
     d3rqn-log info runs/R/traffic.mcap
@@ -23,7 +23,7 @@ from pathlib import Path
 from common.config_cli import add_config_arguments, parse_config_or_exit, parse_flags
 
 PROG = "d3rqn-log"
-AXES = ("env_steps", "episodes")  # plot --x: the fields of replay.log.scalars.Point
+AXES = ("env_steps", "episodes")  # plot --x: the fields of replay.recorder.scalars.Point
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from replay.log.reader import LogError  # imported here so `--help` stays fast
+    from replay.recorder.reader import LogError  # imported here so `--help` stays fast
 
     parser = build_parser()
     args = parse_flags(parser, argv)
@@ -107,14 +107,14 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _record(args, config) -> int:
-    from replay.log.recorder import run_recorder
+    from replay.recorder.recorder import run_recorder
     return run_recorder(config, args.output, args.tensorboard)
 
 
 def _info(args, config) -> None:
     from common.wire.messages import EpisodeRecord
-    from replay.log.reader import LogFile
-    from replay.log.arrival import peek
+    from replay.recorder.reader import LogFile
+    from replay.recorder.arrival import peek
 
     with LogFile(args.log, unfinished_ok=True) as log:
         keys = log.keys()
@@ -151,8 +151,8 @@ def _clock(ns: int) -> str:
 def _play(args, config) -> None:
     from common.transport import open_session
     from common.keys import Keys
-    from replay.log.play import play
-    from replay.log.reader import LogFile
+    from replay.recorder.play import play
+    from replay.recorder.reader import LogFile
 
     patterns = [part.strip() for part in args.keys.split(",") if part.strip()] if args.keys else None
     with LogFile(args.log) as log:
@@ -169,9 +169,9 @@ def _play(args, config) -> None:
 
 
 def _export(args, config) -> None:
-    from replay.log.export import export_csv, export_images
-    from replay.log.reader import LogFile
-    from replay.log.tensorboard_events import export_tensorboard
+    from replay.recorder.export import export_csv, export_images
+    from replay.recorder.reader import LogFile
+    from replay.recorder.tensorboard_events import export_tensorboard
 
     with LogFile(args.log, unfinished_ok=True) as log:
         if args.csv is not None or args.images is None and args.tensorboard is None:
@@ -186,9 +186,9 @@ def _export(args, config) -> None:
 
 
 def _plot(args, config) -> None:
-    from replay.log.plot import PLOTTED, plot_training
-    from replay.log.reader import LogFile
-    from replay.log.scalars import read_series
+    from replay.recorder.plot import PLOTTED, plot_training
+    from replay.recorder.reader import LogFile
+    from replay.recorder.scalars import read_series
 
     output = args.output or args.log.parent / "training.png"
     with LogFile(args.log, unfinished_ok=True) as log:
@@ -200,7 +200,7 @@ def _plot(args, config) -> None:
 
 
 def _recover(args, config) -> None:
-    from replay.log.recover import recover
+    from replay.recorder.recover import recover
 
     result = recover(args.log, args.output)
     lost = result.source_bytes - result.bytes_read

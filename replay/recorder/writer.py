@@ -17,8 +17,8 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from common.config import Config
 from common.config_values import to_toml
-from replay.log.arrival import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING, Arrival, Peek, publish_time_ns
-from replay.log.views import VIEW_ENCODING, View, ViewMaker
+from replay.recorder.arrival import CONFIG_METADATA, RECORDER_METADATA, WIRE_ENCODING, Arrival, Peek, publish_time_ns
+from replay.recorder.views import VIEW_ENCODING, View, ViewMaker
 
 MEGABYTE = 1 << 20
 LIBRARY = f"d3rqn-log ({LIBRARY_IDENTIFIER})"
@@ -34,7 +34,7 @@ class LogWriter:
     def __init__(self, path: Path, config: Config, views: ViewMaker | None) -> None:
         self.path = path
         self._file = open(path, "wb")
-        self._mcap = Writer(self._file, chunk_size=int(config.record.chunk_mb * MEGABYTE),
+        self._mcap = Writer(self._file, chunk_size=int(config.recorder.chunk_mb * MEGABYTE),
                             compression=CompressionType.ZSTD)
         self._mcap.start(library=LIBRARY)
         self._mcap.add_metadata(CONFIG_METADATA, config_metadata(config))

@@ -19,8 +19,8 @@ from tensorboard.summary.writer.event_file_writer import EventFileWriter
 from common.wire.codecs import Message
 from common.wire.envelope import decode
 from common.wire.errors import WireError
-from replay.log.reader import LogFile
-from replay.log.scalars import CURVE_TYPE_NAMES, CURVE_TYPES, Curves, Point
+from replay.recorder.reader import LogFile
+from replay.recorder.scalars import CURVE_TYPE_NAMES, CURVE_TYPES, Curves, Point
 
 EVENT_FILE_PATTERN = "events.out.tfevents.*"
 QUEUE_EVENTS = 1000  # events handed to the file writer's thread before a write waits

@@ -32,8 +32,8 @@ from common.analysis.plotting import RETURN_WINDOW
 from common.wire.codecs import Message
 from common.wire.messages import COUNTER_TYPES, EpisodeRecord, ExplorationState, flat_values
 from common.wire.run_shape import stat_number
-from replay.log.arrival import relative_key
-from replay.log.reader import LogFile
+from replay.recorder.arrival import relative_key
+from replay.recorder.reader import LogFile
 
 CURVE_TYPES = (EpisodeRecord, ExplorationState, *COUNTER_TYPES)
 CURVE_TYPE_NAMES = frozenset(cls.__name__ for cls in CURVE_TYPES)

@@ -16,7 +16,7 @@ import bisect
 from pathlib import Path
 
 from common.analysis.plotting import RETURN_WINDOW
-from replay.log.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, RETURN_MEAN, UPDATES_START, Series
+from replay.recorder.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, RETURN_MEAN, UPDATES_START, Series
 
 PANELS = (  # tag, title, y label, colour, the paper's x axis
     (RETURN_MEAN, f"mean return of the last {RETURN_WINDOW} episodes", "return", "tab:blue", "episodes"),
