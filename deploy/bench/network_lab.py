@@ -71,6 +71,12 @@ def speeds_over(lab: Lab, log: Path, seconds: float, label: str) -> tuple[float,
     return (last[0] - first[0]) / took, (last[1] - first[1]) / took
 
 
+def lags(actor_log: Path) -> tuple[int, int]:
+    """(most updates behind, warnings) from an actor's "acting on weights vN, M updates behind" lines."""
+    behind = [int(n) for n in BEHIND.findall(actor_log.read_text(errors="replace"))] if actor_log.exists() else []
+    return max(behind, default=0), len(behind)
+
+
 def hosts(args) -> None:
     rows = []
     for count in args.hosts:
@@ -99,15 +105,15 @@ def cap(args) -> None:
                 lab.cap("a1", args.mbit)
                 capped = speeds_over(lab, log, args.seconds, f"{encoding}, actor 1 at {args.mbit} Mbit/s")
                 lab.heal("a1")
-                actor_log = Path(directory) / "a1-actor.log"
-                behind = [int(n) for n in BEHIND.findall(actor_log.read_text(errors="replace"))]
-                rows.append((encoding, free[0], capped[0], capped[1], max(behind, default=0), len(behind)))
+                behind = [lags(Path(directory) / f"a{n}-actor.log") for n in (1, 2)]
+                rows.append((encoding, free[0], capped[0], capped[1], *behind[0], behind[1][0]))
             finally:
                 lab.teardown()
     print(f"\n| weights | learner updates/s uncapped | with actor 1 at {args.mbit} Mbit/s | env steps/s capped | "
-          "actor 1's weights, most updates behind | its warnings |\n|---|---:|---:|---:|---:|---:|")
-    for encoding, free_speed, capped_speed, steps, most, warnings in rows:
-        print(f"| {encoding} | {free_speed:.2f} | {capped_speed:.2f} | {steps:.1f} | {most} | {warnings} |")
+          "actor 1's weights, most updates behind | its warnings | actor 2's (uncapped), most behind |"
+          "\n|---|---:|---:|---:|---:|---:|---:|")
+    for encoding, free_speed, capped_speed, steps, most, warnings, other in rows:
+        print(f"| {encoding} | {free_speed:.2f} | {capped_speed:.2f} | {steps:.1f} | {most} | {warnings} | {other} |")
 
 
 def main() -> None:
