@@ -22,10 +22,12 @@ Nothing that arrives is taken on trust: weights must be in an encoding this buil
 reads (float32, or compact float16 or bfloat16, widened to float32 on arrival) and
 name the network's tensors with their shapes (and finite values, checked again
 when loaded), an exploration state must describe a strategy completely, a rate
-message must be the replay's typed RateState counting no more env steps than the run can. What is refused is counted by kind and
-logged at a bounded rate; the counts go out on ``metrics/actor_stats/<id>``. The newest acceptable weights win,
-whatever their version: a learner resumed from an older checkpoint counts its
-versions from there.
+message must be the replay's typed RateState counting no more env steps than the run can. What is
+refused is counted by kind and logged at a bounded rate; the counts go out on
+``metrics/actor_stats/<id>``. The newest acceptable weights win, whatever their version: a learner
+resumed from an older checkpoint counts its versions from there. An actor on a slow link
+(actor.weights_download) takes no broadcasts: it downloads the latest weights piece by piece at its
+link's pace (actor/weights_download.py), so that its link never backs the hub up into the learner's.
 
 Finished episodes go to an outbox that one thread sends from, in order, while a
 replay is alive (its liveliness token) and subscribed. While none is (a replay
@@ -58,6 +60,7 @@ from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
 from actor.gate import HOLD_LOG_S, EpisodeGate, HoldLog
 from actor.lockstep import Lockstep, Trajectory, episode_message
 from actor.mailbox import Mailbox
+from actor.weights_download import download_weights
 from actor.sim import make_env
 from common.config import Config
 from common.strategy_build import make_strategy, same_strategy, strategy_from_state
@@ -68,7 +71,8 @@ from common.rejections import Rejections
 from common.shell import Service
 from common.transport import publisher, request, subscribe, watch_liveliness
 from common.keys import Keys
-from common.wire.messages import Episode, EpisodeAck, EpisodeRecord, Stats
+from common.wire.errors import WireError
+from common.wire.messages import Episode, EpisodeAck, EpisodeRecord, Stats, WeightsPiece, WeightsPieceAsk
 
 MEGABYTE = 1 << 20
 
@@ -122,6 +126,7 @@ class Actor:
         self.weights_behind_max = 0  # the most updates behind the learner its weights were when the stats looked
         self.episode_index = 0  # episodes ended so far, the number of the next to end
         self.episodes_started = 0
+        self.weights_downloads = 0  # actor.weights_download: downloads completed
         self._ended: deque[tuple[Episode, EpisodeRecord]] = deque()  # run_episode's, not yet returned
         self.incarnation = secrets.randbits(62) | 1  # names this process's episodes (never 0: unnamed)
         self.rejections = Rejections(log)
@@ -262,8 +267,9 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
     with service.session() as session:
         service.on_close(sending.set)
         # no expected type: a message of another type reaches the mailbox, which counts it
-        receivers = {"weights": subscribe(session, keys.weights, actor.mailbox.offer_weights),
-                     "exploration": subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
+        downloading = config.actor.weights_download  # a slow link: no broadcasts, downloads at its pace
+        receivers = {} if downloading else {"weights": subscribe(session, keys.weights, actor.mailbox.offer_weights)}
+        receivers |= {"exploration": subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
                      "rate": subscribe(session, keys.replay_rate, actor.mailbox.offer_rate),
                      "acks": subscribe(session, keys.episode_acks(actor_id), outbox.on_ack, expected=EpisodeAck),
                      "liveliness": watch_liveliness(session, keys.liveliness("replay", "0"), replay.on_change)}
@@ -273,7 +279,8 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
         records_out = publisher(session, keys.metrics_source("actor", str(actor_id)))
         stats_out = publisher(session, keys.metrics_source("actor_stats", str(actor_id)))
         threads = [
-            threading.Thread(target=_fetch_latest_weights, args=(session, keys, actor.mailbox, stop), daemon=True),
+            threading.Thread(target=_download_weights if downloading else _fetch_latest_weights,
+                             args=(session, keys, actor, stop), daemon=True),
             threading.Thread(target=outbox.run, args=(episodes_out.put, lambda: replay.alive and episodes_out.matched,
                                                       sending), name="outbox", daemon=True),
             threading.Thread(target=_report_stats, args=(actor, outbox, receivers, stats_out, sending),
@@ -302,7 +309,8 @@ def _stats(actor: Actor, outbox: Outbox, receivers: dict) -> Stats:
     actor.weights_behind_max = max(actor.weights_behind_max, behind)
     values = {"episodes": actor.episode_index, **outbox.values(), "weights_version": actor.weights_version,
               "weights_behind": behind, "weights_behind_max": actor.weights_behind_max,
-              "weights_superseded": actor.mailbox.superseded, **actor.rejections.values(),
+              "weights_superseded": actor.mailbox.superseded,
+              "weights_downloads": actor.weights_downloads, **actor.rejections.values(),
               **{f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}}
     return Stats(source="actor", time=time.time(), values=values)
 
@@ -317,9 +325,11 @@ def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop
             log.warning("could not publish the actor's stats", exc_info=True)
             continue
         if stats.values["weights_behind"] > stale:
-            log.warning("acting on weights v%d, %d updates behind the learner (broadcasts every %d): no newer "
-                        "broadcast has come through (a slow or broken link?); acting on these meanwhile",
-                        actor.weights_version, stats.values["weights_behind"], actor.config.learner.weights_every)
+            how = (f"downloads every {actor.config.actor.weights_download_period_s:g} s after the last: none newer "
+                   "has finished" if actor.config.actor.weights_download else
+                   f"broadcasts every {actor.config.learner.weights_every}: no newer broadcast has come through")
+            log.warning("acting on weights v%d, %d updates behind the learner (%s; a slow or broken link?); acting "
+                        "on these meanwhile", actor.weights_version, stats.values["weights_behind"], how)
 
 
 def _await_replays_word(mailbox: Mailbox, stop: threading.Event) -> bool:
@@ -335,13 +345,32 @@ def _await_replays_word(mailbox: Mailbox, stop: threading.Event) -> bool:
     return True
 
 
-def _fetch_latest_weights(session, keys: Keys, mailbox: Mailbox, stop: threading.Event) -> None:
+def _fetch_latest_weights(session, keys: Keys, actor: Actor, stop: threading.Event) -> None:
     """Asks the learner for its latest weights, and again while none have come by any way."""
+    mailbox = actor.mailbox
     while not stop.is_set() and not mailbox.had_weights.is_set():
         reply = request(session, keys.weights_latest, None, LATEST_WEIGHTS_TIMEOUT_S)
         if reply is not None:
             mailbox.offer_latest(reply)
         stop.wait(LATEST_WEIGHTS_RETRY_S)
+
+
+def _download_weights(session, keys: Keys, actor: Actor, stop: threading.Event) -> None:
+    """actor.weights_download: the learner's latest weights, piece by piece, every period (sooner while
+    none have come)."""
+    def ask(message: WeightsPieceAsk) -> WeightsPiece | None:
+        return request(session, keys.weights_pieces, message, LATEST_WEIGHTS_TIMEOUT_S, expected=WeightsPiece)
+
+    while not stop.is_set():
+        try:
+            weights = download_weights(ask, stop)
+        except WireError as error:
+            actor.rejections.reject("weights_download", f"downloaded weights: {error}")
+            weights = None
+        if weights is not None:
+            actor.mailbox.offer_weights(weights)
+            actor.weights_downloads += 1
+        stop.wait(actor.config.actor.weights_download_period_s if weights is not None else LATEST_WEIGHTS_RETRY_S)
 
 
 def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, records_out) -> None:

@@ -6,7 +6,8 @@ common name (CN) of the certificate it presented. `acl_config` turns the role li
 TransportConfig (`acl_learners`, `acl_actors`, `acl_replays`, `acl_observers`: CNs) into
 Zenoh's ``access_control`` block, deny by default:
 
-- only a learner publishes weights and exploration state, and serves ``weights/latest``;
+- only a learner publishes weights and exploration state, and serves ``weights/latest`` and
+  ``weights/pieces`` (the download of actor.weights_download);
 - only an actor publishes episodes;
 - only a replay answers trace-batch queries (``replay/sample``) and publishes the replay's
   stats, rate and episode acknowledgements; when the replay is the router itself (the cluster set-up), its own session
@@ -45,13 +46,13 @@ GRANTS: dict[str, Grants] = {
     "learner": Grants(
         publish=("weights/broadcast", "exploration", "metrics/learner/**", "heartbeat/learner/**"),
         subscribe=("replay/stats", "replay/rate"),
-        serve=("weights/latest",),
+        serve=("weights/latest", "weights/pieces"),
         query=("replay/sample",),
         token=("alive/learner/**",)),
     "actor": Grants(
         publish=("episodes", "metrics/actor/**", "metrics/actor_stats/**", "heartbeat/actor/**"),
         subscribe=("weights/broadcast", "exploration", "replay/rate", "replay/acks/**"),
-        query=("weights/latest",),
+        query=("weights/latest", "weights/pieces"),
         token=("alive/actor/**",)),
     "replay": Grants(  # a replay that is not the router
         publish=("replay/stats", "replay/rate", "replay/acks/**", "metrics/replay/**", "heartbeat/replay/**"),

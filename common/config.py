@@ -359,12 +359,19 @@ class ActorConfig:
     in_flight_mb: float = option(256.0, "sent episodes the replay has not yet said it keeps are held, to be sent "
                                         "again after a partition or a replay restart, up to this size; past it "
                                         "the oldest is given up (counted as released)", "MB")
+    weights_download: bool = option(
+        False, "beyond the paper, for an actor on a slow link: instead of receiving the learner's broadcasts, "
+               "download its latest weights piece by piece at the link's pace, every weights_download_period_s. "
+               "A broadcast that a slow link cannot carry in its period backs the hub's router up into the "
+               "learner's link and slows the learner (docs/reliability.md); a download blocks no queue")
+    weights_download_period_s: float = option(
+        10.0, "actor.weights_download: how long after one download the next begins", "s")
 
     def validate(self) -> None:
         check(self.num_actors >= 0, "num_actors", "must be >= 0")
         check(self.actor_id >= 0, "actor_id", "must be >= 0")
         check_positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb", "resend_after_s",
-                       "in_flight_mb")
+                       "in_flight_mb", "weights_download_period_s")
         check(self.inference in INFERENCE_PRECISIONS, "inference",
               f"must be one of {', '.join(INFERENCE_PRECISIONS)}")
 

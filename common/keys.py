@@ -60,6 +60,11 @@ class Keys:
         return f"{self.root}/weights/latest"
 
     @property
+    def weights_pieces(self) -> str:
+        """Queryable: WeightsPieceAsk -> WeightsPiece (actor.weights_download)."""
+        return f"{self.root}/weights/pieces"
+
+    @property
     def exploration(self) -> str:
         return f"{self.root}/exploration"
 

@@ -48,7 +48,8 @@ def run_learner(config: Config, resume: bool = False) -> None:
         # no expected type: a message of another type reaches the process, which counts it
         process.receivers = {"stats": subscribe(session, keys.replay_stats, process.on_replay_stats),
                              "rate": subscribe(session, keys.replay_rate, process.on_replay_rate),
-                             "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights)}
+                             "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights),
+                             "weights_pieces": serve(session, keys.weights_pieces, process.serve_weights_piece)}
         for receiver in process.receivers.values():
             service.on_close(receiver.undeclare)
         outputs = Outputs(session, keys, SharedMemory.of(config.transport),

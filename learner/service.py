@@ -42,13 +42,14 @@ from common.pacing import achieved_ratio, env_steps_ceiling
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.wire.errors import WireError
-from common.wire.messages import RateState, ReplayStats, TraceBatch, Weights
+from common.wire.messages import RateState, ReplayStats, TraceBatch, Weights, WeightsPiece, WeightsPieceAsk
 from common.wire.run_shape import RunShape, check_trace_batch
 from learner.feed import feed_strategy
 from learner.keep import PolicyKeeper
 from learner.prefetch import Prefetcher
 from learner.trace_batch import TraceArrays, TraceTensors
 from learner.update import DoubleQLearner
+from learner.weights_shelf import WeightsShelf
 
 log = logging.getLogger("learner")
 
@@ -175,6 +176,7 @@ class LearnerService:
         self._resumed_env_steps: int | None = None
         self._lock = threading.Lock()
         self.latest_weights: Weights | None = None
+        self.shelf = WeightsShelf(lambda: self.latest_weights)  # the latest weights in pieces, for downloads
         self.checkpoint_dir = RunDir.of(config).checkpoints
         self.shape = RunShape.of(config)
         self.rejections = Rejections(log)
@@ -234,6 +236,13 @@ class LearnerService:
                                                     f"{type(request_message).__name__}")
             return None
         return self.latest_weights
+
+    def serve_weights_piece(self, ask) -> WeightsPiece | None:
+        """A piece of the latest weights (or of the version asked for, while the shelf holds it)."""
+        if not isinstance(ask, WeightsPieceAsk):
+            self.rejections.reject("weights_piece_query", f"a {type(ask).__name__} where a WeightsPieceAsk belongs")
+            return None
+        return self.shelf.piece(ask)
 
     # --- decisions ----------------------------------------------------------------------
 

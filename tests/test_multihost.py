@@ -10,7 +10,7 @@ and the bridge, as it would over a LAN; the configs' fixed port 7447 is free in 
 namespace. The secure variant runs the deploy/configs/secure-*.toml files the same way (TLS,
 mutual TLS, access rules), with certificates made for the hub's address 10.203.0.1, which the
 actors verify. Training must proceed with both actors' episodes arriving and both acting with
-the learner's weights.
+the learner's weights: actor 1's from broadcasts, actor 2's downloaded piece by piece.
 
 Needs root (CI runs as root) and iproute2; elsewhere the tests are skipped with the reason.
 Namespaces (named per test run), links and processes are removed at the end, also on failure.
@@ -57,9 +57,11 @@ def test_actors_on_two_other_hosts_feed_the_hub(lab, secure):
     lab.start("hub", "watch", [str(PEER), "watch", str(watch), *config_flags(secure, "watch")])
     wait_for(lambda: any(line["kind"] == "up" for line in read_lines(watch)), "the watcher's session", 30, lab.logs)
     lab.start("hub", "learner", ["-m", "learner.main", *config_flags(secure, "learner"), *SMOKE, *runs])
-    for host, actor_id in (("a1", 1), ("a2", 2)):
+    # actor 2 downloads the weights in pieces (actor.weights_download) instead of receiving broadcasts
+    downloads = ["--actor.weights_download", "true", "--actor.weights_download_period_s", "1"]
+    for host, actor_id, extra in (("a1", 1, []), ("a2", 2, downloads)):
         lab.start(host, "actor", ["-m", "actor.main", *config_flags(secure, "actor"), "--actor.actor_id", str(actor_id),
-                                  *SMOKE])
+                                  *SMOKE, *extra])
 
     def trained() -> bool:
         lab.alive()

@@ -9,7 +9,8 @@ import numpy as np
 from common.wire.codecs import Message
 from common.wire.frames import FrameStack
 from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, RateState,
-                                  ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights)
+                                  ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights, WeightsPiece,
+                                  WeightsPieceAsk)
 
 SMALL_FRAME = (6, 8, 3)
 
@@ -87,6 +88,8 @@ def example_messages() -> list[Message]:
                    kept=np.arange(5, dtype=np.int64), refused=np.zeros(0, np.int64)),
         example_rate(start_env_steps=None, batches_served=0, env_steps_per_update=None, hold_reason="budget"),
         example_replay_stats(snapshot_age_s=12.5),
+        WeightsPieceAsk(version=-1, offset=49_152, size=49_152),
+        WeightsPiece(version=12, total_bytes=100, offset=96, data=np.arange(4, dtype=np.uint8)),
     ]
 
 

@@ -326,8 +326,38 @@ class EpisodeAck(Message):
                 raise WireError(f"EpisodeAck.{name}: a negative episode index")
 
 
+MAX_PIECE_BYTES = 1 << 20  # a piece this large fits a fast link's queue; actors ask for far less
+
+
+@dataclass(eq=False)
+class WeightsPieceAsk(Message):
+    """An actor's ask for a piece of the learner's weights (actor.weights_download): the bytes from
+    `offset` of the encoded Weights of `version` (-1: the latest), at most `size` of them."""
+    version: int = wired(Integer(min_value=-1))
+    offset: int = wired(COUNT)
+    size: int = wired(Integer(min_value=1, max_value=MAX_PIECE_BYTES))
+
+
+@dataclass(eq=False)
+class WeightsPiece(Message):
+    """A piece of the encoded Weights message of `version`, which is `total_bytes` long: its bytes from
+    `offset`. An actor on a slow link asks for the next piece once one has come, so no queue on the way
+    holds more than a piece (learner/weights_shelf.py, actor/weights_download.py)."""
+    version: int = wired(COUNT)
+    total_bytes: int = wired(Integer(min_value=1))
+    offset: int = wired(COUNT)
+    data: np.ndarray = wired(Array("uint8", 1))
+
+    def check(self) -> None:
+        if len(self.data) > MAX_PIECE_BYTES:
+            raise WireError(f"WeightsPiece: {len(self.data)} bytes, more than a piece may hold ({MAX_PIECE_BYTES})")
+        if self.offset + len(self.data) > self.total_bytes or not len(self.data):
+            raise WireError(f"WeightsPiece: bytes {self.offset}..{self.offset + len(self.data)} do not lie within "
+                            f"the {self.total_bytes} of the weights")
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.__name__: cls
     for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, EpisodeRecord, Heartbeat,
-                EpisodeAck, RateState, ReplayStats)
+                EpisodeAck, RateState, ReplayStats, WeightsPieceAsk, WeightsPiece)
 }

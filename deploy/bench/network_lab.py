@@ -4,7 +4,8 @@
   `--seconds` of training after the learner's first updates;
 - cap: actor 1's link capped at `--mbit` (20 Mbit/s) while the learner broadcasts the paper's network
   (48.6 MB as float32, 24.3 MB as float16), against the same span before the cap: the learner's
-  updates/s, actor 1's episodes, and how far its weights lagged (its own warnings).
+  updates/s, actor 1's episodes, and how far its weights lagged (its own warnings); with `--download`,
+  actor 1 downloads the weights piece by piece (actor.weights_download) instead of receiving broadcasts.
 
 The figures come from the processes' own lines: the learner's status line (updates, env steps) read
 every second, and the actor's "acting on weights vN, M updates behind" warnings and stopped line. The
@@ -12,7 +13,7 @@ smoke preset, with the run's budget out of reach; the actors on other hosts shar
 with the hub, so on a small machine the figures say what the cores allow, not the network.
 
     .venv/bin/python deploy/bench/network_lab.py hosts [--hosts 1,2,4] [--seconds 60]
-    .venv/bin/python deploy/bench/network_lab.py cap [--mbit 20] [--encodings float32,float16] [--seconds 90]
+    .venv/bin/python deploy/bench/network_lab.py cap [--mbit 20] [--encodings float32,float16] [--seconds 90] [--download]
 """
 
 from __future__ import annotations
@@ -38,14 +39,14 @@ def learner_counts(log: Path) -> tuple[int, int] | None:
     return (int(found[-1][0]), int(found[-1][1])) if found else None
 
 
-def start_lab(directory: Path, actor_hosts: int, flags: list[str]) -> Lab:
+def start_lab(directory: Path, actor_hosts: int, flags: list[str], first_actor: list[str] = ()) -> Lab:
     lab = Lab(directory, actor_hosts)
     lab.build()
     lab.start("hub", "replay", ["-m", "replay.main", *config_flags(False, "replay"), *BASE, *flags])
     lab.start("hub", "learner", ["-m", "learner.main", *config_flags(False, "learner"), *BASE, *flags])
     for n in range(1, actor_hosts + 1):
         lab.start(f"a{n}", "actor", ["-m", "actor.main", *config_flags(False, "actor"), "--actor.actor_id", str(n),
-                                     *BASE, *flags])
+                                     *BASE, *flags, *(first_actor if n == 1 else ())])
     return lab
 
 
@@ -97,7 +98,8 @@ def cap(args) -> None:
     rows = []
     for encoding in args.encodings:
         with tempfile.TemporaryDirectory() as directory:
-            lab = start_lab(Path(directory), 2, ["--learner.weights_encoding", encoding])
+            download = ["--actor.weights_download", "true"] if args.download else []
+            lab = start_lab(Path(directory), 2, ["--learner.weights_encoding", encoding], download)
             try:
                 log = Path(directory) / "hub-learner.log"
                 wait_for_updates(lab, log)
@@ -126,6 +128,8 @@ def main() -> None:
     cap_parser.add_argument("--mbit", type=float, default=20.0, help="the cap on actor 1's link, both ways")
     cap_parser.add_argument("--encodings", type=lambda text: text.split(","), default=["float32", "float16"])
     cap_parser.add_argument("--seconds", type=float, default=90.0, help="each span: uncapped, then capped")
+    cap_parser.add_argument("--download", action="store_true",
+                            help="actor 1 downloads the weights in pieces (actor.weights_download) instead")
     args = parser.parse_args()
     reason = why_no_lab(faults=True)
     if reason:
