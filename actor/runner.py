@@ -127,6 +127,8 @@ class Actor:
         self.episode_index = 0  # episodes ended so far, the number of the next to end
         self.episodes_started = 0
         self.weights_downloads = 0  # actor.weights_download: downloads completed
+        self.weights_download_s = 0.0  # how long the last one took
+        self.weights_downloaded_at = time.monotonic()  # when the last one finished (or the actor started)
         self._ended: deque[tuple[Episode, EpisodeRecord]] = deque()  # run_episode's, not yet returned
         self.incarnation = secrets.randbits(62) | 1  # names this process's episodes (never 0: unnamed)
         self.rejections = Rejections(log)
@@ -310,7 +312,7 @@ def _stats(actor: Actor, outbox: Outbox, receivers: dict) -> Stats:
     values = {"episodes": actor.episode_index, **outbox.values(), "weights_version": actor.weights_version,
               "weights_behind": behind, "weights_behind_max": actor.weights_behind_max,
               "weights_superseded": actor.mailbox.superseded,
-              "weights_downloads": actor.weights_downloads, **actor.rejections.values(),
+              "weights_downloads": actor.weights_downloads, "weights_download_s": actor.weights_download_s, **actor.rejections.values(),
               **{f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}}
     return Stats(source="actor", time=time.time(), values=values)
 
@@ -324,12 +326,21 @@ def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop
         except Exception:  # the stats must never stop the actor
             log.warning("could not publish the actor's stats", exc_info=True)
             continue
-        if stats.values["weights_behind"] > stale:
-            how = (f"downloads every {actor.config.actor.weights_download_period_s:g} s after the last: none newer "
-                   "has finished" if actor.config.actor.weights_download else
+        if _stale(actor, stats.values["weights_behind"] > stale):
+            how = (f"downloads every {actor.config.actor.weights_download_period_s:g} s after the last: none has "
+                   "finished for three periods" if actor.config.actor.weights_download else
                    f"broadcasts every {actor.config.learner.weights_every}: no newer broadcast has come through")
             log.warning("acting on weights v%d, %d updates behind the learner (%s; a slow or broken link?); acting "
                         "on these meanwhile", actor.weights_version, stats.values["weights_behind"], how)
+
+
+def _stale(actor: Actor, behind_broadcasts: bool) -> bool:
+    """Whether the actor's weights are late: four broadcasts behind, or (actor.weights_download) no download
+    finished for three periods plus the last one's own length."""
+    if not actor.config.actor.weights_download:
+        return behind_broadcasts
+    late_after = 3 * actor.config.actor.weights_download_period_s + actor.weights_download_s
+    return time.monotonic() - actor.weights_downloaded_at > late_after
 
 
 def _await_replays_word(mailbox: Mailbox, stop: threading.Event) -> bool:
@@ -362,6 +373,7 @@ def _download_weights(session, keys: Keys, actor: Actor, stop: threading.Event) 
         return request(session, keys.weights_pieces, message, LATEST_WEIGHTS_TIMEOUT_S, expected=WeightsPiece)
 
     while not stop.is_set():
+        began = time.monotonic()
         try:
             weights = download_weights(ask, stop)
         except WireError as error:
@@ -369,6 +381,8 @@ def _download_weights(session, keys: Keys, actor: Actor, stop: threading.Event) 
             weights = None
         if weights is not None:
             actor.mailbox.offer_weights(weights)
+            actor.weights_downloaded_at = time.monotonic()
+            actor.weights_download_s = actor.weights_downloaded_at - began
             actor.weights_downloads += 1
         stop.wait(actor.config.actor.weights_download_period_s if weights is not None else LATEST_WEIGHTS_RETRY_S)
 

@@ -2,6 +2,7 @@
 piece at a time (actor/weights_download.py), through the wire both ways as over Zenoh."""
 
 import math
+import time
 import threading
 
 import numpy as np
@@ -111,3 +112,17 @@ def test_the_learner_serves_pieces_and_refuses_and_counts_other_asks(tmp_path):
     assert process.serve_weights_piece(WeightsPieceAsk(version=-1, offset=piece.total_bytes, size=PIECE)) is None
     assert process.serve_weights_piece(None) is None and process.serve_weights_piece(sent) is None
     assert process.rejections.values()["rejected_weights_piece_query"] == 2
+
+
+def test_a_downloading_actor_is_late_only_after_three_periods_without_a_download(tmp_path):
+    from actor.runner import Actor, _stale
+    config = load_config("smoke", overrides={"network.lstm_units": 16, "actor.weights_download": True,
+                                             "actor.weights_download_period_s": 10.0})
+    actor = Actor(config, 0)
+    actor.weights_download_s = 20.0  # a slow link: the last download took 20 s
+    actor.weights_downloaded_at = time.monotonic() - 45.0
+    assert not _stale(actor, behind_broadcasts=True)  # 45 s < 3 x 10 + 20: many broadcasts' worth, not late
+    actor.weights_downloaded_at = time.monotonic() - 51.0
+    assert _stale(actor, behind_broadcasts=False)
+    broadcast = Actor(load_config("smoke", overrides={"network.lstm_units": 16}), 0)
+    assert _stale(broadcast, True) and not _stale(broadcast, False)
