@@ -272,7 +272,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     run = RunDir(args.run)
     if not args.report:
-        watch(run, args.every, args.until_s)
+        try:
+            watch(run, args.every, args.until_s)
+        except KeyboardInterrupt:  # stopped with its stack (Ctrl-C reaches the group): report what there is
+            print("soak: stopped", file=sys.stderr)
     if not (run.soak / "soak.csv").exists():
         print(f"soak: no samples in {run.soak}", file=sys.stderr)
         return 1

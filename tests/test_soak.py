@@ -140,3 +140,17 @@ def test_a_row_with_a_new_column_extends_the_files_header(tmp_path):
     soak.append(path, {"time": 2.0, "rss_mb_learner": 501.0, "rss_mb_curve": 300.0})
     assert list(csv.DictReader(path.open())) == [{"time": "1.0", "rss_mb_learner": "500.0", "rss_mb_curve": ""},
                                                  {"time": "2.0", "rss_mb_learner": "501.0", "rss_mb_curve": "300.0"}]
+
+
+def test_a_soak_stopped_with_its_stack_reports_what_it_has_without_a_traceback(tmp_path, monkeypatch, capsys):
+    def interrupted(run, every_s, until_s):
+        raise KeyboardInterrupt  # Ctrl-C (or the grid runner's stop) reaches the whole process group
+
+    reported = []
+    monkeypatch.setattr(soak, "watch", interrupted)
+    monkeypatch.setattr(soak, "report", reported.append)
+    run = RunDir(tmp_path / "run")
+    run.soak.mkdir(parents=True)
+    (run.soak / "soak.csv").write_text("time\n1.0\n")
+    assert soak.main([str(run.root)]) == 0
+    assert reported and "soak: stopped" in capsys.readouterr().err
