@@ -18,17 +18,21 @@ from common.wire.messages import Weights, WeightsPiece, WeightsPieceAsk
 
 PIECE_BYTES = 48 * 1024  # within one Zenoh batch (64 KB), so a piece never waits on a queue behind itself
 MAX_RESTARTS = 3
+MAX_WEIGHTS_BYTES = 1 << 30  # the paper's network is 48.6 MB as float32
 
 
 def download_weights(ask: Callable[[WeightsPieceAsk], WeightsPiece | None], stop: threading.Event,
                      piece_bytes: int = PIECE_BYTES) -> Weights | None:
     """The learner's latest weights, or None (no answer, stopped, or given up)."""
-    version, pieces, offset, restarts = -1, [], 0, -1
+    version, pieces, offset, restarts, total = -1, [], 0, -1, -1
     while not stop.is_set():
         piece = ask(WeightsPieceAsk(version=version, offset=offset, size=piece_bytes))
         if piece is None:
             return None
-        if piece.version != version or piece.offset != offset:  # the first piece, or another version's
+        if piece.total_bytes > MAX_WEIGHTS_BYTES:  # no network of this project is near it: a hostile answer
+            return None
+        if piece.version != version or piece.offset != offset or piece.total_bytes != total:  # first, or another
+            total = piece.total_bytes
             restarts += 1
             if restarts > MAX_RESTARTS:
                 return None

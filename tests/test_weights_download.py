@@ -126,3 +126,13 @@ def test_a_downloading_actor_is_late_only_after_three_periods_without_a_download
     assert _stale(actor, behind_broadcasts=False)
     broadcast = Actor(load_config("smoke", overrides={"network.lstm_units": 16}), 0)
     assert _stale(broadcast, True) and not _stale(broadcast, False)
+
+
+def test_an_answer_claiming_absurd_weights_is_given_up_at_once():
+    asked = []
+
+    def hostile(ask):
+        asked.append(ask)
+        return WeightsPiece(version=1, total_bytes=1 << 40, offset=ask.offset, data=np.zeros(8, np.uint8))
+
+    assert download_weights(hostile, threading.Event()) is None and len(asked) == 1
