@@ -42,7 +42,7 @@ def fake_evaluation(directory: Path, greedy_lengths: list[int], random_length: i
     return directory
 
 
-def make_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False, updates: int | None = None,
+def make_smoke_run(run_dir: Path, env_steps: int | None = None, evaluated: bool = False, updates: int | None = None,
              strategy: str = "bmc", capacity: int = 50, seed: int = 0) -> Path:
     """A run folder as the stack and evaluate leave it: its config, a checkpoint with this clock, an evaluation."""
     run_dir.mkdir(parents=True, exist_ok=True)

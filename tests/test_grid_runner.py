@@ -43,7 +43,7 @@ def write_curve(run: RunDir, rows: list[dict]) -> None:
         writer.writerows(rows)
 
 
-def make_run(folder: Path, env_steps: int | None = None, kept: list[int] = (), curve: list[dict] = (),
+def make_drive_run(folder: Path, env_steps: int | None = None, kept: list[int] = (), curve: list[dict] = (),
              strategy: str = "bmc", seed: int = 0) -> RunDir:
     """A run folder as the steps leave it: its config, a checkpoint with this clock, kept policies, a curve."""
     run = RunDir(folder)
@@ -101,8 +101,8 @@ def test_the_curve_reads_every_policy_to_20000_updates_then_every_2000():
 
 def test_what_a_run_folder_needs_next(tmp_path):
     assert next_step(tmp_path / "fresh", BUDGET) == "train"
-    assert next_step(make_run(tmp_path / "short", 90_000, KEPT[:15]).root, BUDGET) == "resume"
-    full = make_run(tmp_path / "full", BUDGET, KEPT, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
+    assert next_step(make_drive_run(tmp_path / "short", 90_000, KEPT[:15]).root, BUDGET) == "resume"
+    full = make_drive_run(tmp_path / "full", BUDGET, KEPT, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
     assert next_step(full.root, BUDGET) == "curve"  # the sparse part is missing
     write_curve(full, curve_rows(sorted(curve_wanted(KEPT)), "test"))
     assert next_step(full.root, BUDGET) == "choose"
@@ -121,7 +121,7 @@ def test_the_policy_is_chosen_on_the_train_starts_among_the_last_five_kept(tmp_p
     test_cfr = {26_000: 1.0}  # the best on the test starts must not decide
     rows = (curve_rows(KEPT, "test", test_cfr) + curve_rows(KEPT[-5:], "train", {27_000: 0.8, 29_000: 0.8})
             + curve_rows([20_000], "train", {20_000: 1.0}))  # older than the last five: not a candidate
-    run = make_run(tmp_path / "run", BUDGET, KEPT, rows)
+    run = make_drive_run(tmp_path / "run", BUDGET, KEPT, rows)
     choice = choose(run)
     assert choice["updates"] == 29_000 and choice["among"] == KEPT[-5:]  # a tie on CFR: the longer, later one
     assert json.loads((run.root / "choice.json").read_text())["kept_file"] == "policy-u0029000.pt"
@@ -133,7 +133,7 @@ def test_the_policy_is_chosen_on_the_train_starts_among_the_last_five_kept(tmp_p
 
 def test_the_curve_passes_ask_only_for_what_is_missing(tmp_path):
     opts = options(tmp_path)
-    run = make_run(tmp_path / "run", BUDGET, KEPT)
+    run = make_drive_run(tmp_path / "run", BUDGET, KEPT)
     passes = grid_job.curve_commands(run, opts)
     assert [command[command.index("--sets"):command.index("--sets") + 4] for command in passes] == [
         ["--sets", "test", "--to-updates", "20000"], ["--sets", "test", "--from-updates", "20001"]]
@@ -168,7 +168,7 @@ def test_the_learner_gets_the_cores_the_curve_and_other_runs_leave_it():
 
 
 def test_a_grid_run_exports_its_cell_choice_curve_and_soak_under_its_cells_name(tmp_path):
-    run = make_run(tmp_path / "bmc-b1000-nstep3-s1", BUDGET, KEPT,
+    run = make_drive_run(tmp_path / "bmc-b1000-nstep3-s1", BUDGET, KEPT,
                    curve_rows(sorted(curve_wanted(KEPT)), "test") + curve_rows(KEPT[-5:], "train"), seed=1)
     grid_cells.write_cell(run, RunSpec("bmc", 1000, 1, "nstep3"), 30_000)
     choose(run)
@@ -194,7 +194,7 @@ def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_pa
         calls.append(what if what != "stack" else ("resume" if "--resume" in command else "train"))
         if what == "stack":
             reached = BUDGET if "--resume" in command else 90_000
-            make_run(run.root, reached, KEPT if reached == BUDGET else KEPT[:15])
+            make_drive_run(run.root, reached, KEPT if reached == BUDGET else KEPT[:15])
         elif what == "curve":
             flag = dict(zip(command[5::2], command[6::2]))
             low, high = int(flag.get("--from-updates", 0)), int(flag.get("--to-updates", 10 ** 9))

@@ -11,14 +11,14 @@ from common.run_dir import RunDir
 from deploy import main_job
 from deploy.studies.grid_cells import curve_wanted, read_choice
 from tests.grid_runs import fake_evaluation
-from tests.test_grid_runner import BUDGET, KEPT, curve_rows, make_run, write_curve
+from tests.test_grid_runner import BUDGET, KEPT, curve_rows, make_drive_run, write_curve
 
 
 def stand_in(run: RunDir, calls: list[str], reached: int = BUDGET):
     def call(command: list[str]) -> None:
         if command[1].endswith("stack.py"):
             calls.append("stack")
-            make_run(run.root, reached, KEPT if reached == BUDGET else KEPT[:5])
+            make_drive_run(run.root, reached, KEPT if reached == BUDGET else KEPT[:5])
             for kept in KEPT:
                 run.policy(kept).write_bytes(f"weights {kept}".encode())
         elif "--curve" in command:

@@ -15,14 +15,14 @@ from common.config_values import load_config, to_toml
 from common.run_dir import RunDir
 from deploy.studies import report
 from deploy.studies.run_results import (LEARNER_CSV, TRAINING_CSV, ExportError, collect, export_run, read_exported)
-from tests.grid_runs import fake_evaluation, make_run
+from tests.grid_runs import fake_evaluation, make_smoke_run
 from tests.test_experiments import assert_png, learner_report, record, write_log
 
 
 def evaluated_run(root, strategy: str = "bmc", seed: int = 0, lengths=(100, 50), updates: int = 120):
     """A run folder of the smoke preset (capacity 50) with a config, an evaluation, a summary and a log."""
     name = f"{strategy}-b50-s{seed}"
-    run = make_run(root / name, 1000, evaluated=True, updates=updates, strategy=strategy, seed=seed)
+    run = make_smoke_run(root / name, 1000, evaluated=True, updates=updates, strategy=strategy, seed=seed)
     fake_evaluation(run / "evaluation", list(lengths), updates=updates)
     evaluation_config = load_config("smoke", overrides={"exploration.strategy": strategy, "run.seed": seed,
                                                         "evaluation.episodes_per_start": 3})
@@ -60,7 +60,7 @@ def test_exporting_again_replaces_the_earlier_export(tmp_path):
 
 
 def test_a_run_without_an_evaluation_is_not_exported(tmp_path):
-    run = RunDir(make_run(tmp_path / "runs" / "bmc-b50-s0", 1000))
+    run = RunDir(make_smoke_run(tmp_path / "runs" / "bmc-b50-s0", 1000))
     with pytest.raises(ExportError, match="not an evaluated run"):
         export_run(run, tmp_path / "exported")
     assert not (tmp_path / "exported").exists() or not any((tmp_path / "exported").iterdir())
