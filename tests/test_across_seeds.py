@@ -124,6 +124,13 @@ def test_the_exact_p_value_with_ties_by_hand():
     assert mann_whitney_p([1, 0], [0, 0]) == pytest.approx(1 / 2)
 
 
+def test_the_exact_p_value_of_one_run_against_two_with_a_tie_by_hand():
+    # A grid with one seed done: A {93} against B {87, 93}. U = 1 + 1/2 = 1.5. Of the 3 splits, A = either 93
+    # reaches 1.5 and A = 87 gives 0: p = 2/3. (scipy's permutation method refuses a side of one run.)
+    assert mann_whitney_p([93], [87, 93]) == pytest.approx(2 / 3)
+    assert mann_whitney_p([2], [1]) == pytest.approx(1 / 2)
+
+
 def test_the_test_scores_a_run_by_its_mean_over_the_tasks():
     a, b = [[0, 10], [6, 6], [4, 12]], [[1, 1], [2, 4], [3, 3]]
     assert mann_whitney_p(a, b) == pytest.approx(mann_whitney_p([5, 6, 8], [1, 3, 3]))

@@ -31,15 +31,16 @@ decreasing epsilon-greedy, 6 runs). Its reading is
 * "a lean": not supported, but the point estimate of P(A > B) is above 0.5;
 * "can't tell": otherwise (no difference shown, or B ahead: read B against A for that).
 
-The test's p-value is exact for small samples: scipy's exact distribution of U when no scores tie, the exact
-permutation distribution (every split of the pooled runs) when some do, and the normal approximation only past
-EXACT_ARRANGEMENTS splits. No exact test of n runs against m can give less than 1 / C(n + m, n), the chance that
+The test's p-value is exact for small samples, ties included: the permutation distribution of U over every split
+of the pooled runs (any sizes, one run a side too), and the normal approximation only past EXACT_ARRANGEMENTS
+splits. No exact test of n runs against m can give less than 1 / C(n + m, n), the chance that
 A's runs are the top n by chance alone. Three seeds against three give at best 1/20 = 0.05, which is not below
 0.05: three seeds a side can never support a pairwise claim; four a side can (1/70).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -131,16 +132,27 @@ def improvement_estimate(x, y, bootstrap: Bootstrap | None = None) -> Estimate:
 
 
 def mann_whitney_p(a, b) -> float:
-    """One-sided p-value that A's runs score above B's, each run scored by its mean over the tasks."""
+    """One-sided p-value that A's runs score above B's, each run scored by its mean over the tasks: the share
+    of all splits of the pooled runs into n and m whose U is at least the one observed (ties count one half),
+    or the normal approximation past EXACT_ARRANGEMENTS splits."""
     a, b = score_matrix(a).mean(axis=1), score_matrix(b).mean(axis=1)
     if math.comb(len(a) + len(b), len(a)) > EXACT_ARRANGEMENTS:
-        method = "asymptotic"
-    elif len(np.unique(np.concatenate([a, b]))) < len(a) + len(b):
-        # scipy's exact U distribution assumes no ties; the permutation one conditions on them
-        method = stats.PermutationMethod(n_resamples=np.inf)
-    else:
-        method = "exact"
-    return float(stats.mannwhitneyu(a, b, alternative="greater", method=method).pvalue)
+        return float(stats.mannwhitneyu(a, b, alternative="greater", method="asymptotic").pvalue)
+    ranks = stats.rankdata(np.concatenate([a, b]))  # midranks: a rank sum fixes U, ties included
+    observed = ranks[:len(a)].sum()
+    at_least = total = 0
+    for chunk in _splits(len(ranks), len(a)):
+        sums = ranks[chunk].sum(axis=1)
+        at_least += int((sums >= observed - 1e-9).sum())
+        total += len(sums)
+    return at_least / total
+
+
+def _splits(runs: int, chosen: int, chunk: int = 65_536):
+    """Every choice of `chosen` of `runs` indices, as (k, chosen) index arrays of at most `chunk` rows."""
+    combinations = itertools.combinations(range(runs), chosen)
+    while block := list(itertools.islice(combinations, chunk)):
+        yield np.array(block, dtype=np.intp)
 
 
 def reading(p_value: float, improvement: Estimate) -> str:
