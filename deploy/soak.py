@@ -5,7 +5,7 @@ appends one row to <run>/soak/soak.csv: the run's env steps and updates, each pr
 (VmRSS, MB; the stack's, and the curve's follower with its workers, `evaluate --curve RUN`), the bytes of each part of the run folder (the flight log, the replay's snapshot, checkpoints,
 kept policies, logs), the bytes of the episodes the replay holds (its snapshot's manifest) and the
 restarts. When the run stops (or at --until-s), it draws soak.png and writes
-soak_summary.json / .md: each process's memory growth over the second half of the last session's samples,
+soak_summary.json / .md: each process's memory growth over the second half of the longest session's samples,
 when the replay is full, the replay's memory growth less that of its episodes (a replay at capacity still
 grows while its episodes lengthen), and the run folder's growth per hour of run time.
 
@@ -14,8 +14,8 @@ grows while its episodes lengthen), and the run folder's growth per hour of run 
 
 A rerun appends to the CSV, so a resumed run's soak carries on. Its hours are the run's: a sample whose
 stack time (elapsed_s) is below the one before starts a new session (a resume), and the hours between the
-sessions, when nothing ran, do not count; memory growth is read in the last session, whose processes
-started afresh.
+sessions, when nothing ran, do not count; memory growth is read in the longest session (its processes
+started afresh there, and ran longest past their filling).
 """
 
 from __future__ import annotations
@@ -177,17 +177,28 @@ def run_hours(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     return np.array(hours), np.array(sessions)
 
 
+def longest_session(hours: np.ndarray, sessions: np.ndarray) -> int:
+    """The session (stack start) that ran longest, the last of those within a minute of it: fresh processes
+    grow while they fill, so a short session's second half reads as a leak (a 10-minute resume gave an actor
+    +419 MB/h)."""
+    spans = {session: hours[sessions == session][-1] - hours[sessions == session][0] for session in set(sessions)}
+    longest = max(spans.values())
+    return int(max(session for session, span in spans.items() if span >= longest - 1 / 60))
+
+
 def summarize(rows: list[dict]) -> dict:
-    """Memory growth of each process over the second half of the last session, and the folder's growth per
+    """Memory growth of each process over the second half of the longest session, and the folder's growth per
     hour of run time."""
     hours, sessions = run_hours(rows)
-    last = sessions == sessions[-1]
-    late = last & (hours >= (hours[last][0] + hours[-1]) / 2)
+    longest = longest_session(hours, sessions)
+    within = sessions == longest
+    late = within & (hours >= (hours[within][0] + hours[within][-1]) / 2)
     column = lambda name: np.array([float(row[name]) if row[name] not in ("", None) else math.nan for row in rows])
     processes = sorted(name[len("rss_mb_"):] for name in rows[0] if name.startswith("rss_mb_"))
     memory = {name: memory_figures(column(f"rss_mb_{name}"), hours, late) for name in processes}
     total = sum(column(f"bytes_{part}") for part in PARTS)
     return {"samples": len(rows), "hours": float(hours[-1]), "sessions": int(sessions[-1]) + 1,
+            "growth_session": int(longest), "growth_session_hours": float(hours[within][-1] - hours[within][0]),
             "env_steps": int(float(rows[-1]["env_steps"])),
             "updates": int(float(rows[-1]["updates"])),
             "restarts": int(column("restarts")[np.append(np.diff(sessions) > 0, True)].sum()),  # each stack's last
@@ -199,12 +210,18 @@ def summarize(rows: list[dict]) -> dict:
                                            for part in PARTS}}
 
 
+def longest_text(summary: dict) -> str:
+    if "growth_session" not in summary:  # a summary written before the longest session was chosen
+        return " of the last session"
+    return f" of session {summary['growth_session'] + 1}, the longest ({summary['growth_session_hours']:.2f} h)"
+
+
 def summary_text(summary: dict) -> str:
     sessions = summary.get("sessions", 1)
     lines = [f"{summary['samples']} samples over {summary['hours']:.2f} h of run time"
              f"{f' in {sessions} sessions (stack starts)' if sessions > 1 else ''}: {summary['env_steps']:,} env "
              f"steps, {summary['updates']:,} updates, {summary['restarts']} restarts",
-             "", f"| process | first MB | last MB | max MB | growth, second half{' of the last session' if sessions > 1 else ''} "
+             "", f"| process | first MB | last MB | max MB | growth, second half{longest_text(summary) if sessions > 1 else ''} "
                  "(MB/h) |", "|---|---:|---:|---:|---:|"]
     for name, memory in summary["memory"].items():
         lines.append(f"| {name} | {memory['first_mb']:.0f} | {memory['last_mb']:.0f} | {memory['max_mb']:.0f} | "

@@ -115,3 +115,17 @@ def test_the_committed_grid_rebuilds_from_its_committed_runs(tmp_path):
     grid_report.report_on([committed / "runs"], tmp_path, warn=lambda line: pytest.fail(line))
     for name in ("grid.md", "grid_runs.csv", "grid_strategies.csv"):
         assert (tmp_path / name).read_text() == (committed / name).read_text(), name
+
+
+def test_the_soak_across_the_grid_by_hand():
+    rows = [{"run": "a", "hours": 2.0, "restarts": 1, "folder_mb": 900.0, "actor-0_mb_per_hour": 10.0,
+             "actor-0_last_mb": 800.0, "replay_rest_mb_per_hour": math.nan},
+            {"run": "b", "hours": 1.5, "restarts": 0, "folder_mb": 1200.0, "actor-0_mb_per_hour": 30.0,
+             "actor-0_last_mb": 900.0, "replay_rest_mb_per_hour": 4.0},
+            {"run": "c", "hours": 0.5, "restarts": 0, "folder_mb": 100.0, "actor-0_mb_per_hour": -5.0,
+             "actor-0_last_mb": 700.0, "replay_rest_mb_per_hour": 2.0}]
+    lines = grid_report.soak_lines(rows)
+    assert lines[0] == "3 runs, 4.0 hours of run time in all, 1 restart; the largest run folder b (1,200 MB)."
+    assert "| actor-0 | +10.0 | +30.0 | 800 | 900 |" in lines  # medians and largest of the three
+    assert "| replay_rest | +3.0 | +4.0 | - | - |" in lines  # the nan left out; no end figure
+    assert grid_report.soak_lines([]) == ["No run of the grid has a soak yet."]

@@ -57,7 +57,7 @@ def test_the_summary_reads_growth_per_hour_from_the_second_half():
     assert math.isnan(soak.slope_per_hour(soak.np.array([1.0]), soak.np.array([5.0])))
 
 
-def test_a_resumed_runs_soak_counts_run_time_and_reads_memory_growth_in_the_last_session():
+def test_a_resumed_runs_soak_counts_run_time_and_reads_memory_growth_in_the_last_of_equal_sessions():
     # session 1: 4 h, the learner leaking 30 MB/h and the log growing 50 MB/h; 10 h with nothing running; then
     # a resumed session of 4 h, its new learner flat after its first 2 h, the log growing on at 50 MB/h
     first = rows(4, lambda hour: 500.0 + 30 * hour, lambda hour: 50.0 * hour)
@@ -73,6 +73,20 @@ def test_a_resumed_runs_soak_counts_run_time_and_reads_memory_growth_in_the_last
     assert summary["restarts"] == 2 + 1  # each stack's count, summed
     assert "in 2 sessions" in soak.summary_text(summary)
     assert soak.summarize(first)["sessions"] == 1
+
+
+def test_memory_growth_is_read_in_the_longest_session_not_a_short_last_one():
+    # 4 h with a flat learner, then a resume of 12 minutes whose fresh learner fills at 500 MB/h
+    first = rows(4, lambda hour: 500.0, lambda hour: 0.0)
+    for hour, row in enumerate(first):
+        row["elapsed_s"] = 3600.0 * hour + 60
+    short = [{**first[0], "time": 3600.0 * 10 + 360 * tenth, "elapsed_s": 60.0 + 360 * tenth,
+              "rss_mb_learner": 300.0 + 50 * tenth} for tenth in range(3)]
+    summary = soak.summarize(first + short)
+    assert (summary["sessions"], summary["growth_session"]) == (2, 0)
+    assert summary["growth_session_hours"] == pytest.approx(4.0)
+    assert summary["memory"]["learner"]["second_half_mb_per_hour"] == pytest.approx(0.0, abs=1e-9)
+    assert "of session 1, the longest (4.00 h)" in soak.summary_text(summary)
 
 
 def held_episode(seq: int, steps: int) -> StoredEpisode:

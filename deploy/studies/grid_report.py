@@ -200,6 +200,8 @@ def soak_rows(runs: Sequence[GridRun]) -> list[dict]:
                      "folder_mb": summary["folder_bytes_last"] / 1e6,
                      **{f"{name}_mb_per_hour": figures["second_half_mb_per_hour"]
                         for name, figures in summary["memory"].items() if name != "curve"},
+                     **{f"{name}_last_mb": figures["last_mb"]
+                        for name, figures in summary["memory"].items() if name != "curve"},
                      "replay_rest_mb_per_hour": summary.get("replay_held", {}).get("replay_rest_mb_per_hour", math.nan)})
     return rows
 
@@ -210,14 +212,21 @@ def soak_lines(rows: Sequence[dict]) -> list[str]:
     processes = sorted({key for row in rows for key in row if key.endswith("_mb_per_hour")})
     largest = max(rows, key=lambda row: row["folder_mb"])
     lines = [f"{_count(len(rows), 'run')}, {sum(row['hours'] for row in rows):.1f} hours of run time in all, "
-             f"{sum(row['restarts'] for row in rows)} restarts; the largest run folder {largest['run']} "
+             f"{_count(sum(row['restarts'] for row in rows), 'restart')}; the largest run folder {largest['run']} "
              f"({largest['folder_mb']:,.0f} MB).", "",
-             "| Process | memory growth in the second half of each run, MB/h: median | largest |", "|---|---:|---:|"]
+             "| Process | memory growth in the second half of each run's longest session, MB/h: median | largest "
+             "| memory at the run's end, MB: median | largest |", "|---|---:|---:|---:|---:|"]
     for key in processes:
-        values = [row[key] for row in rows if key in row and math.isfinite(row[key])]
-        if values:
-            lines.append(f"| {key.removesuffix('_mb_per_hour')} | {np.median(values):+.1f} | {max(values):+.1f} |")
+        name = key.removesuffix("_mb_per_hour")
+        growth, last = (_finite(rows, key), _finite(rows, f"{name}_last_mb"))
+        if growth:
+            ends = f"{np.median(last):,.0f} | {max(last):,.0f}" if last else "- | -"
+            lines.append(f"| {name} | {np.median(growth):+.1f} | {max(growth):+.1f} | {ends} |")
     return lines
+
+
+def _finite(rows: Sequence[dict], key: str) -> list[float]:
+    return [row[key] for row in rows if key in row and math.isfinite(row[key])]
 
 
 # --- figures ---------------------------------------------------------------------------------------------------
