@@ -38,6 +38,7 @@ def exported_run(top: Path, strategy: str, seed: int, starts: list[int], curve: 
                              "kept_file": f"policy-u{updates:07d}.pt", "trained_on": "AMD EPYC", "nice": 0,
                              "start_set": "test", "mean_length": length, "cfr": 0.5})
     fake_evaluation(folder / "evaluation", starts, updates=6000)
+    (folder / "summary.json").write_text(json.dumps({"updates": 6050}))  # trained past the chosen policy
     return folder
 
 
@@ -48,7 +49,7 @@ def test_a_runs_row_reads_its_curve_and_its_chosen_policy(tmp_path):
     assert (row["updates_to_drive"], row["env_steps_to_drive"], row["drive_held_from"]) == (2000, 36_000, 4000)
     # trapezoids: (200+1200)/2 + (1200+800)/2 + (800+1100)/2 over 1,000 each, (1100+1500)/2 over 2,000; / 5,000
     assert row["curve_mean_length"] == pytest.approx((700 + 1000 + 950 + 2600) * 1000 / 5000)
-    assert row["test_cfr"] == pytest.approx(0.75) and row["chosen_updates"] == 6000
+    assert row["test_cfr"] == pytest.approx(0.75) and (row["chosen_updates"], row["updates"]) == (6000, 6050)
     assert run.start_cfr.tolist() == [1.0, 1.0, 1.0, 0.0]
 
 
@@ -91,7 +92,7 @@ def test_the_report_is_written_from_exported_runs_alone(tmp_path):
     assert sorted(path.name for path in paths) == ["curves.png", "grid.md", "grid_runs.csv", "grid_strategies.csv",
                                                   "time_to_drive.png"]
     page = (tmp_path / "out" / "grid.md").read_text()
-    assert "| vdbe | 1000 | paper | 0 | 6000 | not reached |" in page
+    assert "| vdbe | 1000 | paper | 0 | 6,050 | not reached |" in page
     assert "Claim 1" in page and "needs 4 seeds a side" in page
     with pytest.raises(ValueError, match="no finished grid run"):
         grid_report.report_on([tmp_path / "out"], tmp_path / "again")

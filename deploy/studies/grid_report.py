@@ -115,7 +115,7 @@ def run_row(item: GridRun) -> dict:
     test = item.greedy_test
     return {
         "strategy": item.run.strategy, "capacity": item.run.capacity, "options": item.run.options,
-        "seed": item.run.seed, "updates": item.run.updates or "",
+        "seed": item.run.seed, "updates": item.run.trained_updates or "",
         "updates_to_drive": drive["updates"] if drive else "", "env_steps_to_drive": drive["env_steps"] if drive else "",
         "hours_to_drive": round(drive["wall_s"] / 3600, 2) if drive else "",
         "drive_held_from": held["updates"] if held else "",
@@ -276,6 +276,10 @@ def _count(number: int, noun: str) -> str:
     return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
+def _thousands(value) -> str:
+    return "–" if value == "" or value is None else f"{int(value):,d}"
+
+
 def _percent(value) -> str:
     return "–" if value == "" or value is None else f"{100 * float(value):.1f}%"
 
@@ -286,15 +290,15 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
              f"{_count(len(runs), 'run')}. Protocol: docs/experiments.md. Intervals: {100 * bootstrap.confidence:g}% "
              f"percentile, {bootstrap.replicates} bootstrap replicates.", "",
              "## Per run", "",
-             "| Strategy | Buffer | Options | Seed | Updates | Updates to drive (env steps) | Held from | "
+             "| Strategy | Buffer | Options | Seed | Trained updates | Updates to drive (env steps) | Held from | "
              "Curve mean length | Chosen | Test mean length [CI] | Test CFR [CI] | Trained on |",
              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for row in per_run:
         drive = (f"{row['updates_to_drive']:,d} ({row['env_steps_to_drive']:,d})" if row["updates_to_drive"] != ""
                  else "not reached")
         lines.append(
-            f"| {row['strategy']} | {row['capacity']} | {row['options']} | {row['seed']} | {row['updates']} | {drive} | "
-            f"{row['drive_held_from'] or '–'} | {row['curve_mean_length']:,.0f} | {row['chosen_updates']:,d} | "
+            f"| {row['strategy']} | {row['capacity']} | {row['options']} | {row['seed']} | {_thousands(row['updates'])} | "
+            f"{drive} | {_thousands(row['drive_held_from'])} | {row['curve_mean_length']:,.0f} | {row['chosen_updates']:,d} | "
             f"{row['test_mean_length']:,.0f} [{row['test_mean_length_low']:,.0f}, {row['test_mean_length_high']:,.0f}] | "
             f"{_percent(row['test_cfr'])} [{_percent(row['test_cfr_low'])}, {_percent(row['test_cfr_high'])}] | "
             f"{row['trained_on']} |")

@@ -97,8 +97,11 @@ class ExportedRun:
     def updates(self) -> int | None:
         """The updates of the weights its evaluation used, else of the run summary (None if neither says)."""
         updates = str(read_facts(self.layout.evaluation).get("updates", ""))
-        if updates.isdigit():
-            return int(updates)
+        return int(updates) if updates.isdigit() else self.trained_updates
+
+    @property
+    def trained_updates(self) -> int | None:
+        """The updates the run trained, from its run summary (None if it does not say)."""
         try:
             updates = json.loads(self.layout.summary.read_text()).get("updates")
         except (OSError, ValueError, AttributeError):
