@@ -131,6 +131,20 @@ def test_the_policy_is_chosen_on_the_train_starts_among_the_last_five_kept(tmp_p
         choose(run)
 
 
+def test_the_candidates_are_the_scheduled_policies_and_the_last_whatever_the_stops(tmp_path):
+    # stopped at 27,688 (a policy kept at the stop), resumed, ended at 30,354: the candidates are those of a run
+    # never stopped, 27,000 to 30,000 and the last
+    kept = KEPT + [27_688, 30_354]
+    run = make_drive_run(tmp_path / "run", BUDGET, sorted(kept))
+    assert grid_cells.choice_candidates(run) == [27_000, 28_000, 29_000, 30_000, 30_354]
+    run.config.write_text("[learner]\nkeep_every = 0\n")
+    with pytest.raises(grid_cells.ExperimentError, match="keep_every"):
+        grid_cells.choice_candidates(run)
+    run.config.write_text("[learner\n")
+    with pytest.raises(grid_cells.ExperimentError, match="cannot read"):
+        grid_cells.choice_candidates(run)
+
+
 def test_the_curve_passes_ask_only_for_what_is_missing(tmp_path):
     opts = options(tmp_path)
     run = make_drive_run(tmp_path / "run", BUDGET, KEPT)

@@ -9,9 +9,9 @@ running again resumes:
               keeping a policy every learner.keep_every updates; the soak sampled beside it
     curve     the greedy test curve at CURVE_TRIALS trials per start (evaluate --curve): every kept policy up
               to CURVE_DENSE_UNTIL updates, then those at multiples of CURVE_LATE_EVERY
-    choose    the last CHOICE_AMONG kept policies on the train starts; the best (train CFR, then mean length,
-              then the later) is the run's policy, written to choice.json: chosen on the train starts so that
-              its test reading is not the best of several draws
+    choose    the last CHOICE_AMONG kept policies (those on the keep_every schedule, and the last) on the train
+              starts; the best (train CFR, then mean length, then the later) is the run's policy, written to
+              choice.json: chosen on the train starts so that its test reading is not the best of several draws
     evaluate  the chosen policy on both start sets at --trials per start (evaluate --checkpoint), into
               evaluation/
 """
@@ -26,6 +26,8 @@ from typing import Any
 from actor.evaluation.curve import CURVE_CSV, CURVE_TRIALS, chosen_on_train, read_curve
 from common.analysis.tables import SUMMARY_CSV, read_facts
 from common.checkpoint import Checkpoint, CheckpointError
+from common.config_values import load_config
+from common.options import ConfigError
 from common.run_dir import RunDir
 
 PROTOCOL_PRESET = "drive"  # common/presets.py: 30,000 updates, updates from 28,000 env steps for every strategy
@@ -117,8 +119,23 @@ def curve_read(run: RunDir, start_set: str = "test") -> set[int]:
 
 
 def choice_candidates(run: RunDir) -> list[int]:
-    """The updates of the last CHOICE_AMONG kept policies."""
-    return [updates for updates, _ in run.kept_policies()][-CHOICE_AMONG:]
+    """The updates of the last CHOICE_AMONG kept policies on the run's schedule (multiples of
+    learner.keep_every) and of its last one: a policy kept when the run was stopped would otherwise take a
+    scheduled one's place, and the candidates would depend on the interruptions."""
+    kept = [updates for updates, _ in run.kept_policies()]
+    every = keep_every(run)
+    return ([updates for updates in kept[:-1] if updates % every == 0] + kept[-1:])[-CHOICE_AMONG:]
+
+
+def keep_every(run: RunDir) -> int:
+    try:
+        every = load_config(toml_path=run.config).learner.keep_every
+    except (ConfigError, OSError, ValueError) as error:
+        raise ExperimentError(f"{run.root}: cannot read its learner.keep_every from {run.config}: {error}") from None
+    if every <= 0:
+        raise ExperimentError(f"{run.root}: the grid reads a run on the policies it keeps every "
+                              "learner.keep_every updates; it is 0")
+    return every
 
 
 def read_choice(run: RunDir) -> dict | None:
