@@ -36,8 +36,8 @@ from pathlib import Path
 from common.eta import clock_time
 from common.exploration.names import STRATEGIES
 from common.presets import GRID_UPDATES
-from deploy.studies.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, grid,
-                               next_step)
+from deploy.studies.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, counted,
+                                       grid, next_step)
 from deploy.studies.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
                              trained_share)
 from deploy.studies.run_results import ExportError
@@ -74,7 +74,7 @@ class GridStatus:
         remaining = self.remaining_s()
         done = sum(job.finished and job.error is None for job in self.jobs)
         failed = sum(job.finished and job.error is not None for job in self.jobs)
-        return (f"grid: {done}/{len(self.jobs)} runs done" + (f", {failed} failed" if failed else "")
+        return (f"grid: {done}/{counted(len(self.jobs), 'run')} done" + (f", {failed} failed" if failed else "")
                 + f", {100 * trained / max(len(self.jobs), 1):.1f}% of the budgets trained, "
                   f"elapsed {clock_time(time.monotonic() - self.started)}, "
                   f"ETA {'?' if remaining is None else clock_time(remaining)}")
@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"deploy/studies/experiments.py: error: {error}", file=sys.stderr)
         return 2
     started, options = time.monotonic(), plan.options
-    print(f"grid: {len(plan.specs)} runs under {options.runs_dir}/, {options.updates:,d} updates each, "
+    print(f"grid: {counted(len(plan.specs), 'run')} under {options.runs_dir}/, {options.updates:,d} updates each, "
           f"{plan.parallel} at a time; flags: {' '.join(options.extra)}", flush=True)
     failed = 0
     if not plan.report_only:

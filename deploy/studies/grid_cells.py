@@ -82,6 +82,11 @@ class RunSpec:
         return flags
 
 
+def counted(number: int, noun: str) -> str:
+    """"1 run", "3 runs": the grid's lines and report count runs, seeds and restarts."""
+    return f"{number} {noun}{'' if number == 1 else 's'}"
+
+
 def grid(strategies: list[str], capacities: list[int], seeds: list[int], option_sets: list[str] = ("paper",)
          ) -> list[RunSpec]:
     """Capacity, then option set, then seed, then strategy: a table's runs come before the next table's, and

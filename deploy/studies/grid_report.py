@@ -36,7 +36,7 @@ from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
 from common.exploration.names import STRATEGIES
 from deploy.studies.comparison import read_episodes_csv
-from deploy.studies.grid_cells import read_choice
+from deploy.studies.grid_cells import counted, read_choice
 from deploy.studies.run_results import ExportedRun, collect
 
 # The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
@@ -211,8 +211,8 @@ def soak_lines(rows: Sequence[dict]) -> list[str]:
         return ["No run of the grid has a soak yet."]
     processes = sorted({key for row in rows for key in row if key.endswith("_mb_per_hour")})
     largest = max(rows, key=lambda row: row["folder_mb"])
-    lines = [f"{_count(len(rows), 'run')}, {sum(row['hours'] for row in rows):.1f} hours of run time in all, "
-             f"{_count(sum(row['restarts'] for row in rows), 'restart')}; the largest run folder {largest['run']} "
+    lines = [f"{counted(len(rows), 'run')}, {sum(row['hours'] for row in rows):.1f} hours of run time in all, "
+             f"{counted(sum(row['restarts'] for row in rows), 'restart')}; the largest run folder {largest['run']} "
              f"({largest['folder_mb']:,.0f} MB).", "",
              "| Process | memory growth in the second half of each run's longest session, MB/h: median | largest "
              "| memory at the run's end, MB: median | largest |", "|---|---:|---:|---:|---:|"]
@@ -245,7 +245,7 @@ def plot_curves(runs: Sequence[GridRun], path: Path, cell: CELL) -> None:
         values = np.asarray([[float(next(row for row in item.test_rows if int(row["updates"]) == u)["mean_length"])
                               for item in seeds] for u in shared]).reshape(len(shared), len(seeds))
         ax.plot(shared, np.median(values, axis=1), color=colours[strategy], linewidth=2,
-                label=f"{strategy} ({len(seeds)} seed{'' if len(seeds) == 1 else 's'})")
+                label=f"{strategy} ({counted(len(seeds), 'seed')})")
         ax.fill_between(shared, values.min(axis=1), values.max(axis=1), color=colours[strategy], alpha=0.12, linewidth=0)
     ax.axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
     ax.set(xlabel="updates", ylabel="greedy test mean length (steps)")
@@ -272,10 +272,6 @@ def plot_time_to_drive(rows: Sequence[dict], path: Path, budget: int) -> None:
 
 # --- the page --------------------------------------------------------------------------------------------------
 
-def _count(number: int, noun: str) -> str:
-    return f"{number} {noun}{'' if number == 1 else 's'}"
-
-
 def _thousands(value) -> str:
     return "–" if value == "" or value is None else f"{int(value):,d}"
 
@@ -287,7 +283,7 @@ def _percent(value) -> str:
 def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     per_run = [run_row(item) for item in runs]
     lines = ["# The grid: the exploration strategies past the knee", "",
-             f"{_count(len(runs), 'run')}. Protocol: docs/experiments.md. Intervals: {100 * bootstrap.confidence:g}% "
+             f"{counted(len(runs), 'run')}. Protocol: docs/experiments.md. Intervals: {100 * bootstrap.confidence:g}% "
              f"percentile, {bootstrap.replicates} bootstrap replicates.", "",
              "## Per run", "",
              "| Strategy | Buffer | Options | Seed | Trained updates | Updates to drive (env steps) | Held from | "
