@@ -93,6 +93,8 @@ def test_the_report_is_written_from_exported_runs_alone(tmp_path):
                                                   "time_to_drive.png"]
     page = (tmp_path / "out" / "grid.md").read_text()
     assert "| vdbe | 1000 | paper | 0 | 6,050 | not reached |" in page
+    assert "| vdbe | 1000 | paper | 1 | 0/1 | not reached |" in page  # per strategy
+    assert "| softmax | 1000 | paper | 2 | 2/2 | 2,000, 2,000 |" in page
     assert "Claim 1" in page and "needs 4 seeds a side" in page
     with pytest.raises(ValueError, match="no finished grid run"):
         grid_report.report_on([tmp_path / "out"], tmp_path / "again")

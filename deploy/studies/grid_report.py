@@ -272,6 +272,10 @@ def plot_time_to_drive(rows: Sequence[dict], path: Path, budget: int) -> None:
 
 # --- the page --------------------------------------------------------------------------------------------------
 
+def _drive_text(value: str) -> str:
+    return f"{int(value):,d}" if value.isdigit() else "not reached"
+
+
 def _thousands(value) -> str:
     return "–" if value == "" or value is None else f"{int(value):,d}"
 
@@ -305,7 +309,8 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     for row in strategy_rows(runs, bootstrap):
         lines.append(
             f"| {row['strategy']} | {row['capacity']} | {row['options']} | {row['seeds']} | {row['drove']} | "
-            f"{row['updates_to_drive']} | {row['curve_mean_length']:,.0f} | {row['test_mean_length']:,.0f} | "
+            f"{', '.join(_drive_text(value) for value in row['updates_to_drive'].split(';'))} | "
+            f"{row['curve_mean_length']:,.0f} | {row['test_mean_length']:,.0f} | "
             f"{', '.join(_percent(value) for value in row['test_cfr_by_seed'].split(';'))} | "
             f"{_percent(row['iqm_test_cfr'])} [{_percent(row['iqm_test_cfr_low'])}, {_percent(row['iqm_test_cfr_high'])}] | "
             f"{_percent(row['paper_test_cfr'])} |")
