@@ -84,6 +84,15 @@ def test_the_claims_pool_strategies_and_three_seeds_a_side_can_only_lean(tmp_pat
     assert (pair["first"], pair["second"], pair["improvement"]) == ("constant", "bmc", 0.0)
 
 
+def test_a_policy_kept_at_a_stop_is_not_on_the_curve(tmp_path):
+    # stopped at 1,500 updates with a policy that reached the cap: the curve, scheduled every 1,000, drove at
+    # 2,000 all the same
+    exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50], curve={**CURVE, 1500: 2000})
+    (run,) = grid_report.read_runs([tmp_path])
+    assert [int(row["updates"]) for row in run.test_rows] == sorted(CURVE)
+    assert grid_report.run_row(run)["updates_to_drive"] == 2000
+
+
 def test_the_report_is_written_from_exported_runs_alone(tmp_path):
     for seed in range(2):
         exported_run(tmp_path / "runs", "softmax", seed, [100, 50, 50, 50])

@@ -95,7 +95,7 @@ def test_config_flags_are_checked_before_anything_runs(tmp_path, extra, message)
 
 
 def test_the_curve_reads_every_policy_to_20000_updates_then_every_2000():
-    wanted = curve_wanted(KEPT + [30_004])
+    wanted = curve_wanted(KEPT + [15_500, 30_004], 1_000)  # 15,500 and 30,004 kept when the run stopped
     assert sorted(wanted) == list(range(1_000, 20_001, 1_000)) + list(range(22_000, 30_001, 2_000))
 
 
@@ -104,9 +104,9 @@ def test_what_a_run_folder_needs_next(tmp_path):
     assert next_step(make_drive_run(tmp_path / "short", 90_000, KEPT[:15]).root, BUDGET) == "resume"
     full = make_drive_run(tmp_path / "full", BUDGET, KEPT, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
     assert next_step(full.root, BUDGET) == "curve"  # the sparse part is missing
-    write_curve(full, curve_rows(sorted(curve_wanted(KEPT)), "test"))
+    write_curve(full, curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test"))
     assert next_step(full.root, BUDGET) == "choose"
-    write_curve(full, curve_rows(sorted(curve_wanted(KEPT)), "test") + curve_rows(KEPT[-5:], "train"))
+    write_curve(full, curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test") + curve_rows(KEPT[-5:], "train"))
     choose(full)
     assert next_step(full.root, BUDGET) == "evaluate"
     fake_evaluation(full.evaluation, [100, 50], updates=29_000)  # another policy's evaluation
@@ -152,6 +152,7 @@ def test_the_curve_passes_ask_only_for_what_is_missing(tmp_path):
     assert [command[command.index("--sets"):command.index("--sets") + 4] for command in passes] == [
         ["--sets", "test", "--to-updates", "20000"], ["--sets", "test", "--from-updates", "20001"]]
     assert passes[1][passes[1].index("--every") + 1] == "2000"
+    assert passes[0][passes[0].index("--every") + 1] == "1000"  # not a policy kept at a stop
     write_curve(run, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
     assert len(grid_job.curve_commands(run, opts)) == 1
     assert grid_job.choice_command(run, opts)[5:9] == ["--sets", "train", "--from-updates", "26000"]
@@ -183,7 +184,7 @@ def test_the_learner_gets_the_cores_the_curve_and_other_runs_leave_it():
 
 def test_a_grid_run_exports_its_cell_choice_curve_and_soak_under_its_cells_name(tmp_path):
     run = make_drive_run(tmp_path / "bmc-b1000-nstep3-s1", BUDGET, KEPT,
-                   curve_rows(sorted(curve_wanted(KEPT)), "test") + curve_rows(KEPT[-5:], "train"), seed=1)
+                   curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test") + curve_rows(KEPT[-5:], "train"), seed=1)
     grid_cells.write_cell(run, RunSpec("bmc", 1000, 1, "nstep3"), 30_000)
     choose(run)
     fake_evaluation(run.evaluation, [100, 50], updates=30_000)
@@ -212,7 +213,7 @@ def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_pa
         elif what == "curve":
             flag = dict(zip(command[5::2], command[6::2]))
             low, high = int(flag.get("--from-updates", 0)), int(flag.get("--to-updates", 10 ** 9))
-            wanted = sorted(curve_wanted(KEPT)) if flag["--sets"] == "test" else KEPT[-5:]
+            wanted = sorted(curve_wanted(KEPT, 1_000)) if flag["--sets"] == "test" else KEPT[-5:]
             old = list(csv.DictReader((run.curve / "curve.csv").open())) if (run.curve / "curve.csv").exists() else []
             write_curve(run, old + curve_rows([u for u in wanted if low <= u <= high], flag["--sets"]))
         elif what == "evaluate":

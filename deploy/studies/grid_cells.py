@@ -7,8 +7,9 @@ running again resumes:
 
     train     the stack to the budget in updates (pace.total_env_steps = start_steps + updates x ratio),
               keeping a policy every learner.keep_every updates; the soak sampled beside it
-    curve     the greedy test curve at CURVE_TRIALS trials per start (evaluate --curve): every kept policy up
-              to CURVE_DENSE_UNTIL updates, then those at multiples of CURVE_LATE_EVERY
+    curve     the greedy test curve at CURVE_TRIALS trials per start (evaluate --curve): every policy kept on
+              the keep_every schedule up to CURVE_DENSE_UNTIL updates, then those at multiples of
+              CURVE_LATE_EVERY (on_schedule: not those kept when the run was stopped)
     choose    the last CHOICE_AMONG kept policies (those on the keep_every schedule, and the last) on the train
               starts; the best (train CFR, then mean length, then the later) is the run's policy, written to
               choice.json: chosen on the train starts so that its test reading is not the best of several draws
@@ -113,9 +114,16 @@ def checkpoint_env_steps(path: Path) -> int:
     return env_steps
 
 
-def curve_wanted(kept: list[int]) -> set[int]:
+def on_schedule(updates: int, every: int) -> bool:
+    """Whether the protocol's greedy test curve reads the policy kept at `updates` (learner.keep_every `every`):
+    every kept one up to CURVE_DENSE_UNTIL, then every CURVE_LATE_EVERY, never one kept when the run was
+    stopped, whose place on the curve would depend on the interruptions (an earlier time to drive)."""
+    return updates % every == 0 and (updates <= CURVE_DENSE_UNTIL or updates % CURVE_LATE_EVERY == 0)
+
+
+def curve_wanted(kept: list[int], every: int) -> set[int]:
     """The kept policies (by updates) the protocol's greedy test curve reads."""
-    return {updates for updates in kept if updates <= CURVE_DENSE_UNTIL or updates % CURVE_LATE_EVERY == 0}
+    return {updates for updates in kept if on_schedule(updates, every)}
 
 
 def curve_read(run: RunDir, start_set: str = "test") -> set[int]:
@@ -169,7 +177,7 @@ def next_step(run_dir: Path, budget: int) -> str:
         return DONE if read_choice(run) and evaluated_updates(run) is not None else TRAIN
     if checkpoint_env_steps(run.checkpoint) < budget:
         return RESUME  # also a run read earlier at a smaller budget
-    if not curve_wanted([updates for updates, _ in run.kept_policies()]) <= curve_read(run):
+    if not curve_wanted([updates for updates, _ in run.kept_policies()], keep_every(run)) <= curve_read(run):
         return CURVE
     choice = read_choice(run)
     if choice is None or choice.get("among") != choice_candidates(run):

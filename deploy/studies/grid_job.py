@@ -23,7 +23,7 @@ from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.child_process import Child
 from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps, choice_candidates,
-                               choose, curve_read, curve_wanted, next_step, read_cell, read_choice, write_cell)
+                               choose, curve_read, curve_wanted, keep_every, next_step, read_cell, read_choice, write_cell)
 from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
 STACK_SCRIPT = Path(__file__).resolve().parents[1] / "stack.py"
@@ -113,10 +113,12 @@ def curve_command(run: RunDir, options: Options, *span: str) -> list[str]:
 def curve_commands(run: RunDir, options: Options) -> list[list[str]]:
     """The passes of evaluate --curve that the protocol's test curve still needs: the dense part, then the
     sparse one (a pass only where a policy it reads is missing: a pass over nothing is an error)."""
-    missing = curve_wanted([updates for updates, _ in run.kept_policies()]) - curve_read(run)
+    every = keep_every(run)
+    missing = curve_wanted([updates for updates, _ in run.kept_policies()], every) - curve_read(run)
     passes = []
     if any(updates <= CURVE_DENSE_UNTIL for updates in missing):
-        passes.append(curve_command(run, options, "--sets", "test", "--to-updates", str(CURVE_DENSE_UNTIL)))
+        passes.append(curve_command(run, options, "--sets", "test", "--to-updates", str(CURVE_DENSE_UNTIL),
+                                    "--every", str(every)))
     if any(updates > CURVE_DENSE_UNTIL for updates in missing):
         passes.append(curve_command(run, options, "--sets", "test", "--from-updates", str(CURVE_DENSE_UNTIL + 1),
                                     "--every", str(CURVE_LATE_EVERY)))

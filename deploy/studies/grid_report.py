@@ -1,8 +1,9 @@
 """The grid's report, from exported runs only (deploy/studies/run_results.py), so that it rebuilds from a fresh clone
 and merges runs of several machines:
 
-- per run: the time to drive (updates and env steps until the greedy test mean length first reaches 1,000
-  steps), where driving held from, the mean test length over the curve (the area under it over its span),
+- per run, on the curve's scheduled policies (grid_cells.on_schedule; not those kept at a stop): the time to
+  drive (updates and env steps until the greedy test mean length first reaches 1,000 steps), where driving
+  held from, the mean test length over the curve (the area under it over its span),
   and the chosen policy's test mean length and CFR with their intervals over its trials;
 - per strategy (each cell of buffer and option set apart): the same over its seeds, with the paper's test CFR
   beside it, and the interquartile mean of the chosen policies' test CFR over seeds x test starts with its
@@ -36,7 +37,7 @@ from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
 from common.exploration.names import STRATEGIES
 from deploy.studies.comparison import read_episodes_csv
-from deploy.studies.grid_cells import counted, read_choice
+from deploy.studies.grid_cells import counted, on_schedule, read_choice
 from deploy.studies.run_results import ExportedRun, collect
 
 # The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
@@ -74,7 +75,9 @@ def read_runs(folders: Sequence[Path], warn=print) -> list[GridRun]:
         if choice is None or not curve.is_file():
             continue  # a run of the earlier comparison: deploy/studies/report.py reads it
         try:
-            rows = sorted((row for row in read_curve(curve) if row["start_set"] == "test"),
+            every = run.config.learner.keep_every
+            rows = sorted((row for row in read_curve(curve)
+                           if row["start_set"] == "test" and every > 0 and on_schedule(int(row["updates"]), every)),
                           key=lambda r: int(r["updates"]))
             episodes, _ = read_episodes_csv(run.layout.evaluation / EPISODES_CSV)
             greedy_test = _greedy_row(run.layout.evaluation / SUMMARY_CSV, "test")
