@@ -141,3 +141,23 @@ def test_the_soak_across_the_grid_by_hand():
     assert "| actor-0 | +10.0 | +30.0 | 800 | 900 |" in lines  # medians and largest of the three
     assert "| replay_rest | +3.0 | +4.0 | - | - |" in lines  # the nan left out; no end figure
     assert grid_report.soak_lines([]) == ["No run of the grid has a soak yet."]
+
+
+def test_the_machine_time_by_hand(tmp_path):
+    recorded = exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])
+    (recorded / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome\n"
+                                        "train,0,3600,AMD EPYC,2,stopped\nresume,0,1800,Intel Xeon,2,done\n"
+                                        "curve,0,900,Intel Xeon,2,done\nevaluate,0,900,Intel Xeon,2,done\n")
+    exported_run(tmp_path, "bmc", 1, [100, 50, 50, 50])
+    with_steps, without = sorted(grid_report.read_runs([tmp_path]), key=lambda item: item.run.seed)
+    row = grid_report.machine_row(with_steps, None)
+    assert (row["training_h"], row["reading_h"]) == (1.5, 0.5)
+    assert row["machines"] == ["AMD EPYC (2 cores)", "Intel Xeon (2 cores)"]
+    unrecorded = grid_report.machine_row(without, 2.25)
+    assert (unrecorded["training_h"], unrecorded["reading_h"]) == (2.25, None)
+    assert unrecorded["machines"] == ["AMD EPYC (its kept policies)"]
+    lines = grid_report.machine_lines([row, unrecorded])
+    assert lines[0] == ("Recorded step by step (steps.csv) for 1 of 2 runs: 1.5 h of training and 0.5 h of curve, "
+                        "choice and evaluation, on AMD EPYC (2 cores); Intel Xeon (2 cores).")
+    assert lines[1] == "1 run from before the steps were recorded: 2.2 h of training by its soak (1 of 1), the reading not recorded."
+    assert "| bmc-b1000-s0 | 1.50 | 0.50 | AMD EPYC (2 cores); Intel Xeon (2 cores) |" in lines

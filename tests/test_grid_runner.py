@@ -228,12 +228,27 @@ def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_pa
     assert experiments.run_grid([spec], opts, parallel=1) == 0
     assert calls == ["resume", "curve", "curve", "curve", "evaluate"]  # the dense, the sparse, the choice's pass
     assert (tmp_path / "results" / "runs" / spec.name / "choice.json").is_file()
+    steps = grid_cells.read_steps(tmp_path / "results" / "runs" / spec.name)  # exported with the run
+    assert [(row["step"], row["outcome"]) for row in steps] == [
+        ("train", "failed"), ("resume", "done"), ("curve", "done"), ("choose", "done"), ("evaluate", "done")]
+    assert all(row["wall_s"] >= 0 and row["cpu"] and row["cores"] >= 1 for row in steps)
     calls.clear()
     assert experiments.run_grid([spec], opts, parallel=1) == 0 and calls == []
     started, start = [], grid_job.RunJob.start
     monkeypatch.setattr(grid_job.RunJob, "start", lambda self: (started.append(self.spec.name), start(self))[1])
     experiments.run_grid([RunSpec("vdbe", 1000, 0), spec], opts, parallel=1)
     assert started == [spec.name, "vdbe-b1000-s0"]  # a run already done goes first: counted done at once
+
+
+def test_a_damaged_steps_row_is_left_out(tmp_path):
+    run = RunDir(tmp_path)
+    grid_cells.record_step(run, "train", 0.0, "done")
+    with (tmp_path / "steps.csv").open("a") as handle:
+        handle.write("curve,x,ten,cpu,2,done\n")
+    grid_cells.record_step(run, "curve", 1e9, "stopped")
+    assert [(row["step"], row["outcome"]) for row in grid_cells.read_steps(tmp_path)] == [
+        ("train", "done"), ("curve", "stopped")]
+    assert grid_cells.read_steps(tmp_path / "nothing") == []
 
 
 class FakeChild:

@@ -19,7 +19,10 @@ running again resumes:
 
 from __future__ import annotations
 
+import csv
 import json
+import os
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +31,7 @@ from actor.evaluation.curve import CURVE_CSV, CURVE_TRIALS, chosen_on_train, rea
 from common.analysis.tables import SUMMARY_CSV, read_facts
 from common.checkpoint import Checkpoint, CheckpointError
 from common.config_values import load_config
+from common.cpu_capability import cpu_model
 from common.options import ConfigError
 from common.run_dir import RunDir
 
@@ -38,6 +42,8 @@ CHOICE_AMONG = 5  # the run's policy is chosen among its last five kept
 FINAL_TRIALS = 10  # trials per start of the chosen policy's evaluation (the paper: 30)
 CELL_JSON = "cell.json"  # who the run is: strategy, capacity, option set, seed, budget
 CHOICE_JSON = "choice.json"
+STEPS_CSV = "steps.csv"  # each step a run took: when, how long, on which machine, how it ended
+STEP_FIELDS = ("step", "started", "wall_s", "cpu", "cores", "outcome")
 
 # name: (what it is, its options over the preset). Names are folder-safe; "paper" is the preset as it is.
 OPTION_SETS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -149,6 +155,34 @@ def keep_every(run: RunDir) -> int:
         raise ExperimentError(f"{run.root}: the grid reads a run on the policies it keeps every "
                               "learner.keep_every updates; it is 0")
     return every
+
+
+def record_step(run: RunDir, step: str, started: float, outcome: str) -> None:
+    """Appends the step's row to steps.csv: the machine time a run took, summed over sessions and machines."""
+    path = run.root / STEPS_CSV
+    new = not path.is_file()
+    with path.open("a", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=STEP_FIELDS)
+        if new:
+            writer.writeheader()
+        writer.writerow({"step": step, "started": round(started, 1), "wall_s": round(time.time() - started, 1),
+                         "cpu": cpu_model(), "cores": os.cpu_count(), "outcome": outcome})
+
+
+def read_steps(folder: Path) -> list[dict]:
+    """The rows of a run's steps.csv that read (step, wall_s as a float, cpu, cores); [] without one."""
+    try:
+        with (folder / STEPS_CSV).open(newline="") as handle:
+            rows = list(csv.DictReader(handle))
+    except (OSError, csv.Error, UnicodeDecodeError):
+        return []
+    steps = []
+    for row in rows:
+        try:
+            steps.append({**row, "wall_s": float(row["wall_s"]), "cores": int(row["cores"])})
+        except (KeyError, TypeError, ValueError):
+            continue  # a damaged row: the others still count
+    return steps
 
 
 def read_choice(run: RunDir) -> dict | None:

@@ -23,7 +23,8 @@ from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.child_process import Child
 from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps, choice_candidates,
-                               choose, curve_read, curve_wanted, keep_every, next_step, read_cell, read_choice, write_cell)
+                               choose, curve_read, curve_wanted, keep_every, next_step, read_cell, read_choice, record_step,
+                               write_cell)
 from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
 STACK_SCRIPT = Path(__file__).resolve().parents[1] / "stack.py"
@@ -241,9 +242,13 @@ class RunJob:
             if done and done[-1] == step:
                 raise ExperimentError(f"the {step} step left the run as it was; see {self.run.logs}/")
             print(f"{self.tag}: {step}", flush=True)
-            self.phase = step
-            {TRAIN: self._train, RESUME: self._train, CURVE: self._curve, CHOOSE: self._choose,
-             EVALUATE: self._evaluate}[step](step)
+            self.phase, started, outcome = step, time.time(), "failed"
+            try:
+                {TRAIN: self._train, RESUME: self._train, CURVE: self._curve, CHOOSE: self._choose,
+                 EVALUATE: self._evaluate}[step](step)
+                outcome = "done"
+            finally:
+                record_step(self.run, step, started, "stopped" if self.stopping.is_set() else outcome)
             done.append(step)
         self.phase, self.headline = "done" if done else "already done", evaluation_headline(self.run)
         if done:

@@ -11,6 +11,8 @@ and merges runs of several machines:
 - the paper's two claims read by the rule of common/analysis/across_seeds.py, with the probability of
   improvement, and what the seeds can carry at all;
 - figures: the greedy test curves (median over seeds, band their range), and each seed's time to drive;
+- the machine time: each run's hours of training and of reading it (curve, choice, evaluation) and the machines,
+  from its steps.csv;
 - the soak across the grid: hours, restarts, memory growth per process, the largest run folder.
 
     .venv/bin/python deploy/studies/grid_report.py results/grid/runs --out results/grid
@@ -37,7 +39,7 @@ from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
 from common.exploration.names import STRATEGIES
 from deploy.studies.comparison import read_episodes_csv
-from deploy.studies.grid_cells import counted, on_schedule, read_choice
+from deploy.studies.grid_cells import STEPS_CSV, counted, on_schedule, read_choice, read_steps
 from deploy.studies.run_results import ExportedRun, collect
 
 # The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
@@ -190,6 +192,48 @@ def pair_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1
     return rows
 
 
+# --- machine time ------------------------------------------------------------------------------------------------
+
+TRAINING_STEPS = ("train", "resume")  # the rest (curve, choose, evaluate) read the run
+
+
+def machine_row(item: GridRun, soak_hours: float | None) -> dict:
+    """A run's hours of training and of reading it, from its steps.csv; without one (a run from before steps
+    were recorded), its training hours from its soak and its reading unknown."""
+    steps = read_steps(item.run.folder)
+    if not steps:
+        trained_on = sorted({row["trained_on"] for row in item.test_rows if row.get("trained_on")})
+        return {"run": item.run.name, "recorded": False, "training_h": soak_hours, "reading_h": None,
+                "machines": [f"{cpu} (its kept policies)" for cpu in trained_on]}
+    hours = lambda training: sum(row["wall_s"] for row in steps if (row["step"] in TRAINING_STEPS) == training) / 3600
+    machines = sorted({f"{row['cpu']} ({counted(row['cores'], 'core')})" for row in steps})
+    return {"run": item.run.name, "recorded": True, "training_h": hours(True), "reading_h": hours(False),
+            "machines": machines}
+
+
+def machine_lines(rows: Sequence[dict]) -> list[str]:
+    recorded = [row for row in rows if row["recorded"]]
+    older = [row for row in rows if not row["recorded"]]
+    lines = []
+    if recorded:
+        machines = sorted({machine for row in recorded for machine in row["machines"]})
+        lines.append(f"Recorded step by step ({STEPS_CSV}) for {len(recorded)} of {counted(len(rows), 'run')}: "
+                     f"{sum(row['training_h'] for row in recorded):.1f} h of training and "
+                     f"{sum(row['reading_h'] for row in recorded):.1f} h of curve, choice and evaluation, on "
+                     f"{'; '.join(machines)}.")
+    if older:
+        known = [row["training_h"] for row in older if row["training_h"] is not None]
+        lines.append(f"{counted(len(older), 'run')} from before the steps were recorded: "
+                     f"{sum(known):.1f} h of training by {'their' if len(older) > 1 else 'its'} soak "
+                     f"({len(known)} of {len(older)}), the reading not recorded.")
+    lines += ["", "| Run | Training, h | Curve, choice and evaluation, h | Machines |", "|---|---:|---:|---|"]
+    for row in rows:
+        hours = lambda value: "–" if value is None else f"{value:.2f}"
+        lines.append(f"| {row['run']} | {hours(row['training_h'])} | {hours(row['reading_h'])} | "
+                     f"{'; '.join(row['machines']) or '–'} |")
+    return lines
+
+
 # --- the soak across the grid -----------------------------------------------------------------------------------
 
 def soak_rows(runs: Sequence[GridRun]) -> list[dict]:
@@ -332,7 +376,11 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
               "| First | Second | P(first > second) [CI] |", "|---|---|---:|"]
     for row in pair_readings(runs, bootstrap):
         lines.append(f"| {row['first']} | {row['second']} | {row['improvement']:.2f} [{row['low']:.2f}, {row['high']:.2f}] |")
-    lines += ["", "## Soak across the grid", "", *soak_lines(soak_rows(runs))]
+    soaks = soak_rows(runs)
+    soak_hours = {row["run"]: row["hours"] for row in soaks}
+    lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
+                                                         for item in runs])]
+    lines += ["", "## Soak across the grid", "", *soak_lines(soaks)]
     return lines
 
 

@@ -38,7 +38,7 @@ from common.config_values import load_config
 from common.options import ConfigError
 from common.run_dir import RunDir
 from deploy.studies.comparison import EvaluatedRun
-from deploy.studies.grid_cells import CELL_JSON, CHOICE_JSON, read_cell, run_name
+from deploy.studies.grid_cells import CELL_JSON, CHOICE_JSON, STEPS_CSV, read_cell, run_name
 from replay.recorder.reader import LogError
 from replay.recorder.run_curves import read_run_curves
 
@@ -47,7 +47,7 @@ TRAINING_CSV = "training.csv"
 LEARNER_CSV = "learner.csv"
 EVALUATION_FILES = (EPISODES_CSV, SUMMARY_CSV, SUMMARY_MD, FACTS_JSON, CONFIG_TOML)
 # a grid run's files (deploy/studies/experiments.py), by their path in the run folder and in the export
-GRID_FILES = (CELL_JSON, CHOICE_JSON, *(f"curve/{name}" for name in (CURVE_CSV, SUMMARY_JSON, CURVE_SUMMARY_MD,
+GRID_FILES = (CELL_JSON, CHOICE_JSON, STEPS_CSV, *(f"curve/{name}" for name in (CURVE_CSV, SUMMARY_JSON, CURVE_SUMMARY_MD,
                                                                       CURVE_PNG)),
               *(f"soak/{name}" for name in ("soak.csv", "soak.png", "soak_summary.json", "soak_summary.md")))
 TRAINING_COLUMNS = ("return", "length", "epsilon")
