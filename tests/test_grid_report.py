@@ -149,15 +149,21 @@ def test_the_machine_time_by_hand(tmp_path):
                                         "train,0,3600,AMD EPYC,2,stopped\nresume,0,1800,Intel Xeon,2,done\n"
                                         "curve,0,900,Intel Xeon,2,done\nevaluate,0,900,Intel Xeon,2,done\n")
     exported_run(tmp_path, "bmc", 1, [100, 50, 50, 50])
-    with_steps, without = sorted(grid_report.read_runs([tmp_path]), key=lambda item: item.run.seed)
+    partly = exported_run(tmp_path, "bmc", 2, [100, 50, 50, 50])  # begun before the steps were recorded
+    (partly / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome\nresume,0,360,AMD EPYC,2,done\n"
+                                      "curve,0,720,AMD EPYC,2,done\n")
+    with_steps, without, resumed = sorted(grid_report.read_runs([tmp_path]), key=lambda item: item.run.seed)
     row = grid_report.machine_row(with_steps, None)
     assert (row["training_h"], row["reading_h"]) == (1.5, 0.5)
     assert row["machines"] == ["AMD EPYC (2 cores)", "Intel Xeon (2 cores)"]
     unrecorded = grid_report.machine_row(without, 2.25)
     assert (unrecorded["training_h"], unrecorded["reading_h"]) == (2.25, None)
     assert unrecorded["machines"] == ["AMD EPYC (its kept policies)"]
-    lines = grid_report.machine_lines([row, unrecorded])
-    assert lines[0] == ("Recorded step by step (steps.csv) for 1 of 2 runs: 1.5 h of training and 0.5 h of curve, "
-                        "choice and evaluation, on AMD EPYC (2 cores); Intel Xeon (2 cores).")
-    assert lines[1] == "1 run from before the steps were recorded: 2.2 h of training by its soak (1 of 1), the reading not recorded."
+    part = grid_report.machine_row(resumed, 3.0)
+    assert (part["training_h"], part["reading_h"]) == (3.0, 0.2)  # training by its soak, not its 0.1 h resume
+    lines = grid_report.machine_lines([row, unrecorded, part])
+    assert lines[0] == ("Training: 6.8 h over 3 runs (1 recorded step by step in steps.csv, 2 by the soak of a run "
+                        "begun before). Curve, choice and evaluation: 0.7 h over the 2 runs that recorded them. "
+                        "Machines: AMD EPYC (2 cores); AMD EPYC (its kept policies); Intel Xeon (2 cores).")
     assert "| bmc-b1000-s0 | 1.50 | 0.50 | AMD EPYC (2 cores); Intel Xeon (2 cores) |" in lines
+    assert "| bmc-b1000-s2 | 3.00 (soak) | 0.20 | AMD EPYC (2 cores) |" in lines

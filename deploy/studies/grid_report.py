@@ -198,39 +198,34 @@ TRAINING_STEPS = ("train", "resume")  # the rest (curve, choose, evaluate) read 
 
 
 def machine_row(item: GridRun, soak_hours: float | None) -> dict:
-    """A run's hours of training and of reading it, from its steps.csv; without one (a run from before steps
-    were recorded), its training hours from its soak and its reading unknown."""
+    """A run's hours of training and of reading it (None where unknown), from its steps.csv; a run whose
+    record does not start with its train step (it began before steps were recorded) takes its training hours
+    from its soak, and its machines from its kept policies when it has no record at all."""
     steps = read_steps(item.run.folder)
-    if not steps:
-        trained_on = sorted({row["trained_on"] for row in item.test_rows if row.get("trained_on")})
-        return {"run": item.run.name, "recorded": False, "training_h": soak_hours, "reading_h": None,
-                "machines": [f"{cpu} (its kept policies)" for cpu in trained_on]}
     hours = lambda training: sum(row["wall_s"] for row in steps if (row["step"] in TRAINING_STEPS) == training) / 3600
-    machines = sorted({f"{row['cpu']} ({counted(row['cores'], 'core')})" for row in steps})
-    return {"run": item.run.name, "recorded": True, "training_h": hours(True), "reading_h": hours(False),
+    recorded = any(row["step"] == "train" for row in steps)
+    machines = sorted({f"{row['cpu']} ({counted(row['cores'], 'core')})" for row in steps}) or sorted(
+        {f"{row['trained_on']} (its kept policies)" for row in item.test_rows if row.get("trained_on")})
+    return {"run": item.run.name, "training_recorded": recorded,
+            "training_h": hours(True) if recorded else soak_hours,
+            "reading_h": hours(False) if any(row["step"] not in TRAINING_STEPS for row in steps) else None,
             "machines": machines}
 
 
 def machine_lines(rows: Sequence[dict]) -> list[str]:
-    recorded = [row for row in rows if row["recorded"]]
-    older = [row for row in rows if not row["recorded"]]
-    lines = []
-    if recorded:
-        machines = sorted({machine for row in recorded for machine in row["machines"]})
-        lines.append(f"Recorded step by step ({STEPS_CSV}) for {len(recorded)} of {counted(len(rows), 'run')}: "
-                     f"{sum(row['training_h'] for row in recorded):.1f} h of training and "
-                     f"{sum(row['reading_h'] for row in recorded):.1f} h of curve, choice and evaluation, on "
-                     f"{'; '.join(machines)}.")
-    if older:
-        known = [row["training_h"] for row in older if row["training_h"] is not None]
-        lines.append(f"{counted(len(older), 'run')} from before the steps were recorded: "
-                     f"{sum(known):.1f} h of training by {'their' if len(older) > 1 else 'its'} soak "
-                     f"({len(known)} of {len(older)}), the reading not recorded.")
-    lines += ["", "| Run | Training, h | Curve, choice and evaluation, h | Machines |", "|---|---:|---:|---|"]
+    training = [row for row in rows if row["training_h"] is not None]
+    reading = [row for row in rows if row["reading_h"] is not None]
+    recorded = sum(row["training_recorded"] for row in training)
+    machines = sorted({machine for row in rows for machine in row["machines"]})
+    lines = [f"Training: {sum(row['training_h'] for row in training):.1f} h over {counted(len(training), 'run')} "
+             f"({recorded} recorded step by step in {STEPS_CSV}, {len(training) - recorded} by the soak of a run "
+             f"begun before). Curve, choice and evaluation: {sum(row['reading_h'] for row in reading):.1f} h over "
+             f"the {counted(len(reading), 'run')} that recorded them. Machines: {'; '.join(machines) or 'unknown'}.",
+             "", "| Run | Training, h | Curve, choice and evaluation, h | Machines |", "|---|---:|---:|---|"]
     for row in rows:
         hours = lambda value: "–" if value is None else f"{value:.2f}"
-        lines.append(f"| {row['run']} | {hours(row['training_h'])} | {hours(row['reading_h'])} | "
-                     f"{'; '.join(row['machines']) or '–'} |")
+        lines.append(f"| {row['run']} | {hours(row['training_h'])}{'' if row['training_recorded'] else ' (soak)'} | "
+                     f"{hours(row['reading_h'])} | {'; '.join(row['machines']) or '–'} |")
     return lines
 
 
