@@ -37,7 +37,7 @@ def exported_run(top: Path, strategy: str, seed: int, starts: list[int], curve: 
             writer.writerow({"updates": updates, "env_steps": 28_000 + 4 * updates, "wall_s": updates / 2,
                              "kept_file": f"policy-u{updates:07d}.pt", "trained_on": "AMD EPYC", "nice": 0,
                              "start_set": "test", "mean_length": length, "cfr": 0.5})
-    fake_evaluation(folder / "evaluation", starts, updates=6000)
+    fake_evaluation(folder / "evaluation", starts, updates=6000, progress=True)
     (folder / "summary.json").write_text(json.dumps({"updates": 6050}))  # trained past the chosen policy
     return folder
 
@@ -50,6 +50,8 @@ def test_a_runs_row_reads_its_curve_and_its_chosen_policy(tmp_path):
     # trapezoids: (200+1200)/2 + (1200+800)/2 + (800+1100)/2 over 1,000 each, (1100+1500)/2 over 2,000; / 5,000
     assert row["curve_mean_length"] == pytest.approx((700 + 1000 + 950 + 2600) * 1000 / 5000)
     assert row["test_cfr"] == pytest.approx(0.75) and (row["chosen_updates"], row["updates"]) == (6000, 6050)
+    # a street per 25 steps and a junction fewer: (4 + 4 + 4 + 2) / 4 and (3 + 3 + 3 + 1) / 4
+    assert (row["test_streets"], row["test_junctions"]) == (3.5, 2.5)
     assert run.start_cfr.tolist() == [1.0, 1.0, 1.0, 0.0]
 
 

@@ -129,6 +129,9 @@ def run_row(item: GridRun) -> dict:
         "test_mean_length": float(test["mean_length"]), "test_mean_length_low": float(test["mean_length_low"]),
         "test_mean_length_high": float(test["mean_length_high"]),
         "test_cfr": float(test["cfr"]), "test_cfr_low": float(test["cfr_low"]), "test_cfr_high": float(test["cfr_high"]),
+        # a policy looping one block reaches the cap too: turning right wherever it can covers 6 streets
+        "test_streets": float(test.get("mean_streets") or "nan"),
+        "test_junctions": float(test.get("mean_junctions") or "nan"),
         "trained_on": item.test_rows[-1]["trained_on"] if item.test_rows else "",
     }
 
@@ -314,6 +317,10 @@ def plot_time_to_drive(rows: Sequence[dict], path: Path, budget: int) -> None:
 
 # --- the page --------------------------------------------------------------------------------------------------
 
+def _coverage(streets: float, junctions: float) -> str:
+    return "–" if math.isnan(streets) else f"{streets:.1f} / {junctions:.1f}"
+
+
 def _drive_text(value: str) -> str:
     return f"{int(value):,d}" if value.isdigit() else "not reached"
 
@@ -333,8 +340,9 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
              f"percentile, {bootstrap.replicates} bootstrap replicates.", "",
              "## Per run", "",
              "| Strategy | Buffer | Options | Seed | Trained updates | Updates to drive (env steps) | Held from | "
-             "Curve mean length | Chosen | Test mean length [CI] | Test CFR [CI] | Trained on |",
-             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "Curve mean length | Chosen | Test mean length [CI] | Test CFR [CI] | Test streets / junctions | "
+             "Trained on |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for row in per_run:
         drive = (f"{row['updates_to_drive']:,d} ({row['env_steps_to_drive']:,d})" if row["updates_to_drive"] != ""
                  else "not reached")
@@ -343,7 +351,7 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{drive} | {_thousands(row['drive_held_from'])} | {row['curve_mean_length']:,.0f} | {row['chosen_updates']:,d} | "
             f"{row['test_mean_length']:,.0f} [{row['test_mean_length_low']:,.0f}, {row['test_mean_length_high']:,.0f}] | "
             f"{_percent(row['test_cfr'])} [{_percent(row['test_cfr_low'])}, {_percent(row['test_cfr_high'])}] | "
-            f"{row['trained_on']} |")
+            f"{_coverage(row['test_streets'], row['test_junctions'])} | {row['trained_on']} |")
     lines += ["", "## Per strategy", "",
               "| Strategy | Buffer | Options | Seeds | Drove | Updates to drive, by seed | Curve mean length | "
               "Test mean length | Test CFR, by seed | IQM test CFR [CI] | Paper's test CFR |",
