@@ -168,6 +168,11 @@ def test_cells_lists_the_numbered_runs_and_cell_runs_one(tmp_path, capsys):
     assert [line.split()[:2] for line in lines] == [["0", "bmc-b1000-s0"], ["1", "softmax-b1000-s0"],
                                                    ["2", "bmc-b1000-s1"], ["3", "softmax-b1000-s1"]]
     assert all(line.endswith("next: train") for line in lines)
+    damaged = make_drive_run(tmp_path / "softmax-b1000-s1", BUDGET, KEPT)
+    damaged.checkpoint.write_bytes(b"damaged")  # said in the list; the others are listed all the same
+    assert experiments.main([*argv, "--cells"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "next: unreadable (cannot read the step count of" in lines[3] and lines[2].endswith("next: train")
     plan = experiments.parse_arguments([*argv, "--cell", "2"])
     assert [spec.name for spec in plan.specs] == ["bmc-b1000-s1"] and plan.numbers == [2] and plan.grid_size == 4
     assert experiments.main([*argv, "--cell", "4"]) == 2
@@ -238,6 +243,20 @@ def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_pa
     monkeypatch.setattr(grid_job.RunJob, "start", lambda self: (started.append(self.spec.name), start(self))[1])
     experiments.run_grid([RunSpec("vdbe", 1000, 0), spec], opts, parallel=1)
     assert started == [spec.name, "vdbe-b1000-s0"]  # a run already done goes first: counted done at once
+
+
+def test_a_run_with_a_damaged_checkpoint_fails_alone(tmp_path, monkeypatch, capsys):
+    opts = options(tmp_path)
+    damaged = make_drive_run(tmp_path / "bmc-b1000-s0", BUDGET, KEPT)
+    damaged.checkpoint.write_bytes(b"damaged")
+    make_drive_run(tmp_path / "vdbe-b1000-s0", BUDGET, KEPT, curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test")
+                   + curve_rows(KEPT[-5:], "train"), strategy="vdbe")
+    choose(RunDir(tmp_path / "vdbe-b1000-s0"))
+    fake_evaluation(tmp_path / "vdbe-b1000-s0" / "evaluation", [100, 100], updates=30_000)
+    monkeypatch.setattr(grid_job.RunJob, "_start", lambda *_: pytest.fail("nothing is to run"))
+    assert experiments.run_grid([RunSpec("bmc", 1000, 0), RunSpec("vdbe", 1000, 0)], opts, parallel=1) == 1
+    out = capsys.readouterr().out
+    assert "cannot read the step count of" in out and (tmp_path / "results" / "runs" / "vdbe-b1000-s0").is_dir()
 
 
 def test_a_damaged_steps_row_is_left_out(tmp_path):

@@ -90,8 +90,8 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: lis
                    trained_at_start=trained_share(options.run_dir(spec), run_budget(spec, options)))
             for number, spec in zip(numbers, specs)]
     # runs their folders already hold whole go first: they finish at once, so the counts say so from the start
-    pending = deque(sorted(jobs, key=lambda job: next_step(options.run_dir(job.spec),
-                                                           run_budget(job.spec, options)) != DONE))
+    pending = deque(sorted(jobs, key=lambda job: step_of(options.run_dir(job.spec),
+                                                         run_budget(job.spec, options)) != DONE))
     active = []
     failed = 0
     status = GridStatus(jobs, parallel)
@@ -239,9 +239,18 @@ def parse_arguments(argv: list[str] | None) -> Plan:
     return Plan(specs, numbers, options, args.parallel, args.report_only, args.cells, grid_size)
 
 
+def step_of(run_dir: Path, budget: int) -> str:
+    """The run's next step, or what keeps it from being read (a damaged checkpoint or config): that run
+    fails with the reason when its turn comes, and the others go on."""
+    try:
+        return next_step(run_dir, budget)
+    except ExperimentError as error:
+        return f"unreadable ({error})"
+
+
 def list_cells(plan: Plan) -> None:
     for number, spec in zip(plan.numbers, plan.specs):
-        step = next_step(plan.options.run_dir(spec), run_budget(spec, plan.options))
+        step = step_of(plan.options.run_dir(spec), run_budget(spec, plan.options))
         print(f"{number:3d}  {spec.name:32s} {spec.strategy:14s} buffer {spec.capacity:5d}  options {spec.options:15s} "
               f"seed {spec.seed}  next: {step}")
 

@@ -176,11 +176,11 @@ def set_aside_stale_files(run_dir: Path) -> Path | None:
 def trained_share(run_dir: Path, budget: int) -> float:
     """How much of its budget (env steps) a run has trained: all once past its training, else what its
     checkpoint holds (nothing without a readable one)."""
+    checkpoint = RunDir(run_dir).checkpoint
     try:
-        step = next_step(run_dir, budget)
-        if step in (TRAIN, RESUME):
-            return 0.0 if step == TRAIN else min(1.0, checkpoint_env_steps(RunDir(run_dir).checkpoint) / budget)
-        return 1.0
+        if not checkpoint.is_file():
+            return 0.0 if next_step(run_dir, budget) == TRAIN else 1.0
+        return min(1.0, checkpoint_env_steps(checkpoint) / budget)  # whatever its later steps can read
     except ExperimentError:
         return 0.0
 
