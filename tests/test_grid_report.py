@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from common.config_values import load_config, to_toml
-from deploy.studies import grid_report
+from deploy.studies import grid_costs, grid_report
 from tests.grid_runs import fake_evaluation
 
 CURVE = {1000: 200, 2000: 1200, 3000: 800, 4000: 1100, 6000: 1500}  # updates: greedy test mean length
@@ -138,11 +138,11 @@ def test_the_soak_across_the_grid_by_hand():
              "actor-0_last_mb": 900.0, "replay_rest_mb_per_hour": 4.0},
             {"run": "c", "hours": 0.5, "restarts": 0, "folder_mb": 100.0, "actor-0_mb_per_hour": -5.0,
              "actor-0_last_mb": 700.0, "replay_rest_mb_per_hour": 2.0}]
-    lines = grid_report.soak_lines(rows)
+    lines = grid_costs.soak_lines(rows)
     assert lines[0] == "3 runs, 4.0 hours of run time in all, 1 restart; the largest run folder b (1,200 MB)."
     assert "| actor-0 | +10.0 | +30.0 | 800 | 900 |" in lines  # medians and largest of the three
     assert "| replay_rest | +3.0 | +4.0 | - | - |" in lines  # the nan left out; no end figure
-    assert grid_report.soak_lines([]) == ["No run of the grid has a soak yet."]
+    assert grid_costs.soak_lines([]) == ["No run of the grid has a soak yet."]
 
 
 def test_the_machine_time_by_hand(tmp_path):
@@ -155,15 +155,15 @@ def test_the_machine_time_by_hand(tmp_path):
     (partly / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome\nresume,0,360,AMD EPYC,2,done\n"
                                       "curve,0,720,AMD EPYC,2,done\n")
     with_steps, without, resumed = sorted(grid_report.read_runs([tmp_path]), key=lambda item: item.run.seed)
-    row = grid_report.machine_row(with_steps, None)
+    row = grid_costs.machine_row(with_steps, None)
     assert (row["training_h"], row["reading_h"]) == (1.5, 0.5)
     assert row["machines"] == ["AMD EPYC (2 cores)", "Intel Xeon (2 cores)"]
-    unrecorded = grid_report.machine_row(without, 2.25)
+    unrecorded = grid_costs.machine_row(without, 2.25)
     assert (unrecorded["training_h"], unrecorded["reading_h"]) == (2.25, None)
     assert unrecorded["machines"] == ["AMD EPYC (its kept policies)"]
-    part = grid_report.machine_row(resumed, 3.0)
+    part = grid_costs.machine_row(resumed, 3.0)
     assert (part["training_h"], part["reading_h"]) == (3.0, 0.2)  # training by its soak, not its 0.1 h resume
-    lines = grid_report.machine_lines([row, unrecorded, part])
+    lines = grid_costs.machine_lines([row, unrecorded, part])
     assert lines[0] == ("Training: 6.8 h over 3 runs (1 recorded step by step in steps.csv, 2 by the soak of a run "
                         "begun before). Curve, choice and evaluation: 0.7 h over the 2 runs that recorded them. "
                         "Machines: AMD EPYC (2 cores); AMD EPYC (its kept policies); Intel Xeon (2 cores).")
