@@ -169,3 +169,18 @@ def test_the_machine_time_by_hand(tmp_path):
                         "Machines: AMD EPYC (2 cores); AMD EPYC (its kept policies); Intel Xeon (2 cores).")
     assert "| bmc-b1000-s0 | 1.50 | 0.50 | AMD EPYC (2 cores); Intel Xeon (2 cores) |" in lines
     assert "| bmc-b1000-s2 | 3.00 (soak) | 0.20 | AMD EPYC (2 cores) |" in lines
+
+
+def test_a_damaged_or_partial_soak_summary_does_not_stop_the_report(tmp_path):
+    runs = [exported_run(tmp_path, "bmc", seed, [100, 100, 100, 50]) for seed in range(3)]
+    memory = {"actor-0": {"second_half_mb_per_hour": 2.0, "last_mb": 800.0}}
+    for folder, summary in zip(runs, ['{"hours": ', json.dumps({"hours": 1.0, "restarts": 0, "folder_bytes_last": 5e6,
+                                                                  "memory": memory, "replay_held": None})]):
+        (folder / "soak").mkdir()
+        (folder / "soak" / "soak_summary.json").write_text(summary)
+    said = []
+    rows = grid_costs.soak_rows(sorted(grid_report.read_runs([tmp_path]), key=lambda item: item.run.seed), said.append)
+    assert [row["run"] for row in rows] == ["bmc-b1000-s1"] and math.isnan(rows[0]["replay_rest_mb_per_hour"])
+    assert len(said) == 1 and "bmc-b1000-s0" in said[0]
+    blank = {"run": "x", "training_recorded": False, "training_h": None, "reading_h": None, "machines": []}
+    assert grid_costs.machine_lines([blank])[-1] == "| x | – | – | – |"

@@ -284,3 +284,8 @@ class FakeChild:
 def test_a_grid_with_no_finished_run_has_no_report_and_says_so(tmp_path, capsys):
     assert experiments.main(["--strategies", "bmc", "--seeds", "0", "--runs-dir", str(tmp_path), "--report-only"]) == 0
     assert "no run has finished yet" in capsys.readouterr().out
+
+
+def test_a_step_whose_time_cannot_be_written_is_said_not_raised(tmp_path, capsys):
+    grid_cells.record_step(RunDir(tmp_path / "gone" / "run"), "curve", 0.0, "done")
+    assert "the curve step's time is not recorded" in capsys.readouterr().out

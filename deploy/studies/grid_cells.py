@@ -158,15 +158,19 @@ def keep_every(run: RunDir) -> int:
 
 
 def record_step(run: RunDir, step: str, started: float, outcome: str) -> None:
-    """Appends the step's row to steps.csv: the machine time a run took, summed over sessions and machines."""
+    """Appends the step's row to steps.csv: the machine time a run took, summed over sessions and machines.
+    A row that cannot be written is said, not raised: it must not hide the step's own outcome."""
     path = run.root / STEPS_CSV
-    new = not path.is_file()
-    with path.open("a", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=STEP_FIELDS)
-        if new:
-            writer.writeheader()
-        writer.writerow({"step": step, "started": round(started, 1), "wall_s": round(time.time() - started, 1),
-                         "cpu": cpu_model(), "cores": os.cpu_count(), "outcome": outcome})
+    try:
+        new = not path.is_file()
+        with path.open("a", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=STEP_FIELDS)
+            if new:
+                writer.writeheader()
+            writer.writerow({"step": step, "started": round(started, 1), "wall_s": round(time.time() - started, 1),
+                             "cpu": cpu_model(), "cores": os.cpu_count(), "outcome": outcome})
+    except OSError as error:
+        print(f"{run.root}: the {step} step's time is not recorded: {error}", flush=True)
 
 
 def read_steps(folder: Path) -> list[dict]:

@@ -48,28 +48,37 @@ def machine_lines(rows: Sequence[dict]) -> list[str]:
              "", "| Run | Training, h | Curve, choice and evaluation, h | Machines |", "|---|---:|---:|---|"]
     for row in rows:
         hours = lambda value: "–" if value is None else f"{value:.2f}"
-        lines.append(f"| {row['run']} | {hours(row['training_h'])}{'' if row['training_recorded'] else ' (soak)'} | "
+        by_soak = " (soak)" if row["training_h"] is not None and not row["training_recorded"] else ""
+        lines.append(f"| {row['run']} | {hours(row['training_h'])}{by_soak} | "
                      f"{hours(row['reading_h'])} | {'; '.join(row['machines']) or '–'} |")
     return lines
 
 
 # --- the soak across the grid -----------------------------------------------------------------------------------
 
-def soak_rows(runs: Sequence[GridRun]) -> list[dict]:
+def soak_rows(runs: Sequence[GridRun], warn=print) -> list[dict]:
+    """Each run's soak summary as one row; a damaged summary is left out with a line."""
     rows = []
     for item in runs:
         path = item.run.folder / "soak" / "soak_summary.json"
         if not path.is_file():
             continue
-        summary = json.loads(path.read_text())
-        rows.append({"run": item.run.name, "hours": summary["hours"], "restarts": summary["restarts"],
-                     "folder_mb": summary["folder_bytes_last"] / 1e6,
-                     **{f"{name}_mb_per_hour": figures["second_half_mb_per_hour"]
-                        for name, figures in summary["memory"].items() if name != "curve"},
-                     **{f"{name}_last_mb": figures["last_mb"]
-                        for name, figures in summary["memory"].items() if name != "curve"},
-                     "replay_rest_mb_per_hour": summary.get("replay_held", {}).get("replay_rest_mb_per_hour", math.nan)})
+        try:
+            rows.append(soak_row(item.run.name, json.loads(path.read_text())))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
+            warn(f"soak left out: {path}: {type(error).__name__}: {error}")
     return rows
+
+
+def soak_row(run: str, summary: dict) -> dict:
+    processes = {name: figures for name, figures in summary["memory"].items() if name != "curve"}
+    return {"run": run, "hours": float(summary["hours"]), "restarts": int(summary["restarts"]),
+            "folder_mb": summary["folder_bytes_last"] / 1e6,
+            **{f"{name}_mb_per_hour": float(figures["second_half_mb_per_hour"]) for name, figures in processes.items()},
+            **{f"{name}_last_mb": float(figures["last_mb"]) for name, figures in processes.items()},
+            # a soak without the replay's episodes (no snapshot manifest) has none
+            "replay_rest_mb_per_hour": float((summary.get("replay_held") or {}).get("replay_rest_mb_per_hour",
+                                                                                   math.nan))}
 
 
 def soak_lines(rows: Sequence[dict]) -> list[str]:
