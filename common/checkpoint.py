@@ -112,6 +112,7 @@ class Checkpoint:
 POLICY_FORMAT = "d3rqn kept policy"  # a kept policy's "format" entry: tells it from a checkpoint or a stranger
 # how a policy file may hold its weights: as trained (the learner's), or in 16 bits (a shipped policy)
 POLICY_ENCODINGS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
+TRAINED_PRECISIONS = ("", "float32", "bfloat16")  # a kept policy's learner precision; "": not recorded
 
 
 @dataclass(frozen=True)
@@ -130,12 +131,15 @@ class KeptPolicy:
     config: dict  # the run's config as a table (common.config_values.to_dict): it rebuilds the network
     online: dict[str, torch.Tensor]  # the online network's state dict
     averaged: tuple[int, ...] = ()  # the updates of the kept policies whose mean these weights are; () if none
+    # the learner's update precision when it kept them (learner.precision auto differs by CPU); "" if unrecorded
+    precision: str = ""
     path: Path | None = None  # the file it was read from
 
     def save(self, path: Path) -> Path:
         fields = {name: getattr(self, name) for name in _POLICY_CHECKS}
         mean = {"averaged": list(self.averaged)} if self.averaged else {}  # a learner's file stays as it was
-        write_atomically(path, {"format": POLICY_FORMAT, **fields, **mean})
+        precision = {"precision": self.precision} if self.precision else {}
+        write_atomically(path, {"format": POLICY_FORMAT, **fields, **mean, **precision})
         return path
 
     @classmethod
@@ -153,9 +157,13 @@ class KeptPolicy:
         averaged = payload.get("averaged", [])
         if not (isinstance(averaged, (list, tuple)) and all(_is_count(updates) for updates in averaged)):
             wrong.append("averaged")
+        precision = payload.get("precision", "")  # absent in a policy kept before the learner recorded it
+        if precision not in TRAINED_PRECISIONS:
+            wrong.append("precision")
         if wrong:
             raise CheckpointError(f"{kind} {path}: {', '.join(wrong)} missing or malformed")
-        return cls(**{name: payload[name] for name in _POLICY_CHECKS}, averaged=tuple(averaged), path=path)
+        return cls(**{name: payload[name] for name in _POLICY_CHECKS}, averaged=tuple(averaged), precision=precision,
+                   path=path)
 
     @classmethod
     def of_checkpoint(cls, checkpoint: Checkpoint) -> KeptPolicy:

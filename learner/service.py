@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.checkpoint import Checkpoint, KeptPolicy
+from common.checkpoint import TRAINED_PRECISIONS, Checkpoint, KeptPolicy
 from common.cpu_capability import cpu_model
 from common.config import Config
 from common.config_values import to_dict
@@ -336,8 +336,9 @@ class LearnerService:
         with self._lock:
             env_steps, wall_s = self.clock.env_steps, self.clock.wall_s()
         online = {name: torch.from_numpy(array) for name, array in self.learner.online_weights().items()}
+        precision = self.learner.precision if self.learner.precision in TRAINED_PRECISIONS else ""  # not "auto"
         self.keeper.keep(KeptPolicy(updates=self.updates, env_steps=env_steps, wall_s=wall_s, cpu=CPU_MODEL,
-                                    config=to_dict(self.config), online=online))
+                                    config=to_dict(self.config), online=online, precision=precision))
 
     def keep_policy_if_due(self) -> None:
         if self.keeper.due(self.updates):

@@ -17,7 +17,8 @@ import torch
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import (CURVE_TRIALS, crowding_warning, curve_config, curve_summary, first_reaching,
-                                    read_curve, summary_lines, unbridged, warn_if_crowding)
+                                    read_curve, summary_lines, trained_with, unbridged,
+                                    warn_if_crowding)
 from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
@@ -115,8 +116,10 @@ def test_a_kept_policy_reads_back_into_the_network(config):
     process.keeper.wait()
     path = RunDir.of(config).policy(1)
     payload = torch.load(path, weights_only=True)
-    assert set(payload) == {"format", "updates", "env_steps", "wall_s", "cpu", "config", "online"}  # no target
+    # no target; the precision the learner updated in (learner.precision auto differs by CPU)
+    assert set(payload) == {"format", "updates", "env_steps", "wall_s", "cpu", "config", "online", "precision"}
     policy = KeptPolicy.load(path)
+    assert policy.precision == process.learner.precision and policy.precision in ("float32", "bfloat16")
     network = D3RQN(from_dict(policy.config).network)
     load_numpy_weights(network, policy.weights())
     shape = (1, 2, config.network.frame_height, config.network.frame_width, 3)
@@ -172,6 +175,11 @@ def test_a_damaged_or_foreign_policy_file_is_a_clear_error(config, tmp_path):
                 "config": payload["config"], "online": payload["learner"]["online"]}, path)
     with pytest.raises(CheckpointError, match="updates, wall_s missing or malformed"):
         KeptPolicy.load(path)
+    for precision in ("float64", 16, ["float32"]):
+        torch.save({"format": "d3rqn kept policy", "updates": 1, "env_steps": 3, "wall_s": 1.0, "cpu": "x",
+                    "config": payload["config"], "online": payload["learner"]["online"], "precision": precision}, path)
+        with pytest.raises(CheckpointError, match=": precision missing or malformed"):
+            KeptPolicy.load(path)
 
 
 def test_keeping_options_are_checked_and_set_by_the_presets_and_the_grid():
@@ -192,12 +200,13 @@ def tiny_config(runs_dir):
                                            "evaluation.envs_per_worker": 5})
 
 
-def keep(config, updates: int) -> None:
-    """A kept policy as the learner writes it, with weights of its own."""
+def keep(config, updates: int, precision: str = "") -> None:
+    """A kept policy as the learner writes it, with weights of its own (precision "": as kept before the
+    learner recorded it)."""
     torch.manual_seed(updates)
     online = D3RQN(config.network).state_dict()
     KeptPolicy(updates=updates, env_steps=40 * updates, wall_s=2.0 * updates, cpu="Test CPU", config=to_dict(config),
-               online=online).save(RunDir.of(config).policy(updates))
+               online=online, precision=precision).save(RunDir.of(config).policy(updates))
 
 
 def read_rows(path):
@@ -223,8 +232,8 @@ def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_p
     rows = read_rows(run.curve / "curve.csv")
     assert [(row["updates"], row["start_set"]) for row in rows] == [("10", "train"), ("10", "test")]
     first = rows[1]
-    assert (first["env_steps"], first["wall_s"], first["kept_file"], first["trained_on"]) == (
-        "400", "20.0", "policy-u0000010.pt", "Test CPU")
+    assert (first["env_steps"], first["wall_s"], first["kept_file"], first["trained_on"],
+            first["trained_precision"]) == ("400", "20.0", "policy-u0000010.pt", "Test CPU", "")
     assert int(first["nice"]) == 7 and first["policy"] == "greedy" and first["episodes"] == "10"
     for statistic in ("mean_length", "cfr"):
         assert float(first[f"{statistic}_low"]) <= float(first[statistic]) <= float(first[f"{statistic}_high"])
@@ -235,12 +244,13 @@ def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_p
     out = capsys.readouterr().out
     assert "first greedy test mean length >= 1,000 steps: not reached in 1 kept policies" in out
 
-    keep(config, 30)  # the run went on
+    keep(config, 30, "bfloat16")  # the run went on, on a CPU where learner.precision auto chose bfloat16
     main(["--curve", str(run.root), *CURVE_FLAGS])
     errors = capsys.readouterr().err  # the new one and the damaged one, not the one evaluated already
     assert "curve: 2/2 kept policies" in errors and "policy-u0000020.pt skipped" in errors
     rows_after = read_rows(run.curve / "curve.csv")
     assert rows_after[:2] == rows and [row["updates"] for row in rows_after[2:]] == ["30", "30"]
+    assert [row["trained_precision"] for row in rows_after] == ["", "", "bfloat16", "bfloat16"]
 
     run.policy(20).unlink()
     written = (run.curve / "curve.csv").stat().st_mtime_ns
@@ -307,11 +317,12 @@ def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stop
     assert waits == [5.0, 5.0] and read_rows(run.curve / "curve.csv")[-1]["updates"] == "60"
 
 
-def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_path, capsys):
+def test_a_curve_from_before_the_coverage_and_precision_columns_reads_and_takes_new_rows(tmp_path, capsys):
     old_rows = read_rows(OLD_CURVE)
-    assert not set(COVERAGE_COLUMNS) & set(old_rows[0])
+    assert not {*COVERAGE_COLUMNS, "trained_precision"} & set(old_rows[0])
     rows = read_curve(OLD_CURVE)
     assert len(rows) == len(old_rows) and {row[column] for row in rows for column in COVERAGE_COLUMNS} == {"nan"}
+    assert {row["trained_precision"] for row in rows} == {""}
     assert (rows[0]["updates"], rows[0]["start_set"], rows[0]["mean_length"]) == ("1000", "train", "70.18")
 
     config = tiny_config(tmp_path)
@@ -322,7 +333,8 @@ def test_a_curve_from_before_the_coverage_columns_reads_and_takes_new_rows(tmp_p
     main(["--curve", str(run.root), *CURVE_FLAGS])
     assert "curve: 1/1 kept policies" in capsys.readouterr().err
     after = read_rows(run.curve / "curve.csv")
-    assert after[2:] == [{**row, **{column: "nan" for column in COVERAGE_COLUMNS}} for row in old_rows]
+    assert after[2:] == [{**row, "trained_precision": "", **{column: "nan" for column in COVERAGE_COLUMNS}}
+                         for row in old_rows]
     assert [(row["updates"], row["start_set"]) for row in after[:2]] == [("30", "train"), ("30", "test")]
     for row in after[:2]:  # 8 steps of 1 m stay on the start street, 20 m or more from the junction ahead
         assert [float(row[column]) for column in COVERAGE_COLUMNS] == [1.0, 1.0, 1.0, 0.0, 0.0, 0.0]
@@ -408,13 +420,26 @@ def test_the_time_to_drive_is_the_first_test_row_that_reaches_it():
     rows = [row(3000, "test", 1200, 0.6), row(1000, "train", 1500, 0.9), row(1000, "test", 400, 0.1),
             row(2000, "test", 1000, 0.3), row(2000, "train", 800, 0.2)]  # out of order, as a CSV may not be
     drive = first_reaching(rows, "mean_length", 1000)
-    assert (drive["updates"], drive["env_steps"], drive["wall_s"], drive["trained_on"]) == (2000, 8000, 200.0,
-                                                                                           "Test CPU")
+    assert (drive["updates"], drive["env_steps"], drive["wall_s"], drive["trained_on"]) == (
+        2000, 8000, 200.0, "Test CPU, precision not recorded")
     assert first_reaching(rows, "cfr", 0.5)["updates"] == 3000  # the train set's 90% at 1,000 does not count
     summary = curve_summary(rows)
     assert (summary["policies"], summary["last_updates"], summary["nice"]) == (3, 3000, [10])
     assert summary_lines(summary)[0].startswith("first greedy test mean length >= 1,000 steps: update 2,000, "
-                                                "8,000 env steps, 3:20 of wall time, trained on Test CPU")
+                                                "8,000 env steps, 3:20 of wall time, trained on Test CPU, "
+                                                "precision not recorded")
+
+
+def test_the_machine_and_precision_a_curve_was_trained_with_by_spans_of_its_kept_policies():
+    rows = [row(1000, "test", 50, 0), row(1000, "train", 60, 0), row(2000, "test", 70, 0), row(3000, "test", 80, 0),
+            row(4000, "test", 90, 0), row(5000, "test", 95, 0)]
+    assert trained_with(rows) == "Test CPU, precision not recorded"
+    for item, (cpu, precision) in zip(rows, [("AMD EPYC", "float32")] * 3 + [("Intel Xeon", "bfloat16")] * 2
+                                      + [("AMD EPYC", "float32")]):
+        item.update(trained_on=cpu, trained_precision=precision)
+    assert trained_with(rows[:3]) == "AMD EPYC, float32"
+    assert trained_with(rows) == ("AMD EPYC, float32 to 2,000 updates; Intel Xeon, bfloat16 from 3,000; "
+                                  "AMD EPYC, float32 from 5,000")
 
 
 def test_a_drive_is_held_from_the_first_policy_after_which_none_falls_below():

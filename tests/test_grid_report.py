@@ -53,6 +53,7 @@ def test_a_runs_row_reads_its_curve_and_its_chosen_policy(tmp_path):
     # a street per 25 steps and a junction fewer: (4 + 4 + 4 + 2) / 4 and (3 + 3 + 3 + 1) / 4
     assert (row["test_streets"], row["test_junctions"]) == (3.5, 2.5)
     assert run.start_cfr.tolist() == [1.0, 1.0, 1.0, 0.0]
+    assert row["trained_on"] == "AMD EPYC, precision not recorded"  # a curve from before the learner recorded it
 
 
 def test_a_run_that_never_drove_has_no_time_to_drive():
@@ -160,13 +161,14 @@ def test_the_machine_time_by_hand(tmp_path):
     assert row["machines"] == ["AMD EPYC (2 cores)", "Intel Xeon (2 cores)"]
     unrecorded = grid_costs.machine_row(without, 2.25)
     assert (unrecorded["training_h"], unrecorded["reading_h"]) == (2.25, None)
-    assert unrecorded["machines"] == ["AMD EPYC (its kept policies)"]
+    assert unrecorded["machines"] == ["AMD EPYC, precision not recorded (its kept policies)"]
     part = grid_costs.machine_row(resumed, 3.0)
     assert (part["training_h"], part["reading_h"]) == (3.0, 0.2)  # training by its soak, not its 0.1 h resume
     lines = grid_costs.machine_lines([row, unrecorded, part])
     assert lines[0] == ("Training: 6.8 h over 3 runs (1 recorded step by step in steps.csv, 2 by the soak of a run "
                         "begun before). Curve, choice and evaluation: 0.7 h over the 2 runs that recorded them. "
-                        "Machines: AMD EPYC (2 cores); AMD EPYC (its kept policies); Intel Xeon (2 cores).")
+                        "Machines: AMD EPYC (2 cores); AMD EPYC, precision not recorded (its kept policies); "
+                        "Intel Xeon (2 cores).")
     assert "| bmc-b1000-s0 | 1.50 | 0.50 | AMD EPYC (2 cores); Intel Xeon (2 cores) |" in lines
     assert "| bmc-b1000-s2 | 3.00 (soak) | 0.20 | AMD EPYC (2 cores) |" in lines
 

@@ -166,7 +166,8 @@ def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: 
 
 def curve_row(policy: KeptPolicy, summary: SetSummary, edges: Sequence[float], nice: int) -> dict:
     return {"updates": policy.updates, "env_steps": policy.env_steps, "wall_s": round(policy.wall_s, 3),
-            "kept_file": policy.path.name, "trained_on": policy.cpu, "nice": nice,
+            "kept_file": policy.path.name, "trained_on": policy.cpu, "trained_precision": policy.precision,
+            "nice": nice,
             **summary_columns(summary, edges)}
 
 
@@ -180,7 +181,8 @@ def headline(rows: list[dict]) -> str:
 
 def read_curve(path: Path) -> list[dict]:
     """The rows of a curve CSV, [] when there is none yet. A curve written before the coverage columns
-    reads them as "nan" (not measured), so that a rerun can add rows with them to it."""
+    reads them as "nan" (not measured), and before the learner's precision column as "" (not recorded), so
+    that a rerun can add rows with them to it."""
     if not path.exists():
         return []
     try:
@@ -192,7 +194,8 @@ def read_curve(path: Path) -> list[dict]:
     except (OSError, csv.Error, KeyError, TypeError, ValueError) as error:
         raise EvaluationError(f"{path} is not a curve of evaluate --curve ({type(error).__name__}: {error}); "
                               "move it away or give another --out") from None
-    return [{**row, **{column: "nan" for column in COVERAGE_COLUMNS if column not in row}} for row in rows]
+    return [{"trained_precision": "", **row, **{column: "nan" for column in COVERAGE_COLUMNS if column not in row}}
+            for row in rows]
 
 
 def write_curve(path: Path, rows: list[dict]) -> list[dict]:
@@ -231,7 +234,25 @@ def first_reaching(rows: Sequence[dict], column: str, threshold: float, start_se
     if found is None:
         return None
     return {"updates": int(found["updates"]), "env_steps": int(found["env_steps"]), "wall_s": float(found["wall_s"]),
-            "trained_on": found["trained_on"], "kept_file": found["kept_file"], column: float(found[column])}
+            "trained_on": trained_with([found]), "kept_file": found["kept_file"], column: float(found[column])}
+
+
+def trained_with(rows: Sequence[dict]) -> str:
+    """The learner's CPU and precision by the kept policies of a curve's rows, a span each where they changed
+    (learner.precision auto is bfloat16 on one CPU and float32 on another): "AMD EPYC, float32", or
+    "AMD EPYC, float32 to 16,000 updates; Intel Xeon, bfloat16 from 18,000"."""
+    spans: list[list] = []  # [machine, first updates, last updates]
+    for updates in sorted({int(row["updates"]) for row in rows}):
+        row = next(row for row in rows if int(row["updates"]) == updates)
+        machine = f"{row['trained_on']}, {row.get('trained_precision') or 'precision not recorded'}"
+        if spans and spans[-1][0] == machine:
+            spans[-1][2] = updates
+        else:
+            spans.append([machine, updates, updates])
+    if len(spans) == 1:
+        return spans[0][0]
+    return "; ".join(f"{machine} {'to' if number == 0 else 'from'} {first if number else last:,d}"
+                     f"{' updates' if number == 0 else ''}" for number, (machine, first, last) in enumerate(spans))
 
 
 def chosen_on_train(rows: Sequence[dict]) -> dict | None:

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from actor.evaluation.curve import trained_with
 from deploy.studies.grid_cells import STEPS_CSV, counted, read_steps
 
 if TYPE_CHECKING:
@@ -28,8 +29,8 @@ def machine_row(item: GridRun, soak_hours: float | None) -> dict:
     steps = read_steps(item.run.folder)
     hours = lambda training: sum(row["wall_s"] for row in steps if (row["step"] in TRAINING_STEPS) == training) / 3600
     recorded = any(row["step"] == "train" for row in steps)
-    machines = sorted({f"{row['cpu']} ({counted(row['cores'], 'core')})" for row in steps}) or sorted(
-        {f"{row['trained_on']} (its kept policies)" for row in item.test_rows if row.get("trained_on")})
+    machines = sorted({f"{row['cpu']} ({counted(row['cores'], 'core')})" for row in steps}) or (
+        [f"{trained_with(item.test_rows)} (its kept policies)"] if item.test_rows else [])
     return {"run": item.run.name, "training_recorded": recorded,
             "training_h": hours(True) if recorded else soak_hours,
             "reading_h": hours(False) if any(row["step"] not in TRAINING_STEPS for row in steps) else None,

@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from actor.evaluation import EvaluationError
-from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read_curve
+from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read_curve, trained_with
 from common.analysis import across_seeds
 from common.analysis.intervals import Bootstrap
 from common.analysis.plotting import finish_figure, pyplot
@@ -131,7 +131,7 @@ def run_row(item: GridRun) -> dict:
         # a policy looping one block reaches the cap too: turning right wherever it can covers 6 streets
         "test_streets": float(test.get("mean_streets") or "nan"),
         "test_junctions": float(test.get("mean_junctions") or "nan"),
-        "trained_on": item.test_rows[-1]["trained_on"] if item.test_rows else "",
+        "trained_on": trained_with(item.test_rows) if item.test_rows else "",
     }
 
 
