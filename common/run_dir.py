@@ -125,6 +125,11 @@ class RunDir:
         return self.root / "summary.json"
 
     @property
+    def stack_lock(self) -> Path:
+        """Locked (flock) by the stack that runs the run: one at a time (deploy/run_claim.py)."""
+        return self.root / ".stack.lock"
+
+    @property
     def soak(self) -> Path:
         return self.root / "soak"
 

@@ -18,20 +18,22 @@ reconnect to a restarted replay on their own. The live line counts restarts,
 and at the end the run's summary file gives env steps, updates and the achieved
 env steps per update of the whole run, from the learner's last metrics, and the
 restarts of each process.
+
+One stack runs a run folder at a time (deploy/run_claim.py). A stack whose
+output nobody reads any more (its reader killed, a terminal hung up) stops
+the run cleanly as Ctrl-C does (deploy/console.py).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections import deque
 
 import zenoh
 
@@ -39,14 +41,13 @@ from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
-from common.eta import Eta
-from common.pacing import updates_paid_for
-from common.run_dir import RunDir, RunStatus
+from common.run_dir import RunDir
 from common.shell import PARENT_ENV
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
-from common.wire.messages import EpisodeRecord, ReplayStats, Stats
-from common.wire.run_shape import stat_number
+from deploy.console import Console
+from deploy.stack_monitor import StackMonitor
+from deploy.run_claim import RunBusy, claim_run
 
 STOP_GRACE_S = 20.0
 RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubled for each death in a row
@@ -56,148 +57,11 @@ FINAL_METRICS_WAIT_S = 5.0
 WATCHER_CONNECT_S = 180.0  # how long the stack waits for its replay's router: a loaded machine starts it slowly
 STATUS_PERIOD_S = 1.0  # the status file and the live line
 LOGGED_LINE_PERIOD_S = 30.0  # the live line, logged, when stdout is not a terminal
-ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
-STEP_SPEED_WINDOW_S = 60.0  # the line's steps/s: actors held by the rate limiter send episodes in bursts
 
 
 def default_actor_count() -> int:
     """One actor per core the learner does not use."""
     return max(1, (os.cpu_count() or 2) - 1)
-
-
-class StackMonitor:
-    """Collects the system's metrics from Zenoh and renders the live line and the status."""
-
-    def __init__(self, total_env_steps: int = 0, clock=time.monotonic) -> None:
-        self._lock = threading.Lock()
-        self.returns: deque[float] = deque(maxlen=100)
-        self.episodes = 0
-        self.replay: ReplayStats | None = None  # the replay's last stats
-        self.learner: dict = {}
-        self.learner_final = threading.Event()  # the learner's last metrics, sent as it stops
-        self.total_env_steps = total_env_steps  # the budget; 0: not shown
-        # A paced run ends when the learner has made the updates the budget owes: its ETA follows the update
-        # rate once updates start, and is unknown before (the random phase runs many times faster than the
-        # learner will). An unpaced run's (the replay's rate limiter says which) follows the env-step rate.
-        self.eta: Eta | None = None
-        self.env_step_speed = Eta(total_env_steps, STEP_SPEED_WINDOW_S, clock)
-        self._clock = clock
-        self._started = clock()
-
-    def on_metric(self, message, key: str) -> None:
-        """Episode records and the learner's metrics; anything else on metrics/** is not for the line.
-        Values are read without trusting them: a missing or wrongly typed one shows as its default."""
-        with self._lock:
-            if isinstance(message, EpisodeRecord):
-                self.episodes += 1
-                self.returns.append(message.episode_return)
-            elif isinstance(message, Stats) and message.source == "learner" and key.endswith("/metrics/learner/0"):
-                self.learner = dict(message.values)
-                if self.learner.get("final") == 1:
-                    self.learner_final.set()
-                self._follow_updates()
-
-    def on_replay_stats(self, message, key: str) -> None:
-        if isinstance(message, ReplayStats):
-            with self._lock:
-                self.replay = message
-                self.env_step_speed.update(message.env_steps_total)
-                if message.rate.unpaced:
-                    self.eta = self.eta or Eta(self.total_env_steps, ETA_WINDOW_S, self._clock)
-                    self.eta.update(message.env_steps_total)
-                self._follow_updates()
-
-    def _follow_updates(self) -> None:
-        """A paced run's ETA: the updates owed from the limiter's start mark to the budget, at its ratio and
-        the recent update rate."""
-        rate = self.replay.rate if self.replay is not None else None
-        updates = stat_number(self.learner, "updates", integer=True, minimum=0)
-        if rate is None or rate.unpaced or rate.start_env_steps is None or updates is None:
-            return
-        if self.eta is None:
-            start = rate.start_env_steps
-            owed = updates_paid_for(max(self.total_env_steps, start), start, rate.env_steps_per_update_target)
-            self.eta = Eta(owed, ETA_WINDOW_S, self._clock)
-        self.eta.update(updates)
-
-    def line(self, restarts: int = 0) -> str:
-        with self._lock:
-            mean_return = self._mean_return()
-            learner = self.learner
-            elapsed = self._clock() - self._started
-            env_steps = self._replay_count("env_steps_total")
-            budget = (f"/{self.total_env_steps:,d} ({100 * env_steps / self.total_env_steps:5.1f}%, "
-                      f"ETA {self._eta_text()})" if self.total_env_steps else "")
-            return (f"[{elapsed:7.0f}s] env steps {env_steps:>9,d}{budget} | "
-                    f"episodes {self.episodes:>6,d} | "
-                    f"updates {_count(learner, 'updates'):>7,d} | "
-                    f"eps {_number(learner, 'epsilon', 1.0):.3f} | "
-                    f"return(100) {math.nan if mean_return is None else mean_return:8.2f} | "
-                    f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
-                    f"steps/s {self.env_step_speed.per_s() or 0.0:6.1f} | "
-                    f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
-                    f"restarts {restarts}")
-
-    def status(self, phase: str, restarts: dict[str, int], pids: dict[str, int]) -> RunStatus:
-        with self._lock:
-            return RunStatus(phase=phase, env_steps=self._replay_count("env_steps_total"),
-                             total_env_steps=self.total_env_steps, updates=_count(self.learner, "updates"),
-                             episodes=self.episodes, mean_return=self._mean_return(),
-                             eta_s=self.eta.remaining_s() if self.eta else None,
-                             elapsed_s=self._clock() - self._started,
-                             restarts=dict(restarts), pids=dict(pids), time=time.time())
-
-    def _replay_count(self, name: str) -> int:
-        return getattr(self.replay, name) if self.replay is not None else 0
-
-    def _eta_text(self) -> str:
-        return self.eta.text() if self.eta is not None else "?"
-
-    def _mean_return(self) -> float | None:
-        return sum(self.returns) / len(self.returns) if self.returns else None
-
-    def summary(self, config: Config, restarts: dict[str, int] | None = None, finished: bool = False) -> dict:
-        """The run's figures from the learner's last metrics (and the replay's last stats); `finished`: the
-        learner exited by itself, its budget paid for (a stop by hand also sends its final metrics)."""
-        with self._lock:
-            learner = dict(self.learner)
-            replay_steps, replay_episodes = self._replay_count("env_steps_total"), self._replay_count("inserted")
-        ratio = stat_number(learner, "env_steps_per_update")
-        return {
-            "run": config.run.name,
-            "strategy": config.exploration.strategy,
-            "learner_finished": finished,
-            "updates": _count(learner, "updates"),
-            "env_steps": _count(learner, "env_steps"),
-            "start_env_steps": stat_number(learner, "start_env_steps"),
-            "env_steps_per_update": ratio,  # achieved, since the start mark
-            "env_steps_per_update_configured": config.pace.env_steps_per_update,
-            "replay_env_steps_total": replay_steps,
-            # the replay's counters come back with its snapshot, so they count the episodes of a resumed
-            # run's earlier stacks too; "episodes" counts only what this stack saw
-            "replay_episodes_total": replay_episodes,
-            "episodes": self.episodes,
-            "restarts": dict(restarts or {}),
-            # what the learner's updates ran, from its own metrics (learner.precision and update_path "auto"
-            # resolve at its first batch); None before any metrics came
-            "learner_precision": _text(learner, "precision"),
-            "learner_update_path": _text(learner, "update_path"),
-        }
-
-
-def _number(values: dict, name: str, default: float) -> float:
-    value = stat_number(values, name)
-    return default if value is None else float(value)
-
-
-def _text(values: dict, name: str) -> str | None:
-    value = values.get(name)
-    return value if isinstance(value, str) else None
-
-
-def _count(values: dict, name: str) -> int:
-    value = stat_number(values, name, integer=True, minimum=0)
-    return 0 if value is None else value
 
 
 class Role:
@@ -221,8 +85,9 @@ class Stack:
     """Starts, watches, restarts and stops the processes of one local run."""
 
     def __init__(self, config: Config, run: RunDir, endpoint: str, actors: int, resume: bool,
-                 tensorboard: bool = False) -> None:
+                 tensorboard: bool = False, console: Console | None = None) -> None:
         self.config = config
+        self.console = console or Console(threading.Event())
         self.run = run
         run.logs.mkdir(parents=True, exist_ok=True)
         self.base = ["--config", str(run.config)]
@@ -260,11 +125,11 @@ class Stack:
             monitor.status(phase, self.restarts, self.pids).write(self.run.status)
         except OSError as error:
             if not self.status_failed:
-                print(f"\ncannot write the status file: {error}", file=sys.stderr, flush=True)
+                self.console.say(f"\ncannot write the status file: {error}", err=True)
             self.status_failed = True
         if line:
-            print("\r" if line == "live" else "", monitor.line(sum(self.restarts.values())),
-                  sep="", end="" if line == "live" else "\n", flush=True)
+            self.console.say("\r" if line == "live" else "", monitor.line(sum(self.restarts.values())),
+                             end="" if line == "live" else "\n")
 
     def start_all(self) -> None:
         for role in self.roles.values():
@@ -287,7 +152,7 @@ class Stack:
                     role.restart_at = None
                     role.restarts += 1
                     self._start(role)
-            if now - last_report >= STATUS_PERIOD_S:
+            if now - last_report >= STATUS_PERIOD_S and self.console.check():
                 # A terminal gets the line rewritten in place; a pipe or file one line per period.
                 line_due = terminal or now - last_line >= LOGGED_LINE_PERIOD_S
                 self.report(monitor, "training", "live" if terminal else "logged" if line_due else "")
@@ -298,8 +163,8 @@ class Stack:
     def _died(self, role: Role, code: int, now: float) -> None:
         role.deaths_in_a_row = 1 if now - role.started >= STABLE_S else role.deaths_in_a_row + 1
         role.restart_at = now + role.backoff_s()
-        print(f"\n{role.name} exited with code {code}; restarting it in {role.backoff_s():.0f}s "
-              f"(see {self.run.log(role.name)})", file=sys.stderr, flush=True)
+        self.console.say(f"\n{role.name} exited with code {code}; restarting it in {role.backoff_s():.0f}s "
+                         f"(see {self.run.log(role.name)})", err=True)
 
     def stop_all(self) -> None:
         """Learner first (it checkpoints), then actors, the recorder (it has seen their last messages), replay last."""
@@ -313,7 +178,7 @@ class Stack:
                 try:
                     process.wait(STOP_GRACE_S)
                 except subprocess.TimeoutExpired:
-                    print(f"\n{name} did not stop within {STOP_GRACE_S:.0f}s; killing it", file=sys.stderr)
+                    self.console.say(f"\n{name} did not stop within {STOP_GRACE_S:.0f}s; killing it", err=True)
                     process.kill()
                     process.wait()
 
@@ -373,20 +238,20 @@ def stack_precisions(config: Config) -> dict[str, str]:
     return precisions
 
 
-def open_watcher(transport, stop: threading.Event):
+def open_watcher(transport, console: Console):
     """The stack's own session to its replay's router, retried while the replay starts (each try waits
     transport.connect_timeout_s) for WATCHER_CONNECT_S; None, with a line, if it never answers or the stack
     is stopped first."""
     deadline = time.monotonic() + WATCHER_CONNECT_S
-    while not stop.is_set():
+    while not console.stop.is_set():
         try:
             return open_session(transport)
         except zenoh.ZError as error:
             if time.monotonic() >= deadline:
-                print(f"the replay's router at {transport.connect[0]} did not answer within {WATCHER_CONNECT_S:.0f} s "
-                      f"({error}); stopping the run", file=sys.stderr, flush=True)
+                console.say(f"the replay's router at {transport.connect[0]} did not answer within "
+                            f"{WATCHER_CONNECT_S:.0f} s ({error}); stopping the run", err=True)
                 return None
-            print(f"waiting for the replay's router at {transport.connect[0]} ...", file=sys.stderr, flush=True)
+            console.say(f"waiting for the replay's router at {transport.connect[0]} ...", err=True)
     return None
 
 
@@ -398,16 +263,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     run = RunDir.of(config)
     run.root.mkdir(parents=True, exist_ok=True)
+    try:
+        claim = claim_run(run)  # held open until this process ends
+    except RunBusy as error:
+        print(f"deploy/run.sh: {error}", file=sys.stderr)
+        return 2
     run.config.write_text(to_toml(config))
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
     actors = args.actors or config.actor.num_actors or default_actor_count()
-    print(f"run {config.run.name!r}: strategy {config.exploration.strategy}, {actors} actor(s), "
-          f"router {endpoint}, files in {run.root}/; {keeping(config)}", flush=True)
-
-    stack = Stack(config, run, endpoint, actors, args.resume, args.tensorboard)
     stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    console = Console(stop)
+    console.say(f"run {config.run.name!r}: strategy {config.exploration.strategy}, {actors} actor(s), "
+                f"router {endpoint}, files in {run.root}/; {keeping(config)}")
+    stack = Stack(config, run, endpoint, actors, args.resume, args.tensorboard, console)
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a hung-up terminal stops it as Ctrl-C does
+        signal.signal(signum, lambda *_: stop.set())
     monitor = StackMonitor(config.pace.total_env_steps)
     stack.start_all()
     watcher_config = config.transport
@@ -415,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     session, subscriptions, code = None, [], 1
     keys = Keys(config.transport.namespace, config.run.name)
     try:  # from here on, whatever happens, the processes are stopped
-        session = open_watcher(watcher_config, stop)
+        session = open_watcher(watcher_config, console)
         if session is None:
             return 1
         subscriptions = [subscribe(session, keys.metrics_all, monitor.on_metric),
@@ -424,8 +294,8 @@ def main(argv: list[str] | None = None) -> int:
         if stack.processes["learner"].poll() is not None:
             monitor.learner_final.wait(FINAL_METRICS_WAIT_S)
     finally:
-        print("\n" + monitor.line(sum(stack.restarts.values())), flush=True)
-        print("stopping processes ...", flush=True)
+        console.say("\n" + monitor.line(sum(stack.restarts.values())))
+        console.say("stopping processes ...")
         stack.report(monitor, "stopping")
         stack.stop_all()
         for subscription in subscriptions:
@@ -437,10 +307,11 @@ def main(argv: list[str] | None = None) -> int:
     run.summary.write_text(json.dumps(summary, indent=2) + "\n")
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
-    print(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps per "
-          f"update (configured {config.pace.env_steps_per_update:g}); {run.summary}", flush=True)
+    console.say(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps "
+                f"per update (configured {config.pace.env_steps_per_update:g}); {run.summary}")
     restarted = ", ".join(f"{name} {count}" for name, count in stack.restarts.items() if count) or "none"
-    print(f"stopped; restarts: {restarted}; logs in {run.logs}/", flush=True)
+    console.say(f"stopped; restarts: {restarted}; logs in {run.logs}/")
+    claim.close()
     return code
 
 

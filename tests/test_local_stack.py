@@ -95,14 +95,49 @@ def test_the_stacks_watcher_waits_for_a_slow_router_then_gives_up_with_a_line(mo
     from common.config import TransportConfig
     from common.transport import free_port
     from deploy import stack
+    from deploy.console import Console
 
     monkeypatch.setattr(stack, "WATCHER_CONNECT_S", 1.0)
     transport = TransportConfig(mode="client", connect=[f"tcp/127.0.0.1:{free_port()}"], connect_timeout_s=0.3)
     started = time.monotonic()
-    assert stack.open_watcher(transport, threading.Event()) is None
+    assert stack.open_watcher(transport, Console(threading.Event())) is None
     assert time.monotonic() - started >= 1.0
     err = capsys.readouterr().err
     assert "waiting for the replay's router" in err and "did not answer within 1 s" in err
     stopped = threading.Event()
     stopped.set()
-    assert stack.open_watcher(transport, stopped) is None
+    assert stack.open_watcher(transport, Console(stopped)) is None
+
+
+def test_a_stack_whose_reader_is_gone_stops_its_run_cleanly_and_a_second_stack_is_refused(tmp_path):
+    """The grid runner killed: the stack's stdout pipe has no reader. The stack stops the run as Ctrl-C
+    does (the learner checkpoints) rather than fail on its next line and leave its processes training, and
+    while it runs, another stack on the same run folder is refused at once."""
+    command = [sys.executable, str(STACK), "--preset", "smoke", "--actors", "1", "--run.runs_dir", str(tmp_path),
+               "--run.name", "unread", "--recorder.enabled", "false", "--network.lstm_units", "16",
+               "--learner.batch_size", "2", "--learner.trace_length", "5", "--learner.n_mask", "2",
+               "--learner.torch_threads", "1", "--pace.total_env_steps", "1000000"]
+    stack = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=tmp_path)
+    run_dir = tmp_path / "unread"
+    learner_log = run_dir / "logs" / "learner.log"
+    try:
+        lines = [stack.stdout.readline() for _ in range(2)]  # its start line, then its first status line
+        first_status = time.monotonic()  # the next comes LOGGED_LINE_PERIOD_S (30 s) later into a pipe
+        assert b"env steps" in lines[1], lines
+        wait_for(lambda: learner_log.exists() and "INFO learner: device" in learner_log.read_text(),
+                 "the learner's start", 60, [learner_log])
+        second = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=60)
+        assert second.returncode == 2 and "is in use by another stack" in second.stderr, second.stderr
+        roles = list(children(stack.pid))
+        assert len(roles) == 3  # replay, learner, actor
+        stack.stdout.close()  # nobody reads the stack any more
+        stack.wait(90)
+        # noticed without a line to write: the stop came before the next status line was due
+        assert time.monotonic() - first_status < 25
+        for pid in roles:
+            assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
+        assert json.loads((run_dir / "status.json").read_text())["phase"] == "stopped"
+        assert (run_dir / "checkpoints" / "latest.pt").exists() and (run_dir / "summary.json").exists()
+    finally:
+        if stack.poll() is None:
+            kill_tree(stack)

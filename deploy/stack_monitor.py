@@ -1,0 +1,154 @@
+"""The local stack's view of its run (deploy/stack.py): the system's metrics from Zenoh, rendered as the live
+line, the status file and the run's summary."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+
+from common.config import Config
+from common.eta import Eta
+from common.pacing import updates_paid_for
+from common.run_dir import RunStatus
+from common.wire.messages import EpisodeRecord, ReplayStats, Stats
+from common.wire.run_shape import stat_number
+
+ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
+STEP_SPEED_WINDOW_S = 60.0  # the line's steps/s: actors held by the rate limiter send episodes in bursts
+
+
+class StackMonitor:
+    """Collects the system's metrics from Zenoh and renders the live line and the status."""
+
+    def __init__(self, total_env_steps: int = 0, clock=time.monotonic) -> None:
+        self._lock = threading.Lock()
+        self.returns: deque[float] = deque(maxlen=100)
+        self.episodes = 0
+        self.replay: ReplayStats | None = None  # the replay's last stats
+        self.learner: dict = {}
+        self.learner_final = threading.Event()  # the learner's last metrics, sent as it stops
+        self.total_env_steps = total_env_steps  # the budget; 0: not shown
+        # A paced run ends when the learner has made the updates the budget owes: its ETA follows the update
+        # rate once updates start, and is unknown before (the random phase runs many times faster than the
+        # learner will). An unpaced run's (the replay's rate limiter says which) follows the env-step rate.
+        self.eta: Eta | None = None
+        self.env_step_speed = Eta(total_env_steps, STEP_SPEED_WINDOW_S, clock)
+        self._clock = clock
+        self._started = clock()
+
+    def on_metric(self, message, key: str) -> None:
+        """Episode records and the learner's metrics; anything else on metrics/** is not for the line.
+        Values are read without trusting them: a missing or wrongly typed one shows as its default."""
+        with self._lock:
+            if isinstance(message, EpisodeRecord):
+                self.episodes += 1
+                self.returns.append(message.episode_return)
+            elif isinstance(message, Stats) and message.source == "learner" and key.endswith("/metrics/learner/0"):
+                self.learner = dict(message.values)
+                if self.learner.get("final") == 1:
+                    self.learner_final.set()
+                self._follow_updates()
+
+    def on_replay_stats(self, message, key: str) -> None:
+        if isinstance(message, ReplayStats):
+            with self._lock:
+                self.replay = message
+                self.env_step_speed.update(message.env_steps_total)
+                if message.rate.unpaced:
+                    self.eta = self.eta or Eta(self.total_env_steps, ETA_WINDOW_S, self._clock)
+                    self.eta.update(message.env_steps_total)
+                self._follow_updates()
+
+    def _follow_updates(self) -> None:
+        """A paced run's ETA: the updates owed from the limiter's start mark to the budget, at its ratio and
+        the recent update rate."""
+        rate = self.replay.rate if self.replay is not None else None
+        updates = stat_number(self.learner, "updates", integer=True, minimum=0)
+        if rate is None or rate.unpaced or rate.start_env_steps is None or updates is None:
+            return
+        if self.eta is None:
+            start = rate.start_env_steps
+            owed = updates_paid_for(max(self.total_env_steps, start), start, rate.env_steps_per_update_target)
+            self.eta = Eta(owed, ETA_WINDOW_S, self._clock)
+        self.eta.update(updates)
+
+    def line(self, restarts: int = 0) -> str:
+        with self._lock:
+            mean_return = self._mean_return()
+            learner = self.learner
+            elapsed = self._clock() - self._started
+            env_steps = self._replay_count("env_steps_total")
+            budget = (f"/{self.total_env_steps:,d} ({100 * env_steps / self.total_env_steps:5.1f}%, "
+                      f"ETA {self._eta_text()})" if self.total_env_steps else "")
+            return (f"[{elapsed:7.0f}s] env steps {env_steps:>9,d}{budget} | "
+                    f"episodes {self.episodes:>6,d} | "
+                    f"updates {_count(learner, 'updates'):>7,d} | "
+                    f"eps {_number(learner, 'epsilon', 1.0):.3f} | "
+                    f"return(100) {math.nan if mean_return is None else mean_return:8.2f} | "
+                    f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
+                    f"steps/s {self.env_step_speed.per_s() or 0.0:6.1f} | "
+                    f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
+                    f"restarts {restarts}")
+
+    def status(self, phase: str, restarts: dict[str, int], pids: dict[str, int]) -> RunStatus:
+        with self._lock:
+            return RunStatus(phase=phase, env_steps=self._replay_count("env_steps_total"),
+                             total_env_steps=self.total_env_steps, updates=_count(self.learner, "updates"),
+                             episodes=self.episodes, mean_return=self._mean_return(),
+                             eta_s=self.eta.remaining_s() if self.eta else None,
+                             elapsed_s=self._clock() - self._started,
+                             restarts=dict(restarts), pids=dict(pids), time=time.time())
+
+    def _replay_count(self, name: str) -> int:
+        return getattr(self.replay, name) if self.replay is not None else 0
+
+    def _eta_text(self) -> str:
+        return self.eta.text() if self.eta is not None else "?"
+
+    def _mean_return(self) -> float | None:
+        return sum(self.returns) / len(self.returns) if self.returns else None
+
+    def summary(self, config: Config, restarts: dict[str, int] | None = None, finished: bool = False) -> dict:
+        """The run's figures from the learner's last metrics (and the replay's last stats); `finished`: the
+        learner exited by itself, its budget paid for (a stop by hand also sends its final metrics)."""
+        with self._lock:
+            learner = dict(self.learner)
+            replay_steps, replay_episodes = self._replay_count("env_steps_total"), self._replay_count("inserted")
+        ratio = stat_number(learner, "env_steps_per_update")
+        return {
+            "run": config.run.name,
+            "strategy": config.exploration.strategy,
+            "learner_finished": finished,
+            "updates": _count(learner, "updates"),
+            "env_steps": _count(learner, "env_steps"),
+            "start_env_steps": stat_number(learner, "start_env_steps"),
+            "env_steps_per_update": ratio,  # achieved, since the start mark
+            "env_steps_per_update_configured": config.pace.env_steps_per_update,
+            "replay_env_steps_total": replay_steps,
+            # the replay's counters come back with its snapshot, so they count the episodes of a resumed
+            # run's earlier stacks too; "episodes" counts only what this stack saw
+            "replay_episodes_total": replay_episodes,
+            "episodes": self.episodes,
+            "restarts": dict(restarts or {}),
+            # what the learner's updates ran, from its own metrics (learner.precision and update_path "auto"
+            # resolve at its first batch); None before any metrics came
+            "learner_precision": _text(learner, "precision"),
+            "learner_update_path": _text(learner, "update_path"),
+        }
+
+
+def _number(values: dict, name: str, default: float) -> float:
+    value = stat_number(values, name)
+    return default if value is None else float(value)
+
+
+def _text(values: dict, name: str) -> str | None:
+    value = values.get(name)
+    return value if isinstance(value, str) else None
+
+
+def _count(values: dict, name: str) -> int:
+    value = stat_number(values, name, integer=True, minimum=0)
+    return 0 if value is None else value
