@@ -108,6 +108,12 @@ def test_the_report_is_written_from_exported_runs_alone(tmp_path):
     assert "| vdbe | 1000 | paper | 1 | 0/1 | not reached |" in page  # per strategy
     assert "| softmax | 1000 | paper | 2 | 2/2 | 2,000, 2,000 |" in page
     assert "Claim 1" in page and "needs 4 seeds a side" in page
+    # one seed, or one run a side, resamples nothing: no interval of zero width is shown
+    assert "| vdbe | 1000 | paper | 1 | 0/1 | not reached | 200 | 50 | 0.0% | 0.0% (one seed) | 61.8% |" in page
+    assert "| vdbe | softmax | 0.38 [0.38, 0.38] |" in page  # 1 against 2 alike runs: a width of zero, measured
+    exported_run(tmp_path / "runs", "bmc", 0, [100, 50, 50, 50])
+    grid_report.report_on([tmp_path / "runs"], tmp_path / "out", grid_report.Bootstrap(replicates=100))
+    assert "| vdbe | bmc | 0.38 (one run each) |" in (tmp_path / "out" / "grid.md").read_text()
     with pytest.raises(ValueError, match="no finished grid run"):
         grid_report.report_on([tmp_path / "out"], tmp_path / "again")
 

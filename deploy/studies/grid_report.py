@@ -190,7 +190,8 @@ def pair_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1
             if STRATEGIES.index(first) < STRATEGIES.index(second):
                 found = across_seeds.improvement_estimate(by_strategy[first], by_strategy[second], bootstrap)
                 rows.append({"first": first, "second": second, "improvement": found.point,
-                             "low": found.interval.low, "high": found.interval.high})
+                             "low": found.interval.low, "high": found.interval.high,
+                             "runs": (len(by_strategy[first]), len(by_strategy[second]))})
     return rows
 
 
@@ -282,7 +283,7 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{', '.join(_drive_text(value) for value in row['updates_to_drive'].split(';'))} | "
             f"{row['curve_mean_length']:,.0f} | {row['test_mean_length']:,.0f} | "
             f"{', '.join(_percent(value) for value in row['test_cfr_by_seed'].split(';'))} | "
-            f"{_percent(row['iqm_test_cfr'])} [{_percent(row['iqm_test_cfr_low'])}, {_percent(row['iqm_test_cfr_high'])}] | "
+            f"{_percent(row['iqm_test_cfr'])} {_iqm_interval(row)} | "
             f"{_percent(row['paper_test_cfr'])} |")
     lines += ["", "## The paper's claims", "", _rule_text(), ""]
     for reading in claim_readings(runs, bootstrap):
@@ -298,13 +299,21 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
               f"{across_seeds.SIGNIFICANCE}. Every pair's probability of improvement, as a guide:", "",
               "| First | Second | P(first > second) [CI] |", "|---|---|---:|"]
     for row in pair_readings(runs, bootstrap):
-        lines.append(f"| {row['first']} | {row['second']} | {row['improvement']:.2f} [{row['low']:.2f}, {row['high']:.2f}] |")
+        interval = "(one run each)" if row["runs"] == (1, 1) else f"[{row['low']:.2f}, {row['high']:.2f}]"
+        lines.append(f"| {row['first']} | {row['second']} | {row['improvement']:.2f} {interval} |")
     soaks = soak_rows(runs)
     soak_hours = {row["run"]: row["hours"] for row in soaks}
     lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
                                                          for item in runs])]
     lines += ["", "## Soak across the grid", "", *soak_lines(soaks)]
     return lines
+
+
+def _iqm_interval(row: dict) -> str:
+    # a bootstrap over one seed resamples nothing: an interval of zero width would claim a precision
+    if row["seeds"] == 1:
+        return "(one seed)"
+    return f"[{_percent(row['iqm_test_cfr_low'])}, {_percent(row['iqm_test_cfr_high'])}]"
 
 
 def _rule_text() -> str:
