@@ -75,9 +75,10 @@ def stop_with_parent(stop: threading.Event, expected: int | None = None) -> thre
 
 
 def stop_on_signals() -> threading.Event:
-    """An event that SIGINT and SIGTERM set: the process finishes what it does and stops cleanly."""
+    """An event that SIGINT, SIGTERM and SIGHUP (the terminal of a role started by hand closed) set: the
+    process finishes what it does and stops cleanly."""
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, lambda *_: stop.set())
     return stop
 

@@ -1,4 +1,4 @@
-"""The main job, deploy/stack.py: starts the roles, restarts a dead actor, stops cleanly on Ctrl-C,
+"""The main job, deploy/stack.py: starts the roles, restarts a dead actor, stops cleanly on a hangup,
 and keeps the configured update ratio over a whole run."""
 
 import json
@@ -17,7 +17,8 @@ from tests.processes import children, kill_tree, wait_for
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
 
 
-def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
+def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_a_hangup(tmp_path):
+    """SIGHUP (its terminal closed) stops it as Ctrl-C does, which the other stack tests send."""
     output = open(tmp_path / "stack.out", "wb")
     stack = subprocess.Popen([sys.executable, str(STACK), "--preset", "smoke", "--actors", "1",
                               "--run.runs_dir", str(tmp_path), "--run.name", "main", "--recorder.enabled", "false"],
@@ -40,7 +41,7 @@ def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_ctrl_c(tmp_path):
                  "a new actor", 60, [tmp_path / "stack.out"])
         assert "actor-0 exited with code -9; restarting it" in (tmp_path / "stack.out").read_text()
         started = list(children(stack.pid))
-        stack.send_signal(signal.SIGINT)
+        stack.send_signal(signal.SIGHUP)
         assert stack.wait(90) == 0
         for pid in started:
             assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]

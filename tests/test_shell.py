@@ -1,4 +1,4 @@
-"""The service shell (common/shell.py): a role stops cleanly on SIGTERM with its liveliness
+"""The service shell (common/shell.py): a role stops cleanly on SIGTERM or SIGHUP with its liveliness
 token gone, a session that cannot open is one clear line and exit code 1, and leaving the
 session by an error still closes everything, in order. Every session lives in its own process."""
 
@@ -26,8 +26,10 @@ def run_flags(tmp_path, *transport: str) -> list[str]:
     return ["--preset", "smoke", "--run.name", RUN, "--run.runs_dir", str(tmp_path / "runs"), *transport]
 
 
-@pytest.mark.parametrize("role", sorted(ROLES))
-def test_a_role_stops_on_sigterm_and_its_token_goes(tmp_path, role):
+# SIGHUP: the terminal of a role started by hand closed; it stops as on SIGTERM (the learner checkpoints)
+@pytest.mark.parametrize("role, signum", [("recorder", signal.SIGTERM), ("replay", signal.SIGTERM),
+                                          ("replay", signal.SIGHUP)])
+def test_a_role_stops_on_sigterm_or_sighup_and_its_token_goes(tmp_path, role, signum):
     endpoint = loopback_endpoint()
     tokens, role_log = tmp_path / "alive.jsonl", tmp_path / f"{role}.log"
     observer = start([str(PEER), "alive", str(tokens), *run_flags(tmp_path, "--transport.listen", endpoint)],
@@ -39,7 +41,7 @@ def test_a_role_stops_on_sigterm_and_its_token_goes(tmp_path, role):
         token = f"d3rqn/{RUN}/alive/{role}/0"
         changes = lambda: [(line["key"], line["up"]) for line in read_lines(tokens) if line["kind"] == "alive"]
         wait_for(lambda: (token, True) in changes(), f"the {role}'s token", 30, [role_log])
-        process.send_signal(signal.SIGTERM)
+        process.send_signal(signum)
         assert process.wait(30) == 0
         wait_for(lambda: changes()[-1:] == [(token, False)], f"the {role}'s token to go", 10, [role_log])
     finally:
