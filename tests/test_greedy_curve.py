@@ -433,7 +433,7 @@ def test_the_time_to_drive_is_the_first_test_row_that_reaches_it():
 def test_the_machine_and_precision_a_curve_was_trained_with_by_spans_of_its_kept_policies():
     rows = [row(1000, "test", 50, 0), row(1000, "train", 60, 0), row(2000, "test", 70, 0), row(3000, "test", 80, 0),
             row(4000, "test", 90, 0), row(5000, "test", 95, 0)]
-    assert trained_with(rows) == "Test CPU, precision not recorded"
+    assert trained_with(rows) == "Test CPU, precision not recorded" and trained_with([]) == ""
     for item, (cpu, precision) in zip(rows, [("AMD EPYC", "float32")] * 3 + [("Intel Xeon", "bfloat16")] * 2
                                       + [("AMD EPYC", "float32")]):
         item.update(trained_on=cpu, trained_precision=precision)

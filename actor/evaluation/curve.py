@@ -241,18 +241,16 @@ def trained_with(rows: Sequence[dict]) -> str:
     """The learner's CPU and precision by the kept policies of a curve's rows, a span each where they changed
     (learner.precision auto is bfloat16 on one CPU and float32 on another): "AMD EPYC, float32", or
     "AMD EPYC, float32 to 16,000 updates; Intel Xeon, bfloat16 from 18,000"."""
-    spans: list[list] = []  # [machine, first updates, last updates]
-    for updates in sorted({int(row["updates"]) for row in rows}):
-        row = next(row for row in rows if int(row["updates"]) == updates)
+    by_updates = {int(row["updates"]): row for row in reversed(rows)}  # one row per policy: the first
+    spans: list[tuple[str, int, int]] = []  # (machine, first updates, last updates)
+    for updates, row in sorted(by_updates.items()):
         machine = f"{row['trained_on']}, {row.get('trained_precision') or 'precision not recorded'}"
-        if spans and spans[-1][0] == machine:
-            spans[-1][2] = updates
-        else:
-            spans.append([machine, updates, updates])
-    if len(spans) == 1:
-        return spans[0][0]
-    return "; ".join(f"{machine} {'to' if number == 0 else 'from'} {first if number else last:,d}"
-                     f"{' updates' if number == 0 else ''}" for number, (machine, first, last) in enumerate(spans))
+        first = spans.pop()[1] if spans and spans[-1][0] == machine else updates
+        spans.append((machine, first, updates))
+    if not spans:
+        return ""
+    first_span = f"{spans[0][0]} to {spans[0][2]:,d} updates" if len(spans) > 1 else spans[0][0]
+    return "; ".join([first_span] + [f"{machine} from {first:,d}" for machine, first, _ in spans[1:]])
 
 
 def chosen_on_train(rows: Sequence[dict]) -> dict | None:
