@@ -20,26 +20,29 @@ LINGER_WAIT_S = 60.0
 LINGER_POLL_S = 0.5
 
 
-class RunBusy(Exception):
-    """The run folder is in use; the message says by what and what to do."""
+class RunClaimError(Exception):
+    """The run folder is in use, or its lock file cannot be opened; the message says why and what to do."""
 
 
 def claim_run(run: RunDir, wait_s: float = LINGER_WAIT_S) -> IO:
-    """The open, locked lock file: keep it open while the stack runs. RunBusy if another stack runs the run,
+    """The open, locked lock file: keep it open while the stack runs. RunClaimError if another stack runs the run,
     or if processes of an earlier one are still alive after wait_s."""
-    handle = open(run.stack_lock, "a+")
+    try:
+        handle = open(run.stack_lock, "a+")
+    except OSError as error:  # a read-only folder, or something else in the lock file's place
+        raise RunClaimError(f"cannot open the run's lock file {run.stack_lock}: {error}") from None
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         handle.close()
-        raise RunBusy(f"run folder {run.root} is in use by another stack (deploy/run.sh or the grid runner); "
+        raise RunClaimError(f"run folder {run.root} is in use by another stack (deploy/run.sh or the grid runner); "
                       "stop it first (Ctrl-C in its terminal), or give another --run.name") from None
     deadline = time.monotonic() + wait_s
     while (lingering := lingering_pids(run)) and time.monotonic() < deadline:
         time.sleep(LINGER_POLL_S)
     if lingering:
         handle.close()
-        raise RunBusy(f"processes of an earlier stack of run folder {run.root} are still alive after "
+        raise RunClaimError(f"processes of an earlier stack of run folder {run.root} are still alive after "
                       f"{wait_s:.0f} s (pids {', '.join(map(str, lingering))}); they stop by themselves once their "
                       "stack is gone: wait for them, then start again")
     return handle

@@ -47,7 +47,7 @@ from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
 from deploy.console import Console
 from deploy.stack_monitor import StackMonitor
-from deploy.run_claim import RunBusy, claim_run
+from deploy.run_claim import RunClaimError, claim_run
 
 STOP_GRACE_S = 20.0
 RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubled for each death in a row
@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     run.root.mkdir(parents=True, exist_ok=True)
     try:
         claim = claim_run(run)  # held open until this process ends
-    except RunBusy as error:
+    except RunClaimError as error:
         print(f"deploy/run.sh: {error}", file=sys.stderr)
         return 2
     run.config.write_text(to_toml(config))

@@ -13,7 +13,7 @@ import pytest
 
 from common.run_dir import RunDir
 from deploy.console import Console
-from deploy.run_claim import RunBusy, claim_run, lingering_pids
+from deploy.run_claim import RunClaimError, claim_run, lingering_pids
 from tests.processes import wait_for
 
 
@@ -27,10 +27,14 @@ def run_folder(tmp_path) -> RunDir:
 def test_a_second_claim_on_a_run_folder_is_refused_until_the_first_ends(tmp_path):
     run = run_folder(tmp_path)
     first = claim_run(run)
-    with pytest.raises(RunBusy, match="is in use by another stack"):
+    with pytest.raises(RunClaimError, match="is in use by another stack"):
         claim_run(run)
     first.close()  # the kernel drops the lock of a stack that ends, however it ends
     claim_run(run).close()
+    run.stack_lock.unlink()
+    run.stack_lock.mkdir()  # something else in the lock file's place: a clear error, not a traceback
+    with pytest.raises(RunClaimError, match="cannot open the run's lock file"):
+        claim_run(run)
 
 
 def test_a_run_whose_earlier_stack_left_processes_alive_waits_for_them(tmp_path):
@@ -43,7 +47,7 @@ def test_a_run_whose_earlier_stack_left_processes_alive_waits_for_them(tmp_path)
         status = {"phase": "training", "pids": {"learner": role.pid, "replay": os.getpid()}}  # the test: another config
         run.status.write_text(json.dumps(status))
         assert lingering_pids(run) == [role.pid]
-        with pytest.raises(RunBusy, match=f"still alive after 0 s \\(pids {role.pid}\\)"):
+        with pytest.raises(RunClaimError, match=f"still alive after 0 s \\(pids {role.pid}\\)"):
             claim_run(run, wait_s=0.2)
         threading.Timer(0.5, role.kill).start()  # it stops while the next stack waits
         claim_run(run, wait_s=30).close()
