@@ -8,6 +8,7 @@ status file, started with the run's config) to stop, and does not start while th
 from __future__ import annotations
 
 import fcntl
+import logging
 import os
 import time
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import IO
 
 from common.run_dir import RunDir, RunStatus, StatusError
 
+log = logging.getLogger("stack")
 # an earlier stack's roles stop within a second of its end, the learner after its checkpoint
 LINGER_WAIT_S = 60.0
 LINGER_POLL_S = 0.5
@@ -36,15 +38,17 @@ def claim_run(run: RunDir, wait_s: float = LINGER_WAIT_S) -> IO:
     except BlockingIOError:
         handle.close()
         raise RunClaimError(f"run folder {run.root} is in use by another stack (deploy/run.sh or the grid runner); "
-                      "stop it first (Ctrl-C in its terminal), or give another --run.name") from None
+                            "stop it first (Ctrl-C in its terminal), or give another --run.name") from None
+    except OSError as error:  # a file system without locks (some network mounts): go on unguarded, and say so
+        log.warning("cannot lock %s (%s): a second stack on this run would not be refused", run.stack_lock, error)
     deadline = time.monotonic() + wait_s
     while (lingering := lingering_pids(run)) and time.monotonic() < deadline:
         time.sleep(LINGER_POLL_S)
     if lingering:
         handle.close()
         raise RunClaimError(f"processes of an earlier stack of run folder {run.root} are still alive after "
-                      f"{wait_s:.0f} s (pids {', '.join(map(str, lingering))}); they stop by themselves once their "
-                      "stack is gone: wait for them, then start again")
+                            f"{wait_s:.0f} s (pids {', '.join(map(str, lingering))}); they stop by themselves once "
+                            "their stack is gone: wait for them, then start again")
     return handle
 
 

@@ -97,3 +97,14 @@ def test_the_console_leaves_a_read_stream_alone(monkeypatch, tmp_path):
     finally:
         os.close(read_end)
         os.close(write_end)
+
+
+def test_a_file_system_without_locks_is_said_and_the_run_goes_on(tmp_path, monkeypatch, caplog):
+    run = run_folder(tmp_path)
+
+    def no_locks(handle, operation):
+        raise OSError(37, "No locks available")
+
+    monkeypatch.setattr("deploy.run_claim.fcntl.flock", no_locks)
+    claim_run(run).close()
+    assert "cannot lock" in caplog.text and "No locks available" in caplog.text
