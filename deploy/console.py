@@ -50,7 +50,7 @@ def _reader_gone(stream) -> bool:
         poller = select.poll()
         poller.register(stream.fileno(), select.POLLOUT)
         return any(events & GONE_EVENTS for _, events in poller.poll(0))
-    except (OSError, ValueError):  # no file descriptor (a test's captured stream): nothing to ask
+    except (OSError, ValueError, AttributeError):  # no descriptor (a captured stream), or None (fd 1 closed)
         return False
 
 
@@ -63,5 +63,5 @@ def _silence(stream) -> None:
             os.dup2(devnull, stream.fileno())
         finally:
             os.close(devnull)
-    except (OSError, ValueError):
+    except (OSError, ValueError, AttributeError):
         pass

@@ -108,3 +108,11 @@ def test_a_file_system_without_locks_is_said_and_the_run_goes_on(tmp_path, monke
     monkeypatch.setattr("deploy.run_claim.fcntl.flock", no_locks)
     claim_run(run).close()
     assert "cannot lock" in caplog.text and "No locks available" in caplog.text
+
+
+def test_a_console_without_stdout_says_nothing_and_goes_on(monkeypatch):
+    monkeypatch.setattr(sys, "stdout", None)  # Python's sys.stdout when fd 1 was closed at its start
+    console = Console(threading.Event())
+    assert console.check()
+    console.say("nowhere")
+    assert not console.stop.is_set()
