@@ -41,7 +41,10 @@ FLAGS = ["--preset", "smoke", "--network.lstm_units", "16", "--pace.total_env_st
 RUNS = ["--run.runs_dir", "runs"]
 WEIGHTS_MB = 1.68  # the smoke network with 16 LSTM units, float32
 PAPER_SECONDS_PER_BROADCAST = 48.6 * 8 / 20  # the paper's network over 20 Mbit/s: 19 s
-RECOVER_S = 60.0
+# A fault's recovery waits include the rate limiter's holds: on a loaded machine (the suite beside a training
+# run) the learner fell behind the ratio after a cap, the actors were held, and actor 1 published again after
+# more than 60 s though the link had healed
+RECOVER_S = 150.0
 REPORTS: list[dict] = []
 
 
