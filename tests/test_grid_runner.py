@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import signal
+import threading
 from pathlib import Path
 
 import pytest
@@ -279,6 +282,47 @@ class FakeChild:
 
     def interrupt(self) -> None:
         pass
+
+
+class StackUntilInterrupted:
+    """A stand-in for a run's stack (grid_job.Child) that trains until it is interrupted, as the real one does."""
+    started: list = []
+    latest = ""
+
+    def __init__(self, *_):
+        self.interrupted = threading.Event()
+        self.process = self
+        StackUntilInterrupted.started.append(self)
+
+    def poll(self) -> int | None:
+        return 130 if self.interrupted.is_set() else None
+
+    def wait(self) -> int:
+        self.interrupted.wait(60)
+        return 130
+
+    def interrupt(self) -> None:
+        self.interrupted.set()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_to_the_grid_interrupts_its_stacks_and_the_grid(tmp_path, monkeypatch, signum):
+    """Ctrl-C, a kill and a closed terminal (SIGHUP) all stop the running stacks as an interruption does, and
+    the grid says it was interrupted, so that the same command resumes."""
+    monkeypatch.setattr(StackUntilInterrupted, "started", [])
+    monkeypatch.setattr(grid_job, "Child", StackUntilInterrupted)
+    monkeypatch.setattr(grid_job, "trains_since", lambda *_: False)
+    before = signal.getsignal(signum)
+    timer = threading.Timer(1.0, os.kill, (os.getpid(), signum))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            experiments.run_grid([RunSpec("bmc", 1000, 0)], options(tmp_path), parallel=1)
+    finally:
+        timer.cancel()
+    stacks = StackUntilInterrupted.started
+    assert len(stacks) == 1 and stacks[0].interrupted.is_set()
+    assert signal.getsignal(signum) == before  # the grid's handler is given back
 
 
 def test_a_grid_with_no_finished_run_has_no_report_and_says_so(tmp_path, capsys):

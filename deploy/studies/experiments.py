@@ -102,7 +102,7 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: lis
         for job in active:
             job.interrupt()
 
-    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGINT, signal.SIGTERM)}
+    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         while pending or active:
             while pending and len(active) < parallel and not stopping.is_set():
