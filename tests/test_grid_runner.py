@@ -262,6 +262,34 @@ def test_a_run_with_a_damaged_checkpoint_fails_alone(tmp_path, monkeypatch, caps
     assert "cannot read the step count of" in out and (tmp_path / "results" / "runs" / "vdbe-b1000-s0").is_dir()
 
 
+def test_a_run_exported_finished_is_done_where_its_folder_is_not(tmp_path, monkeypatch, capsys):
+    """A fresh clone with the finished runs' exports committed goes on to the next run: an export of the run
+    finished at this budget counts as done when its run folder holds nothing; at another budget, or once a
+    run folder is started here, it does not."""
+    finished = make_drive_run(tmp_path / "elsewhere" / "vdbe-b1000-s0", BUDGET, KEPT,
+                              curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test") + curve_rows(KEPT[-5:], "train"),
+                              strategy="vdbe")
+    grid_cells.write_cell(finished, RunSpec("vdbe", 1000, 0), 30_000)
+    choose(finished)
+    fake_evaluation(finished.evaluation, [100, 100], updates=30_000)
+    exported = export_run(finished, tmp_path / "export")
+    argv = ["--strategies", "vdbe,bmc", "--seeds", "0", "--runs-dir", str(tmp_path / "runs"),
+            "--export", str(exported.parent)]
+    assert experiments.main([*argv, "--cells"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].endswith(f"next: done (exported to {exported})") and lines[1].endswith("next: train")
+    assert experiments.main([*argv, "--updates", "20000", "--cells"]) == 0
+    assert capsys.readouterr().out.splitlines()[0].endswith("next: train")  # finished at another budget
+    monkeypatch.setattr(grid_job.RunJob, "_start", lambda *_, **__: pytest.fail("nothing is to run"))
+    before = sorted((path, path.stat().st_mtime_ns) for path in exported.rglob("*"))
+    assert experiments.run_grid([RunSpec("vdbe", 1000, 0)], experiments.parse_arguments(argv).options, 1) == 0
+    assert "finished and exported to" in capsys.readouterr().out
+    assert sorted((path, path.stat().st_mtime_ns) for path in exported.rglob("*")) == before  # left as it was
+    make_drive_run(tmp_path / "runs" / "vdbe-b1000-s0", 90_000, KEPT[:15], strategy="vdbe")
+    assert experiments.main([*argv, "--cells"]) == 0
+    assert capsys.readouterr().out.splitlines()[0].endswith("next: resume")  # a run started here is its folder
+
+
 def test_a_damaged_steps_row_is_left_out(tmp_path):
     run = RunDir(tmp_path)
     grid_cells.record_step(run, "train", 0.0, "done")

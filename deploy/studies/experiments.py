@@ -87,10 +87,10 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: lis
     stopping = threading.Event()
     numbers = numbers or list(range(len(specs)))
     jobs = [RunJob(number, total or len(specs), spec, options, stopping,
-                   trained_at_start=trained_share(options.run_dir(spec), run_budget(spec, options)))
+                   trained_at_start=trained_share(options.steps_dir(spec), run_budget(spec, options)))
             for number, spec in zip(numbers, specs)]
     # runs their folders already hold whole go first: they finish at once, so the counts say so from the start
-    pending = deque(sorted(jobs, key=lambda job: step_of(options.run_dir(job.spec),
+    pending = deque(sorted(jobs, key=lambda job: step_of(options.steps_dir(job.spec),
                                                          run_budget(job.spec, options)) != DONE))
     active = []
     failed = 0
@@ -250,7 +250,9 @@ def step_of(run_dir: Path, budget: int) -> str:
 
 def list_cells(plan: Plan) -> None:
     for number, spec in zip(plan.numbers, plan.specs):
-        step = step_of(plan.options.run_dir(spec), run_budget(spec, plan.options))
+        exported = plan.options.exported(spec)
+        step = f"{DONE} (exported to {exported})" if exported else step_of(plan.options.run_dir(spec),
+                                                                            run_budget(spec, plan.options))
         print(f"{number:3d}  {spec.name:32s} {spec.strategy:14s} buffer {spec.capacity:5d}  options {spec.options:15s} "
               f"seed {spec.seed}  next: {step}")
 

@@ -11,7 +11,7 @@ import shutil
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from actor.evaluation.status import is_evaluation_line
@@ -61,6 +61,18 @@ class Options:
 
     def run(self, spec: RunSpec) -> RunDir:
         return RunDir(self.run_dir(spec))
+
+    def exported(self, spec: RunSpec) -> Path | None:
+        """Its export, when that holds the run finished at this budget and its run folder holds nothing: a
+        fresh clone or another machine, with the finished runs' exports committed, goes on to the next."""
+        folder = self.export_dir / spec.name
+        if self.run(spec).config.is_file() or read_cell(folder) != {**asdict(spec), "updates": self.updates}:
+            return None
+        return folder if next_step(folder, run_budget(spec, self)) == DONE else None
+
+    def steps_dir(self, spec: RunSpec) -> Path:
+        """The folder whose files say the run's next step: its export where that holds it finished."""
+        return self.exported(spec) or self.run_dir(spec)
 
 
 # --- a run's config and commands -----------------------------------------------------------------------------
@@ -236,6 +248,11 @@ class RunJob:
 
     def _steps(self) -> None:
         budget, done = run_budget(self.spec, self.options), []
+        if (exported := self.options.exported(self.spec)) is not None:
+            self.phase, self.headline = "already exported", evaluation_headline(RunDir(exported))
+            print(f"{self.tag}: finished and exported to {exported}; nothing to run (remove that folder to train "
+                  "it again)", flush=True)
+            return
         if self.run.config.is_file() and read_cell(self.run.root) is None:  # a run started by hand
             write_cell(self.run, self.spec, self.options.updates)
         while (step := next_step(self.run.root, budget)) != DONE:
