@@ -19,7 +19,7 @@ from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
 from deploy.studies.experiments import preset_flags
-from deploy.studies.grid_job import Options, choice_command, curve_commands, evaluate_command
+from deploy.studies.grid_job import Options, choice_commands, curve_commands, evaluate_command
 from deploy.studies.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
                                next_step, read_choice)
 from deploy.studies.run_results import greedy_headline
@@ -44,7 +44,8 @@ def read_run(run: RunDir, options: Options, budget: int) -> None:
             for command in curve_commands(run, options):
                 call(command)
         elif step == CHOOSE:
-            call(choice_command(run, options))
+            for command in choice_commands(run, options):
+                call(command)
             choice = choose(run)
             print(f"main job: chose the policy kept at {choice['updates']:,d} updates on the train starts "
                   f"(train CFR {100 * choice['train_cfr']:.0f}% at {choice['trials_per_start']} trials per start)")

@@ -18,7 +18,7 @@ import deploy.studies.grid_job as grid_job
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config, to_toml
 from deploy.studies import grid_cells
-from deploy.studies.grid_cells import RunSpec, choose, curve_wanted, next_step
+from deploy.studies.grid_cells import RunSpec, choice_candidates, choose, curve_wanted, next_step
 from deploy.studies.run_results import export_run, read_exported
 from common.run_dir import RunDir
 from tests.grid_runs import fake_evaluation
@@ -158,10 +158,22 @@ def test_the_curve_passes_ask_only_for_what_is_missing(tmp_path):
     assert passes[0][passes[0].index("--every") + 1] == "1000"  # not a policy kept at a stop
     write_curve(run, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
     assert len(grid_job.curve_commands(run, opts)) == 1
-    assert grid_job.choice_command(run, opts)[5:9] == ["--sets", "train", "--from-updates", "26000"]
+    assert [command[5:] for command in grid_job.choice_commands(run, opts)] == [
+        ["--sets", "train", "--from-updates", "26000", "--every", "1000", "--preset", "drive"]]
     evaluate = grid_job.evaluate_command(run, opts, 29_000)
     assert evaluate[3:6] == ["--checkpoint", str(run.policy(29_000)), "--out"]
     assert evaluate[-2:] == ["--evaluation.episodes_per_start", "10"]
+
+
+def test_the_choice_passes_read_its_candidates_and_not_a_policy_kept_at_a_stop(tmp_path):
+    run = make_drive_run(tmp_path / "run", BUDGET, [*KEPT[:-3], 27_688, *KEPT[-3:], 30_024])
+    assert choice_candidates(run) == [27_000, 28_000, 29_000, 30_000, 30_024]
+    spans = [command[5:command.index("--preset")] for command in grid_job.choice_commands(run, options(tmp_path))]
+    assert spans == [["--sets", "train", "--from-updates", "27000", "--every", "1000"],
+                     ["--sets", "train", "--from-updates", "30024"]]
+    write_curve(run, curve_rows([27_000, 28_000, 29_000, 30_000], "train"))
+    spans = [command[5:command.index("--preset")] for command in grid_job.choice_commands(run, options(tmp_path))]
+    assert spans == [["--sets", "train", "--from-updates", "30024"]]
 
 
 def test_cells_lists_the_numbered_runs_and_cell_runs_one(tmp_path, capsys):

@@ -144,12 +144,20 @@ def follow_command(run: RunDir, options: Options) -> list[str]:
                          "--evaluation.workers", "1", "--every", str(CURVE_LATE_EVERY))
 
 
-def choice_command(run: RunDir, options: Options) -> list[str]:
-    """The last kept policies on the train starts, to choose the run's policy on."""
+def choice_commands(run: RunDir, options: Options) -> list[list[str]]:
+    """The passes on the train starts that the choice still needs: its candidates on the schedule, then the
+    last policy where that is off it; a policy kept at a stop among them is not read."""
     candidates = choice_candidates(run)
     if not candidates:
         raise ExperimentError(f"{run.root}: no kept policy to choose among (learner.keep_every was 0)")
-    return curve_command(run, options, "--sets", "train", "--from-updates", str(candidates[0]))
+    every, missing = keep_every(run), set(candidates) - curve_read(run, "train")
+    passes = []
+    if any(updates % every == 0 for updates in missing):
+        passes.append(curve_command(run, options, "--sets", "train", "--from-updates", str(candidates[0]),
+                                    "--every", str(every)))
+    if any(updates % every for updates in missing):
+        passes.append(curve_command(run, options, "--sets", "train", "--from-updates", str(candidates[-1])))
+    return passes
 
 
 def evaluate_command(run: RunDir, options: Options, updates: int) -> list[str]:
@@ -297,17 +305,18 @@ class RunJob:
             raise ExperimentError(f"the stack stopped at {reached:,d} env steps, short of the budget")
 
     def _curve(self, _: str) -> None:
-        for command in curve_commands(self.run, self.options):
-            self._start(command, "curve", is_evaluation_line, echo=False)
-            self._wait_all()
+        self._passes(curve_commands(self.run, self.options))
 
     def _choose(self, _: str) -> None:
-        if not {updates for updates in choice_candidates(self.run)} <= curve_read(self.run, "train"):
-            self._start(choice_command(self.run, self.options), "curve", is_evaluation_line, echo=False)
-            self._wait_all()
+        self._passes(choice_commands(self.run, self.options))
         choice = choose(self.run)
         print(f"{self.tag}: chose the policy kept at {choice['updates']:,d} updates on the train starts "
               f"(train CFR {100 * choice['train_cfr']:.0f}%, among {choice['among']})", flush=True)
+
+    def _passes(self, commands: list[list[str]]) -> None:
+        for command in commands:
+            self._start(command, "curve", is_evaluation_line, echo=False)
+            self._wait_all()
 
     def _evaluate(self, _: str) -> None:
         self._start(evaluate_command(self.run, self.options, read_choice(self.run)["updates"]), "evaluate",
