@@ -54,6 +54,14 @@ def cpu_flags() -> frozenset[str] | None:
     return _cpuinfo()[1]
 
 
+def cpu_label() -> str:
+    """The model and the widest of its vector extensions that matter here ("AMD EPYC, AVX512-BF16"): two
+    machines with one model name can differ in them, and so in speed and in the learner's precision."""
+    flags = cpu_flags() or frozenset()
+    widest = next((name for name, flag in reversed(SHOWN_FLAGS.items()) if flag in flags), None)
+    return cpu_model() if widest is None else f"{cpu_model()}, {widest}"
+
+
 def describe_cpu() -> str:
     """One line for benchmarks and reports: the model, the flags that matter here, and bfloat16's verdict."""
     flags = cpu_flags()

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from common.checkpoint import TRAINED_PRECISIONS, Checkpoint, KeptPolicy
-from common.cpu_capability import cpu_model
+from common.cpu_capability import cpu_label
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
@@ -57,7 +57,7 @@ SAMPLE_TIMEOUT_S = 30.0
 IDLE_POLL_S = 0.05
 WAIT_LOG_S = 10.0
 MAX_FAILED_IN_A_ROW = 20  # updates that raise on consecutive batches: the learner itself is at fault; it stops
-CPU_MODEL = cpu_model()  # recorded in each kept policy: its wall time is this machine's
+CPU_LABEL = cpu_label()  # recorded in each kept policy: its wall time is this machine's
 
 
 class RunClock:
@@ -337,7 +337,7 @@ class LearnerService:
             env_steps, wall_s = self.clock.env_steps, self.clock.wall_s()
         online = {name: torch.from_numpy(array) for name, array in self.learner.online_weights().items()}
         precision = self.learner.precision if self.learner.precision in TRAINED_PRECISIONS else ""  # not "auto"
-        self.keeper.keep(KeptPolicy(updates=self.updates, env_steps=env_steps, wall_s=wall_s, cpu=CPU_MODEL,
+        self.keeper.keep(KeptPolicy(updates=self.updates, env_steps=env_steps, wall_s=wall_s, cpu=CPU_LABEL,
                                     config=to_dict(self.config), online=online, precision=precision))
 
     def keep_policy_if_due(self) -> None:

@@ -48,6 +48,17 @@ def test_the_description_names_the_model_the_flags_and_the_verdict(monkeypatch):
     assert cpu_capability.bfloat16_native()
 
 
+def test_the_label_tells_apart_machines_of_one_model_name(monkeypatch):
+    monkeypatch.setattr(cpu_capability, "_cpuinfo", lambda: ZEN3)
+    assert cpu_capability.cpu_label() == "AMD EPYC 7B13 64-Core Processor, AVX2"
+    monkeypatch.setattr(cpu_capability, "_cpuinfo", lambda: (ZEN3[0], ZEN3[1] | {"avx512f", "avx512_bf16"}))
+    assert cpu_capability.cpu_label() == "AMD EPYC 7B13 64-Core Processor, AVX512-BF16"
+    monkeypatch.setattr(cpu_capability, "_cpuinfo", lambda: SAPPHIRE_RAPIDS)
+    assert cpu_capability.cpu_label() == "Intel(R) Xeon(R) Platinum 8481C, AMX"
+    monkeypatch.setattr(cpu_capability, "_cpuinfo", lambda: ("unknown CPU", None))
+    assert cpu_capability.cpu_label() == "unknown CPU"
+
+
 def test_only_an_explicit_bfloat16_is_refused(monkeypatch):
     monkeypatch.setattr(cpu_capability, "bfloat16_problem", lambda: "no bfloat16 here")
     cpu_capability.require_precision("learner.precision", "float32")

@@ -31,7 +31,7 @@ from actor.evaluation.curve import CURVE_CSV, CURVE_TRIALS, chosen_on_train, rea
 from common.analysis.tables import SUMMARY_CSV, read_facts
 from common.checkpoint import Checkpoint, CheckpointError
 from common.config_values import load_config
-from common.cpu_capability import cpu_model
+from common.cpu_capability import cpu_label
 from common.options import ConfigError
 from common.run_dir import RunDir
 
@@ -168,7 +168,7 @@ def record_step(run: RunDir, step: str, started: float, outcome: str) -> None:
             if new:
                 writer.writeheader()
             writer.writerow({"step": step, "started": round(started, 1), "wall_s": round(time.time() - started, 1),
-                             "cpu": cpu_model(), "cores": os.cpu_count(), "outcome": outcome})
+                             "cpu": cpu_label(), "cores": os.cpu_count(), "outcome": outcome})
     except OSError as error:
         print(f"{run.root}: the {step} step's time is not recorded: {error}", flush=True)
 
