@@ -1,0 +1,34 @@
+"""Hands the C heap's free pages back to the system (glibc's malloc_trim).
+
+glibc keeps what a process frees for reuse, and gives its main heap back only from the top. A burst of
+allocations, such as an actor's random phase at 1,000 env steps/s with its frames made and freed by the
+thousand, leaves the process holding its peak for good: an actor of the grid read 1,479 MB of RSS, and
+701 MB after one malloc_trim(0). A C library without the call (musl, macOS) is said in one log line; the
+process then keeps its peak, as before.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import logging
+
+log = logging.getLogger(__name__)
+
+
+@functools.cache
+def _malloc_trim():
+    try:
+        trim = ctypes.CDLL(None).malloc_trim  # the C library this process already runs on
+    except (OSError, AttributeError):
+        log.info("this C library has no malloc_trim (it is not glibc): memory freed after a burst stays "
+                 "with the process")
+        return None
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    return trim
+
+
+def release_free_heap() -> bool | None:
+    """Gives the heap's free pages back: whether any went (glibc's answer), None without malloc_trim."""
+    trim = _malloc_trim()
+    return None if trim is None else bool(trim(0))
