@@ -11,6 +11,7 @@ or budget the same steps follow. Stopped by Ctrl-C, it stops where it is; the sa
 from __future__ import annotations
 
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -31,9 +32,28 @@ KEEP_EVERY = 1_000  # updates between kept policies when the config keeps none
 
 
 def call(command: list[str]) -> None:
-    code = subprocess.call(command)
+    child = subprocess.Popen(command)
+    try:
+        code = child.wait()
+    except KeyboardInterrupt:
+        stop_child(child)
+        print("main job: stopped by Ctrl-C; the same command (with --resume while it trains) goes on",
+              file=sys.stderr, flush=True)
+        raise SystemExit(130) from None
     if code != 0:
         raise SystemExit(code)
+
+
+def stop_child(child: subprocess.Popen) -> None:
+    """Hands the interrupt on (a terminal's Ctrl-C reached the child already; a kill of this process alone did
+    not) and waits while the child checkpoints, so that nothing is left running behind the job."""
+    while True:
+        try:
+            child.send_signal(signal.SIGINT)
+            child.wait()
+            return
+        except KeyboardInterrupt:
+            continue
 
 
 def read_run(run: RunDir, options: Options, budget: int) -> None:
@@ -60,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     flags = [*preset_flags(argv), *argv]
     if any(flag in ("-h", "--help", "--dump-config") for flag in argv):
-        return subprocess.call([sys.executable, str(STACK_SCRIPT), *flags])
+        call([sys.executable, str(STACK_SCRIPT), *flags])
+        return 0
     _, config = parse_config_or_exit(build_parser(), flags)
     if not (config.learner.keep_every or config.learner.keep_every_s):  # the paper preset keeps none
         print(f"main job: keeping a policy every {KEEP_EVERY:,d} updates to choose among "

@@ -4,6 +4,12 @@ policy in runs/<run>/policy.pt and its evaluation; every child a stand-in that l
 from __future__ import annotations
 
 import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -12,6 +18,8 @@ from deploy import main_job
 from deploy.studies.grid_cells import curve_wanted, read_choice
 from tests.grid_runs import fake_evaluation
 from tests.test_grid_runner import BUDGET, KEPT, curve_rows, make_drive_run, write_curve
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def stand_in(run: RunDir, calls: list[str], reached: int = BUDGET):
@@ -65,3 +73,40 @@ def test_a_config_that_keeps_no_policy_gets_one_kept_every_1000_updates(tmp_path
     monkeypatch.setattr(main_job, "greedy_headline", lambda folder: "")
     main_job.main(["--preset", "paper", "--run.runs_dir", str(tmp_path), "--run.name", "p"])
     assert commands[0][-2:] == ["--learner.keep_every", "1000"] and "keeping a policy" in capsys.readouterr().out
+
+
+CHECKPOINTING_CHILD = """
+import pathlib, signal, sys, time
+folder = pathlib.Path(sys.argv[1])
+def checkpoint(*_):
+    time.sleep(0.5)  # the parent must wait through this
+    (folder / "checkpointed").write_text("yes")
+    sys.exit(0)
+signal.signal(signal.SIGINT, checkpoint)
+(folder / "ready").write_text("yes")
+while True:
+    time.sleep(0.05)
+"""
+
+
+@pytest.mark.parametrize("whom", ["terminal", "job alone"])
+def test_ctrl_c_waits_for_the_child_to_checkpoint_and_exits_130_in_one_line(tmp_path, whom):
+    """A terminal's Ctrl-C reaches the job and its child; a kill of the job alone must be handed on."""
+    job = subprocess.Popen([sys.executable, "-c", "import sys; from deploy.main_job import call; "
+                            f"call([sys.executable, '-c', {CHECKPOINTING_CHILD!r}, {str(tmp_path)!r}])"],
+                           stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 30
+        while not (tmp_path / "ready").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if whom == "terminal":
+            os.killpg(job.pid, signal.SIGINT)
+        else:
+            job.send_signal(signal.SIGINT)
+        _, err = job.communicate(timeout=30)
+    finally:
+        if job.poll() is None:
+            os.killpg(job.pid, signal.SIGKILL)
+    assert job.returncode == 130 and (tmp_path / "checkpointed").exists()
+    assert "Traceback" not in err and err.strip().splitlines() == [
+        "main job: stopped by Ctrl-C; the same command (with --resume while it trains) goes on"]
