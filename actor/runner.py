@@ -65,7 +65,6 @@ from actor.sim import make_env
 from common.config import Config
 from common.strategy_build import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
-from common.heap import release_free_heap
 from common.network import initial_network
 from common.pacing import env_steps_ceiling
 from common.rejections import Rejections
@@ -321,7 +320,6 @@ def _stats(actor: Actor, outbox: Outbox, receivers: dict) -> Stats:
 def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop: threading.Event) -> None:
     stale = STALE_BROADCASTS * actor.config.learner.weights_every
     while not stop.wait(actor.config.actor.log_period_s):
-        release_free_heap()  # the frames of a burst (the random phase) freed, not the process's peak held
         try:
             stats = _stats(actor, outbox, receivers)
             stats_out.put(stats)

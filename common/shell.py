@@ -31,6 +31,7 @@ import zenoh
 
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
+from common.heap import keep_releasing_free_heap
 from common.logs import setup_logging
 from common.transport import declare_liveliness, open_session
 from common.keys import Keys
@@ -97,6 +98,7 @@ class Service:
         setup_logging(role if process_id is None else f"{role}-{process_id}")
         self.stop = stop_on_signals()
         stop_with_parent(self.stop)
+        keep_releasing_free_heap(self.stop)  # a role holds its peak for good otherwise (common/heap.py)
         self.keys = Keys(config.transport.namespace, config.run.name)
         self._closing: contextlib.ExitStack | None = None
 

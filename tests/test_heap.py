@@ -46,3 +46,27 @@ def test_a_c_library_without_malloc_trim_is_said_once_and_nothing_breaks(monkeyp
             "this C library has no malloc_trim (it is not glibc): memory freed after a burst stays with the process"]
     finally:
         heap._malloc_trim.cache_clear()
+
+
+ROLE = """
+import threading, time
+from common import heap, shell
+from common.config import Config
+calls = []
+heap.TRIM_PERIOD_S = 0.01
+heap.release_free_heap = lambda: calls.append(1) or True
+service = shell.Service("replay", Config())
+time.sleep(0.5)
+service.stop.set()
+thread = next(t for t in threading.enumerate() if t.name == "heap-trim")
+thread.join(5)
+print(len(calls), thread.is_alive())
+"""
+
+
+def test_every_role_keeps_releasing_from_its_shell_until_it_stops():
+    """In its own process: the shell sets signal handlers and a log."""
+    result = subprocess.run([sys.executable, "-c", ROLE], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    calls, alive = result.stdout.split()
+    assert int(calls) >= 10 and alive == "False", result.stdout
