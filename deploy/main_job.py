@@ -4,8 +4,8 @@ last five kept, and that policy evaluated on both start sets. It ends with the c
 runs/<run>/policy.pt and its evaluation in runs/<run>/evaluation/.
 
 Every flag of deploy/stack.py --help applies (the preset, the strategy, --resume, ...); with another preset
-or budget the same steps follow. Stopped by Ctrl-C, it stops where it is; the same command with --resume
-(while training) or as it was (after) goes on.
+or budget the same steps follow. Stopped by Ctrl-C, SIGTERM or SIGHUP, it stops where it is (the stack
+checkpoints); the same command with --resume (while training) or as it was (after) goes on.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Callable
 
 from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
@@ -29,6 +30,19 @@ from deploy.stack import build_parser
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
 POLICY_FILE = "policy.pt"
 KEEP_EVERY = 1_000  # updates between kept policies when the config keeps none
+STOPPED = "main job: stopped; the same command (with --resume while it trains) goes on"
+
+
+def stoppable(job: Callable[[], int]) -> int:
+    """Runs the job with SIGTERM (a service manager's stop; as PID 1 of a container it would be ignored) and
+    SIGHUP (a closed terminal) taken as Ctrl-C: what the job runs checkpoints, and it ends in one line, 130."""
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, signal.default_int_handler)
+    try:
+        return job()
+    except KeyboardInterrupt:
+        print(STOPPED, file=sys.stderr, flush=True)
+        return 130
 
 
 def call(command: list[str]) -> None:
@@ -37,15 +51,13 @@ def call(command: list[str]) -> None:
         code = child.wait()
     except KeyboardInterrupt:
         stop_child(child)
-        print("main job: stopped by Ctrl-C; the same command (with --resume while it trains) goes on",
-              file=sys.stderr, flush=True)
-        raise SystemExit(130) from None
+        raise
     if code != 0:
         raise SystemExit(code)
 
 
 def stop_child(child: subprocess.Popen) -> None:
-    """Hands the interrupt on (a terminal's Ctrl-C reached the child already; a kill of this process alone did
+    """Hands the stop on (a terminal's Ctrl-C reached the child already; a signal to this process alone did
     not) and waits while the child checkpoints, so that nothing is left running behind the job."""
     while True:
         try:
@@ -104,4 +116,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(stoppable(main))

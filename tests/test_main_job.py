@@ -89,24 +89,25 @@ while True:
 """
 
 
-@pytest.mark.parametrize("whom", ["terminal", "job alone"])
-def test_ctrl_c_waits_for_the_child_to_checkpoint_and_exits_130_in_one_line(tmp_path, whom):
-    """A terminal's Ctrl-C reaches the job and its child; a kill of the job alone must be handed on."""
-    job = subprocess.Popen([sys.executable, "-c", "import sys; from deploy.main_job import call; "
-                            f"call([sys.executable, '-c', {CHECKPOINTING_CHILD!r}, {str(tmp_path)!r}])"],
-                           stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=ROOT)
+@pytest.mark.parametrize("whom, signum", [("terminal", signal.SIGINT), ("job alone", signal.SIGINT),
+                                          ("job alone", signal.SIGTERM), ("job alone", signal.SIGHUP)])
+def test_a_stop_waits_for_the_child_to_checkpoint_and_exits_130_in_one_line(tmp_path, whom, signum):
+    """A terminal's Ctrl-C reaches the job and its child; a signal to the job alone (a service manager's
+    SIGTERM) must be handed on. The job stands in by one call of the real child."""
+    job = subprocess.Popen([sys.executable, "-c", "import sys; from deploy import main_job; sys.exit(main_job."
+                            f"stoppable(lambda: main_job.call([sys.executable, '-c', {CHECKPOINTING_CHILD!r}, "
+                            f"{str(tmp_path)!r}])))"], stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=ROOT)
     try:
         deadline = time.monotonic() + 30
         while not (tmp_path / "ready").exists() and time.monotonic() < deadline:
             time.sleep(0.05)
         if whom == "terminal":
-            os.killpg(job.pid, signal.SIGINT)
+            os.killpg(job.pid, signum)
         else:
-            job.send_signal(signal.SIGINT)
+            job.send_signal(signum)
         _, err = job.communicate(timeout=30)
     finally:
         if job.poll() is None:
             os.killpg(job.pid, signal.SIGKILL)
     assert job.returncode == 130 and (tmp_path / "checkpointed").exists()
-    assert "Traceback" not in err and err.strip().splitlines() == [
-        "main job: stopped by Ctrl-C; the same command (with --resume while it trains) goes on"]
+    assert "Traceback" not in err and err.strip().splitlines() == [main_job.STOPPED]
