@@ -9,19 +9,27 @@ from collections import deque
 
 class Eta:
     """The rate of a growing count over the last `window_s` seconds (the whole time by default), and
-    the time it needs at that rate to reach `total`."""
+    the time it needs at that rate to reach `total`. With `min_rises`, the window reaches back further
+    where it must to hold that many rises of the count: one that grows in sparse bursts reads its rate
+    over several of them, not 0 between two."""
 
-    def __init__(self, total: float, window_s: float = math.inf, clock=time.monotonic) -> None:
+    def __init__(self, total: float, window_s: float = math.inf, clock=time.monotonic, min_rises: int = 0) -> None:
         self.total = total
         self.window_s = window_s
+        self.min_rises = min_rises
         self._clock = clock
         self._samples: deque[tuple[float, float]] = deque()
 
     def update(self, done: float) -> None:
         now = self._clock()
         self._samples.append((now, done))
-        while len(self._samples) > 2 and now - self._samples[1][0] >= self.window_s:
+        while (len(self._samples) > 2 and now - self._samples[1][0] >= self.window_s
+               and self._rises_after_second() >= self.min_rises):
             self._samples.popleft()
+
+    def _rises_after_second(self) -> int:
+        values = [done for _, done in self._samples]
+        return sum(later > earlier for earlier, later in zip(values[1:], values[2:]))
 
     def per_s(self) -> float | None:
         """Count per second over the window; None until time has passed between two samples."""

@@ -16,7 +16,9 @@ from common.wire.messages import EpisodeRecord, ReplayStats, Stats
 from common.wire.run_shape import stat_number
 
 ETA_WINDOW_S = 300.0  # the ETA follows the rate of the last five minutes
-STEP_SPEED_WINDOW_S = 60.0  # the line's steps/s: actors held by the rate limiter send episodes in bursts
+# The line's steps/s: over a minute, or the last few episodes' arrivals where they are sparser (2,000-step
+# episodes of a paced run arrive about once a minute, and a minute often holds none).
+STEP_SPEED_WINDOW_S, STEP_SPEED_ARRIVALS = 60.0, 4
 
 
 class StackMonitor:
@@ -34,7 +36,7 @@ class StackMonitor:
         # rate once updates start, and is unknown before (the random phase runs many times faster than the
         # learner will). An unpaced run's (the replay's rate limiter says which) follows the env-step rate.
         self.eta: Eta | None = None
-        self.env_step_speed = Eta(total_env_steps, STEP_SPEED_WINDOW_S, clock)
+        self.env_step_speed = Eta(total_env_steps, STEP_SPEED_WINDOW_S, clock, STEP_SPEED_ARRIVALS)
         self._clock = clock
         self._started = clock()
 

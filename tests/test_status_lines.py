@@ -217,6 +217,29 @@ def test_the_lines_step_rate_is_over_a_minute_so_bursts_from_held_actors_do_not_
     assert "steps/s   30.0 |" in monitor.line()  # 1,800 steps in 60 s, though the last second added none
 
 
+def test_a_rate_with_min_rises_reaches_back_to_the_sample_before_the_earliest_of_them():
+    clock = FakeClock()
+    sparse, plain = Eta(0, window_s=10.0, clock=clock, min_rises=2), Eta(0, window_s=10.0, clock=clock)
+    for clock.now, done in [(0, 0), (10, 0), (20, 100), (30, 100), (40, 200), (100, 200)]:
+        sparse.update(done)
+        plain.update(done)
+    assert sparse.per_s() == pytest.approx(200 / 90) and plain.per_s() == 0.0
+
+
+def test_the_lines_step_rate_reads_sparse_episodes_over_several_arrivals_and_falls_when_they_stop():
+    """A paced drive run: a 2,000-step episode about every 67 s (30 steps/s), the replay's stats every second."""
+    clock, arrivals = FakeClock(), set(range(30, 900, 67))
+    monitor, env_steps, read = StackMonitor(200_000, clock=clock), 28_000, []
+    for second in range(1_500):
+        clock.now = float(second)
+        env_steps += 2_000 if second in arrivals else 0
+        monitor.on_replay_stats(replay_stats(env_steps), "k")
+        if 300 <= second < 900:
+            read.append(monitor.env_step_speed.per_s())
+    assert 29.0 < min(read) and max(read) < 40.0  # 4 arrivals over 3 to 4 intervals; never 0 between two
+    assert monitor.env_step_speed.per_s() < 10.0  # ten minutes without an episode
+
+
 def test_a_rate_needs_time_between_two_samples():
     clock = FakeClock()
     eta = Eta(10, clock=clock)
