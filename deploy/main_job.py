@@ -35,8 +35,9 @@ STOPPED = "main job: stopped; the same command (with --resume while it trains) g
 
 def stoppable(job: Callable[[], int]) -> int:
     """Runs the job with SIGTERM (a service manager's stop; as PID 1 of a container it would be ignored) and
-    SIGHUP (a closed terminal) taken as Ctrl-C: what the job runs checkpoints, and it ends in one line, 130."""
-    for signum in (signal.SIGTERM, signal.SIGHUP):
+    SIGHUP (a closed terminal) taken as Ctrl-C: what the job runs checkpoints, and it ends in one line, 130.
+    SIGINT too, since a job started in the background of a script inherits it ignored, as the stack does not."""
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, signal.default_int_handler)
     try:
         return job()

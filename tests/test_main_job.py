@@ -93,10 +93,12 @@ while True:
                                           ("job alone", signal.SIGTERM), ("job alone", signal.SIGHUP)])
 def test_a_stop_waits_for_the_child_to_checkpoint_and_exits_130_in_one_line(tmp_path, whom, signum):
     """A terminal's Ctrl-C reaches the job and its child; a signal to the job alone (a service manager's
-    SIGTERM) must be handed on. The job stands in by one call of the real child."""
+    SIGTERM) must be handed on. The job stands in by one call of the real child; it starts with SIGINT ignored,
+    as a job started in the background of a script does (and as pytest itself may run)."""
     job = subprocess.Popen([sys.executable, "-c", "import sys; from deploy import main_job; sys.exit(main_job."
                             f"stoppable(lambda: main_job.call([sys.executable, '-c', {CHECKPOINTING_CHILD!r}, "
-                            f"{str(tmp_path)!r}])))"], stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=ROOT)
+                            f"{str(tmp_path)!r}])))"], stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=ROOT,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         deadline = time.monotonic() + 30
         while not (tmp_path / "ready").exists() and time.monotonic() < deadline:
