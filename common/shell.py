@@ -51,7 +51,7 @@ def parse_service_args(parser: argparse.ArgumentParser, argv: list[str] | None =
     return args, config
 
 
-PARENT_ENV = "D3RQN_STOP_WITH_PARENT"  # set by deploy/stack.py to its pid: its roles stop when it is gone
+PARENT_ENV = "D3RQN_STOP_WITH_PARENT"  # a parent's pid (the stack's for its roles, the main job's for its stack)
 PARENT_POLL_S = 1.0
 
 
@@ -67,7 +67,7 @@ def stop_with_parent(stop: threading.Event, expected: int | None = None) -> thre
     def watch() -> None:
         while not stop.wait(PARENT_POLL_S):
             if os.getppid() != expected:
-                log.warning("the stack that started this process (pid %d) is gone: stopping", expected)
+                log.warning("the process that started this one (pid %d) is gone: stopping", expected)
                 stop.set()
 
     thread = threading.Thread(target=watch, name="parent-watch", daemon=True)

@@ -10,6 +10,7 @@ checkpoints); the same command with --resume (while training) or as it was (afte
 
 from __future__ import annotations
 
+import os
 import shutil
 import signal
 import subprocess
@@ -20,6 +21,7 @@ from typing import Callable
 from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
+from common.shell import PARENT_ENV
 from deploy.studies.experiments import preset_flags
 from deploy.studies.grid_job import Options, choice_commands, curve_commands, evaluate_command
 from deploy.studies.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
@@ -47,7 +49,7 @@ def stoppable(job: Callable[[], int]) -> int:
 
 
 def call(command: list[str]) -> None:
-    child = subprocess.Popen(command)
+    child = subprocess.Popen(command, env={**os.environ, PARENT_ENV: str(os.getpid())})  # it stops if this dies
     try:
         code = child.wait()
     except KeyboardInterrupt:

@@ -42,7 +42,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
 from common.run_dir import RunDir
-from common.shell import PARENT_ENV
+from common.shell import PARENT_ENV, stop_with_parent
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
 from deploy.console import Console
@@ -272,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
     actors = args.actors or config.actor.num_actors or default_actor_count()
     stop = threading.Event()
+    stop_with_parent(stop)  # started by the main job: a job killed leaves no stack training on alone
     console = Console(stop)
     console.say(f"run {config.run.name!r}: strategy {config.exploration.strategy}, {actors} actor(s), "
                 f"router {endpoint}, files in {run.root}/; {keeping(config)}")

@@ -142,3 +142,38 @@ def test_a_stack_whose_reader_is_gone_stops_its_run_cleanly_and_a_second_stack_i
     finally:
         if stack.poll() is None:
             kill_tree(stack)
+
+
+def gone(pid: int) -> bool:
+    return not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
+
+
+def test_a_stack_whose_main_job_is_killed_stops_its_run_cleanly(tmp_path):
+    """The main job (deploy/main_job.py) killed by SIGKILL, whose stack writes to the terminal and would
+    otherwise train on alone: the stack sees its parent gone and stops as on Ctrl-C (the learner checkpoints)."""
+    flags = ["--preset", "smoke", "--actors", "1", "--run.runs_dir", str(tmp_path), "--run.name", "orphan",
+             "--recorder.enabled", "false", "--network.lstm_units", "16", "--learner.batch_size", "2",
+             "--learner.trace_length", "5", "--learner.n_mask", "2", "--learner.torch_threads", "1",
+             "--pace.total_env_steps", "1000000"]
+    output = open(tmp_path / "job.out", "wb")
+    job = subprocess.Popen([sys.executable, "-c", "import sys; from deploy.main_job import call; "
+                            f"call([sys.executable, {str(STACK)!r}, *{flags!r}])"],
+                           stdout=output, stderr=subprocess.STDOUT, cwd=STACK.parents[1])
+    run_dir, stack_pid = tmp_path / "orphan", None
+    learner_log = run_dir / "logs" / "learner.log"
+    try:
+        wait_for(lambda: learner_log.exists() and "INFO learner: device" in learner_log.read_text(),
+                 "the learner's start", 120, [tmp_path / "job.out"])
+        stack_pid = next(pid for pid, command in children(job.pid).items() if "stack.py" in command)
+        roles = list(children(stack_pid))
+        job.kill()
+        job.wait()
+        wait_for(lambda: gone(stack_pid), "the stack to stop after its job", 90, [tmp_path / "job.out"])
+        assert all(gone(pid) for pid in roles) and len(roles) == 3
+        assert json.loads((run_dir / "status.json").read_text())["phase"] == "stopped"
+        assert (run_dir / "checkpoints" / "latest.pt").exists()
+        assert "is gone: stopping" in (tmp_path / "job.out").read_text()
+    finally:
+        for pid in [stack_pid, *(children(stack_pid) if stack_pid else [])]:
+            if pid is not None and not gone(pid):
+                os.kill(pid, signal.SIGKILL)
