@@ -75,12 +75,19 @@ def stop_with_parent(stop: threading.Event, expected: int | None = None) -> thre
     return thread
 
 
+def on_stop_signals(handler) -> dict:
+    """Sets handler on SIGINT, SIGTERM and SIGHUP (a closed terminal), each a request to stop cleanly, and
+    returns the handlers it replaced. A SIGHUP ignored at the start stays ignored: `nohup` asked for it."""
+    hangup_ignored = signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    return {signum: signal.signal(signum, handler) for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+            if not (signum == signal.SIGHUP and hangup_ignored)}
+
+
 def stop_on_signals() -> threading.Event:
-    """An event that SIGINT, SIGTERM and SIGHUP (the terminal of a role started by hand closed) set: the
-    process finishes what it does and stops cleanly."""
+    """An event that the stop signals set (on_stop_signals): the process finishes what it does and stops
+    cleanly."""
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, lambda *_: stop.set())
+    on_stop_signals(lambda *_: stop.set())
     return stop
 
 

@@ -4,8 +4,8 @@ last five kept, and that policy evaluated on both start sets. It ends with the c
 runs/<run>/policy.pt and its evaluation in runs/<run>/evaluation/.
 
 Every flag of deploy/stack.py --help applies (the preset, the strategy, --resume, ...); with another preset
-or budget the same steps follow. Stopped by Ctrl-C, SIGTERM or SIGHUP, it stops where it is (the stack
-checkpoints); the same command with --resume (while training) or as it was (after) goes on.
+or budget the same steps follow. Stopped by Ctrl-C, SIGTERM or SIGHUP (but under nohup), it stops where it
+is (the stack checkpoints); the same command with --resume (while training) or as it was (after) goes on.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Callable
 from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
-from common.shell import PARENT_ENV
+from common.shell import PARENT_ENV, on_stop_signals
 from deploy.studies.experiments import preset_flags
 from deploy.studies.grid_job import Options, choice_commands, curve_commands, evaluate_command
 from deploy.studies.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
@@ -39,8 +39,7 @@ def stoppable(job: Callable[[], int]) -> int:
     """Runs the job with SIGTERM (a service manager's stop; as PID 1 of a container it would be ignored) and
     SIGHUP (a closed terminal) taken as Ctrl-C: what the job runs checkpoints, and it ends in one line, 130.
     SIGINT too, since a job started in the background of a script inherits it ignored, as the stack does not."""
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, signal.default_int_handler)
+    on_stop_signals(signal.default_int_handler)
     try:
         return job()
     except KeyboardInterrupt:

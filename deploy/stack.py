@@ -42,7 +42,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
 from common.run_dir import RunDir
-from common.shell import PARENT_ENV, stop_with_parent
+from common.shell import PARENT_ENV, on_stop_signals, stop_with_parent
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
 from deploy.console import Console
@@ -277,8 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     console.say(f"run {config.run.name!r}: strategy {config.exploration.strategy}, {actors} actor(s), "
                 f"router {endpoint}, files in {run.root}/; {keeping(config)}")
     stack = Stack(config, run, endpoint, actors, args.resume, args.tensorboard, console)
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a hung-up terminal stops it as Ctrl-C does
-        signal.signal(signum, lambda *_: stop.set())
+    on_stop_signals(lambda *_: stop.set())  # a hung-up terminal stops it as Ctrl-C does, but under nohup
     monitor = StackMonitor(config.pace.total_env_steps)
     stack.start_all()
     watcher_config = config.transport

@@ -108,3 +108,22 @@ def test_a_role_started_by_a_stack_stops_when_the_stack_is_killed(tmp_path):
 def test_without_a_stack_a_role_watches_no_parent(monkeypatch):
     monkeypatch.delenv(PARENT_ENV, raising=False)
     assert stop_with_parent(threading.Event()) is None
+
+
+NOHUP_PROBE = """
+import signal
+from common.shell import on_stop_signals
+on_stop_signals(lambda *_: None)
+print(signal.getsignal(signal.SIGHUP) == signal.SIG_IGN, signal.getsignal(signal.SIGINT) == signal.default_int_handler,
+      signal.getsignal(signal.SIGTERM) == signal.SIG_DFL)
+"""
+
+
+@pytest.mark.parametrize("nohup", [True, False])
+def test_the_stop_signals_leave_a_hangup_ignored_by_nohup_ignored(nohup):
+    """Every process of a run (roles, stack, main job, grid runner) takes its stop signals here."""
+    ignore = (lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN)) if nohup else None
+    result = subprocess.run([sys.executable, "-c", NOHUP_PROBE], capture_output=True, text=True, cwd=ROOT,
+                            preexec_fn=ignore, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == [str(nohup), "False", "False"]

@@ -36,6 +36,7 @@ from pathlib import Path
 from common.eta import clock_time
 from common.exploration.names import STRATEGIES
 from common.presets import GRID_UPDATES
+from common.shell import on_stop_signals
 from deploy.studies.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, counted,
                                        grid, next_step)
 from deploy.studies.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
@@ -102,7 +103,7 @@ def run_grid(specs: list[RunSpec], options: Options, parallel: int, numbers: lis
         for job in active:
             job.interrupt()
 
-    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    previous = on_stop_signals(interrupt)
     try:
         while pending or active:
             while pending and len(active) < parallel and not stopping.is_set():
