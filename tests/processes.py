@@ -20,11 +20,17 @@ STOP_TIMEOUT_S = 30.0
 ROUTER_START_S = 60.0
 
 
+def from_a_terminal() -> None:
+    """A child's preexec_fn: SIGHUP as a terminal leaves it, where the suite itself runs under nohup (which
+    passes it on ignored, and a process of a run keeps it so)."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 def start(args: list[str], log_path: Path, cwd: Path | None = None) -> subprocess.Popen:
-    """`python <args>` with stdout and stderr in log_path."""
+    """`python <args>` with stdout and stderr in log_path, started as from a terminal."""
     with open(log_path, "wb") as log:
         return subprocess.Popen([sys.executable, *args], stdout=log, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, cwd=cwd)
+                                stdin=subprocess.DEVNULL, cwd=cwd, preexec_fn=from_a_terminal)
 
 
 def router_client(endpoint: str) -> zenoh.Session:

@@ -352,17 +352,19 @@ def test_a_signal_to_the_grid_interrupts_its_stacks_and_the_grid(tmp_path, monke
     monkeypatch.setattr(StackUntilInterrupted, "started", [])
     monkeypatch.setattr(grid_job, "Child", StackUntilInterrupted)
     monkeypatch.setattr(grid_job, "trains_since", lambda *_: False)
-    before = signal.getsignal(signum)
+    untouched = lambda *_: None  # not SIG_IGN, which a suite run under nohup passes on for SIGHUP
+    before = signal.signal(signum, untouched)
     timer = threading.Timer(1.0, os.kill, (os.getpid(), signum))
     timer.start()
     try:
         with pytest.raises(KeyboardInterrupt):
             experiments.run_grid([RunSpec("bmc", 1000, 0)], options(tmp_path), parallel=1)
+        stacks = StackUntilInterrupted.started
+        assert len(stacks) == 1 and stacks[0].interrupted.is_set()
+        assert signal.getsignal(signum) is untouched  # the grid's handler is given back
     finally:
         timer.cancel()
-    stacks = StackUntilInterrupted.started
-    assert len(stacks) == 1 and stacks[0].interrupted.is_set()
-    assert signal.getsignal(signum) == before  # the grid's handler is given back
+        signal.signal(signum, before)
 
 
 def test_a_grid_with_no_finished_run_has_no_report_and_says_so(tmp_path, capsys):

@@ -188,8 +188,16 @@ def test_auto_chooses_under_a_busy_neighbour_as_it_does_quietly_and_the_metrics_
         monkeypatch.setattr(network_module, "fused_relu_convolution_available", lambda device: False)
         monkeypatch.setattr(cpu_capability, "bfloat16_problem", lambda: None)
     batch = random_batch(np.random.default_rng(5))
-    quiet = learner("auto")
-    quiet_choice = choose_learner_precision(quiet, quiet.prepare(batch), rounds=3)
+    quiet, timed, decide = learner("auto"), [], path_module.precision_from_timings
+    monkeypatch.setattr(path_module, "precision_from_timings",
+                        lambda seconds, speedup=None: timed.append(seconds) or decide(seconds, speedup))
+    choose_learner_precision(quiet, quiet.prepare(batch), rounds=5)
+    # The tiny network's quiet gain (1.04-1.17x here) lies within noise of the 1.3x the paper's network needs:
+    # the bar is set below the quiet gain by a margin, so that bfloat16 is the quiet choice by 25%, and the busy
+    # timings must keep it (issue 39's neighbour took 27% of bfloat16's gain).
+    quiet_gain = min(timed[0]["float32"]) / min(timed[0]["bfloat16"])
+    monkeypatch.setattr(path_module, "AUTO_BFLOAT16_SPEEDUP", 0.75 * quiet_gain)
+    quiet_choice = "bfloat16"
     config = load_config("smoke", overrides={
         "network.frame_height": TINY.frame_height, "network.frame_width": TINY.frame_width,
         "network.lstm_units": TINY.lstm_units, "learner.precision": "auto", "learner.update_path": "trace",

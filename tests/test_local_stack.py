@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from common.presets import PRESETS
-from tests.processes import children, kill_tree, wait_for
+from tests.processes import children, from_a_terminal, kill_tree, wait_for
 
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
 
@@ -22,7 +22,7 @@ def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_a_hangup(tmp_path):
     output = open(tmp_path / "stack.out", "wb")
     stack = subprocess.Popen([sys.executable, str(STACK), "--preset", "smoke", "--actors", "1",
                               "--run.runs_dir", str(tmp_path), "--run.name", "main", "--recorder.enabled", "false"],
-                             stdout=output, stderr=subprocess.STDOUT, cwd=tmp_path)
+                             stdout=output, stderr=subprocess.STDOUT, cwd=tmp_path, preexec_fn=from_a_terminal)
     run_dir = tmp_path / "main"
     try:
         actor_log, learner_log = run_dir / "logs" / "actor-0.log", run_dir / "logs" / "learner.log"

@@ -17,6 +17,7 @@ from common.run_dir import RunDir
 from deploy import main_job
 from deploy.studies.grid_cells import curve_wanted, read_choice
 from tests.grid_runs import fake_evaluation
+from tests.processes import from_a_terminal
 from tests.test_grid_runner import BUDGET, KEPT, curve_rows, make_drive_run, write_curve
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,7 +99,7 @@ def test_a_stop_waits_for_the_child_to_checkpoint_and_exits_130_in_one_line(tmp_
     job = subprocess.Popen([sys.executable, "-c", "import sys; from deploy import main_job; sys.exit(main_job."
                             f"stoppable(lambda: main_job.call([sys.executable, '-c', {CHECKPOINTING_CHILD!r}, "
                             f"{str(tmp_path)!r}])))"], stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=ROOT,
-                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+                           preexec_fn=lambda: from_a_terminal() or signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         deadline = time.monotonic() + 30
         while not (tmp_path / "ready").exists() and time.monotonic() < deadline:

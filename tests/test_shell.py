@@ -14,7 +14,7 @@ import pytest
 
 from common.config_values import load_config
 from common.shell import PARENT_ENV, Service, stop_with_parent
-from tests.processes import loopback_endpoint, start, stop, wait_for
+from tests.processes import from_a_terminal, loopback_endpoint, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -122,7 +122,7 @@ print(signal.getsignal(signal.SIGHUP) == signal.SIG_IGN, signal.getsignal(signal
 @pytest.mark.parametrize("nohup", [True, False])
 def test_the_stop_signals_leave_a_hangup_ignored_by_nohup_ignored(nohup):
     """Every process of a run (roles, stack, main job, grid runner) takes its stop signals here."""
-    ignore = (lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN)) if nohup else None
+    ignore = (lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN)) if nohup else from_a_terminal
     result = subprocess.run([sys.executable, "-c", NOHUP_PROBE], capture_output=True, text=True, cwd=ROOT,
                             preexec_fn=ignore, timeout=60)
     assert result.returncode == 0, result.stderr
