@@ -3,8 +3,8 @@
 glibc keeps what a process frees for reuse, and gives its main heap back only from the top. A burst of
 allocations, such as an actor's random phase at 1,000 env steps/s with its frames made and freed by the
 thousand, leaves the process holding its peak for good: an actor of the grid read 1,479 MB of RSS, and
-701 MB after one malloc_trim(0); the learner, the replay and the recorder each gave about 90 MB back. A C library without the call (musl, macOS) is said in one log line; the
-process then keeps its peak, as before.
+701 MB after one malloc_trim(0); the learner, the replay and the recorder each gave about 90 MB back.
+A C library without the call (musl, macOS) is said in one log line; the process then keeps its peak.
 """
 
 from __future__ import annotations

@@ -55,6 +55,11 @@ PARENT_ENV = "D3RQN_STOP_WITH_PARENT"  # a parent's pid (the stack's for its rol
 PARENT_POLL_S = 1.0
 
 
+def env_stopping_with_this() -> dict[str, str]:
+    """The environment for a child that is to stop once this process is gone (stop_with_parent)."""
+    return {**os.environ, PARENT_ENV: str(os.getpid())}
+
+
 def stop_with_parent(stop: threading.Event, expected: int | None = None) -> threading.Thread | None:
     """Sets `stop` (with a log line) once the process that started this one is gone, when that process asked
     for it (PARENT_ENV holds its pid): a stack killed or crashed leaves no role running on its own."""

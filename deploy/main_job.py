@@ -10,7 +10,6 @@ is (the stack checkpoints); the same command with --resume (while training) or a
 
 from __future__ import annotations
 
-import os
 import shutil
 import signal
 import subprocess
@@ -21,7 +20,7 @@ from typing import Callable
 from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
-from common.shell import PARENT_ENV, on_stop_signals
+from common.shell import env_stopping_with_this, on_stop_signals
 from deploy.studies.experiments import preset_flags
 from deploy.studies.grid_job import Options, choice_commands, curve_commands, evaluate_command
 from deploy.studies.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
@@ -48,7 +47,7 @@ def stoppable(job: Callable[[], int]) -> int:
 
 
 def call(command: list[str]) -> None:
-    child = subprocess.Popen(command, env={**os.environ, PARENT_ENV: str(os.getpid())})  # it stops if this dies
+    child = subprocess.Popen(command, env=env_stopping_with_this())  # it stops if this dies
     try:
         code = child.wait()
     except KeyboardInterrupt:

@@ -42,7 +42,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
 from common.run_dir import RunDir
-from common.shell import PARENT_ENV, on_stop_signals, stop_with_parent
+from common.shell import env_stopping_with_this, on_stop_signals, stop_with_parent
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
 from deploy.console import Console
@@ -194,7 +194,7 @@ class Stack:
         command = [sys.executable, "-m", *role.module.split(), *self.base, *role.flags,
                    *self._resume_flags(role, first)]  # module, then any subcommand
         role.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                        start_new_session=True, env={**os.environ, PARENT_ENV: str(os.getpid())})
+                                        start_new_session=True, env=env_stopping_with_this())
         role.started = time.monotonic()
         log.close()
 
