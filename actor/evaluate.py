@@ -182,9 +182,14 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         warn_if_crowding(run, args)
     while True:
         training = args.follow is not None and _stack_training(run)
-        if training and not curve_policies(run.kept_policies(), args.from_updates, args.every, args.to_updates):
-            time.sleep(args.follow)  # none kept yet that the curve reads
-            continue
+        if args.follow is not None and not curve_policies(run.kept_policies(), args.from_updates, args.every,
+                                                          args.to_updates):
+            if training:
+                time.sleep(args.follow)  # none kept yet that the curve reads
+                continue
+            print("curve: the run stopped before keeping a policy in this span at such a multiple: nothing to "
+                  "follow", file=sys.stderr)  # a budget shorter than --every, say; the run is no worse for it
+            return
         rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice,
                               from_updates=args.from_updates, every=args.every, to_updates=args.to_updates)
         evaluated_now = rows is not None

@@ -317,6 +317,19 @@ def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stop
     assert waits == [5.0, 5.0] and read_rows(run.curve / "curve.csv")[-1]["updates"] == "60"
 
 
+def test_a_follower_of_a_run_that_stopped_before_a_policy_at_its_multiple_ends_without_error(tmp_path, capsys):
+    config = tiny_config(tmp_path)
+    run = RunDir.of(config)
+    run.root.mkdir(parents=True)
+    RunStatus(phase="finished").write(run.status)
+    keep(config, 10)
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--every", "2000", "--follow", "5"])
+    assert "nothing to follow" in capsys.readouterr().err
+    assert not (run.curve / "curve.csv").exists()
+    with pytest.raises(SystemExit):  # asked for without --follow, the same span is an error
+        main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--every", "2000"])
+
+
 def test_a_curve_from_before_the_coverage_and_precision_columns_reads_and_takes_new_rows(tmp_path, capsys):
     old_rows = read_rows(OLD_CURVE)
     assert not {*COVERAGE_COLUMNS, "trained_precision"} & set(old_rows[0])
