@@ -13,33 +13,13 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
-PACKAGES="eclipse-zenoh==1.10.2 highway-env==1.12.1 gymnasium==1.4.0 farama-notifications==0.0.6
-pygame-ce==2.5.8 mcap==1.6.0 zstandard==0.25.0 lz4==4.4.5"
-PYTHON_VERSION=${PYTHON_VERSION:-3.12}  # the device's python3 (KINDS.md)
-
+source deploy/device_env.sh
 if [ "${1:-}" = "--wheels" ]; then
-    platforms=""
-    for p in manylinux_2_28 manylinux_2_27 manylinux_2_24 manylinux_2_17 manylinux2014 manylinux1; do
-        platforms="$platforms --platform ${p}_x86_64"
-    done
-    exec python3 -m pip download -q --no-deps --only-binary=:all: --implementation cp \
-        --python-version "$PYTHON_VERSION" $platforms -d "${WHEELS:-.whl}" $PACKAGES
+    fetch_wheels
+    exit
 fi
-
 STACK_S=${1:-300}
-DEVICE=${DEVICE:-cuda}
-PYTHON=${PYTHON:-python3}
-OUT=${OUT:-/tmp/device-out}
-mkdir -p "$OUT"
-export PYTHONUNBUFFERED=1
-step() { echo "== $(date -u +%H:%M:%S) $*"; }
-
-if compgen -G "${WHEELS:-.whl}/*.whl" >/dev/null; then
-    step "installing $(ls "${WHEELS:-.whl}" | wc -l) wheels into /tmp/device-site"
-    "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/device-site "${WHEELS:-.whl}"/*.whl || exit 1
-    export PYTHONPATH=/tmp/device-site:$PWD  # the project itself is not installed there
-fi
+install_wheels || exit 1
 
 {
     step "machine"

@@ -57,7 +57,13 @@ SAMPLE_TIMEOUT_S = 30.0
 IDLE_POLL_S = 0.05
 WAIT_LOG_S = 10.0
 MAX_FAILED_IN_A_ROW = 20  # updates that raise on consecutive batches: the learner itself is at fault; it stops
-CPU_LABEL = cpu_label()  # recorded in each kept policy: its wall time is this machine's
+CPU_LABEL = cpu_label()
+
+
+def trained_on(device: torch.device) -> str:
+    """Where a kept policy says it trained (its wall time is this machine's): the CPU, and before it the GPU
+    where the learner runs on one."""
+    return f"{torch.cuda.get_device_name(device)}, {CPU_LABEL}" if device.type == "cuda" else CPU_LABEL
 
 
 class RunClock:
@@ -337,8 +343,9 @@ class LearnerService:
             env_steps, wall_s = self.clock.env_steps, self.clock.wall_s()
         online = {name: torch.from_numpy(array) for name, array in self.learner.online_weights().items()}
         precision = self.learner.precision if self.learner.precision in TRAINED_PRECISIONS else ""  # not "auto"
-        self.keeper.keep(KeptPolicy(updates=self.updates, env_steps=env_steps, wall_s=wall_s, cpu=CPU_LABEL,
-                                    config=to_dict(self.config), online=online, precision=precision))
+        self.keeper.keep(KeptPolicy(updates=self.updates, env_steps=env_steps, wall_s=wall_s,
+                                    cpu=trained_on(self.learner.device), config=to_dict(self.config), online=online,
+                                    precision=precision))
 
     def keep_policy_if_due(self) -> None:
         if self.keeper.due(self.updates):

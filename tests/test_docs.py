@@ -37,6 +37,7 @@ CONFIG_ENTRY_POINTS = {"add_config_arguments", "parse_service_args"}  # a parser
 ON_PURPOSE_WRONG = {"--run.nam"}  # docs/configuration.md shows how a mistyped flag is refused
 
 FLAG = re.compile(r"(?<![\w-])--[a-z](?:[a-z0-9_.-]*[a-z0-9_])?(\.\*)?")
+SHELL_FLAG = re.compile(r'"(--[a-z][a-z0-9-]*)"')  # a flag a script of ours tests for: [ "$1" = "--wheels" ]
 CODE_BLOCK = re.compile(r"^```[^\n]*\n(.*?)^```", re.S | re.M)
 CODE_SPAN = re.compile(r"`([^`]+)`")
 LINK = re.compile(r"\]\(([^)\s]+)\)")
@@ -108,6 +109,8 @@ def command_flags(line: str) -> tuple[str, frozenset[str] | None]:
         word = words[2] if words[1] == "-m" and len(words) > 2 else words[1]
     if word in EXTERNAL:
         return word, None
+    if word.endswith(".sh") and word not in COMMANDS and (ROOT / word).is_file():
+        return word, frozenset(SHELL_FLAG.findall((ROOT / word).read_text()))
     if word.endswith(".py") and "/" not in word and (ROOT / "deploy" / "bench" / word).exists():
         word = f"deploy/bench/{word}"
     source = COMMANDS.get(word) or (word if word.endswith(".py") and (ROOT / word).is_file() else None)

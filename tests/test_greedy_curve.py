@@ -28,7 +28,7 @@ from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus
 from learner.keep import PolicyKeeper
-from learner.service import LearnerService
+from learner.service import CPU_LABEL, LearnerService
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
 from tests.test_status_lines import FakeClock
 
@@ -105,6 +105,20 @@ def test_a_resumed_run_s_wall_time_carries_on(config):
     resumed.keep_policy_if_due()
     resumed.keeper.wait()
     assert KeptPolicy.load(RunDir.of(config).policy(2)).wall_s == pytest.approx(130.0)
+
+
+def test_a_kept_policy_names_the_gpu_before_the_cpu_where_the_learner_trained_on_one(config, monkeypatch):
+    process = learner(config, keep_every=1)
+    train(process, batches(1)[0])
+    process.keep_policy_if_due()
+    process.keeper.wait()
+    assert KeptPolicy.load(RunDir.of(config).policy(1)).cpu == CPU_LABEL
+    train(process, batches(2)[1])
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA H200")
+    process.learner.device = torch.device("cuda")  # what the label reads (the update ran on the CPU)
+    process.keep_policy_if_due()
+    process.keeper.wait()
+    assert KeptPolicy.load(RunDir.of(config).policy(2)).cpu == f"NVIDIA H200, {CPU_LABEL}"
 
 
 # --- the kept file ---------------------------------------------------------------------------------------------
