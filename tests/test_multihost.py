@@ -27,6 +27,8 @@ from tests.processes import wait_for
 from tests.zenoh_peer import PATH as PEER
 from tests.zenoh_peer import read_lines
 
+pytestmark = pytest.mark.lab  # run alone, after the rest (deploy/test.sh)
+
 SMOKE = ["--preset", "smoke", "--network.lstm_units", "16"]
 DEADLINE_S = 75.0
 

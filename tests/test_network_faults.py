@@ -36,6 +36,8 @@ from tests.processes import wait_for
 from tests.zenoh_peer import PATH as PEER
 from tests.zenoh_peer import read_lines
 
+pytestmark = pytest.mark.lab  # run alone, after the rest (deploy/test.sh)
+
 FLAGS = ["--preset", "smoke", "--network.lstm_units", "16", "--pace.total_env_steps", "100000000",
          "--replay.snapshot_period_s", "4", "--actor.resend_after_s", "3"]
 RUNS = ["--run.runs_dir", "runs"]
