@@ -22,9 +22,7 @@ STACK_S=${1:-300}
 install_wheels || exit 1
 
 {
-    step "machine"
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 || true
-    lscpu | grep -E "^Model name|^CPU\(s\)"
+    show_machine
     "$PYTHON" -c "import torch, zenoh, highway_env, mcap; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 } 2>&1 | tee "$OUT/machine.txt"
 

@@ -1,7 +1,7 @@
 # Sourced by the scripts for a lent GPU machine (device_check.sh, device_grid.sh). That machine reaches no
 # registry: the packages its Python lacks travel as wheels in .whl/, fetched here by `fetch_wheels`.
 # Sets PYTHON, DEVICE (DEVICE=cpu tries the same steps on a CPU before a lease), OUT (the device tool's
-# folder; /tmp/device-out elsewhere) and PYTHONPATH, and defines step().
+# folder; /tmp/device-out elsewhere) and PYTHONPATH, and defines step() and show_machine().
 
 PACKAGES="eclipse-zenoh==1.10.2 highway-env==1.12.1 gymnasium==1.4.0 farama-notifications==0.0.6
 pygame-ce==2.5.8 mcap==1.6.0 zstandard==0.25.0 lz4==4.4.5"
@@ -13,6 +13,12 @@ mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
 
 step() { echo "== $(date -u +%H:%M:%S) $*"; }
+
+show_machine() {
+    step "machine"
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 || true
+    lscpu | grep -E "^Model name|^CPU\(s\)"
+}
 
 fetch_wheels() {
     local platforms="" p

@@ -26,11 +26,7 @@ grid=("$PYTHON" deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2 ${GRI
 run=$("${grid[@]}" --runs-dir "$RUNS" --cells | awk -v cell="$CELL" '$1 == cell {print $2}')
 [ -n "$run" ] || { echo "no cell $CELL in the grid"; exit 2; }
 
-{
-    step "machine"
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 || true
-    lscpu | grep -E "^Model name|^CPU\(s\)"
-} >"$OUT/machine.txt" 2>&1
+show_machine >"$OUT/machine.txt" 2>&1
 
 runner="experiments.py .*--cell $CELL( |$)"
 if pgrep -f "$runner" >/dev/null; then
