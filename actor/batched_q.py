@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from common import cpu_capability
-from common.config import INFERENCE_PRECISIONS
+from common.process_config import INFERENCE_PRECISIONS
 from common.network import CONV_LAYERS, D3RQN, conv_relu, fused_relu_convolution_available, load_numpy_weights
 from common.wire.state_rows import STATE_DTYPE
 

@@ -13,7 +13,9 @@ from common.logs import Every
 
 HOLD_WHY = {"budget": "the run's step budget is spent",
             "policy": "updates have started and the learner's weights and exploration state have not come",
-            "replay": "no replay is alive to count the steps (a restart): waiting for its word"}
+            "replay": "no replay is alive to count the steps (a restart): waiting for its word",
+            "silent": "no word from the replay on replay/rate: this actor may no longer hear the hub (its session "
+                      "reopens after actor.silence_reopen_s)"}
 HOLD_LOG_S = 10.0  # a paced run holds nearly every episode briefly: one line per period counts them
 
 log = logging.getLogger("actor")

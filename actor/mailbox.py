@@ -8,6 +8,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+import time
+from typing import Callable
 
 import numpy as np
 
@@ -22,11 +24,17 @@ log = logging.getLogger("actor")
 class Mailbox:
     """Holds only the newest acceptable message of each kind; written by callbacks, read by the loop.
 
-    ``shapes`` (tensor name -> shape) is what weights must hold; without it any weights are kept."""
+    ``shapes`` (tensor name -> shape) is what weights must hold; without it any weights are kept. Once the
+    replay's word has come, a silence of ``silence_hold_s`` holds the actor (None: never): the replay
+    announces it every stats period, so an actor that hears nothing may no longer hear the hub."""
 
     def __init__(self, shapes: dict[str, tuple[int, ...]] | None = None,
-                 rejections: Rejections | None = None, max_env_steps: int | None = None) -> None:
+                 rejections: Rejections | None = None, max_env_steps: int | None = None,
+                 silence_hold_s: float | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         self._lock = threading.Lock()
+        self._clock = clock
+        self._rate_at: float | None = None  # when the last acceptable rate message came
+        self.silence_hold_s = silence_hold_s
         self._weights: Weights | None = None
         self._exploration: ExplorationState | None = None
         self._heard_weights = False  # a broadcast arrived: the answer to the start-up ask is older
@@ -100,7 +108,13 @@ class Mailbox:
             self.hold_reason = message.hold_reason
             self.updates_started = message.updates_started
             self.learner_updates = message.batches_served
+            self._rate_at = self._clock()
         self.heard_rate.set()
+
+    def silent_s(self) -> float:
+        """Seconds since the replay's last acceptable word (0 before the first)."""
+        with self._lock:
+            return 0.0 if self._rate_at is None else self._clock() - self._rate_at
 
     def weights_behind(self, version: int) -> int:
         """Updates between the weights acted on and the learner's latest; 0 while either is unknown."""
@@ -113,10 +127,13 @@ class Mailbox:
             self.hold_reason = "replay"
 
     def must_hold(self, has_policy: bool = True) -> str:
-        """Why the next episode must wait ("" when it may start); no word from a replay: go. Without
-        the learner's policy (has_policy False) it waits too once updates have started ("policy")."""
+        """Why the next episode must wait ("" when it may start); no word from a replay yet: go. Without
+        the learner's policy (has_policy False) it waits too once updates have started ("policy"); after
+        silence_hold_s without the replay's word, too ("silent")."""
+        silent = self.silence_hold_s is not None and self.silent_s() > self.silence_hold_s
         with self._lock:
-            return self.hold_reason or ("" if has_policy or not self.updates_started else "policy")
+            return self.hold_reason or ("silent" if silent else "") or (
+                "" if has_policy or not self.updates_started else "policy")
 
     def take(self) -> tuple[Weights | None, ExplorationState | None]:
         with self._lock:

@@ -58,6 +58,7 @@ import torch
 from actor.batched_q import BatchedQ, choose_precision
 from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
 from actor.gate import HOLD_LOG_S, EpisodeGate, HoldLog
+from actor.hub_link import Declare, HubLink, keep_hearing
 from actor.lockstep import Lockstep, Trajectory, episode_message
 from actor.mailbox import Mailbox
 from actor.weights_download import download_weights
@@ -133,7 +134,7 @@ class Actor:
         self.incarnation = secrets.randbits(62) | 1  # names this process's episodes (never 0: unnamed)
         self.rejections = Rejections(log)
         shapes = {name: tuple(tensor.shape) for name, tensor in self.network.state_dict().items()}
-        self.mailbox = Mailbox(shapes, self.rejections, env_steps_ceiling(config))
+        self.mailbox = Mailbox(shapes, self.rejections, env_steps_ceiling(config), config.actor.silence_hold_s)
 
     def apply_mail(self) -> None:
         weights, exploration = self.mailbox.take()
@@ -243,10 +244,34 @@ class ReplayWatch:
         if gone:
             self.on_gone()
 
+    def forget(self) -> None:
+        """Knows of no replay until a watcher tells again (a fresh session's, after a reopen)."""
+        with self._lock:
+            self._alive.clear()
+
     @property
     def alive(self) -> bool:
         with self._lock:
             return bool(self._alive)
+
+
+def _declaring(config: Config, keys: Keys, actor: Actor, outbox: Outbox, replay: ReplayWatch) -> Declare:
+    """What the actor declares on a session (again on each fresh one): receivers and publishers by name."""
+    def declare(session) -> tuple[dict, dict]:
+        replay.forget()  # the new session's watcher tells again which replay is alive
+        mailbox = actor.mailbox
+        # no expected type: a message of another type reaches the mailbox, which counts it
+        weights = {} if config.actor.weights_download else {  # a slow link: no broadcasts, downloads at its pace
+            "weights": subscribe(session, keys.weights, mailbox.offer_weights)}
+        receivers = {**weights, "exploration": subscribe(session, keys.exploration, mailbox.offer_exploration),
+                     "rate": subscribe(session, keys.replay_rate, mailbox.offer_rate),
+                     "acks": subscribe(session, keys.episode_acks(actor.actor_id), outbox.on_ack, expected=EpisodeAck),
+                     "liveliness": watch_liveliness(session, keys.liveliness("replay", "0"), replay.on_change)}
+        publishers = {"episodes": publisher(session, keys.episodes),
+                      "records": publisher(session, keys.metrics_source("actor", str(actor.actor_id))),
+                      "stats": publisher(session, keys.metrics_source("actor_stats", str(actor.actor_id)))}
+        return receivers, publishers
+    return declare
 
 
 def run_actor(config: Config, max_episodes: int | None = None) -> None:
@@ -268,29 +293,21 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
     sending = threading.Event()  # the sender and the stats thread stop once driving is over
     with service.session() as session:
         service.on_close(sending.set)
-        # no expected type: a message of another type reaches the mailbox, which counts it
-        downloading = config.actor.weights_download  # a slow link: no broadcasts, downloads at its pace
-        receivers = {} if downloading else {"weights": subscribe(session, keys.weights, actor.mailbox.offer_weights)}
-        receivers |= {"exploration": subscribe(session, keys.exploration, actor.mailbox.offer_exploration),
-                     "rate": subscribe(session, keys.replay_rate, actor.mailbox.offer_rate),
-                     "acks": subscribe(session, keys.episode_acks(actor_id), outbox.on_ack, expected=EpisodeAck),
-                     "liveliness": watch_liveliness(session, keys.liveliness("replay", "0"), replay.on_change)}
-        for receiver in receivers.values():
-            service.on_close(receiver.undeclare)
-        episodes_out = publisher(session, keys.episodes)
-        records_out = publisher(session, keys.metrics_source("actor", str(actor_id)))
-        stats_out = publisher(session, keys.metrics_source("actor_stats", str(actor_id)))
+        link = HubLink(service, session, _declaring(config, keys, actor, outbox, replay))
+        service.on_close(link.close)
         threads = [
-            threading.Thread(target=_download_weights if downloading else _fetch_latest_weights,
-                             args=(session, keys, actor, stop), daemon=True),
-            threading.Thread(target=outbox.run, args=(episodes_out.put, lambda: replay.alive and episodes_out.matched,
-                                                      sending), name="outbox", daemon=True),
-            threading.Thread(target=_report_stats, args=(actor, outbox, receivers, stats_out, sending),
-                             name="stats", daemon=True)]
+            threading.Thread(target=_download_weights if config.actor.weights_download else _fetch_latest_weights,
+                             args=(link, keys, actor, stop), daemon=True),
+            threading.Thread(target=keep_hearing, args=(link, actor.mailbox.silent_s, config.actor.silence_reopen_s,
+                                                        sending), name="hearing", daemon=True),
+            threading.Thread(target=outbox.run, args=(lambda episode: link.put("episodes", episode),
+                                                      lambda: replay.alive and link.matched("episodes"), sending),
+                             name="outbox", daemon=True),
+            threading.Thread(target=_report_stats, args=(actor, outbox, link, sending), name="stats", daemon=True)]
         for thread in threads:
             thread.start()
         if max_episodes != 0 and _await_replays_word(actor.mailbox, stop):  # 0: nothing to drive, no word needed
-            _drive(actor, stop, max_episodes, outbox, records_out)
+            _drive(actor, stop, max_episodes, outbox, link)
         outbox.drain(stop)
         sending.set()
         for thread in threads[1:]:
@@ -298,7 +315,7 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
         unsent = outbox.drop_rest()
         if unsent:
             log.warning("stopping with %d finished episodes unsent: dropped", unsent)
-        stats_out.put(_stats(actor, outbox, receivers))
+        link.put("stats", _stats(actor, outbox, link))
     counts = outbox.values()
     log.info("actor %d stopped after %d episodes: %d sent (%d sent again), %d kept by the replay, %d in flight, "
              "%d dropped, %d released", actor_id, actor.episode_index, counts["episodes_sent"],
@@ -306,23 +323,24 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
              counts["episodes_dropped"], counts["episodes_released"])
 
 
-def _stats(actor: Actor, outbox: Outbox, receivers: dict) -> Stats:
+def _stats(actor: Actor, outbox: Outbox, link: HubLink) -> Stats:
     behind = actor.mailbox.weights_behind(actor.weights_version)
     actor.weights_behind_max = max(actor.weights_behind_max, behind)
     values = {"episodes": actor.episode_index, **outbox.values(), "weights_version": actor.weights_version,
               "weights_behind": behind, "weights_behind_max": actor.weights_behind_max,
               "weights_superseded": actor.mailbox.superseded,
               "weights_downloads": actor.weights_downloads, "weights_download_s": actor.weights_download_s, **actor.rejections.values(),
-              **{f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}}
+              "sessions_reopened": link.reopened, "hub_silent_s": round(actor.mailbox.silent_s(), 1),
+              **{f"malformed_{door}": rejected for door, rejected in link.rejected().items()}}
     return Stats(source="actor", time=time.time(), values=values)
 
 
-def _report_stats(actor: Actor, outbox: Outbox, receivers: dict, stats_out, stop: threading.Event) -> None:
+def _report_stats(actor: Actor, outbox: Outbox, link: HubLink, stop: threading.Event) -> None:
     stale = STALE_BROADCASTS * actor.config.learner.weights_every
     while not stop.wait(actor.config.actor.log_period_s):
         try:
-            stats = _stats(actor, outbox, receivers)
-            stats_out.put(stats)
+            stats = _stats(actor, outbox, link)
+            link.put("stats", stats)
         except Exception:  # the stats must never stop the actor
             log.warning("could not publish the actor's stats", exc_info=True)
             continue
@@ -356,21 +374,21 @@ def _await_replays_word(mailbox: Mailbox, stop: threading.Event) -> bool:
     return True
 
 
-def _fetch_latest_weights(session, keys: Keys, actor: Actor, stop: threading.Event) -> None:
+def _fetch_latest_weights(link: HubLink, keys: Keys, actor: Actor, stop: threading.Event) -> None:
     """Asks the learner for its latest weights, and again while none have come by any way."""
     mailbox = actor.mailbox
     while not stop.is_set() and not mailbox.had_weights.is_set():
-        reply = request(session, keys.weights_latest, None, LATEST_WEIGHTS_TIMEOUT_S)
+        reply = request(link.session, keys.weights_latest, None, LATEST_WEIGHTS_TIMEOUT_S)
         if reply is not None:
             mailbox.offer_latest(reply)
         stop.wait(LATEST_WEIGHTS_RETRY_S)
 
 
-def _download_weights(session, keys: Keys, actor: Actor, stop: threading.Event) -> None:
+def _download_weights(link: HubLink, keys: Keys, actor: Actor, stop: threading.Event) -> None:
     """actor.weights_download: the learner's latest weights, piece by piece, every period (sooner while
     none have come)."""
     def ask(message: WeightsPieceAsk) -> WeightsPiece | None:
-        return request(session, keys.weights_pieces, message, LATEST_WEIGHTS_TIMEOUT_S, expected=WeightsPiece)
+        return request(link.session, keys.weights_pieces, message, LATEST_WEIGHTS_TIMEOUT_S, expected=WeightsPiece)
 
     while not stop.is_set():
         began = time.monotonic()
@@ -387,7 +405,7 @@ def _download_weights(session, keys: Keys, actor: Actor, stop: threading.Event) 
         stop.wait(actor.config.actor.weights_download_period_s if weights is not None else LATEST_WEIGHTS_RETRY_S)
 
 
-def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, records_out) -> None:
+def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox: Outbox, link: HubLink) -> None:
     report = Every(actor.config.actor.log_period_s)
     may_start = EpisodeGate(actor.mailbox, HoldLog(HOLD_LOG_S),
                             lambda: max_episodes is None or actor.episodes_started < max_episodes,
@@ -402,7 +420,10 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox
             # A full outbox holds every simulator here: the replay is gone, not just behind.
             if not outbox.offer(episode, stop):
                 return
-            records_out.put(record)
+            try:
+                link.put("records", record)
+            except Exception:  # noqa: BLE001 - a session reopened meanwhile: one record lost, driving goes on
+                log.debug("an episode record was not published", exc_info=True)
             steps += record.length
             returns.append(record.episode_return)
             if report.due():

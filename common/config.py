@@ -23,7 +23,7 @@ from common.exploration.epsilon_greedy import ConstantEpsilonConfig, DecreasingE
 from common.exploration.names import STRATEGIES
 from common.exploration.vdbe import VdbeConfig
 from common.options import ConfigError, check, check_positive, option
-from common.process_config import RecorderConfig, RunConfig, TransportConfig
+from common.process_config import ActorConfig, RecorderConfig, RunConfig, TransportConfig
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 
 
@@ -131,7 +131,6 @@ class ReplayConfig:
 
 UPDATE_PATHS = ("auto", "trace", "trace-split", "autograd")
 LEARNER_PRECISIONS = ("float32", "bfloat16", "auto")  # learner.precision
-START_RULES = ("strategy", "episodes", "steps")  # pace.start_by
 
 
 @dataclass
@@ -240,9 +239,6 @@ class LearnerConfig:
         check(self.keep_encoding in WEIGHTS_ENCODINGS, "keep_encoding", f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
 
 
-INFERENCE_PRECISIONS = ("float32", "bfloat16", "auto")  # actor.inference
-
-
 @dataclass
 class ExplorationConfig:
     """The exploration strategy the learner drives and the actors follow, and each one's parameters."""
@@ -331,52 +327,6 @@ class EnvConfig:
 
 
 @dataclass
-class ActorConfig:
-    """An actor process: which one it is, how many simulators it steps, how often it logs, and its queue while
-    no replay listens."""
-
-    num_actors: int = option(0, "actors the local stack starts; 0 means one per spare core", "actors")
-    actor_id: int = option(0, "this actor's number: its keys and, with run.seed, its seed")
-    log_period_s: float = option(10.0, "how often the actor logs a status line", "s")
-    envs_per_actor: int = option(1, "simulators one actor steps in lockstep, with one batched forward pass of the "
-                                    "network per step; each has its own seed, LSTM state, exploration draws and "
-                                    "episodes", "simulators")
-    inference: str = option(
-        "float32", "number format of the actor's forward pass: float32; bfloat16 (the convolutions and the LSTM's "
-                   "input projection, with float32 state and head: 2.6-3.2x faster on a CPU with AMX, greedy actions "
-                   "as float32's within the tolerance docs/architecture.md states); or auto (bfloat16 where a timing of both at start "
-                   "finds it at least 1.2x faster). The evaluation always acts in float32",
-        choices=INFERENCE_PRECISIONS)
-    # Finished episodes wait in a queue while no replay listens (a replay restart).
-    queue_episodes: int = option(32, "the actor holds its next episode while this many finished episodes wait "
-                                     "for a replay", "episodes")
-    queue_mb: float = option(256.0, "the actor holds its next episode while this much of finished episodes waits "
-                                    "for a replay", "MB")
-    # Sent episodes stay until the replay says it keeps them (actor/delivery.py).
-    resend_after_s: float = option(5.0, "an episode sent this long ago whose receipt the replay has not "
-                                        "acknowledged is sent again (the replay takes none twice); one received but "
-                                        "not yet kept in a snapshot, after twice replay.snapshot_period_s more", "s")
-    in_flight_mb: float = option(256.0, "sent episodes the replay has not yet said it keeps are held, to be sent "
-                                        "again after a partition or a replay restart, up to this size; past it "
-                                        "the oldest is given up (counted as released)", "MB")
-    weights_download: bool = option(
-        False, "beyond the paper, for an actor on a slow link: instead of receiving the learner's broadcasts, "
-               "download its latest weights piece by piece at the link's pace, every weights_download_period_s. "
-               "A broadcast that a slow link cannot carry in its period backs the hub's router up into the "
-               "learner's link and slows the learner (docs/reliability.md); a download blocks no queue")
-    weights_download_period_s: float = option(
-        10.0, "actor.weights_download: how long after one download the next begins", "s")
-
-    def validate(self) -> None:
-        check(self.num_actors >= 0, "num_actors", "must be >= 0")
-        check(self.actor_id >= 0, "actor_id", "must be >= 0")
-        check_positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb", "resend_after_s",
-                       "in_flight_mb", "weights_download_period_s")
-        check(self.inference in INFERENCE_PRECISIONS, "inference",
-              f"must be one of {', '.join(INFERENCE_PRECISIONS)}")
-
-
-@dataclass
 class EvaluationConfig:
     """`evaluate`: greedy episodes from every start pose, and the intervals of the tables."""
 
@@ -438,6 +388,9 @@ class Config:
                 raise ConfigError(f"{path}.{error}" if path else str(error)) from None
         check(self.pace.start_episodes <= self.replay.capacity, "pace.start_episodes",
               f"{self.pace.start_episodes} exceeds replay.capacity {self.replay.capacity}: updates would never start")
+        check(self.actor.silence_hold_s >= 3 * self.replay.stats_period_s, "actor.silence_hold_s",
+              f"must be >= 3 replay.stats_period_s ({3 * self.replay.stats_period_s:g} s): the replay announces "
+              "its word that often, and a late word or two is no silence")
         return self
 
 

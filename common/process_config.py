@@ -1,6 +1,6 @@
 """The config's sections that every process shares and the method does not: the run's name and folder
-(run), how it talks (transport: Zenoh, TLS, access control) and what the flight recorder keeps
-(record). They are sections of the one Config (common/config.py), declared the same way.
+(run), how it talks (transport: Zenoh, TLS, access control), what the flight recorder keeps
+(record) and how an actor process runs (actor). They are sections of the one Config (common/config.py), declared the same way.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from common.options import check, check_positive, option
 
 
 TRANSPORT_MODES = ("peer", "client", "router")
+INFERENCE_PRECISIONS = ("float32", "bfloat16", "auto")  # actor.inference
 
 
 @dataclass
@@ -126,3 +127,57 @@ class RecorderConfig:
 
 def _is_key_chunk(text: str) -> bool:
     return bool(text) and not any(char in text for char in "/*$?# ")
+
+
+@dataclass
+class ActorConfig:
+    """An actor process: which one it is, how many simulators it steps, how often it logs, its queue while
+    no replay listens, and what it does when the hub's word stops coming."""
+
+    num_actors: int = option(0, "actors the local stack starts; 0 means one per spare core", "actors")
+    actor_id: int = option(0, "this actor's number: its keys and, with run.seed, its seed")
+    log_period_s: float = option(10.0, "how often the actor logs a status line", "s")
+    envs_per_actor: int = option(1, "simulators one actor steps in lockstep, with one batched forward pass of the "
+                                    "network per step; each has its own seed, LSTM state, exploration draws and "
+                                    "episodes", "simulators")
+    inference: str = option(
+        "float32", "number format of the actor's forward pass: float32; bfloat16 (the convolutions and the LSTM's "
+                   "input projection, with float32 state and head: 2.6-3.2x faster on a CPU with AMX, greedy actions "
+                   "as float32's within the tolerance docs/architecture.md states); or auto (bfloat16 where a timing of both at start "
+                   "finds it at least 1.2x faster). The evaluation always acts in float32",
+        choices=INFERENCE_PRECISIONS)
+    # Finished episodes wait in a queue while no replay listens (a replay restart).
+    queue_episodes: int = option(32, "the actor holds its next episode while this many finished episodes wait "
+                                     "for a replay", "episodes")
+    queue_mb: float = option(256.0, "the actor holds its next episode while this much of finished episodes waits "
+                                    "for a replay", "MB")
+    # Sent episodes stay until the replay says it keeps them (actor/delivery.py).
+    resend_after_s: float = option(5.0, "an episode sent this long ago whose receipt the replay has not "
+                                        "acknowledged is sent again (the replay takes none twice); one received but "
+                                        "not yet kept in a snapshot, after twice replay.snapshot_period_s more", "s")
+    in_flight_mb: float = option(256.0, "sent episodes the replay has not yet said it keeps are held, to be sent "
+                                        "again after a partition or a replay restart, up to this size; past it "
+                                        "the oldest is given up (counted as released)", "MB")
+    weights_download: bool = option(
+        False, "beyond the paper, for an actor on a slow link: instead of receiving the learner's broadcasts, "
+               "download its latest weights piece by piece at the link's pace, every weights_download_period_s. "
+               "A broadcast that a slow link cannot carry in its period backs the hub's router up into the "
+               "learner's link and slows the learner (docs/reliability.md); a download blocks no queue")
+    weights_download_period_s: float = option(
+        10.0, "actor.weights_download: how long after one download the next begins", "s")
+    # The replay announces its rate word at least every replay.stats_period_s (actor/hub_link.py).
+    silence_hold_s: float = option(
+        30.0, "hold the next episode once the replay's word on replay/rate has not come for this long: this actor "
+              "may no longer hear the hub, and driving on would outrun the rate limiter", "s")
+    silence_reopen_s: float = option(
+        60.0, "reopen the Zenoh session once the replay's word has not come for this long, and again after each "
+              "further span: a session can stay half-alive, its publications arriving while nothing reaches it", "s")
+
+    def validate(self) -> None:
+        check(self.num_actors >= 0, "num_actors", "must be >= 0")
+        check(self.actor_id >= 0, "actor_id", "must be >= 0")
+        check_positive(self, "log_period_s", "envs_per_actor", "queue_episodes", "queue_mb", "resend_after_s",
+                       "in_flight_mb", "weights_download_period_s", "silence_hold_s", "silence_reopen_s")
+        check(self.silence_reopen_s >= self.silence_hold_s, "silence_reopen_s", "must be >= silence_hold_s")
+        check(self.inference in INFERENCE_PRECISIONS, "inference",
+              f"must be one of {', '.join(INFERENCE_PRECISIONS)}")

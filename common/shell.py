@@ -33,7 +33,7 @@ from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.heap import keep_releasing_free_heap
 from common.logs import setup_logging
-from common.transport import declare_liveliness, open_session
+from common.transport import Declared, declare_liveliness, open_session
 from common.keys import Keys
 
 log = logging.getLogger(__name__)
@@ -113,21 +113,43 @@ class Service:
         keep_releasing_free_heap(self.stop)  # a role holds its peak for good otherwise (common/heap.py)
         self.keys = Keys(config.transport.namespace, config.run.name)
         self._closing: contextlib.ExitStack | None = None
+        self._held: tuple[zenoh.Session, Declared] | None = None  # the open session and its token
+        self._held_lock = threading.Lock()
 
     @contextlib.contextmanager
     def session(self) -> Iterator[zenoh.Session]:
         """The open session with the process's liveliness token; on leaving, by any path, sets
-        stop, runs the on_close callbacks, undeclares the token and closes the session."""
+        stop, runs the on_close callbacks, undeclares the token and closes the session (the one
+        reopen() gave last, if it did)."""
         with contextlib.ExitStack() as closing:
-            session = self._open()
-            closing.callback(session.close)
-            closing.callback(declare_liveliness(session, self.keys.liveliness(self.role, self.process_id)).undeclare)
+            self._held = opened = self._open(SystemExit)
+            closing.callback(self._close_held)
             self._closing = closing
             try:
-                yield session
+                yield opened[0]
             finally:
-                self._closing = None
+                with self._held_lock:
+                    self._closing = None
                 self.stop.set()  # first: the role's threads stop using the session before it closes
+
+    def reopen(self, declare: Callable[[zenoh.Session], object]) -> bool:
+        """A fresh session with the token in place of the one held, for a session that no longer hears its
+        peers: declare(fresh) declares on it what was declared on the old one, which closes after that.
+        False, with a log line, where none opens now (the old one stays) or the session() block is over."""
+        with self._held_lock:
+            if self._closing is None:
+                return False
+            fresh = self._open(None)
+            if fresh is None:
+                return False
+            try:
+                declare(fresh[0])
+            except Exception:
+                _close_quietly(*fresh)
+                raise
+            stale, self._held = self._held, fresh
+        _close_quietly(*stale)
+        return True
 
     def on_close(self, callback: Callable[[], object]) -> None:
         """Has the session's end call callback (an undeclare, or telling threads to finish), before
@@ -136,12 +158,31 @@ class Service:
             raise RuntimeError("on_close() belongs inside `with service.session()`")
         self._closing.callback(callback)
 
-    def _open(self) -> zenoh.Session:
+    def _close_held(self) -> None:
+        with self._held_lock:
+            held, self._held = self._held, None
+        if held is not None:
+            _close_quietly(*held)
+
+    def _open(self, failure) -> tuple[zenoh.Session, Declared] | None:
+        """A session with the token; None where it cannot open (a line in the log), or `failure` raised."""
         transport = self.config.transport
         try:
-            return open_session(transport)
+            session = open_session(transport)
         except (zenoh.ZError, FileNotFoundError) as error:  # a bad endpoint, a port in use, no router; a TLS file
             log.error("cannot open the Zenoh session (mode %s, listen %s, connect %s): %s", transport.mode,
                       ", ".join(transport.listen) or "none", ", ".join(transport.connect) or "none",
                       _RUST_SOURCE.sub("", str(error)))
-            raise SystemExit(1) from None
+            if failure is not None:
+                raise failure(1) from None
+            return None
+        return session, declare_liveliness(session, self.keys.liveliness(self.role, self.process_id))
+
+
+def _close_quietly(session: zenoh.Session, token: Declared) -> None:
+    """Undeclares the token and closes the session; a failure is a log line (a broken session may refuse)."""
+    try:
+        token.undeclare()
+        session.close()
+    except Exception as error:  # noqa: BLE001 - closing must not stop the process
+        log.warning("closing the Zenoh session: %s", error)

@@ -14,16 +14,10 @@ from common.wire.messages import EpisodeAck
 from replay.acks import AckBook
 from replay.service import ReplayService
 from tests.test_hostile_input import SIZE, episode, small_config
+from fake_clock import FakeClock
 
 INCARNATION = 7  # tests.test_hostile_input.episode's
 
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def ack(received=(), kept=(), refused=(), actor_id=1, incarnation=INCARNATION) -> EpisodeAck:
@@ -32,7 +26,7 @@ def ack(received=(), kept=(), refused=(), actor_id=1, incarnation=INCARNATION) -
     return EpisodeAck(actor_id=actor_id, incarnation=incarnation, **arrays)
 
 
-def outbox(clock: Clock, **options) -> Outbox:
+def outbox(clock: FakeClock, **options) -> Outbox:
     settings = {"resend_after_s": 5.0, "keep_within_s": 60.0, "max_in_flight_bytes": 10**9, **options}
     return Outbox(100, 10**9, incarnation=INCARNATION, actor_id=1, clock=clock, **settings)
 
@@ -45,7 +39,7 @@ def send_due(box: Outbox, sent: list) -> None:
 
 
 def test_a_sent_episode_is_sent_again_until_received_and_held_until_kept():
-    clock, sent = Clock(), []
+    clock, sent = FakeClock(100.0), []
     box = outbox(clock)
     box.offer(episode(0), threading.Event())
     send_due(box, sent)
@@ -71,7 +65,7 @@ def test_a_sent_episode_is_sent_again_until_received_and_held_until_kept():
 
 
 def test_a_replay_that_comes_back_gets_every_episode_not_kept_again_first():
-    clock, sent = Clock(), []
+    clock, sent = FakeClock(100.0), []
     box = outbox(clock)
     stop = threading.Event()
     for index in range(3):
@@ -87,7 +81,7 @@ def test_a_replay_that_comes_back_gets_every_episode_not_kept_again_first():
 
 
 def test_refused_and_foreign_words_and_the_in_flight_bound():
-    clock, sent = Clock(), []
+    clock, sent = FakeClock(100.0), []
     size = episode(0).observations.nbytes + episode(0).actions.nbytes * 3
     box = outbox(clock, max_in_flight_bytes=2 * size)
     stop = threading.Event()

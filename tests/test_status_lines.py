@@ -16,14 +16,8 @@ from common.run_dir import RunDir, RunStatus
 from common.wire.messages import EpisodeRecord, ReplayStats, Stats
 from wire_examples import example_rate, example_replay_stats
 from deploy.stack import Stack, StackMonitor
+from fake_clock import FakeClock
 
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def test_the_eta_follows_the_rate_of_its_window():

@@ -5,6 +5,7 @@
     python tests/zenoh_peer.py alive OUT.jsonl [config flags]   # the run's liveliness tokens as they come and go
     python tests/zenoh_peer.py probe [config flags]             # exit 0 if a session opens, 3 if not
     python tests/zenoh_peer.py rogue OUT.jsonl --weights-version N [config flags]
+    python tests/zenoh_peer.py voice OUT.jsonl --quiet-file PATH [config flags]
 
 `watch` writes a line per EpisodeRecord (actor, weights version), per episode on the episodes
 key (actor, the weights versions its steps were acted with), per learner and replay Stats (a
@@ -12,7 +13,9 @@ few values), per actor Stats (all values), per sample of the run whose payload s
 the first time anything else arrives on it. `rogue` forges what only other roles may send:
 real weights of the run's network with version N on weights/broadcast (every 0.5 s), marker
 bytes on exploration, episodes, replay/stats and replay/rate, and queryables on replay/sample
-and weights/latest that count the queries reaching them (writing the counts every 0.5 s).
+and weights/latest that count the queries reaching them (writing the counts every 0.5 s). `voice`
+stands in for a replay that goes quiet: its liveliness token, and its word on replay/rate (go, before
+updates) every replay.stats_period_s except while the file --quiet-file exists (a line each change).
 The config flags are the roles' own (--config FILE.toml, --transport.*, ...).
 """
 
@@ -176,11 +179,37 @@ def rogue(config: Config, out: Lines, stop: threading.Event, weights_version: in
             entity.undeclare()
 
 
+def voice(config: Config, out: Lines, stop: threading.Event, quiet_file: Path) -> None:
+    from common.transport import declare_liveliness, open_session, publisher
+    from common.keys import Keys
+    from common.wire.messages import RateState
+
+    keys = Keys(config.transport.namespace, config.run.name)
+    word = RateState(time=0.0, env_steps=0, batches_served=0, updates_due=0.0, start_env_steps=None, hold_reason="",
+                     closed=False, refilling=False, refill_env_steps=0, lost_updates=0, recounted_updates=0,
+                     error_buffer_updates=1.0, hold_updates=0.0, env_steps_per_update_target=4.0,
+                     env_steps_per_update=None)
+    with open_session(config.transport) as session:
+        token = declare_liveliness(session, keys.liveliness("replay", "0"))
+        rate_out = publisher(session, keys.replay_rate)
+        out.write(kind="up")
+        speaking = None
+        while not stop.wait(config.replay.stats_period_s):
+            if speaking != (not quiet_file.exists()):
+                speaking = not speaking
+                out.write(kind="speaking" if speaking else "quiet")
+            if speaking:
+                rate_out.put(word)
+        rate_out.undeclare()
+        token.undeclare()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="zenoh_peer")
-    parser.add_argument("command", choices=("watch", "alive", "probe", "rogue"))
-    parser.add_argument("out", nargs="?", type=Path, help="JSON lines (watch, alive, rogue)")
+    parser.add_argument("command", choices=("watch", "alive", "probe", "rogue", "voice"))
+    parser.add_argument("out", nargs="?", type=Path, help="JSON lines (watch, alive, rogue, voice)")
     parser.add_argument("--weights-version", type=int, default=987_654, help="rogue: the forged weights' version")
+    parser.add_argument("--quiet-file", type=Path, help="voice: no word on replay/rate while this file exists")
     add_config_arguments(parser)
     args, config = parse_config_or_exit(parser, argv)
     if args.command == "probe":
@@ -194,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
             watch(config, out, stop)
         elif args.command == "alive":
             alive(config, out, stop)
+        elif args.command == "voice":
+            voice(config, out, stop, args.quiet_file)
         else:
             rogue(config, out, stop, args.weights_version)
     finally:
