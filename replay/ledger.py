@@ -57,6 +57,10 @@ class EpisodeLedger:
             self._sources.popitem(last=False)
         return True
 
+    def highest(self, actor_id: int, incarnation: int) -> int:
+        """The highest index taken of an incarnation (-1: none)."""
+        return self._sources.get((actor_id, incarnation), (-1, set()))[0]
+
     @property
     def sources(self) -> int:
         return len(self._sources)

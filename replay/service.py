@@ -48,6 +48,7 @@ from common.wire.messages import Episode, ExplorationState, ReplayStats, TraceBa
 from common.wire.run_shape import RunShape, check_episode
 from replay.acks import AckBook
 from replay.ledger import EpisodeLedger
+from replay.hold_guard import HoldGuard
 from replay.rate_limiter import RateLimiter
 from replay.snapshot import Restored, SnapshotError, Snapshotter, SnapshotView
 from replay.store import EpisodeStore, full_episodes_fit, step_bytes
@@ -98,6 +99,7 @@ class ReplayService:
         self._announced: tuple[str, int, bool] | None = None  # hold reason, env steps, closed: last on replay/rate
         self.shape = RunShape.of(config)
         self.ledger = EpisodeLedger()
+        self.hold_guard = HoldGuard.of(config)  # episodes begun while the actors were told to hold: refused
         self.rejections = Rejections(log)
         self.snapshotter = Snapshotter(snapshot_path(config))
         self.acks = AckBook(durable_on_receipt=config.replay.snapshot_period_s <= 0)
@@ -127,7 +129,8 @@ class ReplayService:
         name = (episode.actor_id, episode.incarnation, episode.episode_index)
         with self._lock:
             closed = self.limiter.closed
-            admitted = not closed and self.ledger.admit(*name)
+            begun_held = not closed and self._begun_while_held_locked(name)
+            admitted = not closed and not begun_held and self.ledger.admit(*name)
             if admitted:
                 self._store_locked(episode)
                 self.acks.taken(*name)  # under the lock: a snapshot view taken after it holds the episode
@@ -135,15 +138,30 @@ class ReplayService:
                 self.late_episodes += 1
                 self.late_env_steps += len(episode.actions)
                 self.acks.refused(*name)
+            elif begun_held:
+                self.acks.refused(*name)
             else:
                 self.acks.duplicate(*name)
-        if closed:
+        if begun_held:
+            self.rejections.reject("episode_begun_while_held", f"episode {episode.episode_index} of actor "
+                                   f"{episode.actor_id}: the actors have been told to hold for over "
+                                   f"{self.hold_guard.grace_s:g} s and it is past what the actor had in hand "
+                                   "(does it hear replay/rate?)")
+        elif closed:
             self._warn_late.info("the run is closed (budget spent and paid for): episode %d of actor %d, %d steps, "
                                  "not taken (%d such so far)", episode.episode_index, episode.actor_id,
                                  len(episode.actions), self.late_episodes)
         elif not admitted:
             self.rejections.reject("episode_duplicate", f"episode {episode.episode_index} of actor "
                                    f"{episode.actor_id} (incarnation {episode.incarnation:x}) was stored before")
+
+    def _begun_while_held_locked(self, name: tuple[int, int, int]) -> bool:
+        """Whether the hold guard refuses the episode; one refused is noted in the ledger (no gap), not stored."""
+        self.hold_guard.note_hold(bool(self.limiter.hold_reason()))
+        if self.hold_guard.admits(*name, self.ledger.highest(*name[:2])):
+            return False
+        self.ledger.admit(*name)
+        return True
 
     def _store_locked(self, episode: Episode) -> None:
         store, limiter = self.store, self.limiter
@@ -264,6 +282,7 @@ class ReplayService:
                 # a change of the hold; past the budget every new step and the close too (the learner pays
                 # the last steps and stops once the run is closed)
                 reason = self.limiter.hold_reason()
+                self.hold_guard.note_hold(bool(reason))
                 now = (reason, self.limiter.env_steps if reason == "budget" else 0, self.limiter.closed)
                 announce_now = now != self._announced or every.due()
                 if announce_now:
