@@ -380,7 +380,7 @@ class RunJob:
 
     @property
     def tag(self) -> str:
-        return f"[{self.number}/{self.total}] {self.spec.name}"
+        return f"[cell {self.number} of {self.total}] {self.spec.name}"  # numbered from 0, as --cell takes them
 
     @property
     def finished(self) -> bool:
