@@ -54,6 +54,7 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
+import zenoh
 
 from actor.batched_q import BatchedQ, choose_precision
 from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
@@ -422,7 +423,7 @@ def _drive(actor: Actor, stop: threading.Event, max_episodes: int | None, outbox
                 return
             try:
                 link.put("records", record)
-            except Exception:  # noqa: BLE001 - a session reopened meanwhile: one record lost, driving goes on
+            except zenoh.ZError:  # a session reopened meanwhile: one record lost, driving goes on
                 log.debug("an episode record was not published", exc_info=True)
             steps += record.length
             returns.append(record.episode_return)
