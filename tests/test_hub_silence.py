@@ -5,8 +5,10 @@ further span), and drives again on the fresh session once the word comes back. T
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+from pathlib import Path
 
 from actor.hub_link import keep_hearing
 from actor.mailbox import Mailbox
@@ -92,6 +94,9 @@ def test_an_actor_that_hears_nothing_holds_reopens_its_session_and_drives_again_
         quiet_at = time.time()
         wait_for(lambda: any(values["sessions_reopened"] >= 2 for values in stats()),
                  "two reopened sessions while the replay is quiet", 60, logs)
+        port = int(endpoint.rsplit(":", 1)[1])
+        wait_for(lambda: connections_to(actor.pid, port) == 1, "one connection to the router: the old sessions "
+                 "closed", 10, logs)
         settled = quiet_at + HOLD_S + 2.0  # the last episodes begun before the hold finish and arrive
         made_before = max(line["index"] for line in episodes() if line["t"] <= settled)
         quiet.unlink()
@@ -106,6 +111,25 @@ def test_an_actor_that_hears_nothing_holds_reopens_its_session_and_drives_again_
     text = logs[2].read_text()
     assert "this actor may no longer hear the hub; reopening its Zenoh session" in text
     assert text.count("Zenoh session reopened; everything declared again on it") >= 2 and "Traceback" not in text
+
+
+def connections_to(pid: int, port: int) -> int:
+    """The process's established TCP connections to a port on this host (from /proc)."""
+    sockets = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:  # closed meanwhile
+            continue
+        if target.startswith("socket:["):
+            sockets.add(target[8:-1])
+    count = 0
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            remote_port, state, inode = int(fields[2].rsplit(":", 1)[1], 16), fields[3], fields[9]
+            count += remote_port == port and state == "01" and inode in sockets
+    return count
 
 
 def stop_returns(process) -> int:
