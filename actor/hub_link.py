@@ -71,7 +71,7 @@ class HubLink:
         """Declares on a fresh session and uses it from now on; what was declared on the old one goes."""
         receivers, publishers = self._declare(session)
         with self._lock:
-            stale = [*self.receivers.values(), *self.publishers.values()]
+            stale = self._declared()
             self._rejected_before = self._rejected_so_far()
             self.session, self.receivers, self.publishers = session, receivers, publishers
             self.reopened += 1
@@ -82,9 +82,12 @@ class HubLink:
         return {door: self._rejected_before.get(door, 0) + receiver.rejected
                 for door, receiver in self.receivers.items()}
 
+    def _declared(self) -> list:
+        return [*self.receivers.values(), *self.publishers.values()]
+
     def close(self) -> None:
         with self._lock:
-            entities = [*self.receivers.values(), *self.publishers.values()]
+            entities = self._declared()
         for entity in entities:
             _undeclare_quietly(entity)
 
