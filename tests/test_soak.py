@@ -57,6 +57,13 @@ def test_the_summary_reads_growth_per_hour_from_the_second_half():
     assert math.isnan(soak.slope_per_hour(soak.np.array([1.0]), soak.np.array([5.0])))
 
 
+def test_a_process_never_seen_has_no_row_in_the_summary():
+    unseen = [{**row, "rss_mb_curve": math.nan} for row in rows(4, lambda hour: 500.0, lambda hour: 0.0)]
+    summary = soak.summarize(unseen)
+    assert set(summary["memory"]) == {"learner", "replay"}
+    assert "nan" not in soak.summary_text(summary)
+
+
 def test_a_resumed_runs_soak_counts_run_time_and_reads_memory_growth_in_the_last_of_equal_sessions():
     # session 1: 4 h, the learner leaking 30 MB/h and the log growing 50 MB/h; 10 h with nothing running; then
     # a resumed session of 4 h, its new learner flat after its first 2 h, the log growing on at 50 MB/h
