@@ -70,6 +70,10 @@ def test_a_strategys_row_pools_its_seeds_and_takes_the_iqm_over_seeds_and_starts
     assert row["iqm_test_cfr_low"] <= 0.5 <= row["iqm_test_cfr_high"]
     assert row["test_cfr"] == pytest.approx(np.mean([0.75, 0.25, 0.5]))
     assert row["drove"] == "3/3" and row["updates_to_drive"] == "2000;2000;2000"
+    assert row["drive_held_from"] == "4000;4000;4000"
+    # lengths 40, 50 x5, 100 x6: the middle six are three 50s and three 100s
+    assert row["iqm_test_length"] == pytest.approx(75.0)
+    assert row["iqm_test_length_low"] <= 75.0 <= row["iqm_test_length_high"]
     assert row["paper_test_cfr"] == pytest.approx(0.8671)
 
 
@@ -105,11 +109,11 @@ def test_the_report_is_written_from_exported_runs_alone(tmp_path):
                                                   "time_to_drive.png"]
     page = (tmp_path / "out" / "grid.md").read_text()
     assert "| vdbe | 1000 | paper | 0 | 6,050 | not reached |" in page
-    assert "| vdbe | 1000 | paper | 1 | 0/1 | not reached |" in page  # per strategy
-    assert "| softmax | 1000 | paper | 2 | 2/2 | 2,000, 2,000 |" in page
+    assert "| softmax | 1000 | paper | 2 | 2/2 | 2,000, 2,000 | 4,000, 4,000 |" in page
     assert "Claim 1" in page and "needs 4 seeds a side" in page
     # one seed, or one run a side, resamples nothing: no interval of zero width is shown
-    assert "| vdbe | 1000 | paper | 1 | 0/1 | not reached | 200 | 50 | 0.0% | 0.0% (one seed) | 61.8% |" in page
+    assert ("| vdbe | 1000 | paper | 1 | 0/1 | not reached | not reached | 200 | 50 (one seed) | 0.0% | 0.0% (one seed) "
+            "| 61.8% |") in page  # per strategy
     assert "| vdbe | softmax | 0.38 [0.38, 0.38] |" in page  # 1 against 2 alike runs: a width of zero, measured
     exported_run(tmp_path / "runs", "bmc", 0, [100, 50, 50, 50])
     grid_report.report_on([tmp_path / "runs"], tmp_path / "out", grid_report.Bootstrap(replicates=100))

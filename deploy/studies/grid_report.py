@@ -61,6 +61,7 @@ class GridRun:
     choice: dict
     greedy_test: dict  # the chosen policy's greedy test row of evaluate's summary.csv
     start_cfr: np.ndarray  # its test CFR per start, by start index
+    start_length: np.ndarray  # its greedy test mean length per start, by start index
 
     @property
     def cell(self) -> CELL:
@@ -85,7 +86,8 @@ def read_runs(folders: Sequence[Path], warn=print) -> list[GridRun]:
         except (EvaluationError, ValueError, KeyError, OSError, StopIteration) as error:
             warn(f"skipped: {run.folder}: {type(error).__name__}: {error}")
             continue
-        runs.append(GridRun(run, rows, choice, greedy_test, start_cfr(episodes)))
+        runs.append(GridRun(run, rows, choice, greedy_test, start_means(episodes, lambda e: e.collision_free),
+                            start_means(episodes, lambda e: e.length)))
     return sorted(runs, key=lambda item: (item.cell, STRATEGIES.index(item.run.strategy), item.run.seed))
 
 
@@ -94,13 +96,14 @@ def _greedy_row(summary_csv: Path, start_set: str) -> dict:
         return next(row for row in csv.DictReader(handle) if row["policy"] == "greedy" and row["start_set"] == start_set)
 
 
-def start_cfr(episodes) -> np.ndarray:
-    """The greedy test CFR of each test start (the tasks of the statistics across seeds)."""
-    by_start: dict[int, list[bool]] = {}
+def start_means(episodes, value) -> np.ndarray:
+    """The mean of value(episode) over each test start's greedy episodes (the tasks of the statistics across
+    seeds), by start index."""
+    by_start: dict[int, list[float]] = {}
     for episode in episodes:
         if episode.policy == "greedy" and episode.start_set == "test":
-            by_start.setdefault(episode.start_index, []).append(episode.collision_free)
-    return np.asarray([np.mean(by_start[start]) for start in sorted(by_start)])
+            by_start.setdefault(episode.start_index, []).append(value(episode))
+    return np.asarray([np.mean(by_start[start]) for start in sorted(by_start)], dtype=float)
 
 
 def curve_mean(rows: Sequence[dict]) -> float:
@@ -146,13 +149,17 @@ def strategy_rows(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[dict]:
             drives = [row["updates_to_drive"] for row in per_run]
             reached = sorted(value for value in drives if value != "")
             iqm = across_seeds.iqm_estimate(np.vstack([item.start_cfr for item in seeds]), bootstrap)
+            iqm_length = across_seeds.iqm_estimate(np.vstack([item.start_length for item in seeds]), bootstrap)
             rows.append({
                 "strategy": strategy, "capacity": cell[0], "options": cell[1], "seeds": len(seeds),
                 "drove": f"{len(reached)}/{len(seeds)}",
                 "updates_to_drive": ";".join(str(value) if value != "" else "not" for value in drives),
                 "median_updates_to_drive": float(np.median(reached)) if len(reached) * 2 > len(seeds) else "",
+                "drive_held_from": ";".join(str(row["drive_held_from"]) or "not" for row in per_run),
                 "curve_mean_length": round(float(np.mean([row["curve_mean_length"] for row in per_run])), 1),
                 "test_mean_length": round(float(np.mean([row["test_mean_length"] for row in per_run])), 1),
+                "iqm_test_length": iqm_length.point, "iqm_test_length_low": iqm_length.interval.low,
+                "iqm_test_length_high": iqm_length.interval.high,
                 "test_cfr": float(np.mean([row["test_cfr"] for row in per_run])),
                 "test_cfr_by_seed": ";".join(f"{row['test_cfr']:.3f}" for row in per_run),
                 "iqm_test_cfr": iqm.point, "iqm_test_cfr_low": iqm.interval.low, "iqm_test_cfr_high": iqm.interval.high,
@@ -274,16 +281,18 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{_percent(row['test_cfr'])} [{_percent(row['test_cfr_low'])}, {_percent(row['test_cfr_high'])}] | "
             f"{_coverage(row['test_streets'], row['test_junctions'])} | {row['trained_on']} |")
     lines += ["", "## Per strategy", "",
-              "| Strategy | Buffer | Options | Seeds | Drove | Updates to drive, by seed | Curve mean length | "
-              "Test mean length | Test CFR, by seed | IQM test CFR [CI] | Paper's test CFR |",
-              "|---|---:|---|---:|---:|---|---:|---:|---|---:|---:|"]
+              "| Strategy | Buffer | Options | Seeds | Drove | Updates to drive, by seed | Held from, by seed | "
+              "Curve mean length | IQM test mean length [CI] | Test CFR, by seed | IQM test CFR [CI] | "
+              "Paper's test CFR |",
+              "|---|---:|---|---:|---:|---|---|---:|---:|---|---:|---:|"]
     for row in strategy_rows(runs, bootstrap):
         lines.append(
             f"| {row['strategy']} | {row['capacity']} | {row['options']} | {row['seeds']} | {row['drove']} | "
             f"{', '.join(_drive_text(value) for value in row['updates_to_drive'].split(';'))} | "
-            f"{row['curve_mean_length']:,.0f} | {row['test_mean_length']:,.0f} | "
+            f"{', '.join(_drive_text(value) for value in row['drive_held_from'].split(';'))} | "
+            f"{row['curve_mean_length']:,.0f} | {row['iqm_test_length']:,.0f} {_iqm_interval(row, 'iqm_test_length')} | "
             f"{', '.join(_percent(value) for value in row['test_cfr_by_seed'].split(';'))} | "
-            f"{_percent(row['iqm_test_cfr'])} {_iqm_interval(row)} | "
+            f"{_percent(row['iqm_test_cfr'])} {_iqm_interval(row, 'iqm_test_cfr', _percent)} | "
             f"{_percent(row['paper_test_cfr'])} |")
     lines += ["", "## The paper's claims", "", _rule_text(), ""]
     for reading in claim_readings(runs, bootstrap):
@@ -309,11 +318,11 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     return lines
 
 
-def _iqm_interval(row: dict) -> str:
+def _iqm_interval(row: dict, name: str, text=lambda value: f"{value:,.0f}") -> str:
     # a bootstrap over one seed resamples nothing: an interval of zero width would claim a precision
     if row["seeds"] == 1:
         return "(one seed)"
-    return f"[{_percent(row['iqm_test_cfr_low'])}, {_percent(row['iqm_test_cfr_high'])}]"
+    return f"[{text(row[f'{name}_low'])}, {text(row[f'{name}_high'])}]"
 
 
 def _rule_text() -> str:
