@@ -59,7 +59,7 @@ import zenoh
 from actor.batched_q import BatchedQ, choose_precision
 from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
 from actor.gate import HOLD_LOG_S, EpisodeGate, HoldLog
-from actor.hub_link import Declare, HubLink, keep_hearing
+from common.hub_link import Declare, HubLink, keep_hearing
 from actor.lockstep import Lockstep, Trajectory, episode_message
 from actor.mailbox import Mailbox
 from actor.weights_download import download_weights

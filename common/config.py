@@ -208,6 +208,10 @@ class LearnerConfig:
         choices=LEARNER_PRECISIONS)
     log_period_s: float = option(10.0, "how often the learner logs and publishes its metrics", "s")
     seed: int = option(0, "seed of the network's initial weights")
+    silence_reopen_s: float = option(
+        60.0, "reopen the Zenoh session once no word of the replay (replay/stats, replay/rate, a batch) has come "
+              "for this long, and again after each further span: a session can stay half-alive, its batch "
+              "requests arriving while nothing comes back (common/hub_link.py)", "s")
 
     @property
     def masked_steps(self) -> int:
@@ -219,7 +223,8 @@ class LearnerConfig:
         check(self.precision in LEARNER_PRECISIONS, "precision", f"must be one of {', '.join(LEARNER_PRECISIONS)}")
         check(not (self.precision == "bfloat16" and self.update_path == "autograd"), "precision",
               "bfloat16 runs on the trace paths only: set learner.update_path to trace, trace-split or auto")
-        check_positive(self, "lr", "batch_size", "trace_length", "weights_every", "checkpoint_every", "prefetch", "log_period_s")
+        check_positive(self, "lr", "batch_size", "trace_length", "weights_every", "checkpoint_every", "prefetch", "log_period_s",
+                       "silence_reopen_s")
         check(0.0 <= self.gamma <= 1.0, "gamma", "must lie in [0, 1]")
         check(0.0 < self.tau <= 1.0, "tau", "must lie in (0, 1]")
         check(0 <= self.n_mask < self.trace_length, "n_mask", "must lie in [0, trace_length)")

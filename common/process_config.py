@@ -165,7 +165,7 @@ class ActorConfig:
                "learner's link and slows the learner (docs/reliability.md); a download blocks no queue")
     weights_download_period_s: float = option(
         10.0, "actor.weights_download: how long after one download the next begins", "s")
-    # The replay announces its rate word at least every replay.stats_period_s (actor/hub_link.py).
+    # The replay announces its rate word at least every replay.stats_period_s (common/hub_link.py).
     silence_hold_s: float = option(
         30.0, "hold the next episode once the replay's word on replay/rate has not come for this long: this actor "
               "may no longer hear the hub, and driving on would outrun the rate limiter", "s")

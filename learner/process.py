@@ -11,12 +11,14 @@ import threading
 import time
 
 import torch
+import zenoh
 
 from common.checkpoint import CheckpointError
 from common.strategy_build import exploration_message
 from common.config import Config
 from common.logs import Every
 from common.pacing import rate_limit_from_config
+from common.hub_link import Declare, HubLink, keep_hearing
 from common.shell import Service
 from common.transport import publisher, request, serve, subscribe
 from common.shared_memory import SharedMemory
@@ -44,45 +46,56 @@ def run_learner(config: Config, resume: bool = False) -> None:
     log.info("device %s, strategy %s, %d torch threads", process.learner.device,
              config.exploration.strategy, torch.get_num_threads())
     keys = service.keys
+    hearing = threading.Event()  # the session watch stops once training is over
     with service.session() as session:
-        # no expected type: a message of another type reaches the process, which counts it
-        process.receivers = {"stats": subscribe(session, keys.replay_stats, process.on_replay_stats),
-                             "rate": subscribe(session, keys.replay_rate, process.on_replay_rate),
-                             "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights),
-                             "weights_pieces": serve(session, keys.weights_pieces, process.serve_weights_piece)}
-        for receiver in process.receivers.values():
-            service.on_close(receiver.undeclare)
-        outputs = Outputs(session, keys, SharedMemory.of(config.transport),
-                          rate_limit_from_config(config).start_by_steps)
+        service.on_close(hearing.set)
+        link = HubLink(service, session, _declaring(process, keys, SharedMemory.of(config.transport)))
+        service.on_close(link.close)
+        process.link = link
+        threading.Thread(target=keep_hearing, args=(link, process.silent_s, config.learner.silence_reopen_s, hearing),
+                         name="hearing", daemon=True).start()
+        outputs = Outputs(link, rate_limit_from_config(config).start_by_steps)
         outputs.weights(process.make_weights())
-        _train(process, outputs, service.stop, session, keys)
+        _train(process, outputs, service.stop, link, keys)
+
+
+def _declaring(process: LearnerService, keys: Keys, shared_memory: SharedMemory | None) -> Declare:
+    """What the learner declares on a session: its doors (no expected type: a message of another type reaches
+    the process, which counts it) and its publishers, weights from shared memory when given some."""
+    def declare(session) -> tuple[dict, dict]:
+        receivers = {"stats": subscribe(session, keys.replay_stats, process.on_replay_stats),
+                     "rate": subscribe(session, keys.replay_rate, process.on_replay_rate),
+                     "weights_query": serve(session, keys.weights_latest, process.serve_latest_weights),
+                     "weights_pieces": serve(session, keys.weights_pieces, process.serve_weights_piece)}
+        publishers = {"weights": publisher(session, keys.weights, shared_memory=shared_memory),
+                      "exploration": publisher(session, keys.exploration),
+                      "metrics": publisher(session, keys.metrics_source("learner", "0"))}
+        return receivers, publishers
+    return declare
 
 
 class Outputs:
-    """Everything the learner publishes; weights from shared memory when given some."""
+    """Everything the learner publishes, on the link's current session."""
 
-    def __init__(self, session, keys: Keys, shared_memory: SharedMemory | None = None,
-                 start_by_steps: bool | None = None) -> None:
-        self._weights = publisher(session, keys.weights, shared_memory=shared_memory)
-        self._exploration = publisher(session, keys.exploration)
-        self._metrics = publisher(session, keys.metrics_source("learner", "0"))
+    def __init__(self, link: HubLink, start_by_steps: bool | None = None) -> None:
+        self._link = link
         self._last_exploration: dict | None = None
         self._start_by_steps = start_by_steps  # the start rule, stated with every exploration state
 
     def weights(self, weights: Weights) -> None:
-        self._weights.put(weights)
+        self._link.put("weights", weights)
 
     def exploration(self, strategy, force: bool = False) -> None:
         state = strategy.state_dict()
         if force or state != self._last_exploration:
-            self._exploration.put(exploration_message(strategy, self._start_by_steps))
+            self._link.put("exploration", exploration_message(strategy, self._start_by_steps))
             self._last_exploration = state
 
     def metrics(self, values: dict) -> None:
-        self._metrics.put(Stats(source="learner", time=time.time(), values=values))
+        self._link.put("metrics", Stats(source="learner", time=time.time(), values=values))
 
 
-def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, session, keys: Keys) -> None:
+def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, link: HubLink, keys: Keys) -> None:
     config = process.config.learner
     heartbeat = Every(config.log_period_s)
     broadcasts = Cadence(config.weights_every, config.weights_period_s, min_period_s=config.weights_min_period_s)
@@ -91,7 +104,11 @@ def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, ses
         # Every request states the updates made: the first of this process (its checkpoint's) lets the replay
         # re-owe what a dead learner lost; a later one, what a replay that died with its counters forgot.
         message = dataclasses.replace(message, learner_updates=process.updates)
-        return request(session, keys.replay_sample, message, SAMPLE_TIMEOUT_S)
+        try:
+            return request(link.session, keys.replay_sample, message, SAMPLE_TIMEOUT_S)
+        except zenoh.ZError as error:  # the session closed by a reopen meanwhile: ask again on the fresh one
+            log.info("a batch request ended with its session (%s); asking again", error)
+            return None
 
     prefetcher = Prefetcher(fetch, config.batch_size, config.trace_length, config.prefetch, prepare=process.admit)
     if process.strategy.started:  # resumed past the start: actors hold until they have the policy

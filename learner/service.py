@@ -188,8 +188,10 @@ class LearnerService:
         self.rejections = Rejections(log)
         self.failed_updates = 0
         self._failed_in_a_row = 0
-        self.receivers: dict = {}  # door -> transport Receiver, whose `rejected` counts malformed messages
+        self.link = None  # the HubLink: its doors count malformed messages, its sessions the reopens
         self.max_env_steps = env_steps_ceiling(config)
+        self._monotonic = clock
+        self._heard_at: float | None = None  # the replay's last word (stats, rate, a batch)
 
     @property
     def updates(self) -> int:
@@ -220,8 +222,14 @@ class LearnerService:
         self._observe(env_steps, rate)
         return True
 
+    def silent_s(self) -> float:
+        """Seconds since the replay's last word; 0 before the first (the learner waits for one anyway)."""
+        with self._lock:
+            return 0.0 if self._heard_at is None else self._monotonic() - self._heard_at
+
     def _observe(self, env_steps: int, rate: RateState | None = None) -> None:
         with self._lock:
+            self._heard_at = self._monotonic()
             resumed = self._resumed_env_steps
             if resumed is not None:
                 self._resumed_env_steps = None
@@ -410,7 +418,7 @@ class LearnerMetrics:
             "precision": self.process.learner.precision,
             "update_path": self.process.learner.update_path,
             **self.process.rejections.values(),
-            **{f"malformed_{door}": receiver.rejected for door, receiver in self.process.receivers.items()},
+            **self._link_values(),
         }
         achieved = self.process.env_steps_per_update()
         if math.isfinite(achieved):  # the whole run's ratio, from the replay's start mark
@@ -424,3 +432,10 @@ class LearnerMetrics:
         self.loss_diffs.clear()
         self._window_start = (now, updates, self.prefetcher.wait_s)
         return values
+
+    def _link_values(self) -> dict:
+        link = self.process.link
+        if link is None:
+            return {}
+        return {"sessions_reopened": link.reopened, "hub_silent_s": round(self.process.silent_s(), 1),
+                **{f"malformed_{door}": rejected for door, rejected in link.rejected().items()}}

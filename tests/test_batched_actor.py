@@ -51,7 +51,7 @@ def acting_with_the_network(actor: Actor, tensors) -> Actor:
 
 
 class Records(list):
-    """Stands in for the actor's link to the hub (actor/hub_link.py): keeps the episode records it is given."""
+    """Stands in for the actor's link to the hub (common/hub_link.py): keeps the episode records it is given."""
 
     def put(self, name, message) -> None:
         assert name == "records"

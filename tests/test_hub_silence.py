@@ -1,4 +1,4 @@
-"""An actor that hears no word from the replay (actor/hub_link.py): it holds its next episode after
+"""An actor that hears no word from the replay (common/hub_link.py): it holds its next episode after
 actor.silence_hold_s, reopens its Zenoh session after actor.silence_reopen_s (and again after each
 further span), and drives again on the fresh session once the word comes back. The replay is a stand-in
 (tests/zenoh_peer.py voice) that goes quiet while a file exists; a watcher records what arrives."""
@@ -10,7 +10,7 @@ import threading
 import time
 from pathlib import Path
 
-from actor.hub_link import keep_hearing
+from common.hub_link import keep_hearing
 from actor.mailbox import Mailbox
 from tests.processes import loopback_endpoint, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines
@@ -41,7 +41,7 @@ def test_the_mailbox_holds_once_the_replays_word_has_not_come_for_the_silence_sp
 
 class CountingLink:
     def __init__(self) -> None:
-        self.reopened = 0
+        self.reopened, self.role = 0, "actor"
 
     def reopen(self) -> bool:
         self.reopened += 1
@@ -111,6 +111,34 @@ def test_an_actor_that_hears_nothing_holds_reopens_its_session_and_drives_again_
     text = logs[2].read_text()
     assert "this actor may no longer hear the hub; reopening its Zenoh session" in text
     assert text.count("Zenoh session reopened; everything declared again on it") >= 2 and "Traceback" not in text
+
+
+def test_a_learner_that_hears_nothing_reopens_its_session(tmp_path):
+    endpoint, quiet = loopback_endpoint(), tmp_path / "quiet"
+    flags = ["--preset", "smoke", "--run.name", "deaf", "--run.runs_dir", str(tmp_path / "runs"),
+             "--replay.stats_period_s", "0.2", "--learner.silence_reopen_s", str(REOPEN_S)]
+    voice_lines, logs = tmp_path / "voice.jsonl", [tmp_path / "voice.log", tmp_path / "learner.log"]
+    voice = start([str(PEER), "voice", str(voice_lines), "--quiet-file", str(quiet), *flags,
+                   "--transport.mode", "router", "--transport.listen", endpoint], logs[0])
+    learner = None
+    try:
+        wait_for(lambda: read_lines(voice_lines), "the stand-in replay", 60, logs)
+        learner = start(["-m", "learner.main", *flags, "--transport.mode", "client", "--transport.connect", endpoint],
+                        logs[1])
+        wait_for(lambda: "waiting for" in logs[1].read_text(), "the learner waiting for its first batch", 90, logs)
+        time.sleep(2 * REOPEN_S)  # the replay speaks: no reopen
+        assert "reopening its Zenoh session" not in logs[1].read_text()
+        quiet.touch()
+        reopened = lambda: logs[1].read_text().count("Zenoh session reopened; everything declared again on it")
+        wait_for(lambda: reopened() >= 2, "two reopened sessions while the replay is quiet", 60, logs)
+        port = int(endpoint.rsplit(":", 1)[1])
+        wait_for(lambda: connections_to(learner.pid, port) == 1, "one connection to the router: the old sessions "
+                 "closed", 10, logs)
+        assert stop_returns(learner) == 0
+    finally:
+        stop(*[process for process in (learner, voice) if process is not None])
+    text = logs[1].read_text()
+    assert "this learner may no longer hear the hub; reopening its Zenoh session" in text and "Traceback" not in text
 
 
 def connections_to(pid: int, port: int) -> int:

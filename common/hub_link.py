@@ -1,12 +1,14 @@
-"""The actor's link to the hub: what it declares on its Zenoh session, declared again on a fresh session
-when the replay's word stops coming.
+"""A role's link to the hub: what it declares on its Zenoh session, declared again on a fresh session when
+the replay's word stops coming.
 
 A Zenoh session can stay half-alive. In the network-fault lab, on an overloaded machine, a client actor's
 episodes still reached the replay for minutes while no weights, acks or rate words reached it; it never
-held, and outran the rate limiter. The replay announces its word at least every replay.stats_period_s.
-After actor.silence_hold_s without it the actor holds its next episode (actor/mailbox.py); after
-actor.silence_reopen_s, and again after each further span, keep_hearing() replaces the session
-(Service.reopen) and HubLink declares everything again on the new one.
+held, and outran the rate limiter. A client learner's batch requests reached the replay, which served
+them, while no batch and no stats word came back for three minutes, until the replay restarted. The
+replay announces its word at least every replay.stats_period_s. After a role's silence_reopen_s without
+it, and again after each further span, keep_hearing() replaces the session (Service.reopen) and HubLink
+declares everything again on the new one (the actor also holds its next episode after
+actor.silence_hold_s, actor/mailbox.py).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import zenoh
 from common.shell import Service
 from common.transport import Publisher, Receiver
 
-log = logging.getLogger("actor")
+log = logging.getLogger("hub_link")
 
 Declare = Callable[[zenoh.Session], tuple[dict[str, Receiver], dict[str, Publisher]]]
 
@@ -30,6 +32,7 @@ class HubLink:
 
     def __init__(self, service: Service, session: zenoh.Session, declare: Declare) -> None:
         self._service = service
+        self.role = service.role
         self._declare = declare
         self._lock = threading.Lock()
         self._rejected_before: dict[str, int] = {}  # receivers of sessions given up
@@ -59,7 +62,7 @@ class HubLink:
             return False
 
     def rejected(self) -> dict[str, int]:
-        """Messages each door refused, over every session this actor has had."""
+        """Messages each door refused, over every session this process has had."""
         with self._lock:
             return self._rejected_so_far()
 
@@ -112,7 +115,7 @@ def keep_hearing(link: HubLink, silent_s: Callable[[], float], reopen_after_s: f
         if silence < due:
             continue
         due += reopen_after_s
-        log.warning("no word from the replay on replay/rate for %.0f s: this actor may no longer hear the hub; "
-                     "reopening its Zenoh session (reopened %d time(s) before)", silence, link.reopened)
+        log.warning("no word from the replay for %.0f s: this %s may no longer hear the hub; reopening its Zenoh "
+                    "session (reopened %d time(s) before)", silence, link.role, link.reopened)
         if link.reopen():
             log.info("Zenoh session reopened; everything declared again on it")
