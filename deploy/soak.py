@@ -195,9 +195,9 @@ def summarize(rows: list[dict]) -> dict:
     late = within & (hours >= (hours[within][0] + hours[within][-1]) / 2)
     column = lambda name: np.array([float(row[name]) if row[name] not in ("", None) else math.nan for row in rows])
     processes = sorted(name[len("rss_mb_"):] for name in rows[0] if name.startswith("rss_mb_"))
+    resident = {name: column(f"rss_mb_{name}") for name in processes}
     # a process never seen (no curve follower beside the run) has no figures, rather than nan ones
-    memory = {name: memory_figures(column(f"rss_mb_{name}"), hours, late) for name in processes
-              if not np.isnan(column(f"rss_mb_{name}")).all()}
+    memory = {name: memory_figures(mb, hours, late) for name, mb in resident.items() if not np.isnan(mb).all()}
     total = sum(column(f"bytes_{part}") for part in PARTS)
     return {"samples": len(rows), "hours": float(hours[-1]), "sessions": int(sessions[-1]) + 1,
             "growth_session": int(longest), "growth_session_hours": float(hours[within][-1] - hours[within][0]),

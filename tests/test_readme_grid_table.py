@@ -12,16 +12,19 @@ README = ROOT / "README.md"
 REPORT = ROOT / "results" / "grid" / "grid.md"
 
 
-def markdown_table(text: str, first_header: str) -> list[dict[str, str]]:
+def cells(line: str) -> list[str]:
+    return [cell.strip() for cell in line.strip("|").split("|")]
+
+
+def table_rows(text: str, first_header: str) -> list[dict[str, str]]:
     """The rows of the first table whose header row starts with `first_header`, keyed by header."""
     lines = text.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith(f"| {first_header}"))
-    header = [cell.strip() for cell in lines[start].strip("|").split("|")]
-    rows = []
+    header, rows = cells(lines[start]), []
     for line in lines[start + 2:]:
         if not line.startswith("|"):
             break
-        rows.append(dict(zip(header, (cell.strip() for cell in line.strip("|").split("|")), strict=True)))
+        rows.append(dict(zip(header, cells(line), strict=True)))
     return rows
 
 
@@ -30,11 +33,11 @@ def section(text: str, heading: str) -> str:
 
 
 def readme_grid_table() -> list[dict[str, str]]:
-    return markdown_table(README.read_text(), "Strategy | Seeds | Updates to drive,")
+    return table_rows(README.read_text(), "Strategy | Seeds | Updates to drive,")
 
 
 def report_strategy_rows() -> dict[str, dict[str, str]]:
-    rows = markdown_table(section(REPORT.read_text(), "## Per strategy"), "Strategy |")
+    rows = table_rows(section(REPORT.read_text(), "## Per strategy"), "Strategy |")
     grid = [row for row in rows if row["Buffer"] == "1000" and row["Options"] == "paper"]
     return {row["Strategy"]: row for row in grid}
 
