@@ -57,6 +57,13 @@ def rate_limit_from_config(config, strategy: str | None = None) -> RateLimit:
     )
 
 
+def learner_stock(prefetch: int) -> int:
+    """The most batches a running learner (learner/prefetch.py, `prefetch` workers) can have been served
+    and not updated on when its request reaches the replay: `prefetch` queued, one per worker in
+    transit or in hand, one in the update, and one per other worker whose next request overtook this one."""
+    return 3 * prefetch + 1
+
+
 def start_mark_of(limit: RateLimit, steps_before: int, steps_after: int, episodes_stored: int) -> float | None:
     """The start mark an episode sets, if it starts the updates: it took the run from steps_before to
     steps_after env steps and left episodes_stored episodes in the store. By episodes, the mark is the

@@ -66,7 +66,7 @@ class RateLimiter:
         self.start_mark: float | None = None  # env steps when updates started (plus refills); None in stage 1
         self.refilling = False  # resumed with an empty store: stage 1 again until start_episodes are stored
         self.refill_env_steps = 0  # steps that refilled a resumed replay's store (not owed)
-        self.lost_updates = 0  # batches served to a learner that died before checkpointing their updates
+        self.lost_updates = 0  # batches served that no learner trained on (it died, or their replies never came)
         self.recounted_updates = 0  # updates a learner had made that a resumed replay's counters had lost
 
     # --- events -------------------------------------------------------------------------
@@ -98,15 +98,25 @@ class RateLimiter:
         self.lost_updates += lost
         return lost
 
-    def on_learner_updates(self, updates: int) -> int:
-        """A running learner has made `updates`: more than served means this replay lost the count of
+    def on_learner_updates(self, updates: int, stock: int) -> tuple[int, int]:
+        """A running learner has made `updates` and may have at most `stock` batches served for updates it
+        has not made (common.pacing.learner_stock). More than served means this replay lost the count of
         batches served since its counters were last saved (it died and resumed); they are counted served
-        again, so the learner is not paid twice for the steps that were lost with them. Returns how many."""
-        if self.start_mark is None or self.refilling or updates <= self.served:
-            return 0
-        gained, self.served = updates - self.served, updates
-        self.recounted_updates += gained
-        return gained
+        again, so the learner is not paid twice for the steps that were lost with them. More than `stock`
+        below served means replies that never reached it (its session went deaf): they are owed again.
+        Returns (recounted, owed again)."""
+        if self.start_mark is None or self.refilling:
+            return 0, 0
+        if updates > self.served:
+            gained, self.served = updates - self.served, updates
+            self.recounted_updates += gained
+            return gained, 0
+        lost = self.served - updates - stock
+        if lost <= 0:
+            return 0, 0
+        self.served -= lost
+        self.lost_updates += lost
+        return 0, lost
 
     def set_start_by_steps(self, by_steps: bool) -> bool:
         """Changes the start rule (the learner's strategy decides it); False once updates started."""

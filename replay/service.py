@@ -36,13 +36,12 @@ from pathlib import Path
 
 from common.config import Config
 from common.exploration.names import starts_by_steps
-from common.logs import Every
-from common.pacing import rate_limit_from_config
+from common.logs import Every, ThrottledLog
+from common.pacing import learner_stock, rate_limit_from_config
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.wire.state_rows import stored_units
 from common.transport import PendingQuery
-from common.logs import ThrottledLog
 from common.wire.errors import WireError
 from common.wire.messages import Episode, ExplorationState, ReplayStats, TraceBatchRequest
 from common.wire.run_shape import RunShape, check_episode
@@ -82,6 +81,7 @@ class ReplayService:
         )
         self.limiter = RateLimiter(rate_limit_from_config(config))
         self.max_trace_batch = config.replay.max_batch_size
+        self.learner_stock = learner_stock(config.learner.prefetch)
         # No learner makes more updates than the budget pays for, plus its buffer and a buffer of episodes in flight.
         self.max_learner_updates = math.ceil((config.pace.total_env_steps + config.replay.capacity
                                               * config.env.max_steps) / config.pace.env_steps_per_update
@@ -90,9 +90,7 @@ class ReplayService:
         self._changed = threading.Condition(self._lock)
         self._pending: deque[PendingQuery] = deque()
         self.traces_served = 0
-        self.rejected_requests = 0
-        self.expired_requests = 0
-        self.failed_samples = 0
+        self.rejected_requests = self.expired_requests = self.failed_samples = 0
         self.learner_rule: tuple[str, bool] | None = None  # the learner's strategy and start rule, as last stated
         self._measured = False
         self._warn_budget = ThrottledLog(60.0, logger=log)
@@ -107,8 +105,7 @@ class ReplayService:
         self.snapshot_stats: dict[str, int | float] = {"snapshots_written": 0, "snapshot_failures": 0,
                                                        "snapshot_pause_max_ms": 0.0}
         self.snapshot_taken: float | None = None  # time.time() of the last snapshot's view
-        self.restored_episodes = 0
-        self.restore_skipped = 0
+        self.restored_episodes = self.restore_skipped = 0
         self.late_episodes = 0  # arrived after the run closed: not taken (replay/rate_limiter.py)
         self.late_env_steps = 0
         self._warn_late = ThrottledLog(60.0, logger=log)
@@ -204,19 +201,23 @@ class ReplayService:
 
     def _learner_updates(self, request: TraceBatchRequest) -> None:
         """The updates a request states: a learner's start re-owes what it lost; a running learner's count
-        above this replay's (counters lost in its restart) is counted served."""
-        updates = request.learner_updates
+        above this replay's (counters lost in its restart) is counted served, and one further below it than
+        the learner can hold re-owes the replies it never received."""
+        updates, lost, gained, unreceived = request.learner_updates, 0, 0, 0
         with self._lock:
             if request.request_id == 0:
-                lost, gained = self.limiter.on_learner_start(updates), 0
+                lost = self.limiter.on_learner_start(updates)
             else:
-                lost, gained = 0, self.limiter.on_learner_updates(updates)
+                gained, unreceived = self.limiter.on_learner_updates(updates, self.learner_stock)
         if lost:
             log.info("a learner starts from %d updates: the %d batches served beyond them were lost with "
                      "the learner that died, and are owed again", updates, lost)
         if gained:
             log.info("the learner has made %d updates, %d more than this replay counted served (lost with its "
                      "counters when it died): counted served", updates, gained)
+        if unreceived:
+            log.warning("the learner has made %d updates and can hold %d batches more, but %d more were served: "
+                        "their replies never reached it; owed again", updates, self.learner_stock, unreceived)
 
     def _request_fault(self, request) -> tuple[str, str] | None:
         if not isinstance(request, TraceBatchRequest):

@@ -202,6 +202,23 @@ def test_a_learner_that_starts_again_is_owed_the_batches_its_predecessor_lost(tm
     assert flat_values(service.stats())["rate_batches_served"] == 0
 
 
+
+def test_a_running_learner_is_owed_the_batches_whose_replies_never_reached_it(tmp_path, caplog):
+    service = ReplayService(small_config(tmp_path, **{"learner.prefetch": 1}))  # it can hold 4 unused batches
+    for index in range(2):
+        service.on_episode(episode(index))
+    for _ in range(9):
+        service.limiter.on_served()
+    ask = lambda updates: service.on_sample_request(HeldQuery(TraceBatchRequest(
+        request_id=5, batch_size=3, trace_length=4, learner_updates=updates)))
+    ask(5)
+    assert flat_values(service.stats())["rate_batches_served"] == 9
+    with caplog.at_level(logging.WARNING, logger="replay"):
+        ask(2)
+    stats = flat_values(service.stats())
+    assert stats["rate_batches_served"] == 6 and stats["rate_lost_updates"] == 3
+    assert "their replies never reached it; owed again" in caplog.text
+
 # --- the learner -----------------------------------------------------------------------------------
 
 def trace_batch(config, **changes) -> TraceBatch:

@@ -5,7 +5,8 @@ import math
 import pytest
 
 from common.config_values import load_config
-from common.pacing import RateLimit, achieved_ratio, is_unpaced, rate_limit_from_config, start_mark_of
+from common.pacing import (RateLimit, achieved_ratio, is_unpaced, learner_stock, rate_limit_from_config,
+                           start_mark_of)
 from common.wire.messages import flat_values
 from replay.rate_limiter import RateLimiter
 
@@ -209,7 +210,7 @@ def test_state_carries_every_counter_and_an_older_state_without_the_newer_ones_l
     assert (rate.refill_env_steps, rate.lost_updates, rate.recounted_updates) == (0, 0, 0)
     rate.on_episode(20, episodes_stored=2)  # the refill: 20 steps
     assert rate.on_learner_start(197) == 3  # 3 lost
-    assert rate.on_learner_updates(199) == 2  # 2 recounted
+    assert rate.on_learner_updates(199, stock=7) == (2, 0)  # 2 recounted
     assert rate.state_dict() == {"version": 1, "env_steps": 1_020, "served": 199, "start_mark": 220.0,
                                  "refill_env_steps": 20, "lost_updates": 3, "recounted_updates": 2}
     again = limiter(start_episodes=2, buffer=2.0)
@@ -247,8 +248,23 @@ def test_lost_and_recounted_updates_add_up_over_several_restarts():
     for _ in range(6):
         rate.on_served()
     assert rate.on_learner_start(4) == 2 and rate.lost_updates == 12  # the second death adds to the first
-    assert rate.on_learner_updates(7) == 3 and rate.on_learner_updates(9) == 2
+    assert rate.on_learner_updates(7, stock=7) == (3, 0) and rate.on_learner_updates(9, stock=7) == (2, 0)
     assert rate.recounted_updates == 5 and rate.served == 9
+
+
+def test_batches_served_beyond_what_a_running_learner_can_hold_are_owed_again():
+    # A learner whose session went deaf: its requests reached the replay, the replies never came back
+    rate = hundred_due(served=60)
+    assert rate.on_learner_updates(53, stock=7) == (0, 0) and rate.served == 60  # 7 in its hands or in transit
+    assert rate.on_learner_updates(40, stock=7) == (0, 13) and rate.served == 47  # 13 replies never came
+    assert rate.lost_updates == 13 and rate.error == 100 - 47
+    assert rate.on_learner_updates(40, stock=7) == (0, 0)  # owed once, not again
+    again = limiter(start_episodes=1, buffer=2.0)
+    again.load_state_dict(rate.state_dict(), episodes_stored=2)
+    assert again.lost_updates == 13 and again.served == 47
+    refilling = limiter(start_episodes=2, buffer=2.0)
+    refilling.load_state_dict(rate.state_dict(), episodes_stored=1)
+    assert refilling.on_learner_updates(0, stock=7) == (0, 0)  # refilling: no batch is served, none owed
 
 
 def test_the_replays_stats_name_every_counter_and_decision():
@@ -363,9 +379,9 @@ def test_a_resumed_replay_counts_the_updates_a_running_learner_made_beyond_its_s
     resumed = limiter(start_episodes=1, buffer=2.0)
     resumed.load_state_dict(saved, episodes_stored=2)
     assert resumed.served == 20
-    assert resumed.on_learner_updates(50) == 30 and resumed.served == 50  # the learner made 50
-    assert resumed.on_learner_updates(48) == 0 and resumed.served == 50  # a request sent before two came back
+    assert resumed.on_learner_updates(50, stock=7) == (30, 0) and resumed.served == 50  # the learner made 50
+    assert resumed.on_learner_updates(48, stock=7) == (0, 0) and resumed.served == 50  # sent before two came back
     again = limiter(start_episodes=1, buffer=2.0)
     again.load_state_dict(resumed.state_dict(), episodes_stored=2)
     assert (again.recounted_updates, again.state(0.0).recounted_updates) == (30, 30)
-    assert limiter().on_learner_updates(5) == 0  # before updates start there is nothing to count
+    assert limiter().on_learner_updates(5, stock=7) == (0, 0)  # before updates start there is nothing to count

@@ -77,7 +77,8 @@ class TraceBatchRequest(Message):
     # The updates the learner has made. A learner process's first request (request_id 0) states the
     # updates it starts from (its checkpoint's, 0 when fresh): the replay owes again the batches a killed
     # learner never kept. A later one stating more than the replay counts served (counters lost with a
-    # replay that died since its last save) makes the replay count them served.
+    # replay that died since its last save) makes the replay count them served; one further below it
+    # than the learner can hold (common.pacing.learner_stock) re-owes replies that never reached it.
     learner_updates: int = wired(Integer(min_value=-1), default=-1)  # -1: not stated
 
 
@@ -205,7 +206,7 @@ class RateState(Message):
     closed: bool = wired(Flag())  # budget spent and paid for: the run takes no more episodes
     refilling: bool = wired(Flag())  # a resumed replay refilling its store: updates wait
     refill_env_steps: int = wired(COUNT)
-    lost_updates: int = wired(COUNT)  # served to a learner that died before keeping them: owed again
+    lost_updates: int = wired(COUNT)  # served and never trained on (the learner died, the reply was lost): owed again
     recounted_updates: int = wired(COUNT)  # made by a learner, lost from a resumed replay's counters
     error_buffer_updates: float = wired(Real(min_value=1.0))  # B: how far the learner may run ahead
     hold_updates: float = wired(Real(min_value=0.0))  # how far it may fall behind before actors hold
