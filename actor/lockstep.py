@@ -86,7 +86,7 @@ class Lockstep:
 
 
 def episode_message(trajectory: Trajectory, *, actor_id: int, seed: int, episode_index: int, epsilon: float,
-                    incarnation: int = 0) -> Episode:
+                    incarnation: int = 0, in_hand: int = 0) -> Episode:
     """The replay's Episode of an ended training episode."""
     info = trajectory.info
     return Episode(
@@ -103,5 +103,6 @@ def episode_message(trajectory: Trajectory, *, actor_id: int, seed: int, episode
         seed=seed,
         episode_index=episode_index,
         incarnation=incarnation,
+        in_hand=in_hand,
         recurrent_state=np.stack(trajectory.states) if trajectory.states else no_states(),
     )

@@ -219,7 +219,8 @@ class Actor:
     def _finish(self, slot: EnvSlot, trajectory: Trajectory) -> tuple[Episode, EpisodeRecord]:
         epsilon = float(self.strategy.epsilon) if self.uses_network() else 1.0
         episode = episode_message(trajectory, actor_id=self.actor_id, seed=slot.seed,
-                                  episode_index=self.episode_index, epsilon=epsilon, incarnation=self.incarnation)
+                                  episode_index=self.episode_index, epsilon=epsilon, incarnation=self.incarnation,
+                                  in_hand=self.config.actor.envs_per_actor + self.config.actor.queue_episodes)
         record = EpisodeRecord(
             actor_id=self.actor_id, episode_index=self.episode_index, length=trajectory.length,
             episode_return=float(sum(trajectory.rewards)), collided=trajectory.collided,

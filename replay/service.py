@@ -126,7 +126,7 @@ class ReplayService:
         name = (episode.actor_id, episode.incarnation, episode.episode_index)
         with self._lock:
             closed = self.limiter.closed
-            begun_held = not closed and self._begun_while_held_locked(name)
+            begun_held = not closed and self._begun_while_held_locked(name, episode.in_hand)
             admitted = not closed and not begun_held and self.ledger.admit(*name)
             if admitted:
                 self._store_locked(episode)
@@ -152,10 +152,10 @@ class ReplayService:
             self.rejections.reject("episode_duplicate", f"episode {episode.episode_index} of actor "
                                    f"{episode.actor_id} (incarnation {episode.incarnation:x}) was stored before")
 
-    def _begun_while_held_locked(self, name: tuple[int, int, int]) -> bool:
+    def _begun_while_held_locked(self, name: tuple[int, int, int], in_hand: int) -> bool:
         """Whether the hold guard refuses the episode; one refused is noted in the ledger (no gap), not stored."""
         self.hold_guard.note_hold(bool(self.limiter.hold_reason()))
-        if self.hold_guard.admits(*name, self.ledger.highest(*name[:2])):
+        if self.hold_guard.admits(*name, self.ledger.highest(*name[:2]), in_hand):
             return False
         self.ledger.admit(*name)
         return True

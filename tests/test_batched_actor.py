@@ -161,6 +161,7 @@ def test_three_envs_give_well_formed_episodes_from_each_that_the_replay_takes(tm
     assert actor.episodes_started == 9 and not actor.running
     by_env = {slot.seed: [e for e in episodes if e.seed == slot.seed] for slot in actor.slots}
     assert len(by_env) == 3 and all(by_env.values())  # every env, each with its own seed
+    assert {e.in_hand for e in episodes} == {3 + config.actor.queue_episodes}  # for the replay's hold guard
     replay = ReplayService(config)
     for episode in episodes:
         replay.on_episode(episode)

@@ -3,6 +3,8 @@
 highest index it had delivered are refused, refused again when sent again, and leave no gap in the
 ledger; what it had in hand is taken, and nothing is refused while the actors may go."""
 
+import dataclasses
+
 from common.config_values import load_config
 from fake_clock import FakeClock
 from replay.hold_guard import HoldGuard
@@ -36,6 +38,17 @@ def test_past_the_grace_only_what_the_actor_had_in_hand_is_taken():
     assert guard.refused == 4
 
 
+
+def test_an_actor_that_states_more_in_hand_than_the_runs_config_is_allowed_twice_that():
+    # A remote actor started with more simulators than the run's config (actor.envs_per_actor on its host)
+    clock = FakeClock(10.0)
+    guard = HoldGuard(grace_s=0.0, allowance=2, clock=clock)
+    guard.note_hold(True)
+    assert guard.admits(1, 7, 5, 4, in_hand=3) and guard.admits(1, 7, 10, 9, in_hand=3)  # mark 4, 2 x 3 more
+    assert not guard.admits(1, 7, 11, 10, in_hand=3)
+    assert guard.admits(2, 9, 6, 4, in_hand=1) and not guard.admits(2, 9, 7, 6, in_hand=1)  # the config's 2 at least
+    assert guard.admits(3, 5, 8_196, 4, in_hand=10**12) and not guard.admits(3, 5, 8_197, 8_196, in_hand=10**12)
+
 def test_the_replay_refuses_an_actor_that_drives_on_while_held(tmp_path):
     service = ReplayService(small_config(tmp_path, **{"pace.start_episodes": 2}))
     service.hold_guard = HoldGuard(grace_s=0.0, allowance=2, clock=FakeClock())
@@ -53,3 +66,6 @@ def test_the_replay_refuses_an_actor_that_drives_on_while_held(tmp_path):
     assert len(service.store) == stored + 2 and service.limiter.env_steps == (stored + 2) * STEPS
     assert service.ledger.missing == 0 and service.hold_guard.refused == 4
     assert service.rejections.values()["rejected_episode_begun_while_held"] == 4
+    stating = dataclasses.replace(episode(index + 5), in_hand=3)  # its mark is index - 1: six in its hands
+    service.on_episode(stating)
+    assert words(service.acks) == {"received": [index + 5]}

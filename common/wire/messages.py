@@ -41,6 +41,9 @@ class Episode(Message):
     # A random number per actor process: (actor_id, incarnation, episode_index) names an episode, so the
     # replay stores none twice and counts the indices that never arrived. 0: unnamed (older senders).
     incarnation: int = wired(COUNT, default=0)
+    # Episodes the actor can have in hand past those it delivered (its envs_per_actor + queue_episodes),
+    # for the replay's hold guard; 0: not stated (older senders), the run's config's then.
+    in_hand: int = wired(COUNT, default=0)
     # learner.stored_state: the LSTM state (h, c) before each step, [L, 2, lstm_units]; (0, 2, 0) when not
     # recorded (common/wire/state_rows.py)
     recurrent_state: np.ndarray = wired(STATES, default_factory=no_states)
