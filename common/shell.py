@@ -176,6 +176,7 @@ class Service:
             if failure is not None:
                 raise failure(1) from None
             return None
+        log.info("Zenoh session %s open (Zenoh's own errors name it so)", session.zid())
         return session, declare_liveliness(session, self.keys.liveliness(self.role, self.process_id))
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import socket
 import threading
 import time
@@ -96,7 +97,15 @@ def tls_settings(config: TransportConfig) -> dict[str, Any]:
 
 def open_session(config: TransportConfig) -> zenoh.Session:
     """Opens a session; use it as a context manager (``with open_session(cfg) as session``) or close it."""
+    _zenoh_errors_to_log()
     return zenoh.open(zenoh_config(config))
+
+
+def _zenoh_errors_to_log() -> None:
+    """Zenoh's own errors (RUST_LOG's level where set) on stdout, so into the process's log: a transport
+    it closes as unresponsive ("Unable to push non droppable network message") says so there."""
+    os.environ.setdefault("NO_COLOR", "1")  # plain lines in the log files
+    zenoh.init_log_from_env_or("error")
 
 
 def free_port() -> int:

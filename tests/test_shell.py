@@ -4,6 +4,7 @@ session by an error still closes everything, in order. Every session lives in it
 
 import multiprocessing
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -48,6 +49,7 @@ def test_a_role_stops_on_sigterm_or_sighup_and_its_token_goes(tmp_path, role, si
         stop(*[p for p in (process, observer) if p is not None])
     text = role_log.read_text()
     assert "stopped" in text.splitlines()[-1] and "Traceback" not in text
+    assert re.search(r"Zenoh session [0-9a-f]{16,32} open", text)  # the name Zenoh's own errors give it
 
 
 def test_a_bad_endpoint_is_one_line_and_exit_code_1(tmp_path):

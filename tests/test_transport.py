@@ -1,9 +1,13 @@
 import itertools
 import json
 import logging
+import os
 import queue
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -340,3 +344,16 @@ def test_a_throttled_log_reports_what_it_suppressed_on_the_logger_it_was_given(c
         warn.warning("bad sample %d", 4)
     assert [record.getMessage() for record in caplog.records] == ["bad sample 1", "bad sample 4 (2 similar suppressed)"]
     assert {record.name for record in caplog.records} == {"replay"}
+
+
+def test_zenohs_own_log_lines_reach_the_process_output_plain(tmp_path):
+    # Zenoh's errors (a transport closed as unresponsive) would be silent otherwise; RUST_LOG=info here
+    # so that opening a session is enough to see its lines
+    script = ("import sys; from common.config import TransportConfig; from common.transport import open_session; "
+              "open_session(TransportConfig(mode='peer', multicast_scouting=False)).close()")
+    env = {key: value for key, value in os.environ.items() if key != "NO_COLOR"}
+    done = subprocess.run([sys.executable, "-c", script], env={**env, "RUST_LOG": "info"}, capture_output=True,
+                          text=True, timeout=60, cwd=Path(__file__).parent.parent)
+    assert done.returncode == 0, done.stderr
+    lines = [line for line in done.stdout.splitlines() if " INFO " in line and "zenoh" in line]
+    assert lines and not any("\x1b[" in line for line in lines), done.stdout[:500]
