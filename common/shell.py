@@ -12,7 +12,10 @@ Each of them starts the same way and ends the same way; only the middle is its o
     # however the block was left: stop set, on_close callbacks run, the token undeclared, session closed
 
 The token is declared only once the role is set up, so that its peers, which watch it, see
-the role alive when it is ready. A session that cannot open (a bad endpoint, a port in use,
+the role alive when it is ready. One process holds a token at a time: a second learner or replay
+of a run, or a second actor of one id, is refused (a line in the log, exit code 1), as two would
+split the run between them. A killed holder's token lingers until Zenoh's lease ends, so the
+newcomer waits that long for it to go before it gives up. A session that cannot open (a bad endpoint, a port in use,
 no router, a missing TLS file) is one line in the log and exit code 1, not a traceback.
 """
 
@@ -25,6 +28,7 @@ import os
 import re
 import signal
 import threading
+import time
 from typing import Callable, Iterator
 
 import zenoh
@@ -33,7 +37,7 @@ from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.heap import keep_releasing_free_heap
 from common.logs import setup_logging
-from common.transport import Declared, declare_liveliness, open_session
+from common.transport import Declared, alive_keys, declare_liveliness, open_session
 from common.keys import Keys
 
 log = logging.getLogger(__name__)
@@ -51,6 +55,7 @@ def parse_service_args(parser: argparse.ArgumentParser, argv: list[str] | None =
     return args, config
 
 
+SOLE_WAIT_S = 15.0  # Zenoh's lease (10 s) and a margin: a token whose holder was killed is gone by then
 PARENT_ENV = "D3RQN_STOP_WITH_PARENT"  # a parent's pid (the stack's for its roles, the main job's for its stack)
 PARENT_POLL_S = 1.0
 
@@ -100,11 +105,13 @@ class Service:
     """One process of a run: its log, its stop event, its keys and, within session(), its session.
 
     The process's log lines say `role` (`role-<process_id>` when an id is given, as actors have);
-    its liveliness token is <run>/alive/<role>/<process_id or 0>.
+    its liveliness token is <run>/alive/<role>/<process_id or 0>, which only one process holds unless
+    `sole` is False (recorders: several may listen).
     """
 
-    def __init__(self, role: str, config: Config, process_id: int | str | None = None) -> None:
+    def __init__(self, role: str, config: Config, process_id: int | str | None = None, sole: bool = True) -> None:
         self.role = role
+        self.sole = sole
         self.config = config
         self.process_id = "0" if process_id is None else str(process_id)
         setup_logging(role if process_id is None else f"{role}-{process_id}")
@@ -122,7 +129,7 @@ class Service:
         stop, runs the on_close callbacks, undeclares the token and closes the session (the one
         reopen() gave last, if it did)."""
         with contextlib.ExitStack() as closing:
-            self._held = opened = self._open(SystemExit)
+            self._held = opened = self._open(SystemExit, self.sole)
             closing.callback(self._close_held)
             self._closing = closing
             try:
@@ -164,8 +171,9 @@ class Service:
         if held is not None:
             _close_quietly(*held)
 
-    def _open(self, failure) -> tuple[zenoh.Session, Declared] | None:
-        """A session with the token; None where it cannot open (a line in the log), or `failure` raised."""
+    def _open(self, failure, sole: bool = False) -> tuple[zenoh.Session, Declared] | None:
+        """A session with the token; None where it cannot open (a line in the log), or `failure` raised.
+        With `sole`, also where another process holds the token past SOLE_WAIT_S."""
         transport = self.config.transport
         try:
             session = open_session(transport)
@@ -177,7 +185,30 @@ class Service:
                 raise failure(1) from None
             return None
         log.info("Zenoh session %s open (Zenoh's own errors name it so)", session.zid())
-        return session, declare_liveliness(session, self.keys.liveliness(self.role, self.process_id))
+        token = self.keys.liveliness(self.role, self.process_id)
+        if sole and not self._token_free(session, token):
+            session.close()
+            if failure is not None:
+                raise failure(1)
+            return None
+        return session, declare_liveliness(session, token)
+
+    def _token_free(self, session: zenoh.Session, token: str) -> bool:
+        """Whether no other process holds the token, waiting up to SOLE_WAIT_S for one to let it go."""
+        deadline = time.monotonic() + SOLE_WAIT_S
+        waited = False
+        while alive_keys(session, token, timeout_s=2.0):
+            if time.monotonic() >= deadline or self.stop.is_set():
+                other = "another --actor.actor_id" if self.role == "actor" else "another --run.name"
+                log.error("another process holds %s: one %s per token, or they would split the run between them. "
+                          "Stop that one, or start this one with %s", token, self.role, other)
+                return False
+            if not waited:
+                log.warning("another process holds %s; waiting up to %.0f s for it to go (a killed one's token "
+                            "lasts until Zenoh's lease ends)", token, SOLE_WAIT_S)
+                waited = True
+            self.stop.wait(1.0)
+        return True
 
 
 def _close_quietly(session: zenoh.Session, token: Declared) -> None:

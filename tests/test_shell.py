@@ -1,6 +1,7 @@
 """The service shell (common/shell.py): a role stops cleanly on SIGTERM or SIGHUP with its liveliness
 token gone, a session that cannot open is one clear line and exit code 1, and leaving the
-session by an error still closes everything, in order. Every session lives in its own process."""
+session by an error still closes everything, in order, and a second process for one token is
+refused. Every session lives in its own process."""
 
 import multiprocessing
 import os
@@ -129,3 +130,42 @@ def test_the_stop_signals_leave_a_hangup_ignored_by_nohup_ignored(nohup):
                             preexec_fn=ignore, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == [str(nohup), "False", "False"]
+
+
+def test_a_second_replay_of_a_run_waits_for_the_first_to_go_then_is_refused_or_takes_over(tmp_path):
+    """One process per token: a second replay of the run waits SOLE_WAIT_S for the first's token to go (a killed
+    one's lingers until Zenoh's lease ends), then exits 1 with one line, leaving the first and its snapshot
+    alone; a third, started while the first is alive, takes over once the first is killed."""
+    endpoint = loopback_endpoint()
+    tokens = tmp_path / "alive.jsonl"
+    observer = start([str(PEER), "alive", str(tokens), *run_flags(tmp_path, "--transport.listen", endpoint,
+                                                                  "--transport.mode", "router")],
+                     tmp_path / "observer.log")  # the hub, as in a run: a router the roles connect to as clients
+    replay = lambda name: start(["-m", "replay.main", *run_flags(tmp_path, "--transport.connect", endpoint,
+                                                                 "--transport.mode", "client",
+                                                                 "--replay.snapshot_period_s", "1")],
+                                tmp_path / f"{name}.log")
+    manifest = tmp_path / "runs" / RUN / "replay" / "snapshot" / "manifest.msgpack"
+    token = f"d3rqn/{RUN}/alive/replay/0"
+    ups = lambda: [line["up"] for line in read_lines(tokens) if line["kind"] == "alive" and line["key"] == token]
+    processes = []
+    try:
+        wait_for(lambda: read_lines(tokens), "the observer's session", 30, [tmp_path / "observer.log"])
+        processes.append(first := replay("first"))
+        wait_for(lambda: ups() == [True] and manifest.exists(), "the first replay's token and snapshot", 30,
+                 [tmp_path / "first.log"])
+        processes.append(second := replay("second"))
+        assert second.wait(60) == 1
+        assert "removing" not in (tmp_path / "second.log").read_text()  # the first's snapshot stays
+        errors = [line for line in (tmp_path / "second.log").read_text().splitlines() if " ERROR " in line]
+        assert len(errors) == 1 and f"another process holds {token}" in errors[0] and "--run.name" in errors[0]
+        assert first.poll() is None and ups() == [True]
+        processes.append(third := replay("third"))
+        wait_for(lambda: "waiting up to" in (tmp_path / "third.log").read_text(), "the third to wait", 30)
+        first.kill()
+        wait_for(lambda: ups() == [True, False, True], "the third replay's token", 30, [tmp_path / "third.log"])
+        assert third.poll() is None
+        third.send_signal(signal.SIGTERM)
+        assert third.wait(30) == 0
+    finally:
+        stop(*processes, observer)

@@ -240,7 +240,7 @@ def default_log_path(config: Config) -> Path:
 def run_recorder(config: Config, output: Path | None = None, tensorboard: Path | None = None) -> int:
     """Records until SIGINT/SIGTERM, with TensorBoard event files in `tensorboard` if given; returns the
     exit code (1 if the writer failed)."""
-    service = Service("recorder", config)
+    service = Service("recorder", config, sole=False)  # several may record a run
     keys = service.keys
     path = next_free_path(output or default_log_path(config))
     path.parent.mkdir(parents=True, exist_ok=True)
