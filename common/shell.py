@@ -197,7 +197,7 @@ class Service:
         """Whether no other process holds the token, waiting up to SOLE_WAIT_S for one to let it go."""
         deadline = time.monotonic() + SOLE_WAIT_S
         waited = False
-        while alive_keys(session, token, timeout_s=2.0):
+        while _held_elsewhere(session, token):
             if time.monotonic() >= deadline or self.stop.is_set():
                 other = "another --actor.actor_id" if self.role == "actor" else "another --run.name"
                 log.error("another process holds %s: one %s per token, or they would split the run between them. "
@@ -209,6 +209,15 @@ class Service:
                 waited = True
             self.stop.wait(1.0)
         return True
+
+
+def _held_elsewhere(session: zenoh.Session, token: str) -> bool:
+    """Whether a token is alive; False (a log line) where the session cannot say: the check must not stop a role."""
+    try:
+        return bool(alive_keys(session, token, timeout_s=2.0))
+    except zenoh.ZError as error:
+        log.warning("cannot ask whether another process holds %s (%s); going on", token, _RUST_SOURCE.sub("", str(error)))
+        return False
 
 
 def _close_quietly(session: zenoh.Session, token: Declared) -> None:

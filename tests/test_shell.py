@@ -13,6 +13,7 @@ import threading
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from common.config_values import load_config
 from common.shell import PARENT_ENV, Service, stop_with_parent
@@ -169,3 +170,19 @@ def test_a_second_replay_of_a_run_waits_for_the_first_to_go_then_is_refused_or_t
         assert third.wait(30) == 0
     finally:
         stop(*processes, observer)
+
+
+def test_a_session_that_cannot_say_who_holds_a_token_lets_the_role_go_on(caplog):
+    """The check asks the router; an error there (a closed session, a refusing router) is a warning, not a crash."""
+    from common.shell import _held_elsewhere
+
+    class Refusing:
+        def liveliness(self):
+            return self
+
+        def get(self, key, timeout):
+            raise zenoh.ZError("session closed")
+
+    with caplog.at_level("WARNING"):
+        assert _held_elsewhere(Refusing(), "d3rqn/r/alive/learner/0") is False
+    assert "cannot ask whether another process holds d3rqn/r/alive/learner/0 (session closed)" in caplog.text
