@@ -241,6 +241,10 @@ def test_a_locked_down_stack_trains_and_a_rogue_actor_cannot_feed_weights(cluste
              "the control's exploration state to pass, over 4 rounds", 20, cluster.logs)
     assert not {"replay/stats", "replay/rate"} & markers()  # only the replay (the router itself) publishes those
     cluster.alive()
+    # the access rules let a role ask who holds its token: a second learner of the run is refused
+    second = cluster.client("learner2", "learner.main", "secure-hub-learner.toml", *SMOKE, "--run.runs_dir", "runs2")
+    assert second.wait(60) == 1
+    assert "another process holds d3rqn/cluster/alive/learner/0" in (cluster.directory / "learner2.log").read_text()
 
 
 def test_peers_without_a_valid_certificate_cannot_connect(cluster, tmp_path):
