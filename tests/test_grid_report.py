@@ -110,6 +110,7 @@ def test_the_report_is_written_from_exported_runs_alone(tmp_path):
     page = (tmp_path / "out" / "grid.md").read_text()
     assert "| vdbe | 1000 | paper | 0 | 6,050 | not reached |" in page
     assert "| softmax | 1000 | paper | 2 | 2/2 | 2,000, 2,000 | 4,000, 4,000 |" in page
+    assert "| softmax | 1000 | paper | 0 | 6,050 | 2,000 (36,000; 0.28 h) | 4,000 |" in page  # 1,000 s of run time
     assert "Claim 1" in page and "needs 4 seeds a side" in page
     # one seed, or one run a side, resamples nothing: no interval of zero width is shown
     assert ("| vdbe | 1000 | paper | 1 | 0/1 | not reached | not reached | 200 | 50 (one seed) | 0.0% | 0.0% (one seed) "

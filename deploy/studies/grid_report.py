@@ -267,12 +267,15 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
              f"{counted(len(runs), 'run')}. Protocol: docs/experiments.md. Intervals: {100 * bootstrap.confidence:g}% "
              f"percentile, {bootstrap.replicates} bootstrap replicates.", "",
              "## Per run", "",
-             "| Strategy | Buffer | Options | Seed | Trained updates | Updates to drive (env steps) | Held from | "
+             "Hours to drive: the run's time until then, on the machine it names, slowed by whatever ran beside it "
+             "(a test suite, a curve evaluation); across machines, compare updates.", "",
+             "| Strategy | Buffer | Options | Seed | Trained updates | Updates to drive (env steps; hours) | Held from | "
              "Curve mean length | Chosen | Test mean length [CI] | Test CFR [CI] | Test streets / junctions | "
              "Trained on |",
              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for row in per_run:
-        drive = (f"{row['updates_to_drive']:,d} ({row['env_steps_to_drive']:,d})" if row["updates_to_drive"] != ""
+        drive = (f"{row['updates_to_drive']:,d} ({row['env_steps_to_drive']:,d}; {row['hours_to_drive']:.2f} h)"
+                 if row["updates_to_drive"] != ""
                  else "not reached")
         lines.append(
             f"| {row['strategy']} | {row['capacity']} | {row['options']} | {row['seed']} | {_thousands(row['updates'])} | "
