@@ -44,23 +44,23 @@ class Grants:
 
 GRANTS: dict[str, Grants] = {
     "learner": Grants(
-        publish=("weights/broadcast", "exploration", "metrics/learner/**", "heartbeat/learner/**"),
+        publish=("weights/broadcast", "exploration", "metrics/learner/**"),
         subscribe=("replay/stats", "replay/rate"),
         serve=("weights/latest", "weights/pieces"),
         query=("replay/sample",),
         token=("alive/learner/**",)),
     "actor": Grants(
-        publish=("episodes", "metrics/actor/**", "metrics/actor_stats/**", "heartbeat/actor/**"),
+        publish=("episodes", "metrics/actor/**", "metrics/actor_stats/**"),
         subscribe=("weights/broadcast", "exploration", "replay/rate", "replay/acks/**"),
         query=("weights/latest", "weights/pieces"),
         token=("alive/actor/**",)),
     "replay": Grants(  # a replay that is not the router
-        publish=("replay/stats", "replay/rate", "replay/acks/**", "metrics/replay/**", "heartbeat/replay/**"),
+        publish=("replay/stats", "replay/rate", "replay/acks/**", "metrics/replay/**"),
         subscribe=("episodes", "exploration"),
         serve=("replay/sample",),
         token=("alive/replay/**",)),
     "observer": Grants(
-        publish=("metrics/recorder/**", "heartbeat/recorder/**"),
+        publish=("metrics/recorder/**",),
         subscribe=("**",),
         query=("weights/latest",),  # `evaluate` against a live learner
         token=("alive/recorder/**",)),

@@ -82,13 +82,6 @@ class Keys:
     def metrics_all(self) -> str:
         return f"{self.root}/metrics/**"
 
-    def heartbeat(self, role: str, process_id: str | int) -> str:
-        return f"{self.root}/heartbeat/{_check_chunk(role, 'role')}/{_check_chunk(str(process_id), 'process id')}"
-
-    @property
-    def heartbeat_all(self) -> str:
-        return f"{self.root}/heartbeat/**"
-
     def liveliness(self, role: str, process_id: str | int) -> str:
         return f"{self.root}/alive/{_check_chunk(role, 'role')}/{_check_chunk(str(process_id), 'process id')}"
 

@@ -14,7 +14,7 @@ from common.network import D3RQN, weights_to_numpy
 from common.wire.codecs import Message
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
-from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, RateState,
+from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, RateState,
                                   ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights)
 from wire_examples import example_rate, example_replay_stats
 
@@ -71,7 +71,6 @@ def examples(config: Config) -> dict[type, Message]:
         EpisodeRecord: EpisodeRecord(actor_id=FLOOD_ACTOR, episode_index=0, length=5, episode_return=1.0,
                                      collided=False, start_set="train", start_index=0, epsilon=1.0,
                                      weights_version=0, wall_time=1.0, time=1.0),
-        Heartbeat: Heartbeat(role="x", process_id="0", time=1.0, seq=0),
         RateState: example_rate(),
         ReplayStats: example_replay_stats(),
         EpisodeAck: EpisodeAck(actor_id=FLOOD_ACTOR, incarnation=0xF100D, received=np.zeros(0, np.int64),

@@ -92,7 +92,7 @@ def flood(run: StackRun, config, shape: RunShape, rng, genuine: Episode) -> tupl
         keys.episodes: Episode, keys.replay_stats: ReplayStats, keys.replay_rate: RateState, keys.weights: Weights,
         keys.exploration: ExplorationState, keys.metrics_source("learner", "0"): Stats,
         keys.metrics_source("actor", "0"): Stats, keys.metrics_source("actor_stats", "1"): Stats,
-        keys.metrics_source("recorder", "0"): Stats, keys.heartbeat("actor", "0"): Stats,
+        keys.metrics_source("recorder", "0"): Stats,
         keys.replay_sample: TraceBatchRequest, keys.weights_latest: TraceBatchRequest,
         keys.episode_acks(0): EpisodeAck, keys.episode_acks(1): EpisodeAck,
     }

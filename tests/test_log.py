@@ -129,7 +129,7 @@ def test_recorder_writes_bytes_times_views_and_counters(tmp_path):
                                             for i in range(3)],
         keys.exploration: [encode(ExplorationState(strategy="bmc", params={}, epsilon=0.5, kappa=0.0, started=True,
                                                    counters={"n": 1}, state={}))],
-        keys.heartbeat("odd", 0): [b"not a wire message"],
+        keys.metrics_source("odd", 0): [b"not a wire message"],
     }
     received = {key: [time.time_ns() + i for i in range(len(payloads))] for key, payloads in sent.items()}
     for key, payloads in sent.items():

@@ -19,7 +19,7 @@ from common.transport import (alive_keys, declare_liveliness, open_session, publ
 from common.logs import ThrottledLog
 from common.keys import Keys
 from common.wire.envelope import encode
-from common.wire.messages import Heartbeat, Stats, TraceBatchRequest, Weights
+from common.wire.messages import Stats, TraceBatchRequest, Weights
 from tests.processes import loopback_endpoint
 from wire_examples import assert_messages_equal, example_messages
 
@@ -101,7 +101,6 @@ def test_keys_place_every_name_under_namespace_and_run():
     assert keys.metrics_source("actor", 3) == "d3rqn/paper1/metrics/actor/3"
     assert keys.metrics_source("learner") == "d3rqn/paper1/metrics/learner"
     assert keys.liveliness("actor", "a-1") == "d3rqn/paper1/alive/actor/a-1"
-    assert keys.heartbeat("replay", 0) == "d3rqn/paper1/heartbeat/replay/0"
     assert keys.all == "d3rqn/paper1/**"
 
 
@@ -111,7 +110,6 @@ def test_wildcard_keys_cover_their_family_and_nothing_else():
     assert zenoh.KeyExpr(keys.metrics_all).includes(keys.metrics_source("learner"))
     assert not zenoh.KeyExpr(keys.metrics_all).includes(keys.replay_stats)
     assert zenoh.KeyExpr(keys.liveliness_all).includes(keys.liveliness("learner", 0))
-    assert zenoh.KeyExpr(keys.heartbeat_all).includes(keys.heartbeat("learner", 0))
     assert not zenoh.KeyExpr(keys.weights).includes(keys.weights_latest)
     assert all(zenoh.KeyExpr(keys.all).includes(key) for key in (keys.episodes, keys.weights_latest, keys.metrics_all))
 
@@ -155,13 +153,18 @@ def test_fifty_megabyte_weights_pass_through_publish_subscribe(sessions, keys):
     assert_messages_equal(weights, received)
 
 
+def small(seq: int) -> Stats:
+    """A small message numbered seq."""
+    return Stats(source="r", time=0.0, values={"seq": seq})
+
+
 def test_malformed_sample_is_counted_and_the_next_good_one_arrives(sessions, keys):
     listener, connector = sessions
     subscription, inbox = collect(listener, keys.exploration)
     with subscription, publisher(connector, keys.exploration) as out:
         assert wait_until(lambda: out.matched)
         connector.put(keys.exploration, b"\x93not a message")
-        good = Heartbeat(role="learner", process_id="0", time=1.0, seq=1)
+        good = small(1)
         out.put(good)
         received, _ = inbox.get(timeout=WAIT_S)
         assert_messages_equal(good, received)
@@ -171,14 +174,14 @@ def test_malformed_sample_is_counted_and_the_next_good_one_arrives(sessions, key
 
 def test_wrong_type_and_oversized_samples_are_rejected(sessions, keys):
     listener, connector = sessions
-    subscription, inbox = collect(listener, keys.episodes, expected=Heartbeat, max_bytes=200)
+    subscription, inbox = collect(listener, keys.episodes, expected=Stats, max_bytes=200)
     with subscription, publisher(connector, keys.episodes) as out:
         assert wait_until(lambda: out.matched)
-        out.put(Stats(source="x", time=0.0, values={}))  # wrong type
-        out.put(Heartbeat(role="r" * 300, process_id="0", time=0.0, seq=0))  # too long
-        out.put(Heartbeat(role="r", process_id="0", time=0.0, seq=3))
+        out.put(TraceBatchRequest(request_id=0, batch_size=1, trace_length=1))  # wrong type
+        out.put(Stats(source="r" * 300, time=0.0, values={"seq": 0}))  # too long
+        out.put(small(3))
         received, _ = inbox.get(timeout=WAIT_S)
-        assert received.seq == 3
+        assert received.values["seq"] == 3
         assert wait_until(lambda: subscription.rejected == 2)
 
 
@@ -187,14 +190,14 @@ def test_a_failing_callback_is_counted_and_the_subscription_goes_on(sessions, ke
     seen = []
 
     def fussy(message, sample_key):
-        if message.seq == 0:
+        if message.values["seq"] == 0:
             raise RuntimeError("first one fails")
-        seen.append(message.seq)
+        seen.append(message.values["seq"])
 
     with subscribe(listener, keys.episodes, fussy) as subscription, publisher(connector, keys.episodes) as out:
         assert wait_until(lambda: out.matched)
         for seq in range(2):
-            out.put(Heartbeat(role="r", process_id="0", time=0.0, seq=seq))
+            out.put(small(seq))
         assert wait_until(lambda: seen == [1])
         assert (subscription.received, subscription.failed) == (2, 1)
 
@@ -210,7 +213,7 @@ def wait_for_service(session, key, message=None):
 def test_every_message_type_passes_through_request_reply(sessions, keys):
     listener, connector = sessions
     with serve(listener, keys.replay_sample, lambda message: message) as service:  # an echo service
-        wait_for_service(connector, keys.replay_sample, Heartbeat(role="r", process_id="0", time=0.0, seq=0))
+        wait_for_service(connector, keys.replay_sample, small(0))
         for message in example_messages():
             reply = request(connector, keys.replay_sample, message, WAIT_S)
             assert_messages_equal(message, reply)
@@ -230,7 +233,7 @@ def test_fifty_megabyte_weights_pass_through_request_and_reply(sessions, keys):
 def test_a_query_without_payload_reaches_the_handler_as_none(sessions, keys):
     listener, connector = sessions
     requests = []
-    reply_message = Heartbeat(role="learner", process_id="0", time=1.0, seq=1)
+    reply_message = small(1)
     with serve(listener, keys.weights_latest, lambda message: requests.append(message) or reply_message):
         assert_messages_equal(reply_message, wait_for_service(connector, keys.weights_latest))
     assert set(requests) == {None}
@@ -257,7 +260,7 @@ def test_handler_errors_are_answered_with_an_error_and_the_service_goes_on(sessi
 def test_a_malformed_request_gets_an_error_reply(sessions, keys):
     listener, connector = sessions
     with serve(listener, keys.replay_sample, lambda message: message) as service:
-        wait_for_service(connector, keys.replay_sample, Heartbeat(role="r", process_id="0", time=0.0, seq=0))
+        wait_for_service(connector, keys.replay_sample, small(0))
         replies = list(connector.get(keys.replay_sample, payload=b"\xc1junk", timeout=WAIT_S))
     assert len(replies) == 1 and replies[0].ok is None
     assert replies[0].err.payload.to_string().startswith("bad request: not a msgpack message")
@@ -266,7 +269,7 @@ def test_a_malformed_request_gets_an_error_reply(sessions, keys):
 
 def test_a_malformed_or_unexpected_reply_gives_none(sessions, keys):
     listener, connector = sessions
-    answers = iter([b"garbage", encode(Heartbeat(role="r", process_id="0", time=0.0, seq=0))])
+    answers = iter([b"garbage", encode(small(0))])
 
     def raw_queryable(query):
         with query:
@@ -277,7 +280,7 @@ def test_a_malformed_or_unexpected_reply_gives_none(sessions, keys):
     try:
         assert wait_until(lambda: querier.matching_status.matching)
         assert request(connector, keys.replay_sample, None, WAIT_S) is None  # garbage
-        assert request(connector, keys.replay_sample, None, WAIT_S, expected=Weights) is None  # a Heartbeat
+        assert request(connector, keys.replay_sample, None, WAIT_S, expected=Weights) is None  # a Stats
     finally:
         querier.undeclare()
         queryable.undeclare()

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from common.wire.envelope import SCHEMA_VERSION, decode, encode
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
-from common.wire.messages import (MESSAGE_TYPES, Episode, EpisodeAck, Heartbeat, Stats, TraceBatch, TraceBatchRequest,
+from common.wire.messages import (MESSAGE_TYPES, Episode, EpisodeAck, EpisodeRecord, Stats, TraceBatch, TraceBatchRequest,
                                   Weights, flat_values)
 from wire_examples import (
     SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_rate, example_replay_stats,
@@ -38,8 +38,8 @@ def test_decode_with_the_expected_type_accepts_it(message):
 
 
 def test_the_envelope_carries_schema_version_and_type_tag():
-    envelope = msgpack.unpackb(encode(HEARTBEAT))
-    assert envelope["schema"] == SCHEMA_VERSION and envelope["type"] == "Heartbeat"
+    envelope = msgpack.unpackb(encode(RECORD))
+    assert envelope["schema"] == SCHEMA_VERSION and envelope["type"] == "EpisodeRecord"
 
 
 def test_episode_of_real_frame_size_round_trips_and_rebuilds_the_frames():
@@ -162,7 +162,8 @@ def nested_list(depth: int) -> list:
     return value
 
 
-HEARTBEAT = Heartbeat(role="learner", process_id="p1", time=1.0, seq=2)
+RECORD = EpisodeRecord(actor_id=1, episode_index=2, length=30, episode_return=12.5, collided=True, start_set="train",
+                       start_index=3, epsilon=0.1, weights_version=4, wall_time=1.5, time=1.0)
 EPISODE = example_episode(steps=4)
 BATCH = example_trace_batch(batch=2, length=3)
 WEIGHTS = Weights(version=1, tensors={"w": np.ones((2, 2), dtype=np.float32)})
@@ -176,20 +177,20 @@ def set_rate_field(name, value):
     return lambda envelope: envelope["fields"]["rate"].__setitem__(name, value)
 
 MALFORMED = {
-    "schema version": (HEARTBEAT, lambda e: e.__setitem__("schema", SCHEMA_VERSION + 1), "schema version 2 is not supported"),
-    "schema version as bool": (HEARTBEAT, lambda e: e.__setitem__("schema", True), "schema version True"),
-    "unknown type": (HEARTBEAT, lambda e: e.__setitem__("type", "Teleport"), "unknown message type 'Teleport'"),
-    "envelope key missing": (HEARTBEAT, lambda e: e.pop("fields"), "expected a map with keys schema, type, fields"),
-    "fields not a map": (HEARTBEAT, lambda e: e.__setitem__("fields", [1, 2]), "Heartbeat: fields must be a map"),
-    "missing field": (HEARTBEAT, lambda e: e["fields"].pop("seq"), r"Heartbeat: missing field\(s\) seq"),
-    "extra field": (HEARTBEAT, set_field("colour", "red"), r"Heartbeat: unexpected field\(s\) colour"),
-    "string for int": (HEARTBEAT, set_field("seq", "8"), "Heartbeat.seq: expected an integer, got str"),
-    "bool for int": (HEARTBEAT, set_field("seq", True), "Heartbeat.seq: expected an integer, got bool"),
-    "int for float": (HEARTBEAT, set_field("time", 3), "Heartbeat.time: expected a float, got int"),
-    "bytes for str": (HEARTBEAT, set_field("role", b"actor"), "Heartbeat.role: expected a string, got bytes"),
-    "negative count": (HEARTBEAT, set_field("seq", -1), "Heartbeat.seq: -1 is outside"),
-    "int beyond int64": (HEARTBEAT, set_field("seq", 2**64 - 1), "is outside"),
-    "infinite time": (HEARTBEAT, set_field("time", float("inf")), "Heartbeat.time: must be finite"),
+    "schema version": (RECORD, lambda e: e.__setitem__("schema", SCHEMA_VERSION + 1), "schema version 2 is not supported"),
+    "schema version as bool": (RECORD, lambda e: e.__setitem__("schema", True), "schema version True"),
+    "unknown type": (RECORD, lambda e: e.__setitem__("type", "Teleport"), "unknown message type 'Teleport'"),
+    "envelope key missing": (RECORD, lambda e: e.pop("fields"), "expected a map with keys schema, type, fields"),
+    "fields not a map": (RECORD, lambda e: e.__setitem__("fields", [1, 2]), "EpisodeRecord: fields must be a map"),
+    "missing field": (RECORD, lambda e: e["fields"].pop("episode_index"), r"EpisodeRecord: missing field\(s\) episode_index"),
+    "extra field": (RECORD, set_field("colour", "red"), r"EpisodeRecord: unexpected field\(s\) colour"),
+    "string for int": (RECORD, set_field("episode_index", "8"), "EpisodeRecord.episode_index: expected an integer, got str"),
+    "bool for int": (RECORD, set_field("episode_index", True), "EpisodeRecord.episode_index: expected an integer, got bool"),
+    "int for float": (RECORD, set_field("time", 3), "EpisodeRecord.time: expected a float, got int"),
+    "bytes for str": (RECORD, set_field("start_set", b"train"), "EpisodeRecord.start_set: expected a string, got bytes"),
+    "negative count": (RECORD, set_field("episode_index", -1), "EpisodeRecord.episode_index: -1 is outside"),
+    "int beyond int64": (RECORD, set_field("episode_index", 2**64 - 1), "is outside"),
+    "infinite time": (RECORD, set_field("time", float("inf")), "EpisodeRecord.time: must be finite"),
     "epsilon above one": (EPISODE, set_field("epsilon", 1.5), r"Episode.epsilon: 1.5 is outside \[0.0, 1.0\]"),
     "array dtype": (EPISODE, set_array_part("actions", "dtype", "int32"), "Episode.actions: expected dtype int64, got int32"),
     "dtype not allowed": (EPISODE, set_array_part("actions", "dtype", "float16"), "'float16' is not one of"),
@@ -249,11 +250,11 @@ def test_malformed_message_gives_a_wire_error_naming_the_fault(message, edit, er
 
 
 @pytest.mark.parametrize("data, error", [
-    (encode(HEARTBEAT)[:-3], "not a msgpack message"),
-    (encode(HEARTBEAT) + b"\x00", "not a msgpack message"),
+    (encode(RECORD)[:-3], "not a msgpack message"),
+    (encode(RECORD) + b"\x00", "not a msgpack message"),
     (b"", "not a msgpack message"),
     (msgpack.packb({1: 2}), "not a msgpack message"),  # integer map keys
-    (msgpack.packb([1, "Heartbeat", {}]), "not a wire message"),
+    (msgpack.packb([1, "EpisodeRecord", {}]), "not a wire message"),
 ])
 def test_bytes_that_are_no_message_give_a_wire_error(data, error):
     with pytest.raises(WireError, match=error):
@@ -262,12 +263,12 @@ def test_bytes_that_are_no_message_give_a_wire_error(data, error):
 
 def test_decode_refuses_a_text_argument():
     with pytest.raises(WireError, match="expected bytes, got str"):
-        decode("Heartbeat")
+        decode("EpisodeRecord")
 
 
 def test_decode_refuses_an_unexpected_message_type():
-    with pytest.raises(WireError, match="expected message type Episode, got Heartbeat"):
-        decode(encode(HEARTBEAT), Episode)
+    with pytest.raises(WireError, match="expected message type Episode, got EpisodeRecord"):
+        decode(encode(RECORD), Episode)
 
 
 @pytest.mark.parametrize("message, error", [
@@ -278,8 +279,8 @@ def test_decode_refuses_an_unexpected_message_type():
     (Weights(version=1, tensors={"w": np.ones(2, dtype=np.float16)}), "dtype float16 is not one of"),
     (Weights(version=1, tensors={"w": [[1.0], [1.0, 2.0]]}), "Weights.tensors.w: not an array"),
     (Stats(source="s", time=1.0, values={"pair": (1, 2)}), "Stats.values.pair: expected int, float or str, got tuple"),
-    (dataclasses.replace(HEARTBEAT, seq=1.0), "Heartbeat.seq: expected an integer, got float"),
-    (dataclasses.replace(REPLAY_STATS, rate=HEARTBEAT), "ReplayStats.rate: expected a RateState, got Heartbeat"),
+    (dataclasses.replace(RECORD, episode_index=1.0), "EpisodeRecord.episode_index: expected an integer, got float"),
+    (dataclasses.replace(REPLAY_STATS, rate=RECORD), "ReplayStats.rate: expected a RateState, got EpisodeRecord"),
     (example_rate(hold_reason="later"), "RateState.hold_reason: 'later'"),
 ])
 def test_encode_refuses_invalid_messages(message, error):
@@ -365,14 +366,14 @@ def test_a_field_with_a_default_may_be_absent_and_others_may_not():
 
 @pytest.mark.parametrize("data, kind", [
     (b"\x00junk", "undecodable"), (msgpack.packb([1, 2]), "undecodable"),
-    (tampered(HEARTBEAT, lambda e: e.__setitem__("type", "Teleport")), "undecodable"),
-    (tampered(HEARTBEAT, set_field("seq", "8")), "invalid")])
+    (tampered(RECORD, lambda e: e.__setitem__("type", "Teleport")), "undecodable"),
+    (tampered(RECORD, set_field("episode_index", "8")), "invalid")])
 def test_a_wire_error_names_its_kind(data, kind):
     with pytest.raises(WireError) as raised:
         decode(data)
     assert raised.value.kind == kind
     with pytest.raises(WireError) as raised:
-        decode(encode(HEARTBEAT), Episode)
+        decode(encode(RECORD), Episode)
     assert raised.value.kind == "wrong_type"
 
 

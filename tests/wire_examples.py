@@ -8,7 +8,7 @@ import numpy as np
 
 from common.wire.codecs import Message
 from common.wire.frames import FrameStack
-from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, Heartbeat, RateState,
+from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, RateState,
                                   ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights, WeightsPiece,
                                   WeightsPieceAsk)
 
@@ -83,7 +83,6 @@ def example_messages() -> list[Message]:
         Stats(source="replay", time=12.5, values={"episodes": 3, "fill": 0.25, "state": "ok", "loss": float("nan")}),
         EpisodeRecord(actor_id=1, episode_index=2, length=300, episode_return=120.5, collided=False,
                       start_set="test", start_index=4, epsilon=0.05, weights_version=77, wall_time=12.0, time=99.0),
-        Heartbeat(role="actor", process_id="actor-1", time=3.25, seq=8),
         EpisodeAck(actor_id=2, incarnation=0x3FFF_FFFF_FFFF_FFFF, received=np.array([7, 8]),
                    kept=np.arange(5, dtype=np.int64), refused=np.zeros(0, np.int64)),
         example_rate(start_env_steps=None, batches_served=0, env_steps_per_update=None, hold_reason="budget"),

@@ -298,14 +298,6 @@ class EpisodeRecord(Message):
     time: float = wired(Real())
 
 
-@dataclass(eq=False)
-class Heartbeat(Message):
-    role: str = wired(Text())
-    process_id: str = wired(Text())
-    time: float = wired(Real())
-    seq: int = wired(COUNT)
-
-
 MAX_ACK_INDICES = 65_536  # indices in one EpisodeAck: far more than an actor has in flight
 
 
@@ -362,6 +354,6 @@ class WeightsPiece(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.__name__: cls
-    for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, EpisodeRecord, Heartbeat,
+    for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, EpisodeRecord,
                 EpisodeAck, RateState, ReplayStats, WeightsPieceAsk, WeightsPiece)
 }

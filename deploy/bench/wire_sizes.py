@@ -21,7 +21,7 @@ from common.config import NetworkConfig
 from common.cpu_capability import describe_cpu
 from common.wire.envelope import decode, encode
 from common.wire.frames import ZSTD_LEVEL, FrameStack
-from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, Heartbeat, RateState, Stats, TraceBatch,
+from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, RateState, Stats, TraceBatch,
                                   TraceBatchRequest, Weights)
 
 
@@ -100,7 +100,6 @@ def small_messages() -> list:
         Stats(source="learner", time=now, values={"loss": 0.0123, "updates": 30_000, "q_mean": 14.2, "strategy": "bmc"}),
         EpisodeRecord(actor_id=2, episode_index=40, length=812, episode_return=640.5, collided=True, start_set="train",
                       start_index=7, epsilon=0.05, weights_version=311, wall_time=41.0, time=now),
-        Heartbeat(role="actor", process_id="actor-2", time=now, seq=17),
         RateState(time=now, env_steps=148_000, batches_served=30_000, updates_due=30_000.0, start_env_steps=28_000.0,
                   hold_reason="", closed=False, refilling=False, refill_env_steps=0, lost_updates=0,
                   recounted_updates=0, error_buffer_updates=50.0, hold_updates=1_500.0,

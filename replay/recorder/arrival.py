@@ -7,7 +7,7 @@ Times (nanoseconds since the Unix epoch, as MCAP wants):
 
 * log time: when the recorder received the sample (its own clock);
 * publish time: the sender's own time field when the message has one (``time`` of
-  Stats, EpisodeRecord and Heartbeat, ``created`` of Weights); else the Zenoh
+  Stats and EpisodeRecord, ``created`` of Weights); else the Zenoh
   timestamp of the sample, present when a router that forwarded it stamps samples
   (routers do by default) or the publisher did; else the reception time.
 """
