@@ -15,13 +15,21 @@ The token is declared only once the role is set up, so that its peers, which wat
 the role alive when it is ready. One process holds a token at a time: a second learner or replay
 of a run, or a second actor of one id, is refused (a line in the log, exit code 1), as two would
 split the run between them. A killed holder's token lingers until Zenoh's lease ends, so the
-newcomer waits that long for it to go before it gives up. A session that cannot open (a bad endpoint, a port in use,
+newcomer waits that long for it to go before it gives up. A role with state in the run folder
+calls claim() first, which opens the session and waits then, so that it reads the checkpoint or
+snapshot a stopping holder wrote last:
+
+    service = Service("learner", config)
+    service.claim()                          # the session, once no other learner holds the token
+    ...                                      # read the checkpoint
+    with service.session() as session:       # the same session, now with the token A session that cannot open (a bad endpoint, a port in use,
 no router, a missing TLS file) is one line in the log and exit code 1, not a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import logging
 import os
@@ -122,6 +130,14 @@ class Service:
         self._closing: contextlib.ExitStack | None = None
         self._held: tuple[zenoh.Session, Declared] | None = None  # the open session and its token
         self._held_lock = threading.Lock()
+        self._claimed: zenoh.Session | None = None  # opened by claim(), for session() to go on with
+
+    def claim(self) -> None:
+        """Opens the session now and, unless `sole` is False, waits until no other process holds this
+        process's token (exit code 1 where one keeps it). session() goes on with this session."""
+        if self._claimed is None:
+            self._claimed = self._connect(SystemExit, self.sole)
+            atexit.register(self._drop_claim)  # a role that fails before session() still closes it
 
     @contextlib.contextmanager
     def session(self) -> Iterator[zenoh.Session]:
@@ -171,9 +187,23 @@ class Service:
         if held is not None:
             _close_quietly(*held)
 
+    def _drop_claim(self) -> None:
+        claimed, self._claimed = self._claimed, None
+        if claimed is not None:
+            claimed.close()
+
     def _open(self, failure, sole: bool = False) -> tuple[zenoh.Session, Declared] | None:
-        """A session with the token; None where it cannot open (a line in the log), or `failure` raised.
-        With `sole`, also where another process holds the token past SOLE_WAIT_S."""
+        """A session with the token (the claimed one, if any); None where it cannot open (a line in the log),
+        or `failure` raised. With `sole`, also where another process holds the token past SOLE_WAIT_S."""
+        session, self._claimed = self._claimed, None
+        if session is None:
+            session = self._connect(failure, sole)
+        if session is None:
+            return None
+        return session, declare_liveliness(session, self.keys.liveliness(self.role, self.process_id))
+
+    def _connect(self, failure, sole: bool) -> zenoh.Session | None:
+        """An open session without the token, as _open() says."""
         transport = self.config.transport
         try:
             session = open_session(transport)
@@ -185,13 +215,12 @@ class Service:
                 raise failure(1) from None
             return None
         log.info("Zenoh session %s open (Zenoh's own errors name it so)", session.zid())
-        token = self.keys.liveliness(self.role, self.process_id)
-        if sole and not self._token_free(session, token):
+        if sole and not self._token_free(session, self.keys.liveliness(self.role, self.process_id)):
             session.close()
             if failure is not None:
                 raise failure(1)
             return None
-        return session, declare_liveliness(session, token)
+        return session
 
     def _token_free(self, session: zenoh.Session, token: str) -> bool:
         """Whether no other process holds the token, waiting up to SOLE_WAIT_S for one to let it go."""

@@ -34,6 +34,7 @@ log = logging.getLogger("learner")
 def run_learner(config: Config, resume: bool = False) -> None:
     """Trains until the step budget is spent or SIGINT/SIGTERM; checkpoints at exit."""
     service = Service("learner", config)
+    service.claim()  # before the checkpoint is read: a learner that is stopping writes it last
     if config.learner.torch_threads:
         torch.set_num_threads(config.learner.torch_threads)
     process = LearnerService(config)

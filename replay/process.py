@@ -71,6 +71,7 @@ def physical_memory_bytes() -> int | None:
 def run_replay(config: Config, resume: bool = False) -> None:
     """Serves until SIGINT/SIGTERM; with resume, restores the run's snapshot and counters."""
     shell = Service("replay", config)
+    shell.claim()  # before the snapshot is read: a replay that is stopping writes it last
     stop = shell.stop
     service = ReplayService(config)
     path = counters_path(config)

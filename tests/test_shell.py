@@ -136,16 +136,17 @@ def test_the_stop_signals_leave_a_hangup_ignored_by_nohup_ignored(nohup):
 def test_a_second_replay_of_a_run_waits_for_the_first_to_go_then_is_refused_or_takes_over(tmp_path):
     """One process per token: a second replay of the run waits SOLE_WAIT_S for the first's token to go (a killed
     one's lingers until Zenoh's lease ends), then exits 1 with one line, leaving the first and its snapshot
-    alone; a third, started while the first is alive, takes over once the first is killed."""
+    alone; a third (--resume), started while the first is alive, takes over once the first is killed, and
+    only then reads the snapshot."""
     endpoint = loopback_endpoint()
     tokens = tmp_path / "alive.jsonl"
     observer = start([str(PEER), "alive", str(tokens), *run_flags(tmp_path, "--transport.listen", endpoint,
                                                                   "--transport.mode", "router")],
                      tmp_path / "observer.log")  # the hub, as in a run: a router the roles connect to as clients
-    replay = lambda name: start(["-m", "replay.main", *run_flags(tmp_path, "--transport.connect", endpoint,
-                                                                 "--transport.mode", "client",
-                                                                 "--replay.snapshot_period_s", "1")],
-                                tmp_path / f"{name}.log")
+    replay = lambda name, *flags: start(["-m", "replay.main", *run_flags(tmp_path, "--transport.connect", endpoint,
+                                                                        "--transport.mode", "client",
+                                                                        "--replay.snapshot_period_s", "1"), *flags],
+                                        tmp_path / f"{name}.log")
     manifest = tmp_path / "runs" / RUN / "replay" / "snapshot" / "manifest.msgpack"
     token = f"d3rqn/{RUN}/alive/replay/0"
     ups = lambda: [line["up"] for line in read_lines(tokens) if line["kind"] == "alive" and line["key"] == token]
@@ -161,11 +162,15 @@ def test_a_second_replay_of_a_run_waits_for_the_first_to_go_then_is_refused_or_t
         errors = [line for line in (tmp_path / "second.log").read_text().splitlines() if " ERROR " in line]
         assert len(errors) == 1 and f"another process holds {token}" in errors[0] and "--run.name" in errors[0]
         assert first.poll() is None and ups() == [True]
-        processes.append(third := replay("third"))
+        processes.append(third := replay("third", "--resume"))
         wait_for(lambda: "waiting up to" in (tmp_path / "third.log").read_text(), "the third to wait", 30)
         first.kill()
         wait_for(lambda: ups() == [True, False, True], "the third replay's token", 30, [tmp_path / "third.log"])
         assert third.poll() is None
+        lines = (tmp_path / "third.log").read_text().splitlines()
+        waited, restored = (next(i for i, line in enumerate(lines) if text in line)
+                            for text in ("waiting up to", "restored 0 episodes from the snapshot"))
+        assert waited < restored  # it read the snapshot the first wrote last, once the first was gone
         third.send_signal(signal.SIGTERM)
         assert third.wait(30) == 0
     finally:
