@@ -22,8 +22,10 @@ snapshot a stopping holder wrote last:
     service = Service("learner", config)
     service.claim()                          # the session, once no other learner holds the token
     ...                                      # read the checkpoint
-    with service.session() as session:       # the same session, now with the token A session that cannot open (a bad endpoint, a port in use,
-no router, a missing TLS file) is one line in the log and exit code 1, not a traceback.
+    with service.session() as session:       # the same session, now with the token
+
+A session that cannot open (a bad endpoint, a port in use, no router, a missing TLS file) is
+one line in the log and exit code 1, not a traceback.
 """
 
 from __future__ import annotations

@@ -77,14 +77,14 @@ def run_replay(config: Config, resume: bool = False) -> None:
     path = counters_path(config)
     if resume:
         _resume(service, path)
+    elif service.snapshotter.exists:
+        log.info("a fresh start: removing the run's earlier snapshot in %s (replay --resume restores it)",
+                 service.snapshotter.directory)
+        service.snapshotter.clear()
     _check_budget_at_start(service, config)
     keys = shell.keys
     max_bytes = int(config.replay.max_message_mb * MEGABYTE)
     with shell.session() as session:
-        if not resume and service.snapshotter.exists:  # only now: a replay refused as a second one removes nothing
-            log.info("a fresh start: removing the run's earlier snapshot in %s (replay --resume restores it)",
-                     service.snapshotter.directory)
-            service.snapshotter.clear()
         # no expected type: a message of another type reaches the service, which counts it
         receivers = {"episodes": subscribe(session, keys.episodes, service.on_episode, max_bytes=max_bytes),
                      "exploration": subscribe(session, keys.exploration, service.on_exploration),
