@@ -87,7 +87,7 @@ class StackMonitor:
             return (f"[{elapsed:7.0f}s] env steps {env_steps:>9,d}{budget} | "
                     f"episodes {self.episodes:>6,d} | "
                     f"updates {_count(learner, 'updates'):>7,d} | "
-                    f"eps {_number(learner, 'epsilon', 1.0):.3f} | "
+                    f"eps {_number(learner, 'epsilon', 1.0):.3f} {_temperature(learner)} | "
                     f"return(100) {math.nan if mean_return is None else mean_return:8.2f} | "
                     f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
                     f"steps/s {self.env_step_speed.per_s() or 0.0:6.1f} | "
@@ -144,6 +144,12 @@ class StackMonitor:
 def _number(values: dict, name: str, default: float) -> float:
     value = stat_number(values, name)
     return default if value is None else float(value)
+
+
+def _temperature(values: dict) -> str:
+    """kappa of the exploring actions, or "uniform": softmax explores with eps 1 at every step, so eps alone misleads."""
+    kappa = _number(values, "kappa", 0.0)
+    return f"kappa {kappa:7.3g}" if kappa > 0 else "uniform      "
 
 
 def _text(values: dict, name: str) -> str | None:

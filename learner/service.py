@@ -408,6 +408,7 @@ class LearnerMetrics:
             # the paper's training figure: |loss_k - loss_k-1| of consecutive updates, averaged here
             "loss_abs_diff": float(np.mean(self.loss_diffs)) if self.loss_diffs else float("nan"),
             "epsilon": float(strategy.epsilon),
+            "kappa": float(strategy.kappa),  # 0: exploring actions are uniform
             "updates_per_s": (updates - window_updates) / elapsed,
             # waiting for a batch: the replay holds replies while the learner is ahead of the ratio
             "data_wait_share": (self.prefetcher.wait_s - window_data_wait) / elapsed,

@@ -17,6 +17,8 @@ from common.wire.messages import EpisodeRecord, ReplayStats, Stats
 from wire_examples import example_rate, example_replay_stats
 from deploy.stack import Stack, StackMonitor
 from fake_clock import FakeClock
+from learner.prefetch import Prefetcher
+from learner.service import LearnerMetrics, LearnerService
 
 
 
@@ -65,6 +67,30 @@ def test_the_stacks_line_and_status_show_the_budget_its_share_and_the_eta():
     status = monitor.status("training", {"actor-0": 1}, {"learner": 7})
     assert (status.env_steps, status.total_env_steps, status.episodes, status.mean_return) == (2_000, 20_000, 1, 4.5)
     assert status.eta_s == pytest.approx(180.0) and status.pids == {"learner": 7}
+
+
+def test_the_line_shows_the_temperature_beside_epsilon_since_softmax_explores_at_eps_1():
+    monitor = StackMonitor(20_000, clock=FakeClock())
+    assert "eps 1.000 uniform       |" in monitor.line()  # nothing heard yet: the random phase's uniform actions
+    for values, shown in (({"epsilon": 1.0, "kappa": 0.1}, "eps 1.000 kappa     0.1 |"),
+                          ({"epsilon": 0.05, "kappa": 0.0}, "eps 0.050 uniform       |")):
+        monitor.on_metric(Stats(source="learner", time=0.0, values=values), "d3rqn/r/metrics/learner/0")
+        assert shown in monitor.line()
+
+
+def test_the_learners_metrics_carry_its_strategys_temperature_to_the_line(tmp_path):
+    config = load_config("smoke", overrides={"exploration.strategy": "softmax", "run.runs_dir": str(tmp_path)})
+    process = LearnerService(config)
+    process.strategy.start()
+    prefetcher = Prefetcher(lambda request: None, 4, 10, depth=1)
+    try:
+        values = LearnerMetrics(process, prefetcher).values()
+    finally:
+        prefetcher.close()
+    assert (values["epsilon"], values["kappa"]) == (1.0, config.exploration.softmax.kappa)
+    monitor = StackMonitor(clock=FakeClock())
+    monitor.on_metric(Stats(source="learner", time=0.0, values=values), "d3rqn/r/metrics/learner/0")
+    assert f"eps 1.000 kappa {config.exploration.softmax.kappa:7.3g} |" in monitor.line()
 
 
 def test_a_paced_runs_eta_follows_the_updates_it_still_owes_not_the_random_phase():
