@@ -15,7 +15,8 @@ The token is declared only once the role is set up, so that its peers, which wat
 the role alive when it is ready. One process holds a token at a time: a second learner or replay
 of a run, or a second actor of one id, is refused (a line in the log, exit code 1), as two would
 split the run between them. A killed holder's token lingers until Zenoh's lease ends, so the
-newcomer waits that long for it to go before it gives up. A role with state in the run folder
+newcomer waits that long for it to go before it gives up. Two that find the token free at the same
+moment each declare a claim, <token>/claim/<zid>, for a second; the lower zid goes on, the other waits. A role with state in the run folder
 calls claim() first, which opens the session and waits then, so that it reads the checkpoint or
 snapshot a stopping holder wrote last:
 
@@ -66,6 +67,7 @@ def parse_service_args(parser: argparse.ArgumentParser, argv: list[str] | None =
 
 
 SOLE_WAIT_S = 15.0  # Zenoh's lease (10 s) and a margin: a token whose holder was killed is gone by then
+CLAIM_SETTLE_S = 1.0  # how long a claim takes to reach every peer, with a wide margin (a router hop: ms)
 PARENT_ENV = "D3RQN_STOP_WITH_PARENT"  # a parent's pid (the stack's for its roles, the main job's for its stack)
 PARENT_POLL_S = 1.0
 
@@ -133,6 +135,7 @@ class Service:
         self._held: tuple[zenoh.Session, Declared] | None = None  # the open session and its token
         self._held_lock = threading.Lock()
         self._claimed: zenoh.Session | None = None  # opened by claim(), for session() to go on with
+        self._claim_token: Declared | None = None  # <token>/claim/<zid>, from the check until the token is up
 
     def claim(self) -> None:
         """Opens the session now and, unless `sole` is False, waits until no other process holds this
@@ -202,7 +205,11 @@ class Service:
             session = self._connect(failure, sole)
         if session is None:
             return None
-        return session, declare_liveliness(session, self.keys.liveliness(self.role, self.process_id))
+        token = declare_liveliness(session, self.keys.liveliness(self.role, self.process_id))
+        claim, self._claim_token = self._claim_token, None
+        if claim is not None:
+            claim.undeclare()  # the token itself now keeps newcomers out
+        return session, token
 
     def _connect(self, failure, sole: bool) -> zenoh.Session | None:
         """An open session without the token, as _open() says."""
@@ -225,10 +232,11 @@ class Service:
         return session
 
     def _token_free(self, session: zenoh.Session, token: str) -> bool:
-        """Whether no other process holds the token, waiting up to SOLE_WAIT_S for one to let it go."""
+        """Whether no other process holds the token, waiting up to SOLE_WAIT_S for one to let it go. Two processes
+        that find it free at the same moment each declare <token>/claim/<zid>, and the lower zid goes on."""
         deadline = time.monotonic() + SOLE_WAIT_S
         waited = False
-        while _held_elsewhere(session, token):
+        while _held_elsewhere(session, token) or not self._won_claim(session, token):
             if time.monotonic() >= deadline or self.stop.is_set():
                 other = "another --actor.actor_id" if self.role == "actor" else "another --run.name"
                 log.error("another process holds %s: one %s per token, or they would split the run between them. "
@@ -242,13 +250,46 @@ class Service:
         return True
 
 
-def _held_elsewhere(session: zenoh.Session, token: str) -> bool:
-    """Whether a token is alive; False (a log line) where the session cannot say: the check must not stop a role."""
+    def _won_claim(self, session: zenoh.Session, token: str) -> bool:
+        """Declares this process's claim on a free token, lets it settle and keeps it where no other process
+        holds the token or claims it with a lower zid; otherwise withdraws it."""
+        claim = declare_liveliness(session, f"{token}/claim/{session.zid()}")
+        self.stop.wait(CLAIM_SETTLE_S)
+        if _held_elsewhere(session, token, own_claim=claim.key):
+            claim.undeclare()
+            return False
+        self._claim_token = claim
+        return True
+
+
+def _held_elsewhere(session: zenoh.Session, token: str, own_claim: str | None = None) -> bool:
+    """Whether another process holds the token or claims it (first_claim); False (a log line) where the session
+    cannot say: the check must not stop a role."""
     try:
-        return bool(alive_keys(session, token, timeout_s=2.0))
+        alive = alive_keys(session, f"{token}/**", timeout_s=2.0)  # the token and the claims on it
     except zenoh.ZError as error:
         log.warning("cannot ask whether another process holds %s (%s); going on", token, _RUST_SOURCE.sub("", str(error)))
         return False
+    return not first_claim(alive, token, own_claim)
+
+
+def first_claim(alive: list[str], token: str, own_claim: str | None) -> bool:
+    """Whether this process may take the token, given the live keys under it: none but its own claim, or other
+    claims only, each with a higher zid. Without a claim of its own, any key under the token is another's."""
+    others = set(alive) - {own_claim}
+    if own_claim is None or token in others:
+        return not others
+    own = _claim_rank(own_claim)
+    return all((rank := _claim_rank(key)) is not None and own is not None and rank > own for key in others)
+
+
+def _claim_rank(key: str) -> int | None:
+    """The zid of a <token>/claim/<zid> key as a number; None for any other key."""
+    head, _, zid = key.rpartition("/claim/")
+    try:
+        return int(zid, 16) if head and zid else None
+    except ValueError:
+        return None
 
 
 def _close_quietly(session: zenoh.Session, token: Declared) -> None:

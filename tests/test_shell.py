@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from common.config_values import load_config
-from common.shell import PARENT_ENV, Service, stop_with_parent
+from common.shell import PARENT_ENV, Service, first_claim, stop_with_parent
 from tests.processes import from_a_terminal, loopback_endpoint, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines
 
@@ -133,26 +133,38 @@ def test_the_stop_signals_leave_a_hangup_ignored_by_nohup_ignored(nohup):
     assert result.stdout.split() == [str(nohup), "False", "False"]
 
 
+def hub(tmp_path):
+    """The hub, as in a run: a router the roles connect to as clients, noting the tokens' changes; its endpoint
+    and a reader of the ups and downs of a token so far."""
+    endpoint = loopback_endpoint()
+    tokens = tmp_path / "alive.jsonl"
+    observer = start([str(PEER), "alive", str(tokens), *run_flags(tmp_path, "--transport.listen", endpoint,
+                                                                  "--transport.mode", "router")],
+                     tmp_path / "observer.log")
+    try:
+        wait_for(lambda: read_lines(tokens), "the observer's session", 30, [tmp_path / "observer.log"])
+    except BaseException:
+        stop(observer)
+        raise
+    ups = lambda token: [line["up"] for line in read_lines(tokens) if line["kind"] == "alive" and line["key"] == token]
+    return observer, endpoint, ups
+
+
 def test_a_second_replay_of_a_run_waits_for_the_first_to_go_then_is_refused_or_takes_over(tmp_path):
     """One process per token: a second replay of the run waits SOLE_WAIT_S for the first's token to go (a killed
     one's lingers until Zenoh's lease ends), then exits 1 with one line, leaving the first and its snapshot
     alone; a third (--resume), started while the first is alive, takes over once the first is killed, and
     only then reads the snapshot."""
-    endpoint = loopback_endpoint()
-    tokens = tmp_path / "alive.jsonl"
-    observer = start([str(PEER), "alive", str(tokens), *run_flags(tmp_path, "--transport.listen", endpoint,
-                                                                  "--transport.mode", "router")],
-                     tmp_path / "observer.log")  # the hub, as in a run: a router the roles connect to as clients
+    observer, endpoint, token_ups = hub(tmp_path)
     replay = lambda name, *flags: start(["-m", "replay.main", *run_flags(tmp_path, "--transport.connect", endpoint,
                                                                         "--transport.mode", "client",
                                                                         "--replay.snapshot_period_s", "1"), *flags],
                                         tmp_path / f"{name}.log")
     manifest = tmp_path / "runs" / RUN / "replay" / "snapshot" / "manifest.msgpack"
     token = f"d3rqn/{RUN}/alive/replay/0"
-    ups = lambda: [line["up"] for line in read_lines(tokens) if line["kind"] == "alive" and line["key"] == token]
+    ups = lambda: token_ups(token)
     processes = []
     try:
-        wait_for(lambda: read_lines(tokens), "the observer's session", 30, [tmp_path / "observer.log"])
         processes.append(first := replay("first"))
         wait_for(lambda: ups() == [True] and manifest.exists(), "the first replay's token and snapshot", 30,
                  [tmp_path / "first.log"])
@@ -175,6 +187,55 @@ def test_a_second_replay_of_a_run_waits_for_the_first_to_go_then_is_refused_or_t
         assert third.wait(30) == 0
     finally:
         stop(*processes, observer)
+
+
+def claim_together(endpoint: str, barrier, events) -> None:
+    """In a spawned process: a learner that checks its token at the moment its twin does, then takes a few
+    seconds to set up (reading a checkpoint) before it declares the token, and holds it until told."""
+    config = load_config("smoke", overrides={"run.name": RUN, "transport.connect": [endpoint],
+                                             "transport.mode": "client"})
+    service = Service("learner", config)
+    barrier.wait(30)
+    try:
+        service.claim()
+    except SystemExit as refused:
+        events.put(("refused", refused.code))
+        return
+    service.stop.wait(3.0)
+    with service.session():
+        events.put(("holds", 0))
+        service.stop.wait(30.0)
+
+
+def test_two_learners_checking_at_the_same_moment_leave_one_holding_the_token(tmp_path):
+    """Both find the token free at once; each claims it, the lower zid goes on and the other waits, then is
+    refused (without the claims both went on, each set up, and both held the token)."""
+    observer, endpoint, ups = hub(tmp_path)
+    context = multiprocessing.get_context("spawn")
+    barrier, events = context.Barrier(2), context.Queue()
+    twins = [context.Process(target=claim_together, args=(endpoint, barrier, events)) for _ in range(2)]
+    try:
+        for twin in twins:
+            twin.start()
+        seen = sorted(events.get(timeout=60) for _ in twins)
+        token_seen = ups(f"d3rqn/{RUN}/alive/learner/0")
+    finally:
+        for twin in twins:
+            twin.kill()
+            twin.join(10)
+        stop(observer)
+    assert seen == [("holds", 0), ("refused", 1)] and token_seen == [True]
+
+
+def test_a_claim_goes_on_only_ahead_of_every_other_claim_and_never_beside_the_token():
+    token = "d3rqn/r/alive/learner/0"
+    own = f"{token}/claim/0b"
+    assert first_claim([], token, None) and first_claim([own], token, own)
+    assert not first_claim([token], token, None) and not first_claim([f"{token}/claim/0c"], token, None)
+    assert first_claim([own, f"{token}/claim/c"], token, own)  # 0xc > 0xb: the other withdraws
+    assert not first_claim([own, f"{token}/claim/a"], token, own)
+    assert not first_claim([own, token], token, own)  # a holder up already
+    assert not first_claim([own, f"{token}/claim/zz"], token, own)  # a key nobody can rank counts as held
 
 
 def test_a_session_that_cannot_say_who_holds_a_token_lets_the_role_go_on(caplog):
