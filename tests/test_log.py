@@ -21,7 +21,7 @@ from common.analysis.plotting import trailing_mean
 from common.config import Config, TransportConfig
 from common.config_values import flat_items, load_config
 from common.run_dir import next_free_path
-from common.transport import open_session, publisher, request, subscribe
+from common.transport import alive_keys, open_session, publisher, request, subscribe
 from common.keys import Keys
 from common.wire.envelope import decode, encode
 from common.wire.frames import FrameStack
@@ -288,7 +288,9 @@ def fresh_replay(tmp_path):
                      "--transport.listen", endpoint, "--replay.stats_period_s", "0.2",
                      "--run.runs_dir", str(tmp_path / "runs")], log)
     session = router_client(endpoint)
-    try:
+    try:  # the replay listens from its token on (after its claim), and `play` does not wait for a replay
+        wait_for(lambda: alive_keys(session, Keys("d3rqn", "fresh").liveliness("replay", 0), timeout_s=1.0),
+                 "the fresh replay's token", 30, [log])
         yield endpoint, session, log
     finally:
         session.close()
