@@ -16,9 +16,9 @@ the role alive when it is ready. One process holds a token at a time: a second l
 of a run, or a second actor of one id, is refused (a line in the log, exit code 1), as two would
 split the run between them. A killed holder's token lingers until Zenoh's lease ends, so the
 newcomer waits that long for it to go before it gives up. Two that find the token free at the same
-moment each declare a claim, <token>/claim/<zid>, for a second; the lower zid goes on, the other waits. A role with state in the run folder
-calls claim() first, which opens the session and waits then, so that it reads the checkpoint or
-snapshot a stopping holder wrote last:
+moment each declare a claim, <token>/claim/<zid>, for a second; the lower zid goes on, the other
+waits. A role with state in the run folder calls claim() first, which opens the session and waits
+then, so that it reads the checkpoint or snapshot a stopping holder wrote last:
 
     service = Service("learner", config)
     service.claim()                          # the session, once no other learner holds the token
@@ -248,7 +248,6 @@ class Service:
                 waited = True
             self.stop.wait(1.0)
         return True
-
 
     def _won_claim(self, session: zenoh.Session, token: str) -> bool:
         """Declares this process's claim on a free token, lets it settle and keeps it where no other process
