@@ -304,8 +304,8 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             continue
         lines.append(f"- Claim {reading['claim']} ({reading['text']}): **{reading['reading']}**; runs "
                      f"{reading['runs']}, one-sided Mann-Whitney p = {reading['p_value']:.4f} (the least these "
-                     f"runs can give: {reading['smallest_p']:.2g}), P(better > worse) = {reading['improvement']:.2f} "
-                     f"[{reading['improvement_low']:.2f}, {reading['improvement_high']:.2f}].")
+                     f"runs can give: {reading['smallest_p']:.2g}), P(better > worse) = {reading['improvement']:.3f} "
+                     f"[{reading['improvement_low']:.3f}, {reading['improvement_high']:.3f}].")
     lines += ["", f"A claim about one pair of strategies needs {across_seeds.seeds_to_support()} seeds a side: with "
               f"3 against 3 the least one-sided p-value is {across_seeds.smallest_p_value(3, 3):.2f}, not below "
               f"{across_seeds.SIGNIFICANCE}. Every pair's probability of improvement, as a guide:", "",
