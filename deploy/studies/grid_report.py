@@ -284,6 +284,9 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{_percent(row['test_cfr'])} [{_percent(row['test_cfr_low'])}, {_percent(row['test_cfr_high'])}] | "
             f"{_coverage(row['test_streets'], row['test_junctions'])} | {row['trained_on']} |")
     lines += ["", "## Per strategy", "",
+              "IQM: the interquartile mean of every seed's test starts pooled, a start's CFR (or mean length) over "
+              "its trials one score (Agarwal et al. 2021). It leaves out the quarter of scores at each end, so a few "
+              "starts that fail often weigh less than in a seed's CFR, and the IQM can lie above every seed's.", "",
               "| Strategy | Buffer | Options | Seeds | Drove | Updates to drive, by seed | Held from, by seed | "
               "Curve mean length | IQM test mean length [CI] | Test CFR, by seed | IQM test CFR [CI] | "
               "Paper's test CFR |",
