@@ -15,7 +15,7 @@ from __future__ import annotations
 import bisect
 from pathlib import Path
 
-from common.analysis.plotting import RETURN_WINDOW
+from common.analysis.plotting import RETURN_WINDOW, finish_figure, pyplot
 from replay.recorder.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, RETURN_MEAN, UPDATES_START, Series
 
 PANELS = (  # tag, title, y label, colour, the paper's x axis
@@ -39,10 +39,7 @@ def updates_start(series: Series) -> dict[str, float] | None:
 
 def plot_training(series: Series, path: Path, title: str, x: str | None = None) -> None:
     """x: "env_steps" or "episodes" for every panel; None for the paper's axis of each."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     start = updates_start(series)
     figure, axes = plt.subplots(2, 2, figsize=(10, 6.5), dpi=90)
     for ax, (tag, name, y_label, colour, paper_axis) in zip(axes.flat, PANELS):
@@ -60,9 +57,4 @@ def plot_training(series: Series, path: Path, title: str, x: str | None = None) 
             ax.set_yscale("log")
         if start is not None and axis != "updates":
             ax.axvline(start[axis], color="0.4", linestyle="--", linewidth=1, label="updates start")
-            ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
-    figure.suptitle(title)
-    figure.tight_layout()
-    figure.savefig(path)
-    plt.close(figure)
+    finish_figure(plt, figure, list(axes.flat), path, title)
