@@ -26,8 +26,10 @@ import json
 import math
 import os
 import sys
+import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -98,6 +100,33 @@ def tree_resident_mb(pids: list[int]) -> float:
             total += resident
             todo += children(pid)
     return total if seen and total > 0 else math.nan
+
+
+class TreePeak:
+    """The largest resident memory, MB, of a changing set of processes with their descendants, summed at each
+    sample (every `every_s` in a thread, from start() to stop()); nan until a sample finds one."""
+
+    def __init__(self, pids: Callable[[], list[int]], every_s: float = 5.0) -> None:
+        self.pids, self.every_s, self.peak_mb = pids, every_s, math.nan
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+
+    def start(self) -> TreePeak:
+        self._thread.start()
+        return self
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join()
+        return self.peak_mb
+
+    def _watch(self) -> None:
+        while True:
+            now = tree_resident_mb(self.pids())
+            if math.isfinite(now) and (math.isnan(self.peak_mb) or now > self.peak_mb):
+                self.peak_mb = now
+            if self._stop.wait(self.every_s):
+                return
 
 
 def children(pid: int) -> list[int]:

@@ -159,9 +159,10 @@ def test_the_soak_across_the_grid_by_hand():
 
 def test_the_machine_time_by_hand(tmp_path):
     recorded = exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])
-    (recorded / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome\n"
-                                        "train,0,3600,AMD EPYC,2,stopped\nresume,0,1800,Intel Xeon,2,done\n"
-                                        "curve,0,900,Intel Xeon,2,done\nevaluate,0,900,Intel Xeon,2,done\n")
+    (recorded / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome,peak_mb\n"
+                                        "train,0,3600,AMD EPYC,2,stopped,3000\nresume,0,1800,Intel Xeon,2,done,3500\n"
+                                        "curve,0,900,Intel Xeon,2,done,1800\nchoose,0,0,Intel Xeon,2,done,nan\n"
+                                        "evaluate,0,900,Intel Xeon,2,done,2100\n")
     exported_run(tmp_path, "bmc", 1, [100, 50, 50, 50])
     partly = exported_run(tmp_path, "bmc", 2, [100, 50, 50, 50])  # begun before the steps were recorded
     (partly / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome\nresume,0,360,AMD EPYC,2,done\n"
@@ -170,6 +171,7 @@ def test_the_machine_time_by_hand(tmp_path):
     row = grid_costs.machine_row(with_steps, None)
     assert (row["training_h"], row["reading_h"]) == (1.5, 0.5)
     assert row["machines"] == ["AMD EPYC (2 cores)", "Intel Xeon (2 cores)"]
+    assert (row["training_peak_mb"], row["reading_peak_mb"]) == (3500.0, 2100.0)  # the most of each; nan unread
     unrecorded = grid_costs.machine_row(without, 2.25)
     assert (unrecorded["training_h"], unrecorded["reading_h"]) == (2.25, None)
     assert unrecorded["machines"] == ["AMD EPYC, precision not recorded (its kept policies)"]
@@ -180,8 +182,10 @@ def test_the_machine_time_by_hand(tmp_path):
                         "begun before). Curve, choice and evaluation: 0.7 h over the 2 runs that recorded them. "
                         "Machines: AMD EPYC (2 cores); AMD EPYC, precision not recorded (its kept policies); "
                         "Intel Xeon (2 cores).")
-    assert "| bmc-b1000-s0 | 1.50 | 0.50 | AMD EPYC (2 cores); Intel Xeon (2 cores) |" in lines
-    assert "| bmc-b1000-s2 | 3.00 (soak) | 0.20 | AMD EPYC (2 cores) |" in lines
+    assert lines[2] == ("Peak memory of a run's processes at once: training (every role) 3,500 MB at most "
+                        "(bmc-b1000-s0; 1 run); curve, choice and evaluation 2,100 MB at most (bmc-b1000-s0; 1 run).")
+    assert "| bmc-b1000-s0 | 1.50 | 0.50 | 3,500 / 2,100 | AMD EPYC (2 cores); Intel Xeon (2 cores) |" in lines
+    assert "| bmc-b1000-s2 | 3.00 (soak) | 0.20 | – / – | AMD EPYC (2 cores) |" in lines  # steps.csv before peaks
 
 
 def test_a_damaged_or_partial_soak_summary_does_not_stop_the_report(tmp_path):
@@ -195,5 +199,6 @@ def test_a_damaged_or_partial_soak_summary_does_not_stop_the_report(tmp_path):
     rows = grid_costs.soak_rows(sorted(grid_report.read_runs([tmp_path]), key=lambda item: item.run.seed), said.append)
     assert [row["run"] for row in rows] == ["bmc-b1000-s1"] and math.isnan(rows[0]["replay_rest_mb_per_hour"])
     assert len(said) == 1 and "bmc-b1000-s0" in said[0]
-    blank = {"run": "x", "training_recorded": False, "training_h": None, "reading_h": None, "machines": []}
-    assert grid_costs.machine_lines([blank])[-1] == "| x | – | – | – |"
+    blank = {"run": "x", "training_recorded": False, "training_h": None, "reading_h": None, "machines": [],
+             "training_peak_mb": None, "reading_peak_mb": None}
+    assert grid_costs.machine_lines([blank])[-1] == "| x | – | – | – / – | – |"

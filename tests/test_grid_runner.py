@@ -372,6 +372,16 @@ def test_a_grid_with_no_finished_run_has_no_report_and_says_so(tmp_path, capsys)
     assert "no run has finished yet" in capsys.readouterr().out
 
 
+def test_a_steps_file_from_before_the_peak_column_takes_it_and_keeps_its_rows(tmp_path):
+    (tmp_path / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome\ntrain,0,3600,AMD EPYC,2,done\n")
+    grid_cells.record_step(RunDir(tmp_path), "curve", 0.0, "done", peak_mb=2100.4)
+    grid_cells.record_step(RunDir(tmp_path), "choose", 0.0, "done")
+    assert (tmp_path / "steps.csv").read_text().splitlines()[0] == ",".join(grid_cells.STEP_FIELDS)
+    steps = grid_cells.read_steps(tmp_path)
+    assert [(row["step"], row["wall_s"], row["peak_mb"]) for row in steps][0] == ("train", 3600.0, None)
+    assert [row["peak_mb"] for row in steps[1:]] == [2100.0, None]
+
+
 def test_a_step_whose_time_cannot_be_written_is_said_not_raised(tmp_path, capsys):
     grid_cells.record_step(RunDir(tmp_path / "gone" / "run"), "curve", 0.0, "done")
     assert "the curve step's time is not recorded" in capsys.readouterr().out

@@ -175,3 +175,13 @@ def test_a_soak_stopped_with_its_stack_reports_what_it_has_without_a_traceback(t
     (run.soak / "soak.csv").write_text("time\n1.0\n")
     assert soak.main([str(run.root)]) == 0
     assert reported and "soak: stopped" in capsys.readouterr().err
+
+
+def test_a_steps_peak_is_the_most_its_process_trees_held_at_once(tmp_path):
+    """A child holding 200 MB: the peak over the step reads it, though the child has ended by the stop."""
+    hold = "import time; block = bytearray(b'1') * 200_000_000; time.sleep(1.5)"
+    child = subprocess.Popen([sys.executable, "-c", hold])
+    peak = soak.TreePeak(lambda: [child.pid] if child.poll() is None else [], every_s=0.05).start()
+    child.wait()
+    assert 200 < peak.stop() < 400
+    assert math.isnan(soak.TreePeak(lambda: [], every_s=0.05).start().stop())  # nothing sampled

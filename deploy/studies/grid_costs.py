@@ -31,10 +31,12 @@ def machine_row(item: GridRun, soak_hours: float | None) -> dict:
     recorded = any(row["step"] == "train" for row in steps)
     machines = sorted({f"{row['cpu']} ({counted(row['cores'], 'core')})" for row in steps}) or (
         [f"{trained_with(item.test_rows)} (its kept policies)"] if item.test_rows else [])
+    peak = lambda training: max((row["peak_mb"] for row in steps
+                                 if (row["step"] in TRAINING_STEPS) == training and row["peak_mb"]), default=None)
     return {"run": item.run.name, "training_recorded": recorded,
             "training_h": hours(True) if recorded else soak_hours,
             "reading_h": hours(False) if any(row["step"] not in TRAINING_STEPS for row in steps) else None,
-            "machines": machines}
+            "training_peak_mb": peak(True), "reading_peak_mb": peak(False), "machines": machines}
 
 
 def machine_lines(rows: Sequence[dict]) -> list[str]:
@@ -46,13 +48,29 @@ def machine_lines(rows: Sequence[dict]) -> list[str]:
              f"({recorded} recorded step by step in {STEPS_CSV}, {len(training) - recorded} by the soak of a run "
              f"begun before). Curve, choice and evaluation: {sum(row['reading_h'] for row in reading):.1f} h over "
              f"the {counted(len(reading), 'run')} that recorded them. Machines: {'; '.join(machines) or 'unknown'}.",
-             "", "| Run | Training, h | Curve, choice and evaluation, h | Machines |", "|---|---:|---:|---|"]
+             "", *_peak_lines(rows),
+             "| Run | Training, h | Curve, choice and evaluation, h | Peak memory, training / reading, MB | Machines |",
+             "|---|---:|---:|---:|---|"]
     for row in rows:
         hours = lambda value: "–" if value is None else f"{value:.2f}"
+        megabytes = lambda value: "–" if value is None else f"{value:,.0f}"
         by_soak = " (soak)" if row["training_h"] is not None and not row["training_recorded"] else ""
-        lines.append(f"| {row['run']} | {hours(row['training_h'])}{by_soak} | "
-                     f"{hours(row['reading_h'])} | {'; '.join(row['machines']) or '–'} |")
+        lines.append(f"| {row['run']} | {hours(row['training_h'])}{by_soak} | {hours(row['reading_h'])} | "
+                     f"{megabytes(row['training_peak_mb'])} / {megabytes(row['reading_peak_mb'])} | "
+                     f"{'; '.join(row['machines']) or '–'} |")
     return lines
+
+
+def _peak_lines(rows: Sequence[dict]) -> list[str]:
+    """The most memory a run's processes held at once (the stack's, or the curve's and evaluation's with their
+    workers, summed each sample), from the runs that recorded it."""
+    parts = []
+    for key, what in (("training_peak_mb", "training (every role)"), ("reading_peak_mb", "curve, choice and evaluation")):
+        recorded = [row for row in rows if row[key] is not None]
+        if recorded:
+            top = max(recorded, key=lambda row: row[key])
+            parts.append(f"{what} {top[key]:,.0f} MB at most ({top['run']}; {counted(len(recorded), 'run')})")
+    return [f"Peak memory of a run's processes at once: {'; '.join(parts)}.", ""] if parts else []
 
 
 # --- the soak across the grid -----------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ from common.eta import clock_time
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.child_process import Child
+from deploy.soak import TreePeak
 from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps, choice_candidates,
                                choose, curve_read, curve_wanted, keep_every, next_step, read_cell, read_choice, record_step,
@@ -268,12 +269,13 @@ class RunJob:
                 raise ExperimentError(f"the {step} step left the run as it was; see {self.run.logs}/")
             print(f"{self.tag}: {step}", flush=True)
             self.phase, started, outcome = step, time.time(), "failed"
+            peak = TreePeak(lambda: [child.process.pid for child in list(self.children)]).start()
             try:
                 {TRAIN: self._train, RESUME: self._train, CURVE: self._curve, CHOOSE: self._choose,
                  EVALUATE: self._evaluate}[step](step)
                 outcome = "done"
             finally:
-                record_step(self.run, step, started, "stopped" if self.stopping.is_set() else outcome)
+                record_step(self.run, step, started, "stopped" if self.stopping.is_set() else outcome, peak.stop())
             done.append(step)
         self.phase, self.headline = "done" if done else "already done", evaluation_headline(self.run)
         if done:
