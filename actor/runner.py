@@ -100,12 +100,14 @@ def env_seed(actor_seed: int, env_index: int) -> int:
 
 @dataclass
 class EnvSlot:
-    """One of an actor's simulators: its seed and its own exploration draws."""
+    """One of an actor's simulators: its seed, its own exploration draws, and its episode's off-greedy actions
+    (None once one was taken without Q-values)."""
 
     index: int
     env: Any
     seed: int
     rng: np.random.Generator
+    off_greedy: int | None = 0
 
 
 class Actor:
@@ -197,6 +199,7 @@ class Actor:
     def _begin(self, slot: EnvSlot) -> None:
         self.lockstep.begin(slot.index, options={"start_set": "train"})
         self.batched_q.reset(slot.index)
+        slot.off_greedy = 0
         self.episodes_started += 1
 
     def _actions(self, running: list[EnvSlot]) -> list[int]:
@@ -208,9 +211,15 @@ class Actor:
                 # The random phase acts uniformly but still runs the network, so that its episodes store the
                 # initial network's real LSTM states, not zero rows mid-episode (docs/method.md, learner.stored_state).
                 self._q_values(running)
+            for slot in running:
+                slot.off_greedy = None
             return [int(slot.rng.integers(self.config.network.n_actions)) for slot in running]
         q_values = self._q_values(running).numpy()
-        return [self.strategy.act(row, slot.rng) for row, slot in zip(q_values, running)]
+        actions = [self.strategy.act(row, slot.rng) for row, slot in zip(q_values, running)]
+        for slot, row, action in zip(running, q_values, actions):
+            if slot.off_greedy is not None:
+                slot.off_greedy += int(action != int(np.argmax(row)))
+        return actions
 
     def _q_values(self, running: list[EnvSlot]) -> torch.Tensor:
         """The running simulators' Q-values on their latest frames; advances their LSTM states."""
@@ -225,7 +234,8 @@ class Actor:
             actor_id=self.actor_id, episode_index=self.episode_index, length=trajectory.length,
             episode_return=float(sum(trajectory.rewards)), collided=trajectory.collided,
             start_set=episode.start_set, start_index=episode.start_index, epsilon=epsilon,
-            weights_version=self.weights_version, wall_time=time.monotonic() - trajectory.started, time=time.time())
+            weights_version=self.weights_version, wall_time=time.monotonic() - trajectory.started, time=time.time(),
+            off_greedy=-1 if slot.off_greedy is None else slot.off_greedy)
         self.episode_index += 1
         return episode, record
 

@@ -165,3 +165,22 @@ def test_the_random_phase_stores_the_initial_networks_real_states_and_still_acts
 def test_an_actor_of_the_papers_method_records_no_state():
     episode, _ = Actor(small_config(), actor_id=4).run_episode(threading.Event())
     assert episode.recurrent_state.shape == (0, 2, 0)
+
+
+def test_an_episode_counts_its_actions_that_were_not_argmax_q():
+    """-1 in the random phase (no Q-values); else exactly the actions off argmax Q, whatever epsilon says."""
+    config = load_config("smoke", overrides={"network.lstm_units": 16, "env.max_steps": 25,
+                                             "exploration.strategy": "constant", "actor.envs_per_actor": 1})
+    actor = Actor(config, actor_id=3)
+    stop = threading.Event()
+    assert actor.run_episode(stop)[1].off_greedy == -1
+    actor.mailbox.offer_weights(Weights(version=1, tensors=weights_to_numpy(D3RQN(config.network))))
+    learner_side = Actor(config, actor_id=98).strategy
+    learner_side.start()
+    actor.mailbox.offer_exploration(exploration_message(learner_side))
+    actor.apply_mail()
+    actor.strategy.act = lambda q, rng: int((np.argmax(q) + 1) % len(q))  # never the greedy action
+    record = actor.run_episode(stop)[1]
+    assert record.off_greedy == record.length >= 1
+    actor.strategy.act = lambda q, rng: int(np.argmax(q))
+    assert actor.run_episode(stop)[1].off_greedy == 0

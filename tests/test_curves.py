@@ -24,7 +24,7 @@ from replay.recorder.cli import main as log_main
 from replay.recorder.plot import updates_start
 from replay.recorder.reader import LogError, LogFile
 from replay.recorder.recorder import Recorder
-from replay.recorder.scalars import RETURN_MEAN, read_series
+from replay.recorder.scalars import OFF_GREEDY_MEAN, RETURN_MEAN, read_series
 from replay.recorder.tensorboard_events import EventsWriter
 from replay.recorder.writer import LogWriter
 from tests.processes import loopback_endpoint, start, stop, wait_for
@@ -35,10 +35,10 @@ SECOND = 1_000_000_000
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def episode(index: int, length: int, episode_return: float, epsilon: float = 0.5) -> EpisodeRecord:
+def episode(index: int, length: int, episode_return: float, epsilon: float = 0.5, off_greedy: int = -1) -> EpisodeRecord:
     return EpisodeRecord(actor_id=0, episode_index=index, length=length, episode_return=episode_return,
                          collided=index % 2 == 1, start_set="train", start_index=0, epsilon=epsilon,
-                         weights_version=0, wall_time=1.0, time=1.0 + index)
+                         weights_version=0, wall_time=1.0, time=1.0 + index, off_greedy=off_greedy)
 
 
 def stats(source: str, **values) -> Stats:
@@ -53,9 +53,9 @@ def run_messages(replay_env_steps: int = 0) -> list[tuple[str, Message]]:
         (KEYS.metrics_source("actor", 0), episode(0, 10, 1.0, epsilon=1.0)),
         (KEYS.replay_stats, stats("replay", env_steps_total=replay_env_steps, episodes=1, hold_reason="none")),
         (KEYS.metrics_source("learner", 0), stats("learner", env_steps=10, updates=0, loss=math.nan)),
-        (KEYS.metrics_source("actor", 0), episode(1, 20, 3.0, epsilon=0.75)),
+        (KEYS.metrics_source("actor", 0), episode(1, 20, 3.0, epsilon=0.75, off_greedy=2)),
         (KEYS.exploration, exploration),
-        (KEYS.metrics_source("actor", 0), episode(2, 30, 5.0, epsilon=0.5)),
+        (KEYS.metrics_source("actor", 0), episode(2, 30, 5.0, epsilon=0.5, off_greedy=9)),
         (KEYS.metrics_source("learner", 0), stats("learner", env_steps=60, updates=12, loss=0.25, loss_abs_diff=0.5,
                                                   updates_per_s=3.0, start_env_steps=25.0)),
     ]
@@ -91,6 +91,9 @@ def test_series_place_episodes_at_env_steps_and_stats_at_their_own_count(tmp_pat
     assert [(p.value, p.env_steps, p.episodes) for p in returns] == [(1.0, 10, 1), (3.0, 30, 2), (5.0, 60, 3)]
     assert [p.value for p in series[RETURN_MEAN]] == [1.0, 2.0, 3.0]
     assert [p.value for p in series["episode/collided"]] == [0.0, 1.0, 0.0]
+    # the random phase's episode is not counted; the mean is over the counted episodes' steps: 2/20, 11/50
+    assert [(p.value, p.env_steps) for p in series["episode/off_greedy_share"]] == [(0.1, 30), (0.3, 60)]
+    assert [p.value for p in series[OFF_GREEDY_MEAN]] == [0.1, 0.22]
     loss = series["learner/0/loss"]  # the NaN of the report before updates is left out
     assert [(p.value, p.env_steps, p.episodes, p.updates, p.wall_s) for p in loss] == [(0.25, 60, 3, 12, 7.0)]
     assert [(p.value, p.env_steps) for p in series["exploration/epsilon"]] == [(0.75, 30)]

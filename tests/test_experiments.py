@@ -51,10 +51,10 @@ def write_log(path: Path, run: str, strategy: str, capacity: int, messages: list
     writer.close()
 
 
-def record(length: int, episode_return: float, epsilon: float) -> tuple[str, EpisodeRecord]:
+def record(length: int, episode_return: float, epsilon: float, off_greedy: int = -1) -> tuple[str, EpisodeRecord]:
     return "metrics/actor/0", EpisodeRecord(actor_id=0, episode_index=0, length=length, episode_return=episode_return,
                                             collided=True, start_set="train", start_index=0, epsilon=epsilon,
-                                            weights_version=0, wall_time=0.1, time=1.0)
+                                            weights_version=0, wall_time=0.1, time=1.0, off_greedy=off_greedy)
 
 
 def learner_report(updates: int, loss_abs_diff: float) -> tuple[str, Stats]:

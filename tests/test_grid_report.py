@@ -202,3 +202,19 @@ def test_a_damaged_or_partial_soak_summary_does_not_stop_the_report(tmp_path):
     blank = {"run": "x", "training_recorded": False, "training_h": None, "reading_h": None, "machines": [],
              "training_peak_mb": None, "reading_peak_mb": None}
     assert grid_costs.machine_lines([blank])[-1] == "| x | – | – | – / – | – |"
+
+
+def test_the_share_of_actions_off_greedy_counts_only_the_episodes_its_actors_counted(tmp_path):
+    counted = exported_run(tmp_path, "softmax", 0, [100, 100, 100, 50])
+    (counted / "training.csv").write_text("return,length,epsilon,off_greedy\n"
+                                          "1.0,40,1.0,-1\n2.0,100,1.0,7\n3.0,300,1.0,13\n")  # 20 of 400
+    (counted / "learner.csv").write_text("updates,loss_abs_diff\n")
+    older = exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])
+    (older / "training.csv").write_text("return,length,epsilon\n1.0,40,1.0\n")  # exported before the count
+    (older / "learner.csv").write_text("updates,loss_abs_diff\n")
+    exported_run(tmp_path, "vdbe", 0, [100, 100, 100, 50])  # exported without curves
+    runs = grid_report.read_runs([tmp_path])
+    shares = {item.run.strategy: grid_report.run_row(item)["off_greedy_share"] for item in runs}
+    assert shares == {"softmax": 0.05, "bmc": "", "vdbe": ""}
+    assert grid_report.explored_lines(runs)[-1] == "| softmax | 1000 | paper | 5.00% (seed 0) |"
+    assert grid_report.explored_lines(runs[:0])[0].startswith("No run's actors counted")

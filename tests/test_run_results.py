@@ -29,7 +29,8 @@ def evaluated_run(root, strategy: str = "bmc", seed: int = 0, lengths=(100, 50),
     (run / "evaluation" / "config.toml").write_text(to_toml(evaluation_config))  # as evaluate writes it
     (run / "summary.json").write_text('{"run": "%s", "updates": %d, "env_steps_per_update": 4.0}' % (name, updates))
     write_log(run / "traffic.mcap", name, strategy, 50,
-              [record(10, 5.0, 1.0), learner_report(50, 0.2), record(12, 6.0, 0.5), learner_report(100, 0.1)])
+              [record(10, 5.0, 1.0), learner_report(50, 0.2), record(12, 6.0, 0.5, off_greedy=3),
+               learner_report(100, 0.1)])
     return RunDir(run)
 
 
@@ -41,13 +42,16 @@ def test_an_export_holds_the_evaluation_config_summary_and_curves_and_nothing_la
         "config.toml", "evaluation/config.toml", "evaluation/episodes.csv", "evaluation/facts.json",
         "evaluation/summary.csv",
         "evaluation/summary.md", "learner.csv", "summary.json", "training.csv"]
-    assert (folder / TRAINING_CSV).read_text().splitlines() == ["return,length,epsilon", "5.0,10,1.0", "6.0,12,0.5"]
+    assert (folder / TRAINING_CSV).read_text().splitlines() == [
+        "return,length,epsilon,off_greedy", "5.0,10,1.0,-1", "6.0,12,0.5,3"]
     assert (folder / LEARNER_CSV).read_text().splitlines()[0] == "updates,loss_abs_diff"
     exported = read_exported(folder)
     assert (exported.strategy, exported.capacity, exported.seed, exported.updates) == ("bmc", 50, 0, 120)
     curves = exported.curves()
     assert curves.episode_lengths == [10, 12] and curves.episode_epsilons == [1.0, 0.5]
-    assert curves.label == "bmc-b50-s0" and curves.capacity == 50
+    assert curves.episode_off_greedy == [-1, 3] and curves.label == "bmc-b50-s0" and curves.capacity == 50
+    (folder / TRAINING_CSV).write_text("return,length,epsilon\n5.0,10,1.0\n")  # an export older than the count
+    assert read_exported(folder).curves().episode_off_greedy == [-1]
 
 
 def test_exporting_again_replaces_the_earlier_export(tmp_path):

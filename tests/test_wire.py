@@ -191,6 +191,8 @@ MALFORMED = {
     "negative count": (RECORD, set_field("episode_index", -1), "EpisodeRecord.episode_index: -1 is outside"),
     "int beyond int64": (RECORD, set_field("episode_index", 2**64 - 1), "is outside"),
     "infinite time": (RECORD, set_field("time", float("inf")), "EpisodeRecord.time: must be finite"),
+    "off-greedy beyond length": (RECORD, set_field("off_greedy", 31), "31 off-greedy actions in 30 steps"),
+    "off-greedy below -1": (RECORD, set_field("off_greedy", -2), "EpisodeRecord.off_greedy: -2 is outside"),
     "epsilon above one": (EPISODE, set_field("epsilon", 1.5), r"Episode.epsilon: 1.5 is outside \[0.0, 1.0\]"),
     "array dtype": (EPISODE, set_array_part("actions", "dtype", "int32"), "Episode.actions: expected dtype int64, got int32"),
     "dtype not allowed": (EPISODE, set_array_part("actions", "dtype", "float16"), "'float16' is not one of"),
@@ -360,6 +362,7 @@ def test_a_field_with_a_default_may_be_absent_and_others_may_not():
     old_request = tampered(TraceBatchRequest(request_id=1, batch_size=2, trace_length=3),
                            lambda e: e["fields"].pop("learner_updates"))
     assert decode(old_request).learner_updates == -1
+    assert decode(tampered(RECORD, lambda e: e["fields"].pop("off_greedy"))).off_greedy == -1  # not counted
     with pytest.raises(WireError, match=r"missing field\(s\) episode_index"):
         decode(tampered(EPISODE, lambda e: e["fields"].pop("episode_index")))
 

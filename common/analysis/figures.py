@@ -21,6 +21,8 @@ In the training figures each strategy is one line, the mean over its runs
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -48,8 +50,17 @@ class RunCurves:
     episode_returns: list[float] = field(default_factory=list)
     episode_lengths: list[int] = field(default_factory=list)
     episode_epsilons: list[float] = field(default_factory=list)
+    episode_off_greedy: list[int] = field(default_factory=list)  # actions not argmax Q; -1 where not counted
     learner_updates: list[float] = field(default_factory=list)
     loss_abs_diffs: list[float] = field(default_factory=list)  # one per learner report, NaN-free
+
+    @property
+    def off_greedy_share(self) -> float:
+        """The share of actions that were not argmax Q over the episodes whose actors counted them (those acted
+        wholly with the learner's weights); nan where none did."""
+        counted = [(off, length) for off, length in zip(self.episode_off_greedy, self.episode_lengths) if off >= 0]
+        steps = sum(length for _, length in counted)
+        return sum(off for off, _ in counted) / steps if steps else math.nan
 
 
 # --- the figures -------------------------------------------------------------------------------------

@@ -296,6 +296,14 @@ class EpisodeRecord(Message):
     weights_version: int = wired(Integer())
     wall_time: float = wired(Real(min_value=0.0))  # seconds the episode took
     time: float = wired(Real())
+    # Actions that were not argmax Q of the weights acting: what the strategy explored, whatever its epsilon
+    # says (a softmax sample is often the greedy action). -1: not counted (an action taken without Q-values,
+    # in the random phase, or an older actor).
+    off_greedy: int = wired(Integer(min_value=-1), default=-1)
+
+    def check(self) -> None:
+        if self.off_greedy > self.length:
+            raise WireError(f"EpisodeRecord: {self.off_greedy} off-greedy actions in {self.length} steps")
 
 
 MAX_ACK_INDICES = 65_536  # indices in one EpisodeAck: far more than an actor has in flight

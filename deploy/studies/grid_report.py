@@ -62,6 +62,7 @@ class GridRun:
     greedy_test: dict  # the chosen policy's greedy test row of evaluate's summary.csv
     start_cfr: np.ndarray  # its test CFR per start, by start index
     start_length: np.ndarray  # its greedy test mean length per start, by start index
+    off_greedy: float = math.nan  # the share of its training actions not argmax Q (nan: not counted)
 
     @property
     def cell(self) -> CELL:
@@ -87,8 +88,17 @@ def read_runs(folders: Sequence[Path], warn=print) -> list[GridRun]:
             warn(f"skipped: {run.folder}: {type(error).__name__}: {error}")
             continue
         runs.append(GridRun(run, rows, choice, greedy_test, start_means(episodes, lambda e: e.collision_free),
-                            start_means(episodes, lambda e: e.length)))
+                            start_means(episodes, lambda e: e.length), off_greedy_share(run)))
     return sorted(runs, key=lambda item: (item.cell, STRATEGIES.index(item.run.strategy), item.run.seed))
+
+
+def off_greedy_share(run: ExportedRun) -> float:
+    """Its training.csv's share of actions not argmax Q; nan where not counted or unreadable (the figures say)."""
+    try:
+        curves = run.curves()
+    except ValueError:
+        return math.nan
+    return curves.off_greedy_share if curves is not None else math.nan
 
 
 def _greedy_row(summary_csv: Path, start_set: str) -> dict:
@@ -135,6 +145,7 @@ def run_row(item: GridRun) -> dict:
         "test_streets": float(test.get("mean_streets") or "nan"),
         "test_junctions": float(test.get("mean_junctions") or "nan"),
         "trained_on": trained_with(item.test_rows) if item.test_rows else "",
+        "off_greedy_share": round(item.off_greedy, 4) if math.isfinite(item.off_greedy) else "",
     }
 
 
@@ -300,6 +311,7 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{', '.join(_percent(value) for value in row['test_cfr_by_seed'].split(';'))} | "
             f"{_percent(row['iqm_test_cfr'])} {_iqm_interval(row, 'iqm_test_cfr', _percent)} | "
             f"{_percent(row['paper_test_cfr'])} |")
+    lines += ["", "## What the strategies explored", "", *explored_lines(runs)]
     lines += ["", "## The paper's claims", "", _rule_text(), ""]
     for reading in claim_readings(runs, bootstrap):
         if "p_value" not in reading:
@@ -321,6 +333,24 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
                                                          for item in runs])]
     lines += ["", "## Soak across the grid", "", *soak_lines(soaks)]
+    return lines
+
+
+def explored_lines(runs: Sequence[GridRun]) -> list[str]:
+    """Per strategy, each seed's share of training actions that were not argmax Q, where its actors counted."""
+    counted = [item for item in runs if math.isfinite(item.off_greedy)]
+    if not counted:
+        return ["No run's actors counted their actions off argmax Q yet (training.csv's off_greedy)."]
+    lines = ["The share of training actions that were not argmax Q, over the episodes acted wholly with the "
+             "learner's weights: epsilon says how often a strategy draws an exploring action, this how often the "
+             "action it took was not the greedy one (a softmax sample often is).", "",
+             "| Strategy | Buffer | Options | Actions not greedy, by seed |", "|---|---:|---|---|"]
+    for cell in sorted({item.cell for item in counted}):
+        for strategy in STRATEGIES:
+            seeds = [item for item in counted if item.cell == cell and item.run.strategy == strategy]
+            if seeds:
+                shares = ", ".join(f"{100 * item.off_greedy:.2f}% (seed {item.run.seed})" for item in seeds)
+                lines.append(f"| {strategy} | {cell[0]} | {cell[1]} | {shares} |")
     return lines
 
 

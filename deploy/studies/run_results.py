@@ -7,7 +7,8 @@ nothing large:
     config.toml      the run's resolved config, which says who the run is: strategy, replay capacity, seed
     summary.json     the run summary: updates, env steps, achieved env steps per update, restarts
     evaluation/      evaluate's episodes.csv, summary.csv, summary.md, facts.json and config.toml
-    training.csv     one row per training episode, in the order the episodes ended: return, length, epsilon
+    training.csv     one row per training episode, in the order the episodes ended: return, length, epsilon,
+                     off_greedy (actions not argmax Q; -1 where not counted; absent in older exports)
     learner.csv      one row per learner report: updates, |loss_k - loss_k-1|
     cell.json        a grid run's cell: strategy, capacity, learner option set, seed, budget (deploy/studies/grid_cells.py)
     choice.json      a grid run's policy, chosen on the train starts among its last kept
@@ -50,7 +51,8 @@ EVALUATION_FILES = (EPISODES_CSV, SUMMARY_CSV, SUMMARY_MD, FACTS_JSON, CONFIG_TO
 GRID_FILES = (CELL_JSON, CHOICE_JSON, STEPS_CSV, *(f"curve/{name}" for name in (CURVE_CSV, SUMMARY_JSON, CURVE_SUMMARY_MD,
                                                                       CURVE_PNG)),
               *(f"soak/{name}" for name in ("soak.csv", "soak.png", "soak_summary.json", "soak_summary.md")))
-TRAINING_COLUMNS = ("return", "length", "epsilon")
+TRAINING_COLUMNS = ("return", "length", "epsilon", "off_greedy")
+OLDER_TRAINING_COLUMNS = TRAINING_COLUMNS[:3]  # exports from before off_greedy was counted
 LEARNER_COLUMNS = ("updates", "loss_abs_diff")
 
 
@@ -122,10 +124,11 @@ class ExportedRun:
             return None
         curves = RunCurves(self.name, self.strategy, self.capacity)
         try:
-            for row in _read_rows(self.folder / TRAINING_CSV, TRAINING_COLUMNS):
+            for row in _read_rows(self.folder / TRAINING_CSV, TRAINING_COLUMNS, OLDER_TRAINING_COLUMNS):
                 curves.episode_returns.append(float(row["return"]))
                 curves.episode_lengths.append(int(row["length"]))
                 curves.episode_epsilons.append(float(row["epsilon"]))
+                curves.episode_off_greedy.append(int(row.get("off_greedy", -1)))
             for row in _read_rows(self.folder / LEARNER_CSV, LEARNER_COLUMNS):
                 curves.learner_updates.append(float(row["updates"]))
                 curves.loss_abs_diffs.append(float(row["loss_abs_diff"]))
@@ -188,8 +191,10 @@ def greedy_headline(evaluation: Path) -> str:
 
 
 def write_curves(curves: RunCurves, folder: Path) -> None:
+    missing = len(curves.episode_returns) - len(curves.episode_off_greedy)  # curves made without the counts
+    off_greedy = curves.episode_off_greedy + [-1] * missing
     _write_rows(folder / TRAINING_CSV, TRAINING_COLUMNS,
-                zip(curves.episode_returns, curves.episode_lengths, curves.episode_epsilons))
+                zip(curves.episode_returns, curves.episode_lengths, curves.episode_epsilons, off_greedy))
     _write_rows(folder / LEARNER_CSV, LEARNER_COLUMNS, zip(curves.learner_updates, curves.loss_abs_diffs))
 
 
@@ -246,11 +251,12 @@ def _write_rows(path: Path, columns: Sequence[str], rows) -> None:
         writer.writerows(rows)
 
 
-def _read_rows(path: Path, columns: Sequence[str]) -> list[dict[str, str]]:
+def _read_rows(path: Path, columns: Sequence[str], older: Sequence[str] | None = None) -> list[dict[str, str]]:
+    """The rows of a CSV with these columns (or an older file's columns)."""
     try:
         with path.open(newline="") as stream:
             reader = csv.DictReader(stream)
-            if reader.fieldnames is None or list(reader.fieldnames) != list(columns):
+            if reader.fieldnames is None or list(reader.fieldnames) not in (list(columns), list(older or columns)):
                 raise ExportError(f"{path}: expected the columns {', '.join(columns)}, got {reader.fieldnames}")
             return list(reader)
     except OSError as error:

@@ -1,8 +1,8 @@
 """Training curves of a log into one PNG (matplotlib, Agg backend), from the series of ``scalars.py``.
 
 Four panels: the mean episode return over the last 100 episodes and the epsilon each
-episode was acted with (both from the actors' EpisodeRecords, in the order the
-recorder received them); the learner's loss and the mean |loss_k - loss_k-1| of
+episode was acted with, beside the share of actions that were not greedy where the actors
+counted them (all from the actors' EpisodeRecords, in the order the recorder received them); the learner's loss and the mean |loss_k - loss_k-1| of
 consecutive updates (both averaged over each of the learner's report periods). By
 default each is drawn as the paper draws it: return against episodes, epsilon against
 env steps, both losses against updates; with x = "env_steps" or "episodes" every panel
@@ -16,7 +16,7 @@ import bisect
 from pathlib import Path
 
 from common.analysis.plotting import RETURN_WINDOW, finish_figure, pyplot
-from replay.recorder.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, RETURN_MEAN, UPDATES_START, Series
+from replay.recorder.scalars import EPSILON, LOSS, LOSS_ABS_DIFF, OFF_GREEDY_MEAN, RETURN_MEAN, UPDATES_START, Series
 
 PANELS = (  # tag, title, y label, colour, the paper's x axis
     (RETURN_MEAN, f"mean return of the last {RETURN_WINDOW} episodes", "return", "tab:blue", "episodes"),
@@ -24,7 +24,7 @@ PANELS = (  # tag, title, y label, colour, the paper's x axis
     (LOSS, "loss", "loss", "tab:green", "updates"),
     (LOSS_ABS_DIFF, "|Δloss|", "|Δloss|", "tab:red", "updates"),
 )
-PLOTTED = frozenset(tag for tag, *_ in PANELS) | {UPDATES_START}
+PLOTTED = frozenset(tag for tag, *_ in PANELS) | {UPDATES_START, OFF_GREEDY_MEAN}
 
 
 def updates_start(series: Series) -> dict[str, float] | None:
@@ -47,7 +47,11 @@ def plot_training(series: Series, path: Path, title: str, x: str | None = None) 
         points = series.get(tag, [])
         xs, ys = [getattr(point, axis) for point in points], [point.value for point in points]
         if tag == EPSILON:
-            ax.step(xs, ys, where="post", color=colour)
+            ax.step(xs, ys, where="post", color=colour, label="epsilon")
+            off_greedy = series.get(OFF_GREEDY_MEAN, [])
+            if off_greedy:  # what the strategy explored: a softmax sample is often the greedy action
+                ax.plot([getattr(point, axis) for point in off_greedy], [point.value for point in off_greedy],
+                        color="tab:purple", label=f"actions not greedy ({RETURN_WINDOW} episodes)")
         else:
             ax.plot(xs, ys, color=colour, marker="." if tag != RETURN_MEAN and len(xs) < 50 else None)
         label = axis.replace("_", " ")

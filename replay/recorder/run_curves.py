@@ -37,6 +37,7 @@ def _add_log(curves: RunCurves, log: LogFile) -> None:
             curves.episode_returns.append(message.episode_return)
             curves.episode_lengths.append(message.length)
             curves.episode_epsilons.append(message.epsilon)
+            curves.episode_off_greedy.append(message.off_greedy)
         elif record.topic == learner_key:
             learner_rows.append(message.values)
     updates, diffs = finite_series(learner_rows, "updates", "loss_abs_diff")

@@ -5,7 +5,10 @@ named by tags, the names TensorBoard shows:
 
 * ``episode/return``, ``episode/return_mean_100`` (the mean over the last 100
   episodes, the paper's curve), ``episode/length``, ``episode/epsilon`` (what the
-  episode was acted with), ``episode/collided``: one point per EpisodeRecord;
+  episode was acted with), ``episode/collided``, and where the actor counted them
+  ``episode/off_greedy_share`` (its actions that were not argmax Q) with
+  ``episode/off_greedy_share_100`` (over the last 100 such episodes' steps): one
+  point per EpisodeRecord;
 * ``<key>/<value>`` for every finite number of a counters message (flattened), the key taken below the
   run without ``metrics/``: ``learner/0/loss``, ``learner/0/loss_abs_diff``,
   ``learner/0/updates_per_s``, ``learner/0/epsilon``, ``replay/stats/episodes``,
@@ -44,6 +47,8 @@ LEARNER_KEY = "metrics/learner/0"  # the learner's Stats, below the run
 RETURN_MEAN_NAME = f"return_mean_{RETURN_WINDOW}"
 RETURN_MEAN = f"episode/{RETURN_MEAN_NAME}"
 EPSILON = "episode/epsilon"
+OFF_GREEDY_MEAN_NAME = f"off_greedy_share_{RETURN_WINDOW}"
+OFF_GREEDY_MEAN = f"episode/{OFF_GREEDY_MEAN_NAME}"
 LOSS = "learner/0/loss"
 LOSS_ABS_DIFF = "learner/0/loss_abs_diff"
 UPDATES_START = "learner/0/start_env_steps"  # the env steps at which the replay served the first batch
@@ -67,6 +72,7 @@ class Curves:
         self.lift: int | None = None  # added to episode_steps once the run's env-step count is known
         self.updates = 0
         self._returns: deque[float] = deque(maxlen=RETURN_WINDOW)
+        self._off_greedy: deque[tuple[int, int]] = deque(maxlen=RETURN_WINDOW)  # (off-greedy actions, steps)
         self._waiting: list[tuple[str, Point]] = []  # points that need the lift, not yet lifted
 
     def add(self, key: str, message: Message, log_ns: int) -> list[tuple[str, Point]]:
@@ -94,6 +100,10 @@ class Curves:
         self._returns.append(record.episode_return)
         values = {"return": record.episode_return, RETURN_MEAN_NAME: sum(self._returns) / len(self._returns),
                   "length": record.length, "epsilon": record.epsilon, "collided": float(record.collided)}
+        if record.off_greedy >= 0 and record.length > 0:
+            self._off_greedy.append((record.off_greedy, record.length))
+            values["off_greedy_share"] = record.off_greedy / record.length
+            values[OFF_GREEDY_MEAN_NAME] = sum(off for off, _ in self._off_greedy) / sum(n for _, n in self._off_greedy)
         return self._place("episode", values, wall_s)
 
     def _stats(self, source: str, values: dict, wall_s: float) -> list[tuple[str, Point]]:
