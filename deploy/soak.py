@@ -130,10 +130,14 @@ class TreePeak:
 
 
 def children(pid: int) -> list[int]:
-    try:
-        return [int(child) for child in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
-    except (OSError, ValueError):
-        return []
+    """Its child processes, those of every thread (a child started from a thread is listed under that one)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(child) for child in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            continue  # a thread that ended while we looked
+    return found
 
 
 def sample(run: RunDir, status: RunStatus) -> dict:

@@ -185,3 +185,25 @@ def test_a_steps_peak_is_the_most_its_process_trees_held_at_once(tmp_path):
     child.wait()
     assert 200 < peak.stop() < 400
     assert math.isnan(soak.TreePeak(lambda: [], every_s=0.05).start().stop())  # nothing sampled
+
+
+def test_a_child_started_from_a_thread_is_counted_in_its_parents_tree():
+    """/proc lists a child under the thread that started it: the tree reads every thread's."""
+    script = ("import subprocess, sys, threading, time\n"
+              "def start():\n"
+              "    subprocess.Popen([sys.executable, '-c', 'import time; b = bytearray(b\"1\") * 150_000_000; "
+              "time.sleep(30)'])\n"
+              "    time.sleep(30)  # the thread lives on: a child of an ended thread passes to the main one\n"
+              "threading.Thread(target=start).start()\n"
+              "time.sleep(30)\n")
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        deadline = time.monotonic() + 20
+        while soak.tree_resident_mb([parent.pid]) < 150 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert soak.tree_resident_mb([parent.pid]) > 150
+    finally:
+        for child in soak.children(parent.pid):
+            os.kill(child, 9)
+        parent.kill()
+        parent.wait()
