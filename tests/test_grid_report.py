@@ -218,3 +218,12 @@ def test_the_share_of_actions_off_greedy_counts_only_the_episodes_its_actors_cou
     assert shares == {"softmax": 0.05, "bmc": "", "vdbe": ""}
     assert grid_report.explored_lines(runs)[-1] == "| softmax | 1000 | paper | 5.00% (seed 0) |"
     assert grid_report.explored_lines(runs[:0])[0].startswith("No run's actors counted")
+
+
+def test_the_test_starts_table_gives_each_runs_cfr_per_start_and_the_starts_most_runs_fail(tmp_path):
+    exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])  # one episode per start; 100 reaches the cap
+    exported_run(tmp_path, "softmax", 0, [100, 50, 100, 50])
+    lines = grid_report.start_lines(grid_report.read_runs([tmp_path]))
+    assert lines[2:] == ["| Run | 0 | 1 | 2 | 3 |", "|---|---:|---:|---:|---:|",
+                         "| bmc-b1000-s0 | 100% | 100% | 100% | 0% |", "| softmax-b1000-s0 | 100% | 0% | 100% | 0% |",
+                         "| mean over runs | 100% | 50% | 100% | 0% |", "| runs below 50% | 0 | 1 | 0 | 2 |"]

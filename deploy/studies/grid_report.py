@@ -311,6 +311,7 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{', '.join(_percent(value) for value in row['test_cfr_by_seed'].split(';'))} | "
             f"{_percent(row['iqm_test_cfr'])} {_iqm_interval(row, 'iqm_test_cfr', _percent)} | "
             f"{_percent(row['paper_test_cfr'])} |")
+    lines += ["", "## Where the runs failed: the test starts", "", *start_lines(runs)]
     lines += ["", "## What the strategies explored", "", *explored_lines(runs)]
     lines += ["", "## The paper's claims", "", _rule_text(), ""]
     for reading in claim_readings(runs, bootstrap):
@@ -333,6 +334,21 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
                                                          for item in runs])]
     lines += ["", "## Soak across the grid", "", *soak_lines(soaks)]
+    return lines
+
+
+def start_lines(runs: Sequence[GridRun]) -> list[str]:
+    """Each run's chosen policy's test CFR per start, and per start the mean over runs and the runs below half:
+    whether a run's CFR is spread over the starts or lost on a few."""
+    starts = min((len(item.start_cfr) for item in runs), default=0)
+    header = " | ".join(str(start) for start in range(starts))
+    lines = ["Test CFR of each run's chosen policy from each test start (K trials each).", "",
+             f"| Run | {header} |", "|---|" + "---:|" * starts]
+    lines += [f"| {item.run.name} | " + " | ".join(f"{100 * cfr:.0f}%" for cfr in item.start_cfr[:starts]) + " |"
+              for item in runs]
+    scores = np.vstack([item.start_cfr[:starts] for item in runs]) if runs else np.zeros((0, starts))
+    lines.append("| mean over runs | " + " | ".join(f"{100 * value:.0f}%" for value in scores.mean(axis=0)) + " |")
+    lines.append("| runs below 50% | " + " | ".join(str(int(count)) for count in (scores < 0.5).sum(axis=0)) + " |")
     return lines
 
 
