@@ -15,6 +15,7 @@ with the median gap between the best and second Q-value. The actors count the sa
 (EpisodeRecord.off_greedy) on their own, exploring trajectories; this reads a kept policy after the fact.
 
     .venv/bin/python deploy/tools/off_greedy_probe.py runs/grid/mbe/policies/policy-u0028000.pt --starts 3 --steps 400
+    .venv/bin/python deploy/tools/off_greedy_probe.py POLICY --exploration.softmax.kappa 0.5   # another temperature
 """
 
 from __future__ import annotations
@@ -27,11 +28,13 @@ import numpy as np
 import torch
 
 from actor.batched_q import BatchedQ
+from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import evaluation_env_config
+from actor.evaluation.sources import checkpoint_source
 from actor.sim import make_env, start_poses
-from common.checkpoint import CheckpointError, KeptPolicy, load_checkpoint_or_policy
+from common.checkpoint import CheckpointError
 from common.config import Config
-from common.config_values import from_dict
+from common.config_cli import add_config_arguments, parse_flags
 from common.exploration.base import softmax_probabilities
 from common.network import D3RQN, load_numpy_weights
 from common.options import ConfigError
@@ -83,16 +86,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("policy", type=Path, help="a kept or shipped policy, a checkpoint, or a run folder")
     parser.add_argument("--starts", type=int, default=3, help="train starts driven from, the first N (default 3)")
     parser.add_argument("--steps", type=int, default=400, help="the most steps driven from each (default 400)")
-    args = parser.parse_args(argv)
+    add_config_arguments(parser)  # the policy's config, changed only by --config FILE and the flags given
+    args = parse_flags(parser, argv)
     torch.set_num_threads(1)
     try:
         if not 1 <= args.starts <= len(start_poses("train")) or args.steps < 1:
             raise ConfigError(f"--starts must lie in 1..{len(start_poses('train'))} (the train set) and --steps be >= 1")
-        saved = load_checkpoint_or_policy(args.policy)
-        weights = saved.weights() if isinstance(saved, KeptPolicy) else saved.policy_weights()
-        config = from_dict(saved.config)
-        rows = greedy_q_rows(config, weights, args.starts, args.steps)
-    except (CheckpointError, ConfigError, ValueError) as error:
+        source = checkpoint_source(args.policy, args)
+        config = source.config
+        rows = greedy_q_rows(config, source.weights, args.starts, args.steps)
+    except (CheckpointError, ConfigError, EvaluationError, ValueError) as error:
         print(f"off_greedy_probe: error: {error}", file=sys.stderr)
         return 1
     print("\n".join(report(config, rows)))
