@@ -207,7 +207,8 @@ def test_a_damaged_or_partial_soak_summary_does_not_stop_the_report(tmp_path):
 def test_the_share_of_actions_off_greedy_counts_only_the_episodes_its_actors_counted(tmp_path):
     counted = exported_run(tmp_path, "softmax", 0, [100, 100, 100, 50])
     (counted / "training.csv").write_text("return,length,epsilon,off_greedy\n"
-                                          "1.0,40,1.0,-1\n2.0,100,1.0,7\n3.0,300,1.0,13\n")  # 20 of 400
+                                          "1.0,40,1.0,-1\n2.0,100,1.0,7\n3.0,300,1.0,13\n"  # 20 of 400
+                                          "4.0,10,1.0,11\n5.0,10,1.0,-3\n")  # damaged counts: left out
     (counted / "learner.csv").write_text("updates,loss_abs_diff\n")
     older = exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])
     (older / "training.csv").write_text("return,length,epsilon\n1.0,40,1.0\n")  # exported before the count

@@ -57,8 +57,10 @@ class RunCurves:
     @property
     def off_greedy_share(self) -> float:
         """The share of actions that were not argmax Q over the episodes whose actors counted them (those acted
-        wholly with the learner's weights); nan where none did."""
-        counted = [(off, length) for off, length in zip(self.episode_off_greedy, self.episode_lengths) if off >= 0]
+        wholly with the learner's weights); nan where none did. A count outside 0..length (a damaged file) is
+        left out like an uncounted one."""
+        counted = [(off, length) for off, length in zip(self.episode_off_greedy, self.episode_lengths)
+                   if 0 <= off <= length]
         steps = sum(length for _, length in counted)
         return sum(off for off, _ in counted) / steps if steps else math.nan
 
