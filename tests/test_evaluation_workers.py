@@ -2,12 +2,14 @@
 instead of driving the rest of a queue that can hold hours of jobs."""
 
 import os
+import queue
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from actor.evaluation import episodes
 from actor.evaluation.episodes import EpisodeJob, queued_jobs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,10 +66,19 @@ def test_the_workers_stop_when_their_parent_is_killed():
 
 
 class Jobs:
-    def __init__(self, jobs):
-        self.jobs = list(jobs)
+    """A job queue that never blocks: an empty get raises queue.Empty, as a multiprocessing queue's get with a
+    timeout does, and calls on_empty first (the parent dying while the worker waits)."""
 
-    def get(self):
+    def __init__(self, jobs, on_empty=None):
+        self.jobs = list(jobs)
+        self.on_empty = on_empty
+
+    def get(self, timeout=None):
+        assert timeout is not None, "a blocking get would wait forever on a queue whose parent is gone"
+        if not self.jobs:
+            if self.on_empty:
+                self.on_empty()
+            raise queue.Empty
         return self.jobs.pop(0)
 
 
@@ -76,3 +87,15 @@ def test_a_worker_takes_no_job_once_its_parent_is_gone():
     assert len(list(queued_jobs(Jobs(jobs), parent_pid=os.getppid()))) == 3
     assert list(queued_jobs(Jobs(jobs), parent_pid=os.getppid() + 100_000)) == []  # not its parent
     assert len(list(queued_jobs(Jobs(jobs)))) == 3  # no parent to watch
+
+
+def test_a_worker_waiting_on_an_empty_queue_stops_when_its_parent_dies(monkeypatch):
+    """A killed parent's end markers never reach the queue: the worker that empties it must not wait forever."""
+    parent = os.getppid()
+    monkeypatch.setattr(episodes.os, "getppid", lambda: parent)
+
+    def parent_dies():
+        monkeypatch.setattr(episodes.os, "getppid", lambda: 1)  # reparented
+
+    jobs = [EpisodeJob("random", "train", 0, trial, trial) for trial in range(2)]  # no end marker
+    assert len(list(queued_jobs(Jobs(jobs, on_empty=parent_dies), parent_pid=parent))) == 2

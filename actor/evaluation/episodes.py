@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import queue
 import traceback
 from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator, Protocol
@@ -42,6 +43,7 @@ from common.config import Config, EnvConfig
 from common.network import D3RQN, load_numpy_weights
 
 POLICIES = ("greedy", "random", "privileged", "right-turns")
+JOB_POLL_S = 1.0  # how often a worker waiting on an empty job queue looks whether its parent still lives
 
 Pose = tuple[float, float, float]
 
@@ -243,8 +245,16 @@ class WorkerFailed:
 
 def queued_jobs(job_queue, parent_pid: int | None = None) -> Iterator[EpisodeJob]:
     """Jobs from a shared queue until this worker's end marker (None), or until the process that started
-    it (parent_pid) is gone: killed, it can read no episode, and its queue holds jobs for hours."""
-    while (parent_pid is None or os.getppid() == parent_pid) and (job := job_queue.get()) is not None:
+    it (parent_pid) is gone: killed, it can read no episode, and its queue holds jobs for hours. A killed
+    parent also leaves the queue without its end markers (they were still in its feeder thread), so an empty
+    queue is waited on in short polls that look at the parent between them, never in one blocking get."""
+    while parent_pid is None or os.getppid() == parent_pid:
+        try:
+            job = job_queue.get(timeout=JOB_POLL_S)
+        except queue.Empty:
+            continue
+        if job is None:
+            return
         yield job
 
 
