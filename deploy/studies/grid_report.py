@@ -39,6 +39,7 @@ from common.exploration.names import STRATEGIES
 from deploy.studies.comparison import read_episodes_csv
 from deploy.studies.grid_cells import counted, on_schedule, read_choice
 from deploy.studies.grid_costs import machine_lines, machine_row, soak_lines, soak_rows
+from deploy.studies.grid_prediction import prediction_lines
 from deploy.studies.run_results import ExportedRun, collect
 
 # The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
@@ -312,6 +313,7 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{_percent(row['iqm_test_cfr'])} {_iqm_interval(row, 'iqm_test_cfr', _percent)} | "
             f"{_percent(row['paper_test_cfr'])} |")
     lines += ["", "## Where the runs failed: the test starts", "", *start_lines(runs)]
+    lines += ["", "## The prediction, on the runs after it", "", *prediction_lines(runs)]
     lines += ["", "## What the strategies explored", "", *explored_lines(runs)]
     lines += ["", "## The paper's claims", "", _rule_text(), ""]
     for reading in claim_readings(runs, bootstrap):
