@@ -3,6 +3,7 @@
 import csv
 import io
 import json
+import dataclasses
 import math
 import os
 
@@ -21,7 +22,7 @@ from actor.evaluation.workers import run_jobs, worker_layout
 from actor.sim import make_env
 from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts, summarise,
                                    summarise_all)
-from common.analysis.tables import bin_labels, failures_by_start, markdown_table
+from common.analysis.tables import bin_labels, failures_by_site, failures_by_start, markdown_table
 from common.checkpoint import save_checkpoint
 from common.config import EvaluationConfig, TransportConfig
 from common.config_values import load_config, to_dict
@@ -108,6 +109,25 @@ def test_the_failures_are_told_start_by_start_with_the_steps_they_came_at():
         "| train | 0 | 1/3 | 2 / 0 / 0 | 50.5 (49–52) |"]
     assert failures_by_start(episodes[:1]) == ["Every greedy episode reached the cap."]
     assert failures_by_start(episodes, policy="privileged") == []
+
+
+def test_the_failures_are_told_by_what_they_hit_or_where_they_ended():
+    deep = "parked car on B1-C1 45 m from B1, 0.9 m right of the centre-line"
+
+    def failed(length, end, start_set, start_index, hit="", end_place="B1-C1"):
+        return dataclasses.replace(episode(length, end, 1.0, (0, 0, 0, 1), start_index, start_set=start_set),
+                                   hit=hit, end_place=end_place)
+
+    episodes = [failed(53, "collision", "test", 1, deep), failed(750, "collision", "test", 9, deep),
+                failed(52, "collision", "train", 4, deep), failed(300, "offroad", "test", 2, end_place="C1"),
+                failed(400, "collision", "test", 2, "a tree"), episode(2000, "cap", 1.0, (0, 0, 0, 1))]
+    assert failures_by_site(episodes)[2:] == [
+        "| Where | Episodes (train / test) | Starts | Failed at step: median (range) |", "|---|---:|---|---:|",
+        f"| {deep} | 3 (1 / 2) | train 4; test 1, 9 | 53 (52–750) |",
+        "| a tree | 1 (0 / 1) | test 2 | 400 (400–400) |",
+        "| offroad on C1 | 1 (0 / 1) | test 2 | 300 (300–300) |"]
+    assert failures_by_site(episodes[-1:]) == []  # nothing failed
+    assert failures_by_site([*episodes, episode(9, "collision", 1.0, (0, 0, 0, 1))]) == []  # one without its site
 
 
 def test_summaries_group_by_policy_and_set_and_refuse_mixed_or_empty_groups():
@@ -257,6 +277,11 @@ def test_an_episode_record_counts_the_streets_and_junctions_it_visited():
     run_lockstep(jobs, [make_env(env_config)], policies, 80, EDGES, episodes.append)
     assert [(e.policy, e.length, e.end, e.streets, e.junctions) for e in episodes] == [
         ("privileged", 80, "cap", 2, 1), ("right-turns", 80, "cap", 2, 1)]
+    # where each ended: 43 m to the curve, 19 m round it, which ends 12 m past D3 (215, 140), and 18 m on: 30 m
+    # west of D3; 46 m, 19 m round, then 15 m on: 27 m south of C1 (145, 0)
+    (west, south) = episodes
+    assert abs(west.end_x - 185) < 3 and abs(west.end_y - 140) < 2.6 and abs(abs(west.end_heading) - math.pi) < 0.3
+    assert abs(south.end_x - 145) < 2.6 and abs(south.end_y - 27) < 3 and abs(south.end_heading - math.pi / 2) < 0.3
 
 
 def test_starting_an_episode_zeroes_only_its_slot_state(network):

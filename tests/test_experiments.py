@@ -7,6 +7,7 @@ evaluate's own report writer, checkpoints with the learner's checkpoint writer.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from common.analysis.figures import (RunCurves, plot_epsilon, plot_loss_differen
                                      plot_reward_curves, seed_band)
 from common.analysis.intervals import Bootstrap
 from common.analysis.stats import summarise_all
-from common.analysis.tables import EPISODES_CSV, write_evaluation
+from common.analysis.tables import EPISODES_CSV, write_episodes_csv, write_evaluation
 from common.config_values import load_config
 from common.run_dir import log_segments
 from common.keys import Keys
@@ -141,11 +142,16 @@ def test_figures_refuse_what_they_cannot_draw(tmp_path):
 
 # --- evaluations pooled into the paper's tables --------------------------------------------------------------
 
+def assert_same(got, expected):
+    """Equal episodes, a NaN (a measure the episode lacks) equal to a NaN: numpy's assert_equal."""
+    np.testing.assert_equal(dataclasses.astuple(got), dataclasses.astuple(expected))
+
+
 def test_episodes_csv_reads_back_as_written(tmp_path):
     fake_evaluation(tmp_path, [100, 50], progress=True)
     episodes, edges = read_episodes_csv(tmp_path / EPISODES_CSV)
     assert edges == EDGES
-    assert episodes[0] == episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0, 90.0, 4, 3)
+    assert_same(episodes[0], episode("greedy", "train", 100, "cap", (0, 0, 0, 100), 0, 90.0, 4, 3))
     assert (episodes[1].end, episodes[1].progress_m, episodes[1].streets, episodes[1].junctions) == (
         "stalled", 45.0, 2, 1)
     assert math.isnan(episodes[2].progress_m)  # the random episodes did not report progress
@@ -156,13 +162,24 @@ def test_episodes_csv_reads_back_as_written(tmp_path):
 def test_an_episodes_csv_from_before_progress_and_coverage_reads_back_without_them(tmp_path):
     fake_evaluation(tmp_path, [100, 10], progress=True)
     lines = (tmp_path / EPISODES_CSV).read_text().splitlines()
-    columns = {lines[0].split(",").index(name) for name in ("progress_m", "streets", "junctions")}
+    columns = {lines[0].split(",").index(name) for name in ("progress_m", "streets", "junctions", "end_x", "end_y",
+                                                            "end_heading", "end_place", "hit")}
     old = "\n".join(",".join(cell for number, cell in enumerate(line.split(",")) if number not in columns)
                     for line in lines)
     (tmp_path / EPISODES_CSV).write_text(old + "\n")
     episodes, _ = read_episodes_csv(tmp_path / EPISODES_CSV)
     assert len(episodes) == 6
     assert all(math.isnan(e.progress_m) and math.isnan(e.streets) and math.isnan(e.junctions) for e in episodes)
+    assert all(math.isnan(e.end_x) and math.isnan(e.end_heading) and e.hit == e.end_place == "" for e in episodes)
+
+
+def test_an_episodes_end_pose_reads_back_as_written(tmp_path):
+    crashed = dataclasses.replace(episode("greedy", "test", 53, "collision", (0, 0, 0, 53), 1),
+                                  end_x=117.5, end_y=-0.75, end_heading=2.99, end_place="B1-C1",
+                                  hit="parked car on B1-C1 45 m from B1, 0.9 m right of the centre-line")
+    write_episodes_csv(tmp_path / EPISODES_CSV, [crashed], EDGES)
+    (back,), _ = read_episodes_csv(tmp_path / EPISODES_CSV)
+    assert_same(back, crashed)
 
 
 def test_a_file_that_is_not_an_episodes_csv_is_a_comparison_error(tmp_path):

@@ -14,6 +14,7 @@ from actor.sim import ENV_ID, START_SETS, make_env, start_poses
 from highway_env.vehicle.kinematics import Vehicle
 
 from actor.sim.camera import FRAME_SHAPE
+from actor.sim.collision_site import parked_car_name, touched
 from actor.sim.env import NeighbourhoodEnv
 from actor.sim.geometry import Obstacles, Segments
 from actor.sim.neighbourhood import crossed_junction, is_street, neighbourhood, place_counts, places_reached
@@ -197,6 +198,22 @@ def test_collision_terminates_with_zero_reward_at_the_hand_computed_step(env):
     assert info["collision"] and not info["offroad"] and not truncated
     assert reward == 0.0
     assert info["step"] == 17
+    assert info["hit"] == "parked car on A1-B1 52 m from A1, 1.3 m left of the centre-line"
+    # the pose of the frame in which the fronts met: 52 - 2.25 - 2.25
+    assert info["street"] == "A1-B1" and info["pose"] == pytest.approx((47.5, 0.0, 0.0), abs=1e-6)
+
+
+def test_a_collision_names_what_it_touched():
+    hood = neighbourhood()
+    car = hood.parked_cars[4]  # B1-C1, 45 m from B1 (x = 120), 0.9 m right (y = 0.9): its edge on the centre-line
+    assert touched(hood, (120.0, -0.5, math.pi)) == parked_car_name(car)  # passing it 0.5 m off the centre-line
+    assert touched(hood, (120.0, -1.0, math.pi)) == ""  # 1 m off: 0.1 m to spare
+    tree_x, tree_y, radius = hood.trees[0]
+    assert touched(hood, (tree_x + radius + 1.0, tree_y, 0.0)) == "a tree"
+    house = hood.houses[0]
+    assert touched(hood, (house[0], house[1], 0.0)) == "a house"
+    traffic = np.array([[60.0, 0.0, 0.0, 4.5, 1.8]])  # on A1-B1, 8 m past its last parked car
+    assert touched(hood, (62.0, 0.0, 0.0), traffic) == "a traffic car" and touched(hood, (62.0, 0.0, 0.0)) == ""
 
 
 def test_leaving_the_road_terminates(env):

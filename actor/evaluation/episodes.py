@@ -152,12 +152,14 @@ def evaluation_episode(job: EpisodeJob, trajectory: Trajectory, max_steps: int,
     # the simulator cut it at its own cap: evaluation_env_config makes that max_steps
     end = end_reason(info, trajectory.terminated, trajectory.length, max_steps) or "cap"
     streets, junctions = coverage_of(info.get("streets_visited"))
+    end_x, end_y, end_heading = pose_of(info)
     return EvaluationEpisode(
         policy=job.policy, start_set=job.start_set, start_index=job.start_index, trial=job.trial,
         seed=job.seed, length=trajectory.length, end=end, episode_return=float(sum(trajectory.rewards)),
         reward_bin_counts=reward_bin_counts(trajectory.rewards, reward_edges),
         actions_digest=digest_of_actions(trajectory.actions), progress_m=progress_of(info),
-        streets=streets, junctions=junctions)
+        streets=streets, junctions=junctions, end_x=end_x, end_y=end_y, end_heading=end_heading,
+        end_place=str(info.get("street") or ""), hit=str(info.get("hit") or ""))
 
 
 def end_reason(info: dict, terminated: bool, length: int, max_steps: int) -> str | None:
@@ -182,6 +184,12 @@ def progress_of(info: dict) -> float:
     """Metres of progress along the road this episode, NaN when the simulator does not report it."""
     value = info.get("progress_m")
     return math.nan if value is None else float(value)
+
+
+def pose_of(info: dict) -> tuple[float, float, float]:
+    """The car's (x, y, heading) at the episode's last step, NaNs when the simulator does not report it."""
+    pose = info.get("pose")
+    return (math.nan,) * 3 if pose is None else tuple(float(value) for value in pose)
 
 
 def coverage_of(places: tuple[str, ...] | None) -> tuple[float, float]:

@@ -7,7 +7,8 @@ the nearest street centre-line, 0 on a collision. An episode ends
 vehicle, on leaving the road (d > ``offroad_distance``) or on stalling (too
 little new road in a window, see ``progress.py``); it is cut (``truncated``)
 at ``max_steps``. ``info["end"]`` says which: "collision", "offroad",
-"stalled" or "cap".
+"stalled" or "cap"; ``info["hit"]`` names what a collision touched
+(``collision_site.py``) and ``info["pose"]`` is the car's (x, y, heading).
 
 What is highway-env's and what is ours:
 
@@ -42,7 +43,8 @@ from highway_env.envs.common.observation import ObservationType, observation_fac
 from actor.sim import layout
 from actor.sim.camera import FRAME_SHAPE, TopDownCamera
 from actor.sim.front_camera import PerspectiveCamera
-from actor.sim.geometry import Obstacles
+from actor.sim.collision_site import touched
+from actor.sim.geometry import NO_CIRCLES, Obstacles
 from actor.sim.neighbourhood import Pose, neighbourhood, places_reached
 from actor.sim.progress import ProgressMeter
 from actor.sim.road import lane_locator, neighbourhood_road
@@ -56,7 +58,6 @@ START_SETS = ("train", "test")
 OPTION_KEYS = ("start_set", "start_index")
 END_REASONS = ("collision", "offroad", "stalled", "cap")
 CAMERA_OBSERVATIONS = {"front": "FrontCamera", "topdown": "TopDownCamera"}
-NO_CIRCLES = np.zeros((0, 3))
 
 
 class SteeringAction(ActionType):
@@ -115,7 +116,7 @@ class NeighbourhoodEnv(AbstractEnv):
         self._cameras: dict[str, Any] = {}
         self.pose = (0.0, 0.0, 0.0)
         self.start_set, self.start_index = START_SETS[0], 0
-        self.distance, self.collision, self.stalled = 0.0, False, False
+        self.distance, self.collision, self.stalled, self.hit = 0.0, False, False, ""
         self.place_name, self.streets_visited = "", set()
         self.traffic = None
         config = self.env_config
@@ -293,6 +294,7 @@ class NeighbourhoodEnv(AbstractEnv):
         self.pose = (x, y, heading)
         self.collision = self.hood.obstacles.hits(x, y, heading, layout.CAR_LENGTH_M, layout.CAR_WIDTH_M) \
             or self._hits_traffic(x, y, heading)
+        self.hit = touched(self.hood, self.pose, self.traffic_rectangles()) if self.collision else ""
         self.vehicle.crashed = self.collision
         return self.collision
 
@@ -338,7 +340,8 @@ class NeighbourhoodEnv(AbstractEnv):
     def _info(self) -> dict:
         return {"distance": self.distance, "collision": self.collision, "offroad": self.offroad,
                 "stalled": self.stalled, "end": self.end_reason(),
-                "progress_m": self.progress.total_m, "street": self.place_name,
+                "progress_m": self.progress.total_m, "street": self.place_name, "pose": self.pose,
+                "hit": self.hit,
                 "streets_visited": tuple(sorted(self.streets_visited)),
                 "lane_index": self.vehicle.lane_index, "start_set": self.start_set,
                 "start_index": self.start_index, "step": self.steps}

@@ -84,6 +84,10 @@ class Segments:
         return t, gap_x * gap_x + gap_y * gap_y
 
 
+NO_CIRCLES = np.zeros((0, 3))  # an Obstacles of rectangles only
+NO_RECTANGLES = np.zeros((0, 5))  # an Obstacles of circles only
+
+
 class Obstacles:
     """Fixed oriented rectangles and circles, and whether a car's rectangle touches any.
 

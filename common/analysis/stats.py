@@ -70,6 +70,11 @@ class EvaluationEpisode:
     progress_m: float = math.nan  # metres along the road network; NaN when the simulator does not say
     streets: float = math.nan  # distinct streets visited (a count); NaN when the simulator does not say
     junctions: float = math.nan  # distinct junctions visited (a count); NaN when the simulator does not say
+    end_x: float = math.nan  # the car's pose at its last step (metres, radians); NaN when the simulator does not say
+    end_y: float = math.nan
+    end_heading: float = math.nan
+    end_place: str = ""  # the street or junction it ended on; "" when the simulator does not say
+    hit: str = ""  # what a collision touched (actor/sim/collision_site.py); "" for other ends
 
     @property
     def collision_free(self) -> bool:

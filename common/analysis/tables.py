@@ -165,6 +165,35 @@ def failures_by_start(episodes: Sequence[EvaluationEpisode], policy: str = "gree
     return lines
 
 
+def failure_site(episode: EvaluationEpisode) -> str:
+    """What a failed episode hit, or how and where it ended; "" for an evaluation from before they were kept."""
+    if episode.hit:
+        return episode.hit
+    return f"{episode.end} on {episode.end_place}" if episode.end_place else ""
+
+
+def failures_by_site(episodes: Sequence[EvaluationEpisode], policy: str = "greedy") -> list[str]:
+    """Where a policy's failed episodes ended, most first: one place of the map can hold the failures of
+    several starts (the grid's: one parked car, passed from three test starts)."""
+    failed = [episode for episode in episodes if episode.policy == policy and not episode.collision_free]
+    by_site: dict[str, list[EvaluationEpisode]] = {}
+    for episode in failed:
+        by_site.setdefault(failure_site(episode), []).append(episode)
+    if not failed or "" in by_site:
+        return []
+    lines = [f"What the {policy} policy hit, or where it left the road or stalled:", "",
+             "| Where | Episodes (train / test) | Starts | Failed at step: median (range) |", "|---|---:|---|---:|"]
+    for site, ended in sorted(by_site.items(), key=lambda item: (-len(item[1]), item[0])):
+        sets = " / ".join(str(sum(episode.start_set == name for episode in ended)) for name in ("train", "test"))
+        starts = "; ".join(f"{name} " + ", ".join(str(index) for index in sorted(
+            {episode.start_index for episode in ended if episode.start_set == name}))
+            for name in ("train", "test") if any(episode.start_set == name for episode in ended))
+        steps = [episode.length for episode in ended]
+        lines.append(f"| {site} | {len(ended)} ({sets}) | {starts} | "
+                     f"{statistics.median(steps):g} ({min(steps)}–{max(steps)}) |")
+    return lines
+
+
 def evaluation_markdown(summaries: Sequence[SetSummary], edges: Sequence[float], facts: dict[str, str],
                         trials: int, confidence: float = 0.95, episodes: Sequence[EvaluationEpisode] = ()) -> str:
     lines = ["# Evaluation", ""]
@@ -173,9 +202,9 @@ def evaluation_markdown(summaries: Sequence[SetSummary], edges: Sequence[float],
     note = greedy_variety_note(summaries, trials)
     if note:
         lines += [note, ""]
-    failures = failures_by_start(episodes)
-    if failures:
-        lines += [*failures, ""]
+    for failures in (failures_by_start(episodes), failures_by_site(episodes)):
+        if failures:
+            lines += [*failures, ""]
     lines += ["Columns:", ""]
     lines += [f"- **{name}**: {meaning}" for name, meaning in COLUMN_LEGEND]
     return "\n".join(lines) + "\n"

@@ -34,6 +34,7 @@ PRIVILEGED = "privileged"
 BASELINES = (RANDOM, PRIVILEGED)  # evaluate's policies that need no training, in the tables' order
 STRATEGY_NAMES = {**DISPLAY_NAMES, RANDOM: "Random policy", PRIVILEGED: "Privileged driver"}
 BIN_PREFIX = "steps_"
+OPTIONAL_EPISODE_COLUMNS = ("progress_m", "streets", "junctions", "end_x", "end_y", "end_heading")  # NaN where absent
 RESULTS_CSV = "results.csv"
 RESULTS_MD = "results.md"
 
@@ -106,10 +107,9 @@ def _episode_of(row: dict[str, str], bin_columns: list[str]) -> EvaluationEpisod
                              trial=int(row["trial"]), seed=int(row["seed"]), length=int(row["length"]),
                              end=row["end"], episode_return=float(row["episode_return"]),
                              reward_bin_counts=tuple(int(row[name]) for name in bin_columns),
-                             actions_digest=row["actions_digest"],  # older files lack the last three
-                             progress_m=float(row.get("progress_m") or math.nan),
-                             streets=float(row.get("streets") or math.nan),
-                             junctions=float(row.get("junctions") or math.nan))
+                             actions_digest=row["actions_digest"],  # older files lack the columns below
+                             **{name: float(row.get(name) or math.nan) for name in OPTIONAL_EPISODE_COLUMNS},
+                             end_place=row.get("end_place") or "", hit=row.get("hit") or "")
 
 
 # --- pooling ------------------------------------------------------------------------------------------------

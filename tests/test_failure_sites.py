@@ -1,0 +1,52 @@
+"""deploy/tools/failure_sites.py: an evaluation's failures pooled by what they hit, read from its episodes.csv, or
+replayed for an older one and checked against its recorded actions."""
+
+from __future__ import annotations
+
+import csv
+
+from actor.evaluate import main as evaluate
+from common.analysis.tables import EPISODES_CSV
+from deploy.tools import failure_sites
+from tests.test_evaluation import make_checkpoint
+
+SITE_COLUMNS = ("end_x", "end_y", "end_heading", "end_place", "hit")
+
+
+def rewrite(path, change):
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    rows = [change(dict(row)) for row in rows]
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def test_sites_are_read_from_an_evaluation_or_replayed_for_an_older_one(tmp_path, capsys):
+    run_dir = make_checkpoint(tmp_path / "runs")  # an untrained network: its greedy episodes fail within 60 steps
+    evaluate(["--checkpoint", str(run_dir)])
+    evaluation = run_dir / "evaluation"
+    capsys.readouterr()
+    assert failure_sites.main([str(evaluation)]) == 0
+    table = capsys.readouterr().out
+    assert table.startswith("What the greedy policy hit") and "| Where |" in table
+
+    rewrite(evaluation / EPISODES_CSV, lambda row: {key: value for key, value in row.items()
+                                                    if key not in SITE_COLUMNS})  # as an older evaluate wrote it
+    assert failure_sites.main([str(evaluation)]) == 1
+    assert "no end poses" in capsys.readouterr().err
+    assert failure_sites.main([str(evaluation), "--policy", str(run_dir)]) == 0
+    assert capsys.readouterr().out == table  # the replays found the same places
+
+    first_failed = {}
+
+    def damage(row):  # another action sequence recorded for the first failed greedy episode
+        if row["policy"] == "greedy" and row["end"] != "cap" and not first_failed:
+            first_failed.update(row)
+            row["actions_digest"] = "0" * 16
+        return row
+
+    rewrite(evaluation / EPISODES_CSV, damage)
+    assert failure_sites.main([str(evaluation), "--policy", str(run_dir)]) == 1
+    assert "the replay took other actions" in capsys.readouterr().err
