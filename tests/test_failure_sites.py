@@ -10,8 +10,7 @@ from common.analysis.tables import EPISODES_CSV
 from deploy.tools import failure_sites
 from tests.test_evaluation import make_checkpoint
 
-SITE_COLUMNS = ("end_x", "end_y", "end_heading", "end_place", "hit")
-
+SITE_COLUMNS = failure_sites.SITE_COLUMNS
 
 def rewrite(path, change):
     with path.open(newline="") as handle:
@@ -36,8 +35,13 @@ def test_sites_are_read_from_an_evaluation_or_replayed_for_an_older_one(tmp_path
                                                     if key not in SITE_COLUMNS})  # as an older evaluate wrote it
     assert failure_sites.main([str(evaluation)]) == 1
     assert "no end poses" in capsys.readouterr().err
-    assert failure_sites.main([str(evaluation), "--policy", str(run_dir)]) == 0
-    assert capsys.readouterr().out == table  # the replays found the same places
+    assert failure_sites.main([str(evaluation), "--policy", str(run_dir), "--write", "--start-set", "test"]) == 0
+    assert failure_sites.main([str(evaluation), "--policy", str(run_dir), "--write", "--start-set", "train"]) == 0
+    capsys.readouterr()
+    assert failure_sites.main([str(evaluation)]) == 0  # --write kept both sets' places: no policy needed now
+    assert capsys.readouterr().out == table  # and the replays found the places the evaluation recorded
+    rewrite(evaluation / EPISODES_CSV, lambda row: {key: value for key, value in row.items()
+                                                    if key not in SITE_COLUMNS})
 
     first_failed = {}
 

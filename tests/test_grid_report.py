@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from common.config_values import load_config, to_toml
-from deploy.studies import grid_costs, grid_report
+from deploy.studies import grid_costs, grid_failures, grid_report
 from tests.grid_runs import fake_evaluation
 
 CURVE = {1000: 200, 2000: 1200, 3000: 800, 4000: 1100, 6000: 1500}  # updates: greedy test mean length
@@ -224,7 +224,7 @@ def test_the_share_of_actions_off_greedy_counts_only_the_episodes_its_actors_cou
 def test_the_test_starts_table_gives_each_runs_cfr_per_start_and_the_starts_most_runs_fail(tmp_path):
     exported_run(tmp_path, "bmc", 0, [100, 100, 100, 50])  # one episode per start; 100 reaches the cap
     exported_run(tmp_path, "softmax", 0, [100, 50, 100, 50])
-    lines = grid_report.start_lines(grid_report.read_runs([tmp_path]))
+    lines = grid_failures.start_lines(grid_report.read_runs([tmp_path]))
     assert lines[2:] == ["| Run | 0 | 1 | 2 | 3 |", "|---|---:|---:|---:|---:|",
                          "| bmc-b1000-s0 | 100% | 100% | 100% | 0% |", "| softmax-b1000-s0 | 100% | 0% | 100% | 0% |",
                          "| mean over runs | 100% | 50% | 100% | 0% |", "| runs below 50% | 0 | 1 | 0 | 2 |"]

@@ -23,6 +23,7 @@ import argparse
 import csv
 import math
 import sys
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -39,7 +40,7 @@ from common.exploration.names import STRATEGIES
 from deploy.studies.comparison import read_episodes_csv
 from deploy.studies.grid_cells import counted, on_schedule, read_choice
 from deploy.studies.grid_costs import machine_lines, machine_row, soak_lines, soak_rows
-from deploy.studies.grid_prediction import prediction_lines
+from deploy.studies.grid_failures import failed_test_sites, prediction_lines, site_lines, start_lines
 from deploy.studies.run_results import ExportedRun, collect
 
 # The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
@@ -64,6 +65,7 @@ class GridRun:
     start_cfr: np.ndarray  # its test CFR per start, by start index
     start_length: np.ndarray  # its greedy test mean length per start, by start index
     off_greedy: float = math.nan  # the share of its training actions not argmax Q (nan: not counted)
+    test_sites: Counter | None = None  # its failed greedy test episodes by place (None: not recorded)
 
     @property
     def cell(self) -> CELL:
@@ -89,7 +91,8 @@ def read_runs(folders: Sequence[Path], warn=print) -> list[GridRun]:
             warn(f"skipped: {run.folder}: {type(error).__name__}: {error}")
             continue
         runs.append(GridRun(run, rows, choice, greedy_test, start_means(episodes, lambda e: e.collision_free),
-                            start_means(episodes, lambda e: e.length), off_greedy_share(run)))
+                            start_means(episodes, lambda e: e.length), off_greedy_share(run),
+                            failed_test_sites(episodes)))
     return sorted(runs, key=lambda item: (item.cell, STRATEGIES.index(item.run.strategy), item.run.seed))
 
 
@@ -313,6 +316,7 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
             f"{_percent(row['iqm_test_cfr'])} {_iqm_interval(row, 'iqm_test_cfr', _percent)} | "
             f"{_percent(row['paper_test_cfr'])} |")
     lines += ["", "## Where the runs failed: the test starts", "", *start_lines(runs)]
+    lines += ["", "## Where the cars crashed", "", *site_lines(runs)]
     lines += ["", "## The prediction, on the runs after it", "", *prediction_lines(runs)]
     lines += ["", "## What the strategies explored", "", *explored_lines(runs)]
     lines += ["", "## The paper's claims", "", _rule_text(), ""]
@@ -336,21 +340,6 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
                                                          for item in runs])]
     lines += ["", "## Soak across the grid", "", *soak_lines(soaks)]
-    return lines
-
-
-def start_lines(runs: Sequence[GridRun]) -> list[str]:
-    """Each run's chosen policy's test CFR per start, and per start the mean over runs and the runs below half:
-    whether a run's CFR is spread over the starts or lost on a few."""
-    starts = min((len(item.start_cfr) for item in runs), default=0)
-    header = " | ".join(str(start) for start in range(starts))
-    lines = ["Test CFR of each run's chosen policy from each test start (K trials each).", "",
-             f"| Run | {header} |", "|---|" + "---:|" * starts]
-    lines += [f"| {item.run.name} | " + " | ".join(f"{100 * cfr:.0f}%" for cfr in item.start_cfr[:starts]) + " |"
-              for item in runs]
-    scores = np.vstack([item.start_cfr[:starts] for item in runs]) if runs else np.zeros((0, starts))
-    lines.append("| mean over runs | " + " | ".join(f"{100 * value:.0f}%" for value in scores.mean(axis=0)) + " |")
-    lines.append("| runs below 50% | " + " | ".join(str(int(count)) for count in (scores < 0.5).sum(axis=0)) + " |")
     return lines
 
 

@@ -8,13 +8,18 @@ mismatch (another policy, another config) is an error, not a table.
 
     .venv/bin/python deploy/tools/failure_sites.py runs/grid/mbe-b1000-s1/evaluation
     .venv/bin/python deploy/tools/failure_sites.py results/grid/runs/mbe-b1000-s1/evaluation \\
-        --policy runs/grid/mbe-b1000-s1/policies/policy-u0028000.pt --start-set test
+        --policy runs/grid/mbe-b1000-s1/policies/policy-u0028000.pt --start-set test --write
+
+--write puts the replayed places into the evaluation's episodes.csv (a new file moved over the old one, so that
+a failure leaves the old one whole), where the grid report and later calls read them.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -33,6 +38,7 @@ from common.options import ConfigError
 from deploy.studies.comparison import ComparisonError, read_episodes_csv
 
 GREEDY = "greedy"
+SITE_COLUMNS = ("end_x", "end_y", "end_heading", "end_place", "hit")  # EvaluationEpisode's, as episodes.csv has them
 
 
 def failed_episodes(episodes: list[EvaluationEpisode], start_set: str | None) -> list[EvaluationEpisode]:
@@ -61,12 +67,32 @@ def replayed(args: argparse.Namespace, failed: list[EvaluationEpisode]) -> list[
                                 end_place=replay.end_place, hit=replay.hit) for recorded, replay in zip(failed, again)]
 
 
+def write_sites(path: Path, replays: list[EvaluationEpisode]) -> None:
+    """episodes.csv again with the place columns, filled for the replayed episodes; every other cell is kept as
+    it was written."""
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    again = {(e.policy, e.start_set, e.start_index, e.trial): e for e in replays}
+    for row in rows:
+        replay = again.get((row["policy"], row["start_set"], int(row["start_index"]), int(row["trial"])))
+        if replay is not None:  # a row replayed before (another --start-set) keeps its places
+            row.update({name: getattr(replay, name) for name in SITE_COLUMNS})
+    fresh = path.with_name(path.name + ".new")
+    with fresh.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(dict.fromkeys([*rows[0], *SITE_COLUMNS])), restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(fresh, path)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="deploy/tools/failure_sites.py", description=__doc__.splitlines()[0])
     parser.add_argument("evaluation", type=Path, help="an evaluation folder (evaluate's output, with episodes.csv)")
     parser.add_argument("--policy", type=Path, help="the policy it evaluated (a kept policy, a checkpoint or a run "
                                                     "folder): needed only for an evaluation without end poses")
     parser.add_argument("--start-set", choices=("train", "test"), help="only this start set's failures")
+    parser.add_argument("--write", action="store_true", help="put the replayed places into the evaluation's "
+                                                             "episodes.csv")
     add_config_arguments(parser)  # the policy's config, changed only by --config FILE and the flags given
     args = parse_flags(parser, argv)
     torch.set_num_threads(1)
@@ -75,7 +101,9 @@ def main(argv: list[str] | None = None) -> int:
         failed = failed_episodes(episodes, args.start_set)
         if failed and not all(failure_site(episode) for episode in failed):
             failed = replayed(args, failed)
-    except (ComparisonError, CheckpointError, ConfigError, EvaluationError) as error:
+            if args.write:
+                write_sites(args.evaluation / EPISODES_CSV, failed)
+    except (ComparisonError, CheckpointError, ConfigError, EvaluationError, OSError) as error:
         print(f"failure_sites: error: {error}", file=sys.stderr)
         return 1
     lines = failures_by_site(failed)
