@@ -63,8 +63,8 @@ def replayed(args: argparse.Namespace, failed: list[EvaluationEpisode]) -> list[
                 f"actions ({replay.length} steps, digest {replay.actions_digest}) than the recorded episode "
                 f"({recorded.length} steps, {recorded.actions_digest}); is --policy the policy evaluated, with "
                 "its config?")
-    return [dataclasses.replace(recorded, end_x=replay.end_x, end_y=replay.end_y, end_heading=replay.end_heading,
-                                end_place=replay.end_place, hit=replay.hit) for recorded, replay in zip(failed, again)]
+    return [dataclasses.replace(recorded, **{name: getattr(replay, name) for name in SITE_COLUMNS})
+            for recorded, replay in zip(failed, again)]
 
 
 def write_sites(path: Path, replays: list[EvaluationEpisode]) -> None:
