@@ -1,9 +1,9 @@
 """The evaluate command: statistics by hand, lockstep batching against one env at a time, end to end."""
 
 import csv
+import dataclasses
 import io
 import json
-import dataclasses
 import math
 import os
 
@@ -282,6 +282,24 @@ def test_an_episode_record_counts_the_streets_and_junctions_it_visited():
     (west, south) = episodes
     assert abs(west.end_x - 185) < 3 and abs(west.end_y - 140) < 2.6 and abs(abs(west.end_heading) - math.pi) < 0.3
     assert abs(south.end_x - 145) < 2.6 and abs(south.end_y - 27) < 3 and abs(south.end_heading - math.pi / 2) < 0.3
+
+
+def test_the_lockstep_stops_between_two_steps_once_it_is_not_wanted():
+    """A worker whose parent is gone stops at once, not after its simulators' episodes reach the cap."""
+    env_config = evaluation_env_config(load_config("smoke", overrides={"evaluation.max_steps": 80}))
+    job = EpisodeJob("privileged", "test", 5, 0, trial_seed(0, "test", 5, 0))  # drives the 80 steps (above)
+    asked, episodes = [], []
+
+    def wanted():
+        asked.append(True)
+        return len(asked) <= 10
+
+    run_lockstep([job], [make_env(env_config)], {"privileged": PrivilegedPolicy(env_config, 1)}, 80, EDGES,
+                 episodes.append, wanted)
+    assert episodes == [] and len(asked) == 11  # 10 steps, then asked once more, and stopped
+    run_lockstep([job], [make_env(env_config)], {"privileged": PrivilegedPolicy(env_config, 1)}, 80, EDGES,
+                 episodes.append)
+    assert [(episode.length, episode.end) for episode in episodes] == [(80, "cap")]
 
 
 def test_starting_an_episode_zeroes_only_its_slot_state(network):

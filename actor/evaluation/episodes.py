@@ -201,9 +201,11 @@ def coverage_of(places: tuple[str, ...] | None) -> tuple[float, float]:
 
 
 def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Policy], max_steps: int,
-                 reward_edges: list[float], on_episode: Callable[[EvaluationEpisode], None]) -> None:
+                 reward_edges: list[float], on_episode: Callable[[EvaluationEpisode], None],
+                 wanted: Callable[[], bool] = lambda: True) -> None:
     """Runs every job on the envs, len(envs) at a time, on the acting core (actor/lockstep.py) that steps
-    the training episodes; calls on_episode as each one ends."""
+    the training episodes; calls on_episode as each one ends. Stops between two steps once wanted() is false
+    (a worker whose parent is gone), leaving the episodes under way unfinished."""
     pending: Iterator[EpisodeJob] = iter(jobs)
     core = Lockstep(envs, max_steps, keep_frames=False)
     jobs_of: dict[int, EpisodeJob] = {}
@@ -220,7 +222,7 @@ def run_lockstep(jobs: Iterable[EpisodeJob], envs: list, policies: dict[str, Pol
 
     for slot in range(len(envs)):
         start_next(slot)
-    while core.running:
+    while core.running and wanted():
         for slot, trajectory in core.step(choose_actions(core, jobs_of, policies)):
             on_episode(evaluation_episode(jobs_of.pop(slot), trajectory, max_steps, reward_edges))
             start_next(slot)
@@ -269,15 +271,17 @@ def queued_jobs(job_queue, parent_pid: int | None = None) -> Iterator[EpisodeJob
 def evaluation_worker(worker_id: int, config: Config, weights: dict[str, np.ndarray] | None, n_slots: int,
                       torch_threads: int, job_queue, result_queue, parent_pid: int | None = None) -> None:
     """Process entry point: runs queued jobs on n_slots simulators in lockstep, puts each EvaluationEpisode on
-    result_queue, then WorkerDone, or WorkerFailed with the traceback. If the parent dies, the worker finishes
-    the episodes it is driving and exits without waiting to hand over what nobody reads."""
+    result_queue, then WorkerDone, or WorkerFailed with the traceback. If the parent dies, the worker stops at
+    its next step (64 simulators' episodes at the cap would take minutes to finish for nobody) and exits without
+    waiting to hand over what nobody reads."""
     parent_pid = os.getppid() if parent_pid is None else parent_pid
     envs = []
     try:
         torch.set_num_threads(torch_threads)
         envs = [make_env(evaluation_env_config(config)) for _ in range(n_slots)]
         run_lockstep(queued_jobs(job_queue, parent_pid), envs, make_policies(config, weights, n_slots),
-                     config.evaluation.max_steps, config.evaluation.reward_bins, result_queue.put)
+                     config.evaluation.max_steps, config.evaluation.reward_bins, result_queue.put,
+                     wanted=lambda: os.getppid() == parent_pid)
         if os.getppid() != parent_pid:
             result_queue.cancel_join_thread()  # its reader is gone: exiting must not wait on a full pipe
             return
