@@ -77,9 +77,11 @@ def env_stopping_with_this() -> dict[str, str]:
     return {**os.environ, PARENT_ENV: str(os.getpid())}
 
 
-def stop_with_parent(stop: threading.Event, expected: int | None = None) -> threading.Thread | None:
-    """Sets `stop` (with a log line) once the process that started this one is gone, when that process asked
-    for it (PARENT_ENV holds its pid): a stack killed or crashed leaves no role running on its own."""
+def stop_with_parent(stop: threading.Event, expected: int | None = None,
+                     then: Callable[[], None] | None = None) -> threading.Thread | None:
+    """Sets `stop` (with a log line), then calls `then`, once the process that started this one is gone, when
+    that process asked for it (PARENT_ENV holds its pid): a stack killed or crashed leaves no role running on
+    its own, a grid runner killed no stack or evaluation."""
     if expected is None:
         value = os.environ.get(PARENT_ENV, "")
         expected = int(value) if value.isdigit() else None
@@ -91,6 +93,8 @@ def stop_with_parent(stop: threading.Event, expected: int | None = None) -> thre
             if os.getppid() != expected:
                 log.warning("the process that started this one (pid %d) is gone: stopping", expected)
                 stop.set()
+                if then is not None:
+                    then()
 
     thread = threading.Thread(target=watch, name="parent-watch", daemon=True)
     thread.start()

@@ -10,12 +10,15 @@ from collections import deque
 from pathlib import Path
 from typing import Callable
 
+from common.shell import env_stopping_with_this
+
 
 class Child:
     """A subprocess whose output goes to a log file; keeps its latest status line (those `is_status`
     accepts) and echoes the others.
 
-    It runs in a session of its own, so a Ctrl-C in the terminal reaches it once, forwarded by the runner.
+    It runs in a session of its own, so a Ctrl-C in the terminal reaches it once, forwarded by the runner; and
+    it stops by itself once the runner is gone (common/shell.stop_with_parent: the stack and evaluate watch).
     """
 
     def __init__(self, command: list[str], log_path: Path, is_status: Callable[[str], bool] | None,
@@ -28,7 +31,8 @@ class Child:
         self.tail: deque[str] = deque(maxlen=8)  # for the error message when it fails
         self._log = open(log_path, "ab")
         self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
+                                        stdin=subprocess.DEVNULL, start_new_session=True,
+                                        env=env_stopping_with_this())  # a runner killed leaves it no work
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 

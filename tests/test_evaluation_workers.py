@@ -9,8 +9,12 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from actor.evaluation import episodes
 from actor.evaluation.episodes import EpisodeJob, queued_jobs
+from deploy.soak import children
+from tests.test_evaluation import make_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -99,3 +103,52 @@ def test_a_worker_waiting_on_an_empty_queue_stops_when_its_parent_dies(monkeypat
 
     jobs = [EpisodeJob("random", "train", 0, trial, trial) for trial in range(2)]  # no end marker
     assert len(list(queued_jobs(Jobs(jobs, on_empty=parent_dies), parent_pid=parent))) == 2
+
+
+# A grid runner (deploy/child_process.Child starts its stack and evaluate) that starts a long evaluate, says its pid,
+# and waits.
+RUNNER = """
+import signal, sys, time
+from pathlib import Path
+if sys.argv[3] == "ignored":  # a runner started in the background of a script: SIGINT ignored, and so its children
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+from deploy.child_process import Child
+run_dir, out = sys.argv[1], Path(sys.argv[2])
+child = Child([sys.executable, "-m", "actor.evaluate", "--checkpoint", run_dir, "--out", str(out / "evaluation"),
+               "--evaluation.episodes_per_start", "200", "--evaluation.workers", "1"], out / "evaluate.log", None, None)
+print(child.process.pid, flush=True)
+time.sleep(300)
+"""
+
+
+@pytest.mark.parametrize("sigint", ["handled", "ignored"])
+def test_an_evaluation_stops_when_the_grid_runner_that_started_it_is_killed(tmp_path, sigint):
+    """A runner killed (SIGKILL, a crash) leaves no evaluation reading policies for nobody: Child hands it the
+    runner's pid, and evaluate interrupts itself once that process is gone, as a Ctrl-C would (or exits, where
+    it ignores SIGINT), and its workers stop with it."""
+    run_dir = make_checkpoint(tmp_path / "runs")
+    runner = subprocess.Popen([sys.executable, "-c", RUNNER, str(run_dir), str(tmp_path), sigint], cwd=ROOT,
+                              stdout=subprocess.PIPE, text=True)
+    evaluate, helpers = None, []
+    try:
+        evaluate = int(runner.stdout.readline())
+        deadline = time.monotonic() + 60
+        while len(children(evaluate)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)  # its worker and multiprocessing's resource tracker: it is evaluating
+        helpers = children(evaluate)
+        assert alive(evaluate) and len(helpers) == 2
+        runner.send_signal(signal.SIGKILL)
+        runner.wait(10)
+        deadline = time.monotonic() + 30
+        while any(alive(pid) for pid in [evaluate, *helpers]) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        log = (tmp_path / "evaluate.log").read_text()[-2000:]  # (what it said last went to the runner, now gone)
+        left = [Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")[-120:]
+                for pid in [evaluate, *helpers] if alive(pid)]
+        assert not left, f"{left}; {log}"
+    finally:
+        runner.kill()
+        runner.stdout.close()
+        for pid in [evaluate, *helpers] if evaluate is not None else []:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)

@@ -40,28 +40,41 @@ def run_jobs(config: Config, weights: dict[str, np.ndarray] | None, jobs: Sequen
     context = multiprocessing.get_context("spawn")
     job_queue, result_queue = context.Queue(), context.Queue()
     n_workers, simulators, threads = worker_layout(config.evaluation, len(jobs))
-    for job in jobs:
-        job_queue.put(job)
-    for _ in range(n_workers):
-        job_queue.put(None)  # one end marker per worker
     workers = [context.Process(target=evaluation_worker, name=f"evaluate-{number}", daemon=True,
                                args=(number, config, weights, simulators, threads, job_queue, result_queue))
                for number in range(n_workers)]
-    for worker in workers:
-        worker.start()
     try:
-        episodes = _collect(result_queue, workers, status)
-    finally:
+        for job in [*jobs, *[None] * n_workers]:  # one end marker per worker
+            job_queue.put(job)
         for worker in workers:
-            worker.join(WORKER_EXIT_TIMEOUT_S)
-            if worker.is_alive():
-                worker.terminate()
-                worker.join()
+            worker.start()
+        episodes = _collect(result_queue, workers, status)
+    except BaseException:  # interrupted, or a worker failed: the others' episodes are not wanted
+        for worker in _started(workers):
+            worker.terminate()
+        raise
+    finally:
+        _join(_started(workers))
+        # jobs no worker took (an interruption) would hold this process at exit, its feeder thread waiting to
+        # write them into a pipe nobody reads
+        job_queue.cancel_join_thread()
     order = {(job.policy, job.start_set, job.start_index, job.trial): rank for rank, job in enumerate(jobs)}
     episodes.sort(key=lambda e: order[(e.policy, e.start_set, e.start_index, e.trial)])
     if len(episodes) != len(jobs):
         raise EvaluationError(f"expected {len(jobs)} episodes, the workers returned {len(episodes)}")
     return episodes
+
+
+def _started(workers: list) -> list:
+    return [worker for worker in workers if worker.pid is not None]
+
+
+def _join(workers: list) -> None:
+    for worker in workers:
+        worker.join(WORKER_EXIT_TIMEOUT_S)
+        if worker.is_alive():
+            worker.terminate()
+            worker.join()
 
 
 def _collect(result_queue, workers: list, status: EvaluationStatus) -> list[EvaluationEpisode]:
