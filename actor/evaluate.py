@@ -26,11 +26,9 @@ show the spread of the trials only, not that of other training runs.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime
 import logging
 import os
-import signal
 import sys
 import threading
 import time
@@ -49,7 +47,7 @@ from common.config_cli import add_config_arguments, config_from_args, parse_flag
 from common.config_values import to_toml
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
-from common.shell import stop_with_parent
+from common.shell import interrupt_main, stop_with_parent
 
 FOLLOW_EVERY_S = 60.0  # --follow: how often to look for new kept policies
 
@@ -116,7 +114,7 @@ def parse_sets(text: str) -> list[str]:
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_flags(build_parser(), argv)
-    stop_with_parent(threading.Event(), then=interrupt_this)  # started by a grid runner or main job that asked
+    stop_with_parent(threading.Event(), then=interrupt_main)  # started by a grid runner or main job that asked
     try:
         _main(args)
     except (EvaluationError, ConfigError, CheckpointError) as error:
@@ -126,17 +124,6 @@ def main(argv: list[str] | None = None) -> None:
         kept = "; the curve keeps the policies evaluated so far" if args.curve else ", nothing written"
         print(f"\nevaluate: interrupted{kept}", file=sys.stderr)
         raise SystemExit(130) from None
-
-
-def interrupt_this() -> None:
-    """As a Ctrl-C would (the curve keeps what it has read), or, where this process ignores SIGINT (a background
-    job of a script), by exiting at once: either way its workers then see it gone and stop."""
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # a real signal, to the main thread: it
-        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # ends a wait at once
-        return
-    with contextlib.suppress(OSError):  # its stderr may have been a pipe to the process now gone
-        print("evaluate: the process that started it is gone; stopping", file=sys.stderr, flush=True)
-    os._exit(1)
 
 
 def lower_priority(steps: int) -> int:

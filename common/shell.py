@@ -38,6 +38,7 @@ import logging
 import os
 import re
 import signal
+import sys
 import threading
 import time
 from typing import Callable, Iterator
@@ -99,6 +100,18 @@ def stop_with_parent(stop: threading.Event, expected: int | None = None,
     thread = threading.Thread(target=watch, name="parent-watch", daemon=True)
     thread.start()
     return thread
+
+
+def interrupt_main() -> None:
+    """From any thread: interrupts the main thread as a Ctrl-C would (a real SIGINT to it, which ends a wait at
+    once), or, where this process ignores SIGINT (the background job of a script), exits at once. For a
+    process with no stop event to set (evaluate, the soak) whose parent is gone (stop_with_parent)."""
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+        return
+    with contextlib.suppress(OSError):  # its stderr may have been a pipe to the process now gone
+        print("the process that started this one is gone; stopping", file=sys.stderr, flush=True)
+    os._exit(1)
 
 
 def on_stop_signals(handler) -> dict:

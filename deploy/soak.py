@@ -35,6 +35,8 @@ import numpy as np
 
 from common.analysis.plotting import finish_figure, pyplot
 from common.run_dir import RunDir, RunStatus, StatusError
+from common.shell import stop_with_parent
+from deploy.console import Console
 from replay.snapshot import manifest_held
 
 PARTS = {  # the run folder's parts, by what they are
@@ -289,30 +291,32 @@ def draw(rows: list[dict], path: Path, title: str) -> None:
     finish_figure(plt, figure, axes, path, title)
 
 
-def report(run: RunDir) -> dict:
+def report(run: RunDir, console: Console | None = None) -> dict:
     rows = read_rows(run.soak / "soak.csv")
     summary = summarize(rows)
     (run.soak / "soak_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     (run.soak / "soak_summary.md").write_text(summary_text(summary))
     draw(rows, run.soak / "soak.png", f"soak of {run.root.name}")
-    print(summary_text(summary), end="")
+    (console or Console(threading.Event())).say(summary_text(summary), end="")
     return summary
 
 
-def watch(run: RunDir, every_s: float, until_s: float) -> None:
-    """Samples until the stack stops training (after one more sample; RunStatus.training) or until_s passes."""
+def watch(run: RunDir, every_s: float, until_s: float, stop: threading.Event, console: Console) -> None:
+    """Samples until the stack stops training (after one more sample; RunStatus.training), until_s passes, or
+    `stop` is set: by its grid runner gone (stop_with_parent) or its output's reader gone (Console)."""
     started = time.monotonic()
-    while time.monotonic() - started < until_s:
+    while time.monotonic() - started < until_s and console.check():
         try:
             status = RunStatus.read(run.status)
         except StatusError as error:
-            print(f"soak: no status yet ({error})", file=sys.stderr)
+            console.say(f"soak: no status yet ({error})", err=True)
         else:
             append(run.soak / "soak.csv", sample(run, status))
-            print(f"soak: {status.phase}, {status.env_steps:,} env steps, {status.updates:,} updates", flush=True)
+            console.say(f"soak: {status.phase}, {status.env_steps:,} env steps, {status.updates:,} updates")
             if not status.training():
                 return
-        time.sleep(every_s)
+        if stop.wait(every_s):
+            return
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -323,15 +327,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--report", action="store_true", help="only draw and summarize the samples there are")
     args = parser.parse_args(argv)
     run = RunDir(args.run)
+    stop = threading.Event()
+    console = Console(stop)
     if not args.report:
+        stop_with_parent(stop)  # its grid runner killed: report what there is and stop
         try:
-            watch(run, args.every, args.until_s)
+            watch(run, args.every, args.until_s, stop, console)
         except KeyboardInterrupt:  # stopped with its stack (Ctrl-C reaches the group): report what there is
-            print("soak: stopped", file=sys.stderr)
+            console.say("soak: stopped", err=True)
     if not (run.soak / "soak.csv").exists():
-        print(f"soak: no samples in {run.soak}", file=sys.stderr)
+        console.say(f"soak: no samples in {run.soak}", err=True)
         return 1
-    report(run)
+    report(run, console)
     return 0
 
 

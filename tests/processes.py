@@ -51,6 +51,15 @@ def stop(*processes: subprocess.Popen) -> None:
             process.wait()
 
 
+def alive(pid: int) -> bool:
+    """Whether the process runs: a zombie has exited, only its reaping is left."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().split(") ", 1)[1][0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
 def wait_for(condition, what: str, timeout_s: float, logs: list[Path] = ()) -> None:
     """Polls condition() until true; on timeout fails with the tail of the given logs."""
     deadline = time.monotonic() + timeout_s

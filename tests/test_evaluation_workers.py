@@ -14,6 +14,7 @@ import pytest
 from actor.evaluation import episodes
 from actor.evaluation.episodes import EpisodeJob, queued_jobs
 from deploy.soak import children
+from tests.processes import alive
 from tests.test_evaluation import make_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,15 +40,6 @@ config = load_config("smoke", overrides={"evaluation.workers": 2, "evaluation.en
 jobs = episode_jobs(["random"], ["train", "test"], 2000, 0)  # 40,000 episodes: far longer than the test
 run_jobs(config, None, jobs, SayPids(len(jobs), 60.0, stream=None))
 """
-
-
-def alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    with open(f"/proc/{pid}/stat") as stat:  # a zombie has exited; only its reaping is left
-        return stat.read().split(") ", 1)[1][0] != "Z"
 
 
 def test_the_workers_stop_when_their_parent_is_killed():

@@ -7,16 +7,17 @@ import os
 import subprocess
 import sys
 import time
-
-import pytest
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from common.run_dir import RunDir, RunStatus
 from common.wire.frames import FrameStack
 from deploy import soak
 from replay.snapshot import MANIFEST, SnapshotView, Snapshotter, manifest_held
 from replay.store import StoredEpisode
+from tests.processes import alive, wait_for
 
 
 def test_a_sample_reads_the_processes_memory_and_the_folders_parts(tmp_path):
@@ -164,12 +165,12 @@ def test_a_row_with_a_new_column_extends_the_files_header(tmp_path):
 
 
 def test_a_soak_stopped_with_its_stack_reports_what_it_has_without_a_traceback(tmp_path, monkeypatch, capsys):
-    def interrupted(run, every_s, until_s):
+    def interrupted(run, every_s, until_s, stop, console):
         raise KeyboardInterrupt  # Ctrl-C (or the grid runner's stop) reaches the whole process group
 
     reported = []
     monkeypatch.setattr(soak, "watch", interrupted)
-    monkeypatch.setattr(soak, "report", reported.append)
+    monkeypatch.setattr(soak, "report", lambda run, console: reported.append(run))
     run = RunDir(tmp_path / "run")
     run.soak.mkdir(parents=True)
     (run.soak / "soak.csv").write_text("time\n1.0\n")
@@ -207,3 +208,37 @@ def test_a_child_started_from_a_thread_is_counted_in_its_parents_tree():
             os.kill(child, 9)
         parent.kill()
         parent.wait()
+
+
+# A grid runner that starts the soak beside a run (deploy/child_process.Child, as grid_job does), says its pid, waits.
+RUNNER = """
+import sys, time
+from pathlib import Path
+from deploy.child_process import Child
+run = Path(sys.argv[1])
+child = Child([sys.executable, "deploy/soak.py", str(run), "--every", "0.5"], run / "soak.log", None, None)
+print(child.process.pid, flush=True)
+time.sleep(120)
+"""
+
+
+def test_a_soak_whose_grid_runner_is_killed_reports_and_stops(tmp_path):
+    """Its stack still says it trains (here: this test's pid); the soak stops because its runner is gone."""
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    RunStatus("training", pids={"learner": os.getpid()}).write(run.status)
+    runner = subprocess.Popen([sys.executable, "-c", RUNNER, str(run.root)], cwd=Path(soak.__file__).parents[1],
+                              stdout=subprocess.PIPE, text=True)
+    sampler = None
+    try:
+        sampler = int(runner.stdout.readline())
+        wait_for(lambda: (run.soak / "soak.csv").exists(), "the soak's first sample", 60)
+        runner.kill()
+        runner.wait(10)
+        wait_for(lambda: not alive(sampler), "the soak to stop after its runner", 30)
+        assert (run.soak / "soak_summary.md").exists()  # it reported what it had first
+    finally:
+        runner.kill()
+        runner.stdout.close()
+        if sampler is not None and alive(sampler):
+            os.kill(sampler, 9)
