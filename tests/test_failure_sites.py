@@ -6,11 +6,11 @@ from __future__ import annotations
 import csv
 
 from actor.evaluate import main as evaluate
+from common.analysis.stats import SITE_FIELDS
 from common.analysis.tables import EPISODES_CSV
 from deploy.tools import failure_sites
 from tests.test_evaluation import make_checkpoint
 
-SITE_COLUMNS = failure_sites.SITE_COLUMNS
 
 def rewrite(path, change):
     with path.open(newline="") as handle:
@@ -32,7 +32,7 @@ def test_sites_are_read_from_an_evaluation_or_replayed_for_an_older_one(tmp_path
     assert table.startswith("What the greedy policy hit") and "| Where |" in table
 
     rewrite(evaluation / EPISODES_CSV, lambda row: {key: value for key, value in row.items()
-                                                    if key not in SITE_COLUMNS})  # as an older evaluate wrote it
+                                                    if key not in SITE_FIELDS})  # as an older evaluate wrote it
     assert failure_sites.main([str(evaluation)]) == 1
     assert "no end poses" in capsys.readouterr().err
     assert failure_sites.main([str(evaluation), "--policy", str(run_dir), "--write", "--start-set", "test"]) == 0
@@ -41,7 +41,7 @@ def test_sites_are_read_from_an_evaluation_or_replayed_for_an_older_one(tmp_path
     assert failure_sites.main([str(evaluation)]) == 0  # --write kept both sets' places: no policy needed now
     assert capsys.readouterr().out == table  # and the replays found the places the evaluation recorded
     rewrite(evaluation / EPISODES_CSV, lambda row: {key: value for key, value in row.items()
-                                                    if key not in SITE_COLUMNS})
+                                                    if key not in SITE_FIELDS})
 
     first_failed = {}
 

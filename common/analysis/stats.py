@@ -81,6 +81,9 @@ class EvaluationEpisode:
         return self.end == "cap"
 
 
+SITE_FIELDS = ("end_x", "end_y", "end_heading", "end_place", "hit")  # where an episode ended; episodes.csv's columns
+
+
 @dataclass(frozen=True)
 class SetSummary:
     """One table row: one policy on one start set, pooled over one or more training runs."""

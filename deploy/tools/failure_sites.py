@@ -30,7 +30,7 @@ from actor.evaluation.episodes import EpisodeJob
 from actor.evaluation.sources import checkpoint_source
 from actor.evaluation.status import EvaluationStatus
 from actor.evaluation.workers import run_jobs
-from common.analysis.stats import EvaluationEpisode
+from common.analysis.stats import SITE_FIELDS, EvaluationEpisode
 from common.analysis.tables import EPISODES_CSV, failure_site, failures_by_site
 from common.checkpoint import CheckpointError
 from common.config_cli import add_config_arguments, parse_flags
@@ -38,7 +38,6 @@ from common.options import ConfigError
 from deploy.studies.comparison import ComparisonError, read_episodes_csv
 
 GREEDY = "greedy"
-SITE_COLUMNS = ("end_x", "end_y", "end_heading", "end_place", "hit")  # EvaluationEpisode's, as episodes.csv has them
 
 
 def failed_episodes(episodes: list[EvaluationEpisode], start_set: str | None) -> list[EvaluationEpisode]:
@@ -63,7 +62,7 @@ def replayed(args: argparse.Namespace, failed: list[EvaluationEpisode]) -> list[
                 f"actions ({replay.length} steps, digest {replay.actions_digest}) than the recorded episode "
                 f"({recorded.length} steps, {recorded.actions_digest}); is --policy the policy evaluated, with "
                 "its config?")
-    return [dataclasses.replace(recorded, **{name: getattr(replay, name) for name in SITE_COLUMNS})
+    return [dataclasses.replace(recorded, **{name: getattr(replay, name) for name in SITE_FIELDS})
             for recorded, replay in zip(failed, again)]
 
 
@@ -76,10 +75,10 @@ def write_sites(path: Path, replays: list[EvaluationEpisode]) -> None:
     for row in rows:
         replay = again.get((row["policy"], row["start_set"], int(row["start_index"]), int(row["trial"])))
         if replay is not None:  # a row replayed before (another --start-set) keeps its places
-            row.update({name: getattr(replay, name) for name in SITE_COLUMNS})
+            row.update({name: getattr(replay, name) for name in SITE_FIELDS})
     fresh = path.with_name(path.name + ".new")
     with fresh.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(dict.fromkeys([*rows[0], *SITE_COLUMNS])), restval="")
+        writer = csv.DictWriter(handle, fieldnames=list(dict.fromkeys([*rows[0], *SITE_FIELDS])), restval="")
         writer.writeheader()
         writer.writerows(rows)
     os.replace(fresh, path)
