@@ -91,6 +91,24 @@ def test_the_claims_pool_strategies_and_three_seeds_a_side_can_only_lean(tmp_pat
     assert (pair["first"], pair["second"], pair["improvement"]) == ("constant", "bmc", 0.0)
 
 
+def test_the_pairs_worth_more_seeds_are_those_whose_interval_lies_off_even_the_farthest_first():
+    pairs = [{"first": "constant", "second": "bmc", "improvement": 0.6, "low": 0.45, "high": 0.7, "runs": (3, 3)},
+             {"first": "constant", "second": "max_boltzmann", "improvement": 0.7, "low": 0.55, "high": 0.8,
+              "runs": (3, 3)},
+             {"first": "vdbe", "second": "max_boltzmann", "improvement": 0.2, "low": 0.1, "high": 0.35,
+              "runs": (3, 2)},
+             {"first": "vdbe", "second": "softmax", "improvement": 1.0, "low": 1.0, "high": 1.0, "runs": (1, 1)}]
+    chosen = grid_report.pairs_off_even(pairs)
+    # margins: 0.05 and 0.15 off 0.5; the first straddles 0.5 and one run each has no interval
+    assert [(row["first"], row["second"]) for row in chosen] == [("vdbe", "max_boltzmann"),
+                                                                 ("constant", "max_boltzmann")]
+    (line,) = grid_report.more_seeds_lines(chosen)
+    assert "vdbe < max_boltzmann; constant > max_boltzmann" in line
+    assert "--strategies vdbe,max_boltzmann --buffers 1000 --seeds 3,4" in line
+    assert "0.0040" in line  # 1 / C(10, 5) = 1/252
+    assert "no pair" in grid_report.more_seeds_lines([])[0]
+
+
 def test_a_policy_kept_at_a_stop_is_not_on_the_curve(tmp_path):
     # stopped at 1,500 updates with a policy that reached the cap: the curve, scheduled every 1,000, drove at
     # 2,000 all the same

@@ -217,6 +217,14 @@ def pair_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1
     return rows
 
 
+def pairs_off_even(pairs: Sequence[dict]) -> list[dict]:
+    """The pairs whose interval of P(first > second) lies wholly off 0.5, the farthest first: where seeds 3 and
+    4 could turn a lean into a finding."""
+    def margin(row: dict) -> float:
+        return max(row["low"] - across_seeds.NO_IMPROVEMENT, across_seeds.NO_IMPROVEMENT - row["high"])
+    return sorted((row for row in pairs if row["runs"] != (1, 1) and margin(row) > 0), key=margin, reverse=True)
+
+
 # --- figures ---------------------------------------------------------------------------------------------------
 
 def plot_curves(runs: Sequence[GridRun], path: Path, cell: CELL) -> None:
@@ -332,15 +340,30 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
               f"3 against 3 the least one-sided p-value is {across_seeds.smallest_p_value(3, 3):.2f}, not below "
               f"{across_seeds.SIGNIFICANCE}. Every pair's probability of improvement, as a guide:", "",
               "| First | Second | P(first > second) [CI] |", "|---|---|---:|"]
-    for row in pair_readings(runs, bootstrap):
+    pairs = pair_readings(runs, bootstrap)
+    for row in pairs:
         interval = "(one run each)" if row["runs"] == (1, 1) else f"[{row['low']:.2f}, {row['high']:.2f}]"
         lines.append(f"| {row['first']} | {row['second']} | {row['improvement']:.2f} {interval} |")
+    lines += ["", *more_seeds_lines(pairs_off_even(pairs))]
     soaks = soak_rows(runs)
     soak_hours = {row["run"]: row["hours"] for row in soaks}
     lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
                                                          for item in runs])]
     lines += ["", "## Soak across the grid", "", *soak_lines(soaks)]
     return lines
+
+
+def more_seeds_lines(pairs: Sequence[dict]) -> list[str]:
+    if not pairs:
+        return ["No pair's interval lies off 0.5: no pair leans enough to be worth more seeds yet."]
+    signs = {True: ">", False: "<"}
+    order = [f"{row['first']} {signs[row['improvement'] > across_seeds.NO_IMPROVEMENT]} {row['second']}"
+             for row in pairs]
+    first = pairs[0]
+    return [f"Pairs whose interval lies off 0.5, the farthest first: {'; '.join(order)}. Seeds 3 and 4 of the first "
+            f"(5 a side; the least p-value {across_seeds.smallest_p_value(5, 5):.4f}): `.venv/bin/python "
+            f"deploy/studies/experiments.py --strategies {first['first']},{first['second']} --buffers 1000 "
+            f"--seeds 3,4`."]
 
 
 def explored_lines(runs: Sequence[GridRun]) -> list[str]:
