@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.shell import parse_service_args
+from common.shell import parse_service_args, run_role
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -24,4 +24,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_role(main)

@@ -3,6 +3,8 @@ ThrottledLog (at most once per period, counting what it held back)."""
 
 from __future__ import annotations
 
+import contextlib
+import faulthandler
 import logging
 import sys
 import threading
@@ -15,7 +17,10 @@ log = logging.getLogger(__name__)
 
 
 def setup_logging(role: str, level: str = "INFO") -> logging.Logger:
-    """One line per record on stderr: time, role, level, message."""
+    """One line per record on stderr: time, role, level, message. A crash in native code (a signal such as
+    SIGABRT or SIGSEGV) also leaves every thread's Python stack there."""
+    with contextlib.suppress(ValueError, OSError):  # a stderr with no file behind it (captured in a test)
+        faulthandler.enable()
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter(f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s", "%H:%M:%S"))
     root = logging.getLogger()

@@ -252,3 +252,45 @@ def test_a_session_that_cannot_say_who_holds_a_token_lets_the_role_go_on(caplog)
     with caplog.at_level("WARNING"):
         assert _held_elsewhere(Refusing(), "d3rqn/r/alive/learner/0") is False
     assert "cannot ask whether another process holds d3rqn/r/alive/learner/0 (session closed)" in caplog.text
+
+
+ENDING = """
+import atexit, sys, threading, time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from common.shell import run_role
+out = Path(sys.argv[1])
+
+class Finalized:  # its finalizer runs only where the interpreter tears its modules down
+    def __del__(self):
+        (out / "finalized").write_text("yes")
+
+kept, pools = Finalized(), []
+atexit.register(lambda: (out / "atexit").write_text("ran"))
+
+def main():
+    late = threading.Thread(target=lambda: (time.sleep(0.3), (out / "thread").write_text("joined")))
+    late.start()  # not a daemon: the interpreter would wait for it, and so does run_role
+    pools.append(ThreadPoolExecutor(1))
+    pools[0].submit(time.sleep, 0.01).result()  # its idle worker waits for the interpreter's word to end
+    print("printed, not yet flushed", end="")
+    ending = sys.argv[2]
+    if ending == "return":
+        return 3
+    raise SystemExit(None if ending == "none" else ending)
+
+run_role(main)
+"""
+
+
+@pytest.mark.parametrize("ending, code", [("return", 3), ("none", 0), ("gone wrong", 1)])
+def test_a_role_ends_with_its_code_threads_joined_exit_handlers_run_and_no_finalization(tmp_path, ending, code):
+    script = tmp_path / "ending.py"
+    script.write_text(ENDING)
+    done = subprocess.run([sys.executable, str(script), str(tmp_path), ending], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == code and done.stdout == "printed, not yet flushed"
+    assert (ending == "gone wrong") == ("gone wrong" in done.stderr)
+    assert (tmp_path / "thread").read_text() == "joined" and (tmp_path / "atexit").read_text() == "ran"
+    # no teardown: there Zenoh's threads, refused the GIL, abort the process (common/shell.py run_role)
+    assert not (tmp_path / "finalized").exists()

@@ -211,4 +211,5 @@ def _recover(args, config) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from common.shell import run_role  # here: reading a log needs no Zenoh
+    run_role(main)
