@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from common.analysis.across_seeds import (CANT_TELL, LEAN, SUPPORTED, Estimate, claim, improvement_estimate, iqm,
+                                          reverse_claim,
                                           iqm_estimate, mann_whitney_p, pooled, probability_of_improvement, reading,
                                           score_matrix, seeds_to_support, smallest_p_value, stratified_replicates)
 from common.analysis.intervals import Bootstrap, Interval
@@ -157,3 +158,14 @@ def test_a_claim_of_twelve_runs_against_six_apart_is_supported_and_three_against
     assert found.p_value == pytest.approx(1 / 18564)
     assert claim(ahead[:3], behind[:3], Bootstrap(replicates=200)).reading == LEAN  # p = 0.05 at best
     assert claim(behind, ahead, Bootstrap(replicates=200)).reading == CANT_TELL
+
+
+def test_a_claim_read_the_other_way_round_doubles_its_p_value():
+    ahead, behind = [[1.0]] * 4, [[0.0]] * 3
+    found = reverse_claim(behind, ahead, Bootstrap(replicates=200))
+    # 4 runs all above 3: one-sided 1/C(7, 3) = 1/35, doubled 2/35 = 0.057, not below 0.05: a lean
+    assert (found.a_runs, found.b_runs) == (4, 3) and found.p_value == pytest.approx(2 / 35)
+    assert found.improvement.point == 1.0 and found.reading == LEAN
+    found = reverse_claim([[0.0]] * 4, [[1.0]] * 4, Bootstrap(replicates=200))
+    assert found.p_value == pytest.approx(2 / 70) and found.reading == SUPPORTED  # 1/C(8, 4), doubled
+    assert reverse_claim([[1.0]] * 3, [[0.0]] * 3).p_value == 1.0  # twice a p-value near 1 stays 1

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from common.config_values import load_config, to_toml
-from deploy.studies import grid_costs, grid_failures, grid_report
+from deploy.studies import grid_claims, grid_costs, grid_failures, grid_report
 from tests.grid_runs import fake_evaluation
 
 CURVE = {1000: 200, 2000: 1200, 3000: 800, 4000: 1100, 6000: 1500}  # updates: greedy test mean length
@@ -82,13 +82,25 @@ def test_the_claims_pool_strategies_and_three_seeds_a_side_can_only_lean(tmp_pat
         exported_run(tmp_path, "bmc", seed, [100, 100, 100, 100])
         exported_run(tmp_path, "constant", seed, [50, 50, 50, 50])
     runs = grid_report.read_runs([tmp_path])
-    first, second = grid_report.claim_readings(runs, grid_report.Bootstrap(replicates=200))
+    first, second = grid_claims.claim_readings(runs, grid_report.Bootstrap(replicates=200))
     for reading in (first, second):
         # every BMC run above every constant run: P = 1, and the least p-value of 3 runs against 3, 1/20
         assert reading["improvement"] == 1.0 and reading["p_value"] == pytest.approx(0.05)
         assert reading["smallest_p"] == pytest.approx(0.05) and reading["reading"] == "a lean"
-    (pair,) = grid_report.pair_readings(runs, grid_report.Bootstrap(replicates=200))
+    (pair,) = grid_claims.pair_readings(runs, grid_report.Bootstrap(replicates=200))
     assert (pair["first"], pair["second"], pair["improvement"]) == ("constant", "bmc", 0.0)
+
+
+def test_a_claim_the_runs_contradict_is_read_the_other_way_round_too(tmp_path):
+    for seed in range(4):
+        exported_run(tmp_path, "bmc", seed, [50, 50, 50, 50])
+        exported_run(tmp_path, "constant", seed, [100, 100, 100, 100])
+    lines = grid_claims.claims_lines(grid_report.read_runs([tmp_path]), grid_report.Bootstrap(replicates=200))
+    claim_1 = lines.index(next(line for line in lines if line.startswith("- Claim 1")))
+    assert "**can't tell**" in lines[claim_1] and "P(better > worse) = 0.000" in lines[claim_1]
+    # every constant run above every BMC run: one-sided 1/C(8, 4) = 1/70, doubled 0.0286
+    assert lines[claim_1 + 1] == ("  - The other way round (the worse group ahead, read after the fact): "
+                                  "**supported**; two-sided p = 0.0286, P(worse > better) = 1.000 [1.000, 1.000].")
 
 
 def test_the_pairs_worth_more_seeds_are_those_whose_interval_lies_off_even_the_farthest_first():
@@ -98,15 +110,15 @@ def test_the_pairs_worth_more_seeds_are_those_whose_interval_lies_off_even_the_f
              {"first": "vdbe", "second": "max_boltzmann", "improvement": 0.2, "low": 0.1, "high": 0.35,
               "runs": (3, 2)},
              {"first": "vdbe", "second": "softmax", "improvement": 1.0, "low": 1.0, "high": 1.0, "runs": (1, 1)}]
-    chosen = grid_report.pairs_off_even(pairs)
+    chosen = grid_claims.pairs_off_even(pairs)
     # margins: 0.05 and 0.15 off 0.5; the first straddles 0.5 and one run each has no interval
     assert [(row["first"], row["second"]) for row in chosen] == [("vdbe", "max_boltzmann"),
                                                                  ("constant", "max_boltzmann")]
-    (line,) = grid_report.more_seeds_lines(chosen)
+    (line,) = grid_claims.more_seeds_lines(chosen)
     assert "vdbe < max_boltzmann; constant > max_boltzmann" in line
     assert "--strategies vdbe,max_boltzmann --buffers 1000 --seeds 3,4" in line
     assert "0.0040" in line  # 1 / C(10, 5) = 1/252
-    assert "no pair" in grid_report.more_seeds_lines([])[0]
+    assert "no pair" in grid_claims.more_seeds_lines([])[0]
 
 
 def test_a_policy_kept_at_a_stop_is_not_on_the_curve(tmp_path):

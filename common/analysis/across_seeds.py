@@ -29,7 +29,8 @@ decreasing epsilon-greedy, 6 runs). Its reading is
   score its mean over the tasks) gives p < SIGNIFICANCE (0.05), and the interval of P(A > B) lies wholly
   above NO_IMPROVEMENT (0.5);
 * "a lean": not supported, but the point estimate of P(A > B) is above 0.5;
-* "can't tell": otherwise (no difference shown, or B ahead: read B against A for that).
+* "can't tell": otherwise (no difference shown, or B ahead: ``reverse_claim`` reads B against A for that,
+  by the same rule with the two-sided p-value, since that direction was chosen after the fact).
 
 The test's p-value is exact for small samples, ties included: the permutation distribution of U over every split
 of the pooled runs (any sizes, one run a side too), and the normal approximation only past EXACT_ARRANGEMENTS
@@ -42,7 +43,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -170,6 +171,14 @@ def claim(a, b, bootstrap: Bootstrap | None = None) -> Claim:
     p_value = mann_whitney_p(a, b)
     improvement = improvement_estimate(a, b, bootstrap)
     return Claim(len(a), len(b), p_value, improvement, reading(p_value, improvement))
+
+
+def reverse_claim(a, b, bootstrap: Bootstrap | None = None) -> Claim:
+    """Read "B beats A" where a claim "A beats B" found B ahead. That direction was chosen on seeing the runs,
+    so the rule reads it with the two-sided p-value (twice the one-sided, at most 1)."""
+    found = claim(b, a, bootstrap)
+    p_value = min(1.0, 2 * found.p_value)
+    return replace(found, p_value=p_value, reading=reading(p_value, found.improvement))
 
 
 def smallest_p_value(n: int, m: int) -> float:

@@ -9,7 +9,7 @@ and merges runs of several machines:
   beside it, and the interquartile mean of the chosen policies' test CFR over seeds x test starts with its
   stratified bootstrap interval (common/analysis/across_seeds.py);
 - the paper's two claims read by the rule of common/analysis/across_seeds.py, with the probability of
-  improvement, and what the seeds can carry at all;
+  improvement, and what the seeds can carry at all (deploy/studies/grid_claims.py);
 - figures: the greedy test curves (median over seeds, band their range), and each seed's time to drive;
 - what the grid cost (deploy/studies/grid_costs.py): each run's machine time, training and reading it, and its
   machines; the soak across the grid: hours, restarts, memory per process, the largest run folder.
@@ -39,6 +39,7 @@ from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
 from common.exploration.names import STRATEGIES
 from deploy.studies.comparison import read_episodes_csv
 from deploy.studies.grid_cells import counted, on_schedule, read_choice
+from deploy.studies.grid_claims import claims_lines
 from deploy.studies.grid_costs import machine_lines, machine_row, soak_lines, soak_rows
 from deploy.studies.grid_failures import failed_test_sites, prediction_lines, site_lines, start_lines
 from deploy.studies.run_results import ExportedRun, collect
@@ -46,13 +47,6 @@ from deploy.studies.run_results import ExportedRun, collect
 # The paper's test tables at buffer 1,000 (one training each, 1,000,000 steps, K = 30): test CFR in %.
 PAPER_TEST_CFR = {"vdbe_softmax": 87.54, "bmc": 86.71, "max_boltzmann": 84.14, "softmax": 82.25, "vdbe": 61.77,
                   "constant": 59.79, "decreasing": 48.95}
-LEADERS = ("vdbe_softmax", "bmc")
-CLAIMS = (
-    ("1", "Softmax, MBE, VDBE-Softmax and BMC beat constant and decreasing epsilon-greedy",
-     ("softmax", "max_boltzmann", "vdbe_softmax", "bmc"), ("constant", "decreasing")),
-    ("2", "VDBE-Softmax and BMC lead at buffer 1,000 (against the other five)",
-     LEADERS, tuple(name for name in STRATEGIES if name not in LEADERS)),
-)
 CELL = tuple[int, str]  # replay capacity, learner option set
 
 
@@ -183,48 +177,6 @@ def strategy_rows(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[dict]:
     return rows
 
 
-def claim_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1000, "paper")) -> list[dict]:
-    """The paper's claims on the runs of one cell (the paper's learner at buffer 1,000): each group of
-    strategies pooled, a run scored by its chosen policy's test CFR per start."""
-    readings = []
-    for number, text, better, worse in CLAIMS:
-        groups = [[item.start_cfr for item in runs if item.cell == cell and item.run.strategy in side]
-                  for side in (better, worse)]
-        if not all(groups):
-            readings.append({"claim": number, "text": text, "reading": "not asked (a side has no runs)"})
-            continue
-        found = across_seeds.claim(np.vstack(groups[0]), np.vstack(groups[1]), bootstrap)
-        readings.append({"claim": number, "text": text, "reading": found.reading, "p_value": found.p_value,
-                         "runs": f"{found.a_runs} vs {found.b_runs}", "improvement": found.improvement.point,
-                         "improvement_low": found.improvement.interval.low,
-                         "improvement_high": found.improvement.interval.high,
-                         "smallest_p": across_seeds.smallest_p_value(found.a_runs, found.b_runs)})
-    return readings
-
-
-def pair_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1000, "paper")) -> list[dict]:
-    """Every two strategies of a cell: P(first > second) with its interval (no claim: see seeds_to_support)."""
-    by_strategy = {name: np.vstack([item.start_cfr for item in runs if item.cell == cell and item.run.strategy == name])
-                   for name in STRATEGIES if any(item.cell == cell and item.run.strategy == name for item in runs)}
-    rows = []
-    for first in by_strategy:
-        for second in by_strategy:
-            if STRATEGIES.index(first) < STRATEGIES.index(second):
-                found = across_seeds.improvement_estimate(by_strategy[first], by_strategy[second], bootstrap)
-                rows.append({"first": first, "second": second, "improvement": found.point,
-                             "low": found.interval.low, "high": found.interval.high,
-                             "runs": (len(by_strategy[first]), len(by_strategy[second]))})
-    return rows
-
-
-def pairs_off_even(pairs: Sequence[dict]) -> list[dict]:
-    """The pairs whose interval of P(first > second) lies wholly off 0.5, the farthest first: where seeds 3 and
-    4 could turn a lean into a finding."""
-    def margin(row: dict) -> float:
-        return max(row["low"] - across_seeds.NO_IMPROVEMENT, across_seeds.NO_IMPROVEMENT - row["high"])
-    return sorted((row for row in pairs if row["runs"] != (1, 1) and margin(row) > 0), key=margin, reverse=True)
-
-
 # --- figures ---------------------------------------------------------------------------------------------------
 
 def plot_curves(runs: Sequence[GridRun], path: Path, cell: CELL) -> None:
@@ -327,43 +279,13 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     lines += ["", "## Where the cars crashed", "", *site_lines(runs)]
     lines += ["", "## The prediction, on the runs after it", "", *prediction_lines(runs)]
     lines += ["", "## What the strategies explored", "", *explored_lines(runs)]
-    lines += ["", "## The paper's claims", "", _rule_text(), ""]
-    for reading in claim_readings(runs, bootstrap):
-        if "p_value" not in reading:
-            lines.append(f"- Claim {reading['claim']} ({reading['text']}): {reading['reading']}.")
-            continue
-        lines.append(f"- Claim {reading['claim']} ({reading['text']}): **{reading['reading']}**; runs "
-                     f"{reading['runs']}, one-sided Mann-Whitney p = {reading['p_value']:.4f} (the least these "
-                     f"runs can give: {reading['smallest_p']:.2g}), P(better > worse) = {reading['improvement']:.3f} "
-                     f"[{reading['improvement_low']:.3f}, {reading['improvement_high']:.3f}].")
-    lines += ["", f"A claim about one pair of strategies needs {across_seeds.seeds_to_support()} seeds a side: with "
-              f"3 against 3 the least one-sided p-value is {across_seeds.smallest_p_value(3, 3):.2f}, not below "
-              f"{across_seeds.SIGNIFICANCE}. Every pair's probability of improvement, as a guide:", "",
-              "| First | Second | P(first > second) [CI] |", "|---|---|---:|"]
-    pairs = pair_readings(runs, bootstrap)
-    for row in pairs:
-        interval = "(one run each)" if row["runs"] == (1, 1) else f"[{row['low']:.2f}, {row['high']:.2f}]"
-        lines.append(f"| {row['first']} | {row['second']} | {row['improvement']:.2f} {interval} |")
-    lines += ["", *more_seeds_lines(pairs_off_even(pairs))]
+    lines += ["", "## The paper's claims", "", *claims_lines(runs, bootstrap)]
     soaks = soak_rows(runs)
     soak_hours = {row["run"]: row["hours"] for row in soaks}
     lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
                                                          for item in runs])]
     lines += ["", "## Soak across the grid", "", *soak_lines(soaks)]
     return lines
-
-
-def more_seeds_lines(pairs: Sequence[dict]) -> list[str]:
-    if not pairs:
-        return ["No pair's interval lies off 0.5: no pair leans enough to be worth more seeds yet."]
-    signs = {True: ">", False: "<"}
-    order = [f"{row['first']} {signs[row['improvement'] > across_seeds.NO_IMPROVEMENT]} {row['second']}"
-             for row in pairs]
-    first = pairs[0]
-    return [f"Pairs whose interval lies off 0.5, the farthest first: {'; '.join(order)}. Seeds 3 and 4 of the first "
-            f"(5 a side; the least p-value {across_seeds.smallest_p_value(5, 5):.4f}): `.venv/bin/python "
-            f"deploy/studies/experiments.py --strategies {first['first']},{first['second']} --buffers 1000 "
-            f"--seeds 3,4`."]
 
 
 def explored_lines(runs: Sequence[GridRun]) -> list[str]:
@@ -389,15 +311,6 @@ def _iqm_interval(row: dict, name: str, text=lambda value: f"{value:,.0f}") -> s
     if row["seeds"] == 1:
         return "(one seed)"
     return f"[{text(row[f'{name}_low'])}, {text(row[f'{name}_high'])}]"
-
-
-def _rule_text() -> str:
-    return (f"The rule (common/analysis/across_seeds.py): a claim is supported when the one-sided Mann-Whitney "
-            f"test of the better group's runs against the worse group's gives p < {across_seeds.SIGNIFICANCE} and "
-            f"the interval of P(better > worse) lies above {across_seeds.NO_IMPROVEMENT}; a lean when only the "
-            f"point estimate of P(better > worse) is above {across_seeds.NO_IMPROVEMENT}; can't tell otherwise. "
-            "A run's score is its chosen policy's test CFR per test start; P is averaged over the starts, and "
-            "the test reads each run's mean over them.")
 
 
 def write_csv(path: Path, rows: Sequence[dict]) -> Path:
