@@ -1,4 +1,5 @@
 import dataclasses
+import tracemalloc
 
 import msgpack
 import numpy as np
@@ -86,6 +87,19 @@ def test_partial_decode_equals_slicing(start, stop):
 def test_frame_stack_reports_length_shape_and_compressed_bytes():
     assert len(STACK) == 7 and STACK.frame_shape == SMALL_FRAME
     assert STACK.nbytes == sum(len(blob) for blob in STACK.blobs) > 0
+
+
+def test_a_stack_holds_about_the_memory_its_bytes_count():
+    # the actor caps what it holds (actor.queue_mb, actor.in_flight_mb) by nbytes: that must be what it holds
+    frames = np.zeros((50, 96, 96, 3), np.uint8)  # flat frames compress to a few dozen bytes of 27,648
+    tracemalloc.start()
+    try:
+        stack = FrameStack.from_array(frames)
+        held = tracemalloc.get_traced_memory()[0]  # what it allocated and still holds: the stack's
+    finally:
+        tracemalloc.stop()
+    per_blob = 100  # a bytes object's header and the list's slot
+    assert stack.nbytes < 50 * 100 and held < 2 * stack.nbytes + 50 * per_blob
 
 
 def test_select_shares_blob_objects_in_the_given_order():

@@ -50,7 +50,9 @@ class FrameStack:
         if frames.dtype != np.uint8 or frames.ndim != 4:
             raise WireError(f"FrameStack.from_array: expected uint8 frames [n, H, W, C], got {frames.dtype} {frames.shape}")
         compressor = _compressor()
-        blobs = [compressor.compress(np.ascontiguousarray(frame)) for frame in frames]
+        # a copy: zstandard's blob keeps the allocation of the worst case, the whole frame and more, whatever
+        # its length; 1,500 smoke episodes held 1,323 MB where their blobs' lengths summed to 81 MB
+        blobs = [bytes(memoryview(compressor.compress(np.ascontiguousarray(frame)))) for frame in frames]
         return cls(blobs, frames.shape[1:])
 
     @classmethod
