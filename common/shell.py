@@ -26,7 +26,8 @@ then, so that it reads the checkpoint or snapshot a stopping holder wrote last:
     with service.session() as session:       # the same session, now with the token
 
 A session that cannot open (a bad endpoint, a port in use, no router, a missing TLS file) is
-one line in the log and exit code 1, not a traceback.
+one line in the log and exit code 1, not a traceback. A role's module ends with run_role(main), which
+ends the process without the interpreter's finalization, where Zenoh's threads could abort it.
 """
 
 from __future__ import annotations
