@@ -47,7 +47,7 @@ from common.config_cli import add_config_arguments, config_from_args, parse_flag
 from common.config_values import to_toml
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
-from common.shell import interrupt_main, stop_with_parent
+from common.shell import interrupt_main, run_main, stop_with_parent
 
 FOLLOW_EVERY_S = 60.0  # --follow: how often to look for new kept policies
 
@@ -216,4 +216,4 @@ def _stack_training(run: RunDir) -> bool:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

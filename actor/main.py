@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.shell import parse_service_args, run_role
+from common.shell import parse_service_args, run_main
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -24,4 +24,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    run_role(main)
+    run_main(main)

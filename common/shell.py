@@ -26,7 +26,7 @@ then, so that it reads the checkpoint or snapshot a stopping holder wrote last:
     with service.session() as session:       # the same session, now with the token
 
 A session that cannot open (a bad endpoint, a port in use, no router, a missing TLS file) is
-one line in the log and exit code 1, not a traceback. A role's module ends with run_role(main), which
+one line in the log and exit code 1, not a traceback. A role's module ends with run_main(main), which
 ends the process without the interpreter's finalization, where Zenoh's threads could abort it.
 """
 
@@ -74,8 +74,9 @@ PARENT_ENV = "D3RQN_STOP_WITH_PARENT"  # a parent's pid (the stack's for its rol
 PARENT_POLL_S = 1.0
 
 
-def run_role(main: Callable[[], int | str | None]) -> None:
-    """Runs a role's main(), then ends the process as soon as its exit handlers have run, skipping the
+def run_main(main: Callable[[], int | str | None]) -> None:
+    """Runs the main() of a process that held a Zenoh session (a role, the stack, an evaluation following a
+    run), then ends the process as soon as its exit handlers have run, skipping the
     interpreter's finalization. Zenoh's threads may still be letting go of a callback then, which takes
     the GIL; a finalizing interpreter answers with a thread exit that unwinds through Rust, and the
     process aborts ("FATAL: exception not rethrown", exit code -6 instead of 0): seen in about one stop

@@ -42,7 +42,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
 from common.run_dir import RunDir
-from common.shell import env_stopping_with_this, on_stop_signals, stop_with_parent
+from common.shell import env_stopping_with_this, on_stop_signals, run_main, stop_with_parent
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
 from deploy.console import Console
@@ -316,4 +316,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main(main)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.shell import parse_service_args, run_role
+from common.shell import parse_service_args, run_main
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -26,4 +26,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    run_role(main)
+    run_main(main)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.shell import parse_service_args, run_role
+from common.shell import parse_service_args, run_main
 
 RESUME_HELP = ("continue the run's earlier replay: restore its episodes from its snapshot "
                "(<run.runs_dir>/<run.name>/replay/snapshot/) and its rate limiter's counters "
@@ -27,4 +27,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    run_role(main)
+    run_main(main)

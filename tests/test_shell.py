@@ -258,7 +258,7 @@ ENDING = """
 import atexit, sys, threading, time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from common.shell import run_role
+from common.shell import run_main
 out = Path(sys.argv[1])
 
 class Finalized:  # its finalizer runs only where the interpreter tears its modules down
@@ -270,7 +270,7 @@ atexit.register(lambda: (out / "atexit").write_text("ran"))
 
 def main():
     late = threading.Thread(target=lambda: (time.sleep(0.3), (out / "thread").write_text("joined")))
-    late.start()  # not a daemon: the interpreter would wait for it, and so does run_role
+    late.start()  # not a daemon: the interpreter would wait for it, and so does run_main
     pools.append(ThreadPoolExecutor(1))
     pools[0].submit(time.sleep, 0.01).result()  # its idle worker waits for the interpreter's word to end
     print("printed, not yet flushed", end="")
@@ -279,7 +279,7 @@ def main():
         return 3
     raise SystemExit(None if ending == "none" else ending)
 
-run_role(main)
+run_main(main)
 """
 
 
@@ -292,5 +292,5 @@ def test_a_role_ends_with_its_code_threads_joined_exit_handlers_run_and_no_final
     assert done.returncode == code and done.stdout == "printed, not yet flushed"
     assert (ending == "gone wrong") == ("gone wrong" in done.stderr)
     assert (tmp_path / "thread").read_text() == "joined" and (tmp_path / "atexit").read_text() == "ran"
-    # no teardown: there Zenoh's threads, refused the GIL, abort the process (common/shell.py run_role)
+    # no teardown: there Zenoh's threads, refused the GIL, abort the process (common/shell.py run_main)
     assert not (tmp_path / "finalized").exists()

@@ -211,5 +211,5 @@ def _recover(args, config) -> None:
 
 
 if __name__ == "__main__":
-    from common.shell import run_role  # here: reading a log needs no Zenoh
-    run_role(main)
+    from common.shell import run_main  # here: reading a log needs no Zenoh
+    run_main(main)
