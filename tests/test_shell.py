@@ -68,6 +68,19 @@ def test_a_bad_endpoint_is_one_line_and_exit_code_1(tmp_path):
     assert "cannot open the Zenoh session (mode peer, listen tcp/no-such-host.invalid:7447, connect none)" in errors[0]
 
 
+def test_a_role_that_crashes_in_native_code_leaves_its_python_stacks_in_its_log(tmp_path):
+    log = tmp_path / "replay.log"
+    process = start(["-m", "replay.main", *run_flags(tmp_path, "--transport.listen", loopback_endpoint())], log)
+    try:
+        wait_for(lambda: re.search(r"Zenoh session [0-9a-f]+ open", log.read_text()), "the replay's session", 60, [log])
+        process.send_signal(signal.SIGABRT)  # as a Rust abort or a failed assertion in C would
+        assert process.wait(30) == -signal.SIGABRT
+    finally:
+        stop(process)
+    text = log.read_text()
+    assert "Fatal Python error: Aborted" in text and 'File "' in text and "most recent call first" in text
+
+
 def leave_by_raising(endpoint: str, events) -> None:
     """In a spawned process: two on_close callbacks, then the role fails inside the session."""
     service = Service("probe", load_config("smoke", overrides={"run.name": RUN, "transport.listen": [endpoint]}))
