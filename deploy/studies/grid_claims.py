@@ -38,15 +38,15 @@ def claim_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (
         if not all(groups):
             readings.append({"claim": number, "text": text, "reading": "not asked (a side has no runs)"})
             continue
-        ahead, behind = (np.vstack(group) for group in groups)
-        found = across_seeds.claim(ahead, behind, bootstrap)
+        better_runs, worse_runs = (np.vstack(group) for group in groups)
+        found = across_seeds.claim(better_runs, worse_runs, bootstrap)
         readings.append({"claim": number, "text": text, "reading": found.reading, "p_value": found.p_value,
                          "runs": f"{found.a_runs} vs {found.b_runs}", "improvement": found.improvement.point,
                          "improvement_low": found.improvement.interval.low,
                          "improvement_high": found.improvement.interval.high,
                          "smallest_p": across_seeds.smallest_p_value(found.a_runs, found.b_runs)})
         if found.improvement.point < across_seeds.NO_IMPROVEMENT:
-            readings[-1]["reverse"] = across_seeds.reverse_claim(ahead, behind, bootstrap)
+            readings[-1]["reverse"] = across_seeds.reverse_claim(better_runs, worse_runs, bootstrap)
     return readings
 
 
