@@ -24,13 +24,13 @@ def test_the_readme_grid_table_is_the_reports():
 
 def test_the_readme_states_the_reports_run_count():
     runs = report_run_count(REPORT.read_text())
-    assert f"{runs} of\n21 runs done" in README.read_text() or f"{runs} of 21 runs done" in README.read_text()
+    assert re.search(rf"\b{runs}\s+runs done", README.read_text())
 
 
 def test_the_writer_fills_a_stale_readme_from_the_report():
     """deploy/tools/readme_grid_table.py: rows and count of an older report replaced by the committed one's."""
     readme, report = README.read_text(), REPORT.read_text()
     stale = re.sub(r"^(\| bmc \|.*)$", "| bmc | 9 | stale | stale | 1 | stale | 1% | 1% |", readme, count=1, flags=re.M)
-    stale = re.sub(r"\d+ of(\s+)21 runs done", r"3 of\g<1>21 runs done", stale, count=1)
+    stale = re.sub(r"\d+(\s+)runs done", r"3\g<1>runs done", stale, count=1)
     assert stale != readme and filled(stale, report) == readme
     assert filled(readme, report) == readme

@@ -2,8 +2,8 @@
 
 The README keeps its own columns (fewer than the report's); each row takes those columns' values from the
 report's "Per strategy" row of the same strategy (the grid's cells: buffer 1,000, the paper's learner options),
-and the README's "N of 21 runs done" takes the report's run count. tests/test_readme_grid_table.py fails when
-the README no longer matches the report.
+and the README's "N runs done" takes the report's run count (21 in the grid, more as seeds are added).
+tests/test_readme_grid_table.py fails when the README no longer matches the report.
 
     .venv/bin/python deploy/tools/readme_grid_table.py            # print the README's table as it should read
     .venv/bin/python deploy/tools/readme_grid_table.py --write    # replace the table and the count in README.md
@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
 REPORT = ROOT / "results" / "grid" / "grid.md"
 README_HEADER = "Strategy | Seeds | Updates to drive,"  # how the README's table's header row starts
-RUN_COUNT = re.compile(r"(\d+) of(\s+)21 runs done")
+RUN_COUNT = re.compile(r"(\d+)(\s+)runs done")
 
 
 def cells(line: str) -> list[str]:
@@ -62,7 +62,7 @@ def filled(readme: str, report: str) -> str:
     rows = [f"| {' | '.join(row[column] for column in header)} |" for row in report_strategy_rows(report).values()]
     text = "\n".join([*lines[:start + 2], *rows, *lines[end:]]) + ("\n" if readme.endswith("\n") else "")
     runs = report_run_count(report)
-    return RUN_COUNT.sub(lambda match: f"{runs} of{match.group(2)}21 runs done", text, count=1)
+    return RUN_COUNT.sub(lambda match: f"{runs}{match.group(2)}runs done", text, count=1)
 
 
 def main() -> None:
