@@ -176,6 +176,19 @@ class LearnerConfig:
                    "bfloat16 at half the disk (24.3 MB at the paper's sizes; a long run's largest part): the curve then "
                    "reads the rounded weights, as a shipped policy's (docs/evaluation-curves.md)",
         choices=tuple(WEIGHTS_ENCODINGS))
+    keep_target: bool = option(
+        False, "beyond the paper: also keep the target network (a Polyak average of the online weights over about "
+               "1/tau updates) beside each kept policy from keep_shadows_from on, as kind target in "
+               "policies/target/; nothing the actors or the loss see changes (docs/evaluation-curves.md)")
+    ema_updates: int = option(
+        0, "beyond the paper: hold an exponential moving average of the online weights over about this many updates "
+           "(each update moves it 1/ema_updates of the way to the online weights; it steps every 10 updates, as far "
+           "as 10 such steps go), in float32 and checkpointed, "
+           "and keep it beside each kept policy from keep_shadows_from on, as kind ema in policies/ema/; the actors "
+           "and the loss never see it. 0: off", "updates")
+    keep_shadows_from: int = option(
+        0, "keep the target and EMA policies (keep_target, ema_updates) only beside the policies kept at this many "
+           "updates or later: a curve reads them late in a run, and each is one network's file", "updates")
     prefetch: int = option(2, "batch requests kept in flight to the replay", "batches")
     torch_threads: int = option(
         0, "torch's CPU threads; 0 keeps torch's default (all cores): paced actors leave the learner most of the "
@@ -242,6 +255,8 @@ class LearnerConfig:
         check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
               f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
         check(self.keep_encoding in WEIGHTS_ENCODINGS, "keep_encoding", f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
+        check(self.ema_updates >= 0, "ema_updates", "must be >= 0 (0: off)")
+        check(self.keep_shadows_from >= 0, "keep_shadows_from", "must be >= 0")
 
 
 @dataclass
