@@ -63,6 +63,7 @@ from learner.loss import (LossFunction, LossTerms, burn_in_steps, one_pass_terms
                           trace_pass_loss, trace_pixels)
 from learner.trace_batch import BatchStager, TraceArrays, TraceTensors, _wait_until_ready, to_tensors
 from learner.update_path import UPDATE_PATHS, choose_learner_precision, choose_update_path
+from learner.step_size import clip_gradient, set_learning_rate
 from learner.weight_average import WeightAverage
 
 log = logging.getLogger("learner.update")
@@ -176,6 +177,8 @@ class DoubleQLearner:
                                        self.config.masked_steps, self.config.n_step)
         self.optimizer.zero_grad(set_to_none=True)
         terms.loss.backward()
+        clip_gradient(self.online.parameters(), self.config)
+        set_learning_rate(self.optimizer, self.config, self.updates)
         self.optimizer.step()
         self.updates += 1
         if self.average is not None:
