@@ -147,12 +147,16 @@ def test_a_run_with_shadow_policies_reads_chooses_and_evaluates_each_kind(tmp_pa
     assert next_step(run.root, BUDGET) == "curve"  # the shadows' curve is missing
     [shadow_pass] = grid_job.curve_commands(run, opts)
     assert shadow_pass[5:shadow_pass.index("--preset")] == [
-        "--kinds", "target,ema", "--sets", "train,test", "--from-updates", "20000", "--every", "1000"]
+        "--kinds", "online,target,ema", "--sets", "train,test", "--from-updates", "20000", "--every", "1000"]
     late = sorted(grid_cells.shadow_curve_wanted(run, "target"))  # where the online curve reads, from 20,000
     assert late == list(range(20_000, 30_001, 2_000))
     online_rows = curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test") + curve_rows(KEPT[-5:], "train")
     shadow_rows = [row for kind in ("target", "ema") for start_set in ("train", "test")
-                   for row in curve_rows(late[:-1], start_set, kind=kind)]
+                   for row in curve_rows(late, start_set, kind=kind)]
+    write_curve(run, online_rows + shadow_rows)
+    assert next_step(run.root, BUDGET) == "curve"  # the online policies' train rows at 20,000-24,000 missing
+    online_rows += curve_rows([20_000, 22_000, 24_000], "train")
+    shadow_rows = [row for row in shadow_rows if row["updates"] != 30_000]
     write_curve(run, online_rows + shadow_rows)
     assert next_step(run.root, BUDGET) == "curve"  # 30,000 of the shadows still missing
     shadow_rows += [row for kind in ("target", "ema") for start_set in ("train", "test")

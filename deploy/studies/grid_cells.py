@@ -18,7 +18,8 @@ running again resumes:
 
 A run that keeps shadow policies (beyond the paper: learner.keep_target, learner.ema_updates) is read on
 them too, each kind as a policy of its own: its curve on both start sets at every policy the online curve
-reads from LATE_FROM (20,000) updates on; its choice among its last CHOICE_AMONG kept, by the same rule; that
+reads from LATE_FROM (20,000) updates on (and the online policies' train rows there, beside them); its choice
+among its last CHOICE_AMONG kept, by the same rule; that
 policy's evaluation into evaluation-<kind>/. So is the mean of the last CHOICE_AMONG kept online policies
 (kind mean, written at the choice to policies/mean/), at its choice point only.
 """
@@ -141,8 +142,8 @@ def curve_wanted(kept: list[int], every: int) -> set[int]:
 
 
 def shadow_curve_wanted(run: RunDir, kind: str) -> set[int]:
-    """The kept policies of a shadow kind (by updates) the protocol reads on both start sets: those at which
-    the online curve reads one, from LATE_FROM on."""
+    """The kept policies of a kind (by updates) the protocol reads on both start sets where the run keeps
+    shadows: those at which the online curve reads one, from LATE_FROM on."""
     kept = [updates for updates, _ in run.kept_policies(kind) if updates >= LATE_FROM]
     return curve_wanted(kept, keep_every(run))
 
@@ -299,9 +300,16 @@ def candidates_of(kind: str) -> str:
     return "online" if kind == "mean" else kind
 
 
+def late_kinds(run: RunDir) -> list[str]:
+    """The kinds read on both start sets late in the run: the shadow kinds and, beside them, the online one (its
+    train rows there are what a kind is shipped by); none for a run without shadows."""
+    shadows = shadow_kinds(run)
+    return ["online", *shadows] if shadows else []
+
+
 def shadow_curve_done(run: RunDir) -> bool:
     return all(shadow_curve_wanted(run, kind) <= curve_read(run, start_set, kind)
-               for kind in shadow_kinds(run) for start_set in ("train", "test"))
+               for kind in late_kinds(run) for start_set in ("train", "test"))
 
 
 def next_step(run_dir: Path, budget: int) -> str:

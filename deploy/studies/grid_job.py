@@ -26,7 +26,7 @@ from actor.evaluation.curve import LATE_FROM
 from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                        ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps,
                                        choice_candidates, choose, chosen_updates, curve_read, curve_wanted, keep_every,
-                                       next_step, read_cell, read_choice, record_step, shadow_curve_done, shadow_kinds,
+                                       late_kinds, next_step, read_cell, read_choice, record_step, shadow_curve_done, shadow_kinds,
                                        to_evaluate, write_cell)
 from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
@@ -138,8 +138,8 @@ def curve_commands(run: RunDir, options: Options) -> list[list[str]]:
     if any(updates > CURVE_DENSE_UNTIL for updates in missing):
         passes.append(curve_command(run, options, "--sets", "test", "--from-updates", str(CURVE_DENSE_UNTIL + 1),
                                     "--every", str(CURVE_LATE_EVERY)))
-    if not shadow_curve_done(run):  # the shadow kinds on both sets where the online curve reads, from LATE_FROM
-        passes.append(curve_command(run, options, "--kinds", ",".join(shadow_kinds(run)), "--sets", "train,test",
+    if not shadow_curve_done(run):  # every kind on both sets where the online curve reads, from LATE_FROM
+        passes.append(curve_command(run, options, "--kinds", ",".join(late_kinds(run)), "--sets", "train,test",
                                     "--from-updates", str(LATE_FROM), "--every", str(every)))
     return passes
 
