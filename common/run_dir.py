@@ -21,11 +21,12 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
+
+from common.atomic_file import pid_alive as _alive, write_text_atomically
 
 CHECKPOINTS = "checkpoints"
 CHECKPOINT_FILE = "latest.pt"
@@ -187,9 +188,7 @@ class RunStatus:
 
     def write(self, path: Path) -> None:
         """Atomically: a reader sees the previous status or this one, never a part."""
-        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        temporary.write_text(json.dumps(dataclasses.asdict(self), indent=2) + "\n")
-        os.replace(temporary, path)
+        write_text_atomically(path, json.dumps(dataclasses.asdict(self), indent=2) + "\n")
 
     def training(self) -> bool:
         """Whether the stack still trains: its phase says so and one of its processes lives (a stack killed
@@ -209,16 +208,6 @@ class RunStatus:
         if wrong:
             raise StatusError(f"{path}: {', '.join(wrong)} of the wrong type")
         return cls(**values)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    return True
 
 
 def _fits(name: str, value) -> bool:

@@ -37,6 +37,7 @@ import time
 
 import zenoh
 
+from common.atomic_file import remove_dead_temporaries, write_text_atomically
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
@@ -268,7 +269,12 @@ def main(argv: list[str] | None = None) -> int:
     except RunClaimError as error:
         print(f"deploy/run.sh: {error}", file=sys.stderr)
         return 2
-    run.config.write_text(to_toml(config))
+    remove_dead_temporaries(run.root)  # the run's other processes start after this
+    try:
+        write_text_atomically(run.config, to_toml(config))
+    except OSError as error:  # the roles read it: a stack cannot run without it
+        print(f"deploy/run.sh: cannot write {run.config}: {error}; free space and start again", file=sys.stderr)
+        return 1
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
     actors = args.actors or config.actor.num_actors or default_actor_count()
     stop = threading.Event()
@@ -304,7 +310,10 @@ def main(argv: list[str] | None = None) -> int:
             session.close()
     stack.report(monitor, "finished" if stack.learner_finished else "stopped")
     summary = monitor.summary(config, stack.restarts, stack.learner_finished)
-    run.summary.write_text(json.dumps(summary, indent=2) + "\n")
+    try:
+        write_text_atomically(run.summary, json.dumps(summary, indent=2) + "\n")
+    except OSError as error:  # the run itself is safe: the learner's checkpoint holds it
+        console.say(f"cannot write the summary {run.summary}: {error}", err=True)
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
     console.say(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps "

@@ -34,6 +34,7 @@ import torch
 
 from common.checkpoint import TRAINED_PRECISIONS, Checkpoint, KeptPolicy
 from common.cpu_capability import cpu_label
+from common.disk_space import RetriedWrites
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
@@ -184,6 +185,7 @@ class LearnerService:
         self.latest_weights: Weights | None = None
         self.shelf = WeightsShelf(lambda: self.latest_weights)  # the latest weights in pieces, for downloads
         self.checkpoint_dir = RunDir.of(config).checkpoints
+        self.checkpoint_writes = RetriedWrites("checkpoint", RunDir.of(config).checkpoint, log)
         self.shape = RunShape.of(config)
         self.rejections = Rejections(log)
         self.failed_updates = 0
@@ -341,9 +343,13 @@ class LearnerService:
         return Checkpoint(learner=self.learner.state_dict(), exploration=self.strategy.state_dict(), clock=clock,
                           config=to_dict(self.config)).save(self.checkpoint_dir)
 
+    def try_checkpoint(self) -> Path | None:
+        """A checkpoint, or None where it cannot be written (a full disk): training goes on (RetriedWrites)."""
+        return self.checkpoint_writes.attempt(self.checkpoint)
+
     def checkpoint_if_due(self) -> None:
         if self.checkpoints.due(self.updates):
-            self.checkpoint()
+            self.try_checkpoint()
 
     def keep_policy(self) -> None:
         """Keeps the online weights with the run's updates, env steps and wall time (written in the background)."""

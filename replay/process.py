@@ -12,6 +12,7 @@ import threading
 import time
 from pathlib import Path
 
+from common.atomic_file import remove_dead_temporaries, write_text_atomically
 from common.config import Config
 from common.logs import Every
 from common.run_dir import RunDir
@@ -36,10 +37,7 @@ def counters_path(config: Config) -> Path:
 
 def save_counters(path: Path, state: dict) -> None:
     """Atomic: a temporary file renamed over the old one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    temporary.write_text(json.dumps(state))
-    os.replace(temporary, path)
+    write_text_atomically(path, json.dumps(state))
 
 
 SPEED_COUNTERS = ("inserted", "traces_served", "env_steps_total")  # the replay's counters given per second too
@@ -72,6 +70,7 @@ def run_replay(config: Config, resume: bool = False) -> None:
     """Serves until SIGINT/SIGTERM; with resume, restores the run's snapshot and counters."""
     shell = Service("replay", config)
     shell.claim()  # before the snapshot is read: a replay that is stopping writes it last
+    remove_dead_temporaries(RunDir.of(config).replay_counters.parent)  # the snapshot's folder lies inside
     stop = shell.stop
     service = ReplayService(config)
     path = counters_path(config)
