@@ -184,6 +184,7 @@ class RunStatus:
     elapsed_s: float = 0.0  # since this stack started
     restarts: dict[str, int] = field(default_factory=dict)  # process -> times it was started again
     pids: dict[str, int] = field(default_factory=dict)  # process -> its pid now
+    disk_free_bytes: int | None = None  # free on the run folder's disk; None where unknown
     time: float = 0.0  # wall clock (time.time()) when written
 
     def write(self, path: Path) -> None:
@@ -224,6 +225,8 @@ def _fits(name: str, value) -> bool:
         return isinstance(value, dict) and all(isinstance(key, str) and count(item) for key, item in value.items())
     if name in ("mean_return", "eta_s"):
         return value is None or number(value)
+    if name == "disk_free_bytes":
+        return value is None or count(value)
     if name in ("elapsed_s", "time"):
         return number(value)
     return count(value)
