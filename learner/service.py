@@ -421,6 +421,7 @@ class LearnerMetrics:
             "weights_version": self.process.latest_weights.version if self.process.latest_weights else -1,
             "bmc_observations": self.process.bmc_observations,
             "failed_updates": self.process.failed_updates,
+            "checkpoints_failed": self.process.checkpoint_writes.failed,  # not written: a full disk, say
             # what the updates actually ran: "auto" resolves on the first batch (learner/update.py)
             "precision": self.process.learner.precision,
             "update_path": self.process.learner.update_path,

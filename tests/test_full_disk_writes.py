@@ -8,6 +8,7 @@ import errno
 import logging
 import subprocess
 import sys
+import threading
 
 import pytest
 import torch
@@ -120,3 +121,30 @@ def test_an_oserror_that_is_not_a_full_disk_is_not_called_one():
             raise RuntimeError("unexpected pos 576 vs 534")
     except RuntimeError as error:
         assert is_disk_full(error)
+
+
+class Receiver:
+    rejected = 0
+
+
+def test_the_replay_serves_on_through_counters_it_cannot_save_and_says_so_once(tmp_path, caplog):
+    from replay import process as replay_process
+    config = make_config(tmp_path, **{"replay.stats_period_s": 0.01})
+    service = ReplayService(config)
+    path = replay_process.counters_path(config)
+    stop, sent = threading.Event(), []
+
+    def put(stats) -> None:  # the stats go out every period; the counters' file is tried after each
+        sent.append(stats)
+        if len(sent) <= 4:
+            full_for(path)
+        if len(sent) == 5:  # space returns
+            stop.set()
+
+    outlet = type("Outlet", (), {"put": staticmethod(put)})
+    with caplog.at_level(logging.INFO, logger="replay"):
+        replay_process._report_until(stop, service, {"episodes": Receiver()}, outlet, config, path)
+    said = [record.getMessage() for record in caplog.records if "rate limiter's counters" in record.getMessage()]
+    assert len(sent) == 5 and len(said) == 2 and "the disk is full" in said[0], said
+    assert "written again, after 4 failed tries" in said[1]
+    assert path.exists() and not list(path.parent.glob(".*.tmp"))
