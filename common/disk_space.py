@@ -44,8 +44,11 @@ def is_disk_full(error: BaseException | None) -> bool:
     return False
 
 
-def megabytes(count: int | None) -> str:
-    return "an unknown amount" if count is None else f"{count / MEGABYTE:,.1f} MB"
+def size_text(count: int | None) -> str:
+    """A size for a log line: in MB, or in bytes below one."""
+    if count is None:
+        return "an unknown amount"
+    return f"{count:,d} bytes" if count < MEGABYTE else f"{count / MEGABYTE:,.1f} MB"
 
 
 def file_bytes(path: Path) -> int | None:
@@ -75,7 +78,7 @@ class RetriedWrites:
             self._failed(error)
             return None
         if self.failing:
-            self.log.info("the %s is written again, after %d failed tries: %s", self.what, self.failing, path)
+            self.log.info("wrote the %s again, after %d failed tries: %s", self.what, self.failing, path)
         self.failing = 0
         return path
 
@@ -88,4 +91,4 @@ class RetriedWrites:
         reason = "the disk is full" if is_disk_full(error) else f"{type(error).__name__}: {error}"
         self.log.error("cannot write the %s %s (%s): it needs about %s, %s free; %s, and the next one due is "
                        "tried (said once until one is written)", self.what, self.target, reason,
-                       megabytes(file_bytes(self.target)), megabytes(free_bytes(self.target.parent)), kept)
+                       size_text(file_bytes(self.target)), size_text(free_bytes(self.target.parent)), kept)

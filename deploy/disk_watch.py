@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from common.disk_space import MEGABYTE, file_bytes, free_bytes, megabytes
+from common.disk_space import MEGABYTE, file_bytes, free_bytes, size_text
 from common.run_dir import RunDir
 from replay.snapshot import MANIFEST, SEGMENT_PREFIX, SEGMENT_SUFFIX
 
@@ -39,12 +39,12 @@ class DiskWatch:
         needed = self.needed()
         if not self.short and self.free < needed:
             self.short = True
-            self.say(f"the disk of {self.run.root} has {megabytes(self.free)} free, less than the next checkpoint "
-                     f"and snapshot need ({megabytes(needed)}): they fail until space is freed, while training goes "
+            self.say(f"the disk of {self.run.root} has {size_text(self.free)} free, less than the next checkpoint "
+                     f"and snapshot need ({size_text(needed)}): they fail until space is freed, while training goes "
                      "on (docs/reliability.md)")
         elif self.short and self.free >= needed:
             self.short = False
-            self.say(f"the disk of {self.run.root} has room again: {megabytes(self.free)} free")
+            self.say(f"the disk of {self.run.root} has room again: {size_text(self.free)} free")
         return self.free
 
     def room_to_start(self) -> bool:

@@ -43,7 +43,7 @@ from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
-from common.disk_space import DISK_FULL_EXIT, megabytes
+from common.disk_space import DISK_FULL_EXIT, size_text
 from common.run_dir import RunDir
 from common.shell import env_stopping_with_this, on_stop_signals, run_main, stop_with_parent
 from common.transport import free_port, open_session, subscribe
@@ -177,7 +177,7 @@ class Stack:
         if code == DISK_FULL_EXIT:  # restarted now, it would only die again: it waits for room
             role.waits_for_space = True
             self.console.say(f"\n{role.name} stopped: the disk of {self.run.root} is full "
-                             f"({megabytes(self.disk.free)} free); it starts again once there is room "
+                             f"({size_text(self.disk.free)} free); it starts again once there is room "
                              f"(see {self.run.log(role.name)})", err=True)
             return
         self.console.say(f"\n{role.name} exited with code {code}; restarting it in {role.backoff_s():.0f}s "

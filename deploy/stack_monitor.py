@@ -9,7 +9,7 @@ import time
 from collections import deque
 
 from common.config import Config
-from common.disk_space import megabytes
+from common.disk_space import size_text
 from common.eta import Eta
 from common.pacing import updates_paid_for
 from common.run_dir import RunStatus
@@ -93,7 +93,7 @@ class StackMonitor:
                     f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
                     f"steps/s {self.env_step_speed.per_s() or 0.0:6.1f} | "
                     f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
-                    f"restarts {restarts}" + ("" if disk_free is None else f" | disk free {megabytes(disk_free)}"))
+                    f"restarts {restarts}" + ("" if disk_free is None else f" | disk free {size_text(disk_free)}"))
 
     def status(self, phase: str, restarts: dict[str, int], pids: dict[str, int],
                disk_free: int | None = None) -> RunStatus:

@@ -126,7 +126,7 @@ def _said(run: RunDir, console) -> list[str]:
     lines = console.read_text(errors="replace").replace("\r", "\n").splitlines()
     for path in sorted(run.logs.glob("*.log")):
         lines += [f"{path.stem}: {line}" for line in path.read_text(errors="replace").splitlines()]
-    wanted = ("disk", "cannot write", "written again", "lost", "space")
+    wanted = ("disk", "cannot write", "again, after", "lost", "space")
     return [line.strip() for line in lines if any(word in line for word in wanted) and not line.startswith("[")]
 
 

@@ -32,7 +32,7 @@ from typing import Callable
 import zenoh
 
 from common.config import Config, RecorderConfig
-from common.disk_space import free_bytes, is_disk_full, megabytes
+from common.disk_space import free_bytes, is_disk_full, size_text
 from common.run_dir import RunDir, next_free_path
 from common.shell import Service
 from common.transport import Declared, publisher
@@ -245,8 +245,8 @@ class Recorder:
         self._earlier = (self._earlier[0] + writer.messages, self._earlier[1] + writer.view_messages)
         log.error("the disk is full (%s, %s free): recording pauses and drops what arrives; %s reads up to its "
                   "last flush (%s); it goes on in a new file once %s are free", error,
-                  megabytes(self._free_space()), writer.path, megabytes(writer.flushed_bytes),
-                  megabytes(self.resume_bytes))
+                  size_text(self._free_space()), writer.path, size_text(writer.flushed_bytes),
+                  size_text(self.resume_bytes))
         while not self.handoff.drained:
             free = self._free_space()
             if free is None or free >= self.resume_bytes:
@@ -256,7 +256,7 @@ class Recorder:
                     if not is_disk_full(again):
                         raise
                 else:
-                    log.info("space is back (%s free): recording goes on in %s", megabytes(free), self.writer.path)
+                    log.info("space is back (%s free): recording goes on in %s", size_text(free), self.writer.path)
                     return True
             self._drop_for(PAUSE_POLL_S)
         return False
