@@ -327,14 +327,16 @@ def main(argv: list[str] | None = None) -> int:
             session.close()
     stack.report(monitor, "finished" if stack.learner_finished else "stopped")
     summary = monitor.summary(config, stack.restarts, stack.learner_finished)
+    written = run.summary
     try:
         write_text_atomically(run.summary, json.dumps(summary, indent=2) + "\n")
     except OSError as error:  # the run itself is safe: the learner's checkpoint holds it
         console.say(f"cannot write the summary {run.summary}: {error}", err=True)
+        written = "no summary written"
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
     console.say(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps "
-                f"per update (configured {config.pace.env_steps_per_update:g}); {run.summary}")
+                f"per update (configured {config.pace.env_steps_per_update:g}); {written}")
     restarted = ", ".join(f"{name} {count}" for name, count in stack.restarts.items() if count) or "none"
     console.say(f"stopped; restarts: {restarted}; logs in {run.logs}/")
     claim.close()

@@ -59,7 +59,10 @@ class Tmpfs:
         self._stop.clear()
         self._keeper = threading.Thread(target=self._keep_full, name="ballast", daemon=True)
         self._keeper.start()
+        deadline = time.monotonic() + FILL_WAIT_S
         while (free_bytes(self.path) or 0) > CHUNK:
+            if time.monotonic() > deadline or not self._keeper.is_alive():
+                raise AssertionError(f"{self.path} did not fill within {FILL_WAIT_S:.0f} s")
             time.sleep(0.05)
 
     def room(self) -> None:
@@ -85,6 +88,7 @@ class Tmpfs:
 
 
 CHUNK = 1 << 20
+FILL_WAIT_S = 30.0
 
 
 def why_no_tmpfs() -> str | None:

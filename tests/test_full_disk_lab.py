@@ -1,8 +1,9 @@
 """A full disk under a running stack, for real: the run folder on a tmpfs that a ballast file fills while the smoke
 stack trains, then frees. No process crash-loops (each role keeps its one pid), the learner's updates go on
 rising while the disk is full, the recorder's files read back, no temporary remains, checkpoints and snapshots
-are written again once space returns, and `--resume` continues from the newest checkpoint. The test prints its
-figures and leaves them in full_disk.json.
+are written again once space returns, a stack stopped while the disk is full again exits cleanly without its
+summary, and `--resume` continues from the newest checkpoint written. The test prints its figures and leaves
+them in full_disk.json.
 
 Needs root to mount the tmpfs; skipped with the reason elsewhere. Run alone, after the rest (deploy/test.sh).
 """
@@ -28,7 +29,8 @@ pytestmark = pytest.mark.lab
 
 FLAGS = ("--learner.checkpoint_every", "1000000", "--learner.checkpoint_every_s", "3", "--learner.keep_every", "0",
          "--learner.keep_every_s", "5", "--replay.snapshot_period_s", "3", "--recorder.flush_period_s", "0.5")
-FULL_S = 40.0  # how long the disk stays full: a dozen checkpoints, snapshots and recorder flushes refused
+FULL_S = 30.0  # how long the disk stays full: a dozen checkpoints, snapshots and recorder flushes refused
+STOP_FULL_S = 8.0  # full again before the stack is stopped: a checkpoint or two refused first
 DISK_MB = 512
 
 
@@ -85,24 +87,9 @@ def test_a_stack_on_a_disk_that_fills_trains_on_and_writes_again_once_space_retu
         stack.wait(lambda w: w.updates() >= 10 and w.replay.get("snapshots_written", 0) >= 1
                    and checkpoint_updates(run) > 0, "updates, a snapshot and a checkpoint", timeout_s=240)
         pids = Pids(stack)
-        figures["updates_when_full"] = stack.watch.updates()
-        figures["checkpoint_when_full"] = checkpoint_updates(run)
-        disk.fill()
-        failures_before = stack.watch.replay.get("snapshot_failures", 0)
-        time.sleep(FULL_S)
-        figures["updates_after_full_s"] = stack.watch.updates()
-        figures["checkpoint_while_full"] = checkpoint_updates(run)  # the last good one, still readable
-        figures["snapshot_failures_while_full"] = stack.watch.replay.get("snapshot_failures", 0) - failures_before
-        disk.room()
-        written = stack.watch.replay.get("snapshots_written", 0)
-        stack.wait(lambda w: checkpoint_updates(run) > figures["updates_after_full_s"]
-                   and w.replay.get("snapshots_written", 0) > written + 1, "a checkpoint and snapshots again",
-                   timeout_s=60)
-        figures["checkpoint_after_room"] = checkpoint_updates(run)
-        figures["checkpoints_failed"] = stack.watch.learner.get("checkpoints_failed")
+        _through_a_full_spell(stack, run, disk, figures)
         figures["restarts"] = pids.restarts()
-        figures["stack_exit"] = stack.stop()
-    figures["checkpoint_at_stop"] = checkpoint_updates(run)
+        _stopped_on_a_full_disk(stack, run, disk, figures)
     figures["temporary_bytes_left"] = sum(path.stat().st_size for path in run.root.rglob(".*.tmp"))
     figures["recorder_files"] = {path.name: _records(path) for path in run.wire_log_segments()}
     figures["said"] = _said(run, stack.out_path)
@@ -115,10 +102,42 @@ def test_a_stack_on_a_disk_that_fills_trains_on_and_writes_again_once_space_retu
     assert figures["updates_after_full_s"] > figures["updates_when_full"] + 5, "updates stood still on a full disk"
     assert figures["checkpoint_while_full"] < figures["updates_after_full_s"] < figures["checkpoint_after_room"]
     assert figures["snapshot_failures_while_full"] >= 1 and figures["checkpoints_failed"] >= 1
-    assert figures["stack_exit"] == 0 and (run.root / "summary.json").exists()
+    assert figures["stack_exit"] == 0 and figures["summary_written"] is False
+    assert any("cannot write the summary" in line for line in figures["said"])
+    assert any(line.endswith("no summary written") for line in figures["said"])
     assert figures["temporary_bytes_left"] == 0
     assert len(figures["recorder_files"]) >= 2 and all(figures["recorder_files"].values()), "the recorder paused"
-    assert figures["resumed_from"] == figures["checkpoint_at_stop"]
+    assert figures["resumed_from"] == figures["checkpoint_at_stop"] >= figures["checkpoint_after_room"]
+
+
+def _through_a_full_spell(stack: StackRun, run: RunDir, disk: Tmpfs, figures: dict) -> None:
+    """The disk full for FULL_S while the stack trains, then room again until a checkpoint and snapshots come."""
+    figures["updates_when_full"] = stack.watch.updates()
+    figures["checkpoint_when_full"] = checkpoint_updates(run)
+    disk.fill()
+    failures_before = stack.watch.replay.get("snapshot_failures", 0)
+    time.sleep(FULL_S)
+    figures["updates_after_full_s"] = stack.watch.updates()
+    figures["checkpoint_while_full"] = checkpoint_updates(run)  # the last good one, still readable
+    figures["snapshot_failures_while_full"] = stack.watch.replay.get("snapshot_failures", 0) - failures_before
+    disk.room()
+    written = stack.watch.replay.get("snapshots_written", 0)
+    stack.wait(lambda w: checkpoint_updates(run) > figures["updates_after_full_s"]
+               and w.replay.get("snapshots_written", 0) > written + 1, "a checkpoint and snapshots again",
+               timeout_s=60)
+    figures["checkpoint_after_room"] = checkpoint_updates(run)
+    figures["checkpoints_failed"] = stack.watch.learner.get("checkpoints_failed")
+
+
+def _stopped_on_a_full_disk(stack: StackRun, run: RunDir, disk: Tmpfs, figures: dict) -> None:
+    """Ctrl-C to the stack while the disk is full again: a clean stop, no summary, the newest checkpoint kept."""
+    disk.fill()
+    time.sleep(STOP_FULL_S)
+    figures["stack_exit"] = stack.stop()
+    figures["updates_at_stop"] = stack.watch.updates()
+    figures["summary_written"] = run.summary.exists()
+    disk.room()
+    figures["checkpoint_at_stop"] = checkpoint_updates(run)  # the newest that was written
 
 
 def _said(run: RunDir, console) -> list[str]:
@@ -126,7 +145,7 @@ def _said(run: RunDir, console) -> list[str]:
     lines = console.read_text(errors="replace").replace("\r", "\n").splitlines()
     for path in sorted(run.logs.glob("*.log")):
         lines += [f"{path.stem}: {line}" for line in path.read_text(errors="replace").splitlines()]
-    wanted = ("disk", "cannot write", "again, after", "lost", "space")
+    wanted = ("disk", "cannot write", "again, after", "lost", "space", "summary")
     return [line.strip() for line in lines if any(word in line for word in wanted) and not line.startswith("[")]
 
 

@@ -62,7 +62,7 @@ def test_a_full_disk_pauses_the_recording_which_goes_on_in_the_next_file_once_sp
     with LogFile(tmp_path / "traffic-2.mcap") as log:  # whole: it was closed
         assert [record.data for record in log.records()] == [stats(5)]
         assert log.recorder_counters()["pauses"] == "1"
-    assert recorder.error is None and recorder.snapshot()["written"] == 4
+    assert recorder.error is None and recorder.snapshot()["written"] == 4 and recorder.path.name == "traffic-2.mcap"
 
 
 def test_a_log_whose_beginning_cannot_be_written_leaves_no_file(tmp_path):

@@ -144,6 +144,7 @@ class Recorder:
                  reopen: Callable[[], LogWriter] | None = None,
                  free_space: Callable[[], int | None] | None = None) -> None:
         self.writer: LogWriter | None = writer  # None once it was abandoned and no other opened before the end
+        self.path = writer.path  # of the latest file
         self._reopen = reopen
         self._free_space = free_space or (lambda: free_bytes(writer.path.parent))
         self.resume_bytes = max(RESUME_CHUNKS * int(config.chunk_mb * MEGABYTE), RESUME_MIN_BYTES)
@@ -256,7 +257,8 @@ class Recorder:
                     if not is_disk_full(again):
                         raise
                 else:
-                    log.info("space is back (%s free): recording goes on in %s", size_text(free), self.writer.path)
+                    self.path = self.writer.path
+                    log.info("space is back (%s free): recording goes on in %s", size_text(free), self.path)
                     return True
             self._drop_for(PAUSE_POLL_S)
         return False
@@ -337,5 +339,5 @@ def run_recorder(config: Config, output: Path | None = None, tensorboard: Path |
             stats_out.put(Stats(source="recorder", time=time.time(), values=values))
             log.info("received %(received)d, written %(written)d, dropped %(dropped)d, "
                      "queue %(queue_messages)d (%(queue_mb).1f MB)", values)
-    log.info("stopped; %s: %s", path, recorder.snapshot())
+    log.info("stopped; %s: %s", recorder.path, recorder.snapshot())
     return 1 if recorder.error is not None else 0
