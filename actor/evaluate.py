@@ -46,7 +46,7 @@ from common.checkpoint import CheckpointError
 from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.config_values import to_toml
 from common.options import ConfigError
-from common.run_dir import RunDir, RunStatus, StatusError
+from common.run_dir import POLICY_KINDS, RunDir, RunStatus, StatusError
 from common.shell import interrupt_main, run_main, stop_with_parent
 
 FOLLOW_EVERY_S = 60.0  # --follow: how often to look for new kept policies
@@ -92,6 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "a training run; the output names the niceness it ran at (default: 0)")
     parser.add_argument("--sets", default=",".join(START_SETS), metavar="train,test",
                         help="start sets to evaluate on (default: train,test)")
+    parser.add_argument("--kinds", default="online", metavar="online,target,ema",
+                        help="with --curve, the kinds of kept policy to read (their rows are told apart by the "
+                             f"CSV's kind column): {', '.join(POLICY_KINDS)} (default: online; the others are "
+                             "beyond the paper: learner.keep_target, learner.ema_updates)")
     parser.add_argument("--random-baseline", action=argparse.BooleanOptionalAction, default=True,
                         help="also run a uniformly random policy from the same starts (default: on)")
     parser.add_argument("--privileged", action="store_true",
@@ -110,6 +114,14 @@ def parse_sets(text: str) -> list[str]:
     if not sets or unknown:
         raise EvaluationError(f"--sets: choose from {', '.join(START_SETS)}, got {text!r}")
     return sets
+
+
+def parse_kinds(text: str) -> list[str]:
+    kinds = [part.strip() for part in text.split(",") if part.strip()]
+    unknown = [name for name in kinds if name not in POLICY_KINDS]
+    if not kinds or unknown or len(set(kinds)) < len(kinds):
+        raise EvaluationError(f"--kinds: choose from {', '.join(POLICY_KINDS)}, each once, got {text!r}")
+    return kinds
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -181,12 +193,13 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
         raise EvaluationError(f"--follow: seconds must be > 0, got {args.follow:g}")
     if args.every < 1:
         raise EvaluationError(f"--every: updates must be >= 1, got {args.every}")
+    kinds = parse_kinds(args.kinds)
     if args.follow is not None:
         warn_if_crowding(run, args)
     while True:
         training = args.follow is not None and _stack_training(run)
-        if args.follow is not None and not curve_policies(run.kept_policies(), args.from_updates, args.every,
-                                                          args.to_updates):
+        if args.follow is not None and not any(curve_policies(run.kept_policies(kind), args.from_updates,
+                                                              args.every, args.to_updates) for kind in kinds):
             if training:
                 time.sleep(args.follow)  # none kept yet that the curve reads
                 continue
@@ -194,10 +207,11 @@ def _curve(args: argparse.Namespace, sets: list[str], nice: int) -> None:
                   "follow", file=sys.stderr)  # a budget shorter than --every, say; the run is no worse for it
             return
         rows = evaluate_curve(run, out_dir, sets, lambda saved: curve_config(saved, args), nice,
-                              from_updates=args.from_updates, every=args.every, to_updates=args.to_updates)
+                              from_updates=args.from_updates, every=args.every, to_updates=args.to_updates,
+                              kinds=kinds)
         evaluated_now = rows is not None
         if rows is None and not training:
-            rows = read_curve(out_dir / CURVE_CSV) or None  # nothing new: the figure and summary redrawn whole
+            rows = read_curve(out_dir / CURVE_CSV, kind=None) or None  # nothing new: redrawn whole
         if rows is not None:
             summary, paths = write_outputs(out_dir, rows, run.root.name, evaluated_now)
             print("\n".join(summary_lines(summary)))

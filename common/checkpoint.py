@@ -10,7 +10,8 @@ far a run got. Only this module knows what the file holds:
     config       the run's config as a table (common.config_values.to_dict)
 
 The policies the learner keeps for greedy learning curves (learner.keep_every,
-<run>/policies/) are files of their own, KeptPolicy: the online weights only.
+<run>/policies/) are files of their own, KeptPolicy: one network's weights, of a kind (the online
+network; beyond the paper, the target network or the learner's moving average beside it).
 A policy shipped with the project (deploy/tools/ship_policy.py) is a KeptPolicy too,
 its weights in 16 bits (POLICY_ENCODINGS), half the size; reading it widens
 them to float32. So is the mean of several kept policies' weights
@@ -29,7 +30,7 @@ import numpy as np
 import torch
 
 from common import atomic_file
-from common.run_dir import CHECKPOINT_FILE, find_checkpoint
+from common.run_dir import CHECKPOINT_FILE, POLICY_KINDS, find_checkpoint
 
 SECTIONS = ("learner", "exploration", "clock", "config")
 
@@ -133,13 +134,14 @@ class KeptPolicy:
     averaged: tuple[int, ...] = ()  # the updates of the kept policies whose mean these weights are; () if none
     # the learner's update precision when it kept them (learner.precision auto differs by CPU); "" if unrecorded
     precision: str = ""
+    kind: str = "online"  # which weights: POLICY_KINDS (common/run_dir.py); a file without the field is online
     path: Path | None = None  # the file it was read from
 
     def save(self, path: Path) -> Path:
         fields = {name: getattr(self, name) for name in _POLICY_CHECKS}
         mean = {"averaged": list(self.averaged)} if self.averaged else {}  # a learner's file stays as it was
         precision = {"precision": self.precision} if self.precision else {}
-        write_atomically(path, {"format": POLICY_FORMAT, **fields, **mean, **precision})
+        write_atomically(path, {"format": POLICY_FORMAT, **fields, **mean, **precision, "kind": self.kind})
         return path
 
     @classmethod
@@ -160,10 +162,13 @@ class KeptPolicy:
         precision = payload.get("precision", "")  # absent in a policy kept before the learner recorded it
         if precision not in TRAINED_PRECISIONS:
             wrong.append("precision")
+        weights = payload.get("kind", "online")  # absent in a policy kept before the kinds
+        if weights not in POLICY_KINDS:
+            wrong.append("kind")
         if wrong:
             raise CheckpointError(f"{kind} {path}: {', '.join(wrong)} missing or malformed")
         return cls(**{name: payload[name] for name in _POLICY_CHECKS}, averaged=tuple(averaged), precision=precision,
-                   path=path)
+                   kind=weights, path=path)
 
     @classmethod
     def of_checkpoint(cls, checkpoint: Checkpoint) -> KeptPolicy:

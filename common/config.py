@@ -176,6 +176,30 @@ class LearnerConfig:
                    "bfloat16 at half the disk (24.3 MB at the paper's sizes; a long run's largest part): the curve then "
                    "reads the rounded weights, as a shipped policy's (docs/evaluation-curves.md)",
         choices=tuple(WEIGHTS_ENCODINGS))
+    lr_decay_from: int = option(
+        0, "beyond the paper: from this many updates on, Adam's rate falls linearly to lr x lr_final_scale at "
+           "lr_decay_to updates, then stays there: a smaller step late in a run (learner/step_size.py); 0: off, "
+           "the paper's constant rate", "updates")
+    lr_decay_to: int = option(0, "with lr_decay_from: the update at which the rate reaches lr x lr_final_scale",
+                              "updates")
+    lr_final_scale: float = option(0.1, "with lr_decay_from: the rate at lr_decay_to and after, as a share of lr, "
+                                        "in (0, 1]")
+    grad_clip_norm: float = option(
+        0.0, "beyond the paper: scale each update's gradient to a global norm of at most this (Ape-X and R2D2 clip "
+             "at 40), bounding the steps a rare large error makes; 0: off, the paper's unclipped Adam step")
+    keep_target: bool = option(
+        False, "beyond the paper: also keep the target network (a Polyak average of the online weights over about "
+               "1/tau updates) beside each kept policy from keep_shadows_from on, as kind target in "
+               "policies/target/; nothing the actors or the loss see changes (docs/evaluation-curves.md)")
+    ema_updates: int = option(
+        0, "beyond the paper: hold an exponential moving average of the online weights over about this many updates "
+           "(each update moves it 1/ema_updates of the way to the online weights; it steps every 10 updates, as far "
+           "as 10 such steps go), in float32 and checkpointed, "
+           "and keep it beside each kept policy from keep_shadows_from on, as kind ema in policies/ema/; the actors "
+           "and the loss never see it. 0: off", "updates")
+    keep_shadows_from: int = option(
+        0, "keep the target and EMA policies (keep_target, ema_updates) only beside the policies kept at this many "
+           "updates or later: a curve reads them late in a run, and each is one network's file", "updates")
     prefetch: int = option(2, "batch requests kept in flight to the replay", "batches")
     torch_threads: int = option(
         0, "torch's CPU threads; 0 keeps torch's default (all cores): paced actors leave the learner most of the "
@@ -242,6 +266,13 @@ class LearnerConfig:
         check(self.weights_encoding in WEIGHTS_ENCODINGS, "weights_encoding",
               f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
         check(self.keep_encoding in WEIGHTS_ENCODINGS, "keep_encoding", f"must be one of {', '.join(WEIGHTS_ENCODINGS)}")
+        check(self.ema_updates >= 0, "ema_updates", "must be >= 0 (0: off)")
+        check(self.lr_decay_from >= 0, "lr_decay_from", "must be >= 0 (0: off)")
+        check(self.lr_decay_from == 0 or self.lr_decay_to > self.lr_decay_from, "lr_decay_to",
+              "must exceed learner.lr_decay_from when the decay is on")
+        check(0.0 < self.lr_final_scale <= 1.0, "lr_final_scale", "must lie in (0, 1]")
+        check(self.grad_clip_norm >= 0, "grad_clip_norm", "must be >= 0 (0: off)")
+        check(self.keep_shadows_from >= 0, "keep_shadows_from", "must be >= 0")
 
 
 @dataclass

@@ -4,6 +4,7 @@
     logs/<process>.log          one file per process of the stack; the grid adds stack.log, evaluate.log
     checkpoints/latest.pt       the learner's checkpoint (common/checkpoint.py)
     policies/policy-u<updates>.pt  the policies the learner kept (learner.keep_every), 7-digit updates
+    policies/<kind>/policy-u<updates>.pt  the same of another kind (POLICY_KINDS): target, ema, mean
     curve/                      `evaluate --curve`'s greedy learning curve of the kept policies
     replay/rate_limiter.json    the replay's counters, and replay/snapshot/ its episodes (replay --resume)
     traffic.mcap                the flight recorder's log; traffic-2.mcap, ... after each restart
@@ -32,6 +33,10 @@ CHECKPOINTS = "checkpoints"
 CHECKPOINT_FILE = "latest.pt"
 POLICIES = "policies"
 POLICY_FILE = re.compile(r"policy-u(\d+)\.pt")
+# what a kept policy's weights are: the online network (the policy the actors act by), the learner's target
+# network and its moving average of the online weights (learner.keep_target, learner.ema_updates), and the
+# mean of a run's last kept online policies (deploy/tools/average_policies.py); all but online are beyond the paper
+POLICY_KINDS = ("online", "target", "ema", "mean")
 
 
 class StatusError(ValueError):
@@ -52,6 +57,8 @@ class RunDir:
         """The run a checkpoint or kept policy file belongs to: <run>/checkpoints/latest.pt or
         <run>/policies/policy-u<updates>.pt, else the folder it lies in."""
         folder = checkpoint.parent
+        if folder.parent.name == POLICIES and folder.name in POLICY_KINDS:
+            return cls(folder.parent.parent)
         return cls(folder.parent if folder.name in (CHECKPOINTS, POLICIES) else folder)
 
     @property
@@ -77,15 +84,25 @@ class RunDir:
     def policies(self) -> Path:
         return self.root / POLICIES
 
-    def policy(self, updates: int) -> Path:
-        """The kept policy of this many updates; zero-padded, so the names sort by updates."""
-        return self.policies / f"policy-u{updates:07d}.pt"
+    def policy(self, updates: int, kind: str = "online") -> Path:
+        """The kept policy of this many updates and kind; zero-padded, so the names sort by updates."""
+        return self.policy_folder(kind) / f"policy-u{updates:07d}.pt"
 
-    def kept_policies(self) -> list[tuple[int, Path]]:
-        """(updates, file) of every kept policy, by updates."""
-        found = [(int(match[1]), path) for path in self.policies.glob("policy-u*.pt")
+    def policy_folder(self, kind: str = "online") -> Path:
+        if kind not in POLICY_KINDS:
+            raise ValueError(f"a policy kind is one of {', '.join(POLICY_KINDS)}, not {kind!r}")
+        return self.policies if kind == "online" else self.policies / kind
+
+    def kept_policies(self, kind: str = "online") -> list[tuple[int, Path]]:
+        """(updates, file) of every kept policy of a kind, by updates."""
+        found = [(int(match[1]), path) for path in self.policy_folder(kind).glob("policy-u*.pt")
                  if (match := POLICY_FILE.fullmatch(path.name))]
         return sorted(found)
+
+    def evaluation_of(self, kind: str = "online") -> Path:
+        """evaluate's report of a run's chosen policy of a kind: evaluation/, or evaluation-<kind>/."""
+        self.policy_folder(kind)  # a known kind
+        return self.evaluation if kind == "online" else self.root / f"evaluation-{kind}"
 
     @property
     def curve(self) -> Path:

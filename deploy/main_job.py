@@ -22,7 +22,7 @@ from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
 from common.shell import env_stopping_with_this, on_stop_signals
 from deploy.studies.experiments import preset_flags
-from deploy.studies.grid_job import Options, choice_commands, curve_commands, evaluate_command
+from deploy.studies.grid_job import Options, choice_commands, curve_commands, evaluate_commands
 from deploy.studies.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
                                next_step, read_choice)
 from deploy.studies.run_results import greedy_headline
@@ -83,7 +83,8 @@ def read_run(run: RunDir, options: Options, budget: int) -> None:
             print(f"main job: chose the policy kept at {choice['updates']:,d} updates on the train starts "
                   f"(train CFR {100 * choice['train_cfr']:.0f}% at {choice['trials_per_start']} trials per start)")
         elif step == EVALUATE:
-            call(evaluate_command(run, options, read_choice(run)["updates"]))
+            for command in evaluate_commands(run, options):
+                call(command)
         else:
             raise SystemExit(f"main job: the run stopped short of its budget; `deploy/run.sh --resume` with "
                              f"the same flags trains on ({run.root})")

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.checkpoint import TRAINED_PRECISIONS, Checkpoint, KeptPolicy
+from common.checkpoint import Checkpoint
 from common.cpu_capability import cpu_label
 from common.disk_space import RetriedWrites
 from common.config import Config
@@ -46,7 +46,7 @@ from common.wire.errors import WireError
 from common.wire.messages import RateState, ReplayStats, TraceBatch, Weights, WeightsPiece, WeightsPieceAsk
 from common.wire.run_shape import RunShape, check_trace_batch
 from learner.feed import feed_strategy
-from learner.keep import PolicyKeeper
+from learner.keep import PolicyKeeper, policies_now
 from learner.prefetch import Prefetcher
 from learner.trace_batch import TraceArrays, TraceTensors
 from learner.update import DoubleQLearner
@@ -352,14 +352,11 @@ class LearnerService:
             self.try_checkpoint()
 
     def keep_policy(self) -> None:
-        """Keeps the online weights with the run's updates, env steps and wall time (written in the background)."""
+        """Keeps the online weights, and the shadow kinds due beside them, with the run's updates, env steps and
+        wall time (written in the background)."""
         with self._lock:
             env_steps, wall_s = self.clock.env_steps, self.clock.wall_s()
-        online = {name: torch.from_numpy(array) for name, array in self.learner.online_weights().items()}
-        precision = self.learner.precision if self.learner.precision in TRAINED_PRECISIONS else ""  # not "auto"
-        self.keeper.keep(KeptPolicy(updates=self.updates, env_steps=env_steps, wall_s=wall_s,
-                                    cpu=trained_on(self.learner.device), config=to_dict(self.config), online=online,
-                                    precision=precision))
+        self.keeper.keep(policies_now(self.learner, self.config, env_steps, wall_s, trained_on(self.learner.device)))
 
     def keep_policy_if_due(self) -> None:
         if self.keeper.due(self.updates):

@@ -63,6 +63,8 @@ from learner.loss import (LossFunction, LossTerms, burn_in_steps, one_pass_terms
                           trace_pass_loss, trace_pixels)
 from learner.trace_batch import BatchStager, TraceArrays, TraceTensors, _wait_until_ready, to_tensors
 from learner.update_path import UPDATE_PATHS, choose_learner_precision, choose_update_path
+from learner.step_size import clip_gradient, set_learning_rate
+from learner.weight_average import WeightAverage
 
 log = logging.getLogger("learner.update")
 
@@ -105,6 +107,8 @@ class DoubleQLearner:
         self.online = initial_network(network, learner.seed).to(self.device)
         self.target = _packed(copy.deepcopy(self.online)).requires_grad_(False)
         self.optimizer = _adam(self.online.parameters(), learner.lr)
+        # beyond the paper: a slow average of the online weights, for kept policies only (learner/weight_average.py)
+        self.average = WeightAverage(self.online, learner.ema_updates) if learner.ema_updates > 0 else None
         self.updates = 0
         self.split_passes = False  # the target pass on a helper thread (update path "trace-split")
         self.precision = learner.precision  # "auto" until the first batch has timed both
@@ -173,8 +177,12 @@ class DoubleQLearner:
                                        self.config.masked_steps, self.config.n_step)
         self.optimizer.zero_grad(set_to_none=True)
         terms.loss.backward()
+        clip_gradient(self.online.parameters(), self.config)
+        set_learning_rate(self.optimizer, self.config, self.updates)
         self.optimizer.step()
         self.updates += 1
+        if self.average is not None:
+            self.average.update(self.online, self.updates)
         return self.exploration_terms(tensors, terms, with_q_after)
 
     def _split_trace_pass_loss(self, batch: TraceTensors) -> LossTerms:
@@ -247,11 +255,13 @@ class DoubleQLearner:
         return weights_to_numpy(self.online)
 
     def state_dict(self) -> dict:
+        average = {"ema": self.average.state_dict()} if self.average is not None else {}
         return {
             "online": self.online.state_dict(),
             "target": self.target.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
+            **average,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -265,6 +275,16 @@ class DoubleQLearner:
         except (RuntimeError, KeyError) as error:
             raise ValueError(f"learner checkpoint does not fit this network: {error}") from None
         self.updates = int(state["updates"])
+        if self.average is not None:
+            self._load_average(state.get("ema"))
+
+    def _load_average(self, state: dict | None) -> None:
+        if state is None:
+            log.warning("learner.ema_updates is on but the checkpoint holds no moving average: it starts again "
+                        "from the weights of update %d", self.updates)
+            self.average.restart(self.online)
+            return
+        self.average.load_state_dict(state)
 
     def scratch_copy(self) -> "DoubleQLearner":
         """A deep copy to time updates on, its LSTMs packed as the original's."""

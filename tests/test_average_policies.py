@@ -1,6 +1,8 @@
 """The mean of kept policies' weights (deploy/tools/average_policies.py): hand-computed means, the file names what it
 averages, and what cannot be averaged is refused with the reason."""
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -83,7 +85,9 @@ def test_what_cannot_be_averaged_is_refused_with_the_reason(config, tmp_path, ca
     assert "policies/ folder" in refused([str(tmp_path / "a.pt"), str(tmp_path / "a.pt"), "--out",
                                           str(tmp_path / "runs" / "policies" / "mean.pt")], capsys)
     average_policies.main([str(tmp_path / "a.pt"), str(tmp_path / "a.pt"), "--out", out])
-    assert "a mean already" in refused([out, str(tmp_path / "a.pt"), "--out", str(tmp_path / "x.pt")], capsys)
+    assert "a mean policy: the mean is of kept online policies" in refused(
+        [out, str(tmp_path / "a.pt"), "--out", str(tmp_path / "x.pt")], capsys)
+    assert KeptPolicy.load(Path(out)).kind == "mean"
     assert not (tmp_path / "x.pt").exists()
 
 

@@ -17,7 +17,7 @@ import torch
 from actor.evaluate import build_parser, main
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import (CURVE_TRIALS, crowding_warning, curve_config, curve_summary, first_reaching,
-                                    read_curve, summary_lines, trained_with, unbridged,
+                                    late_curves, of_kind, read_curve, summary_lines, trained_with, unbridged,
                                     warn_if_crowding)
 from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.tables import COVERAGE_COLUMNS
@@ -130,8 +130,10 @@ def test_a_kept_policy_reads_back_into_the_network(config):
     process.keeper.wait()
     path = RunDir.of(config).policy(1)
     payload = torch.load(path, weights_only=True)
-    # no target; the precision the learner updated in (learner.precision auto differs by CPU)
-    assert set(payload) == {"format", "updates", "env_steps", "wall_s", "cpu", "config", "online", "precision"}
+    # no target; the precision the learner updated in (learner.precision auto differs by CPU); which weights
+    assert set(payload) == {"format", "updates", "env_steps", "wall_s", "cpu", "config", "online", "precision",
+                            "kind"}
+    assert payload["kind"] == "online"
     policy = KeptPolicy.load(path)
     assert policy.precision == process.learner.precision and policy.precision in ("float32", "bfloat16")
     network = D3RQN(from_dict(policy.config).network)
@@ -163,7 +165,7 @@ def test_weights_a_16_bit_encoding_cannot_hold_are_kept_in_float32_with_a_warnin
     keeper = PolicyKeeper(run, cadence=None, encoding="float16")
     online = {"w": torch.tensor([1.0, 70_000.0])}  # beyond float16's 65,504
     caplog.set_level(logging.WARNING, logger="learner")
-    keeper.keep(KeptPolicy(updates=3, env_steps=9, wall_s=1.0, cpu="Test CPU", config={}, online=online))
+    keeper.keep([KeptPolicy(updates=3, env_steps=9, wall_s=1.0, cpu="Test CPU", config={}, online=online)])
     keeper.wait()
     kept_back = KeptPolicy.load(run.policy(3))
     assert kept_back.encoding == "float32" and kept_back.online["w"].tolist() == [1.0, 70_000.0]
@@ -214,13 +216,13 @@ def tiny_config(runs_dir):
                                            "evaluation.envs_per_worker": 5})
 
 
-def keep(config, updates: int, precision: str = "") -> None:
+def keep(config, updates: int, precision: str = "", kind: str = "online") -> None:
     """A kept policy as the learner writes it, with weights of its own (precision "": as kept before the
     learner recorded it)."""
     torch.manual_seed(updates)
     online = D3RQN(config.network).state_dict()
     KeptPolicy(updates=updates, env_steps=40 * updates, wall_s=2.0 * updates, cpu="Test CPU", config=to_dict(config),
-               online=online, precision=precision).save(RunDir.of(config).policy(updates))
+               online=online, precision=precision, kind=kind).save(RunDir.of(config).policy(updates, kind))
 
 
 def read_rows(path):
@@ -344,12 +346,61 @@ def test_a_follower_of_a_run_that_stopped_before_a_policy_at_its_multiple_ends_w
         main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--every", "2000"])
 
 
+def test_the_shadow_kinds_are_rows_of_their_own_and_the_online_summary_stays_the_online_one(tmp_path, capsys):
+    config = tiny_config(tmp_path)
+    run = RunDir.of(config)
+    keep(config, 10)
+    keep(config, 20)
+    keep(config, 20, kind="target")
+    keep(config, 30, kind="ema")
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test"])
+    summary = json.loads((run.curve / "curve_summary.json").read_text())
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--kinds", "target,ema", "--from-updates", "20"])
+    rows = read_rows(run.curve / "curve.csv")
+    assert [(row["updates"], row["kind"], row["start_set"]) for row in rows] == [
+        ("10", "online", "test"), ("20", "online", "test"), ("20", "target", "train"), ("20", "target", "test"),
+        ("30", "ema", "train"), ("30", "ema", "test")]
+    assert {row["kept_file"] for row in rows if row["kind"] != "online"} == {"policy-u0000020.pt", "policy-u0000030.pt"}
+    again = json.loads((run.curve / "curve_summary.json").read_text())
+    assert again == summary  # the online one (no policy kept from 20,000 updates: no late curve)
+    assert [(row["updates"], row["start_set"]) for row in read_curve(run.curve / "curve.csv")] == [
+        ("10", "test"), ("20", "test")]
+    capsys.readouterr()
+    main(["--curve", str(run.root), *CURVE_FLAGS, "--kinds", "target", "--from-updates", "20"])
+    assert "nothing new" in capsys.readouterr().err  # each kind's rows are its own: not evaluated again
+    with pytest.raises(SystemExit):
+        main(["--curve", str(run.root), *CURVE_FLAGS, "--kinds", "mean"])  # none kept of that kind
+    assert "no kept mean policies" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--curve", str(run.root), *CURVE_FLAGS, "--kinds", "target,best"])
+    assert "--kinds: choose from online, target, ema, mean" in capsys.readouterr().err
+
+
+def test_the_late_curve_of_each_kind_is_its_test_rows_from_20000_updates_by_hand():
+    def row(updates, kind, start_set, cfr, length):
+        return {"updates": str(updates), "kind": kind, "start_set": start_set, "cfr": str(cfr),
+                "mean_length": str(length)}
+    rows = [row(18_000, "online", "test", 1.0, 2_000), row(20_000, "online", "test", 0.6, 1_500),
+            row(22_000, "online", "test", 0.2, 900), row(22_000, "online", "train", 0.0, 10),
+            row(20_000, "ema", "test", 0.9, 1_800), row(22_000, "ema", "test", 0.8, 1_700)]
+    late = late_curves(rows)
+    assert list(late) == ["online", "ema"]
+    assert late["online"]["policies"] == 2 and late["online"]["test_cfr_mean"] == pytest.approx(0.4)
+    assert late["online"]["test_cfr_min"] == 0.2 and late["online"]["test_mean_length_mean"] == 1_200
+    assert late["ema"]["test_cfr_mean"] == pytest.approx(0.85) and late["ema"]["test_cfr_min"] == 0.8
+    lines = summary_lines({**curve_summary([{**r, "env_steps": "1", "wall_s": "1", "kept_file": "f",
+                                             "trained_on": "cpu", "nice": "0"} for r in of_kind(rows)]),
+                           "late_curve": late})
+    assert ("late curve of the ema policies (2 kept from 20,000 updates): test CFR 85.0% on average, 80% at the "
+            "least; mean length 1,750") in lines
+
+
 def test_a_curve_from_before_the_coverage_and_precision_columns_reads_and_takes_new_rows(tmp_path, capsys):
     old_rows = read_rows(OLD_CURVE)
     assert not {*COVERAGE_COLUMNS, "trained_precision"} & set(old_rows[0])
     rows = read_curve(OLD_CURVE)
     assert len(rows) == len(old_rows) and {row[column] for row in rows for column in COVERAGE_COLUMNS} == {"nan"}
-    assert {row["trained_precision"] for row in rows} == {""}
+    assert {row["trained_precision"] for row in rows} == {""} and {row["kind"] for row in rows} == {"online"}
     assert (rows[0]["updates"], rows[0]["start_set"], rows[0]["mean_length"]) == ("1000", "train", "70.18")
 
     config = tiny_config(tmp_path)
@@ -360,8 +411,8 @@ def test_a_curve_from_before_the_coverage_and_precision_columns_reads_and_takes_
     main(["--curve", str(run.root), *CURVE_FLAGS])
     assert "curve: 1/1 kept policies" in capsys.readouterr().err
     after = read_rows(run.curve / "curve.csv")
-    assert after[2:] == [{**row, "trained_precision": "", **{column: "nan" for column in COVERAGE_COLUMNS}}
-                         for row in old_rows]
+    assert after[2:] == [{**row, "trained_precision": "", "kind": "online",
+                          **{column: "nan" for column in COVERAGE_COLUMNS}} for row in old_rows]
     assert [(row["updates"], row["start_set"]) for row in after[:2]] == [("30", "train"), ("30", "test")]
     for row in after[:2]:  # 8 steps of 1 m stay on the start street, 20 m or more from the junction ahead
         assert [float(row[column]) for column in COVERAGE_COLUMNS] == [1.0, 1.0, 1.0, 0.0, 0.0, 0.0]
@@ -378,7 +429,7 @@ def test_a_run_without_kept_policies_is_a_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["--curve", str(tmp_path / "nothing")])
     assert exit_info.value.code == 1
-    assert "no kept policies in" in capsys.readouterr().err
+    assert "no kept online policies in" in capsys.readouterr().err
 
 
 def test_the_curve_takes_five_trials_per_start_unless_told():

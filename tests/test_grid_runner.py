@@ -7,15 +7,17 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import threading
 from pathlib import Path
 
 import pytest
+import torch
 
 import deploy.studies.experiments as experiments
 import deploy.studies.grid_job as grid_job
-from common.checkpoint import save_checkpoint
+from common.checkpoint import KeptPolicy, save_checkpoint
 from common.config_values import load_config, to_toml
 from deploy.studies import grid_cells
 from deploy.studies.grid_cells import RunSpec, choice_candidates, choose, curve_wanted, next_step
@@ -31,11 +33,12 @@ def options(tmp_path: Path, updates: int = 30_000, extra: tuple[str, ...] = ("--
     return grid_job.Options(tmp_path, updates, trials=10, actors=None, extra=extra, progress_s=30.0)
 
 
-def curve_rows(updates: list[int], start_set: str, cfr: dict[int, float] | None = None) -> list[dict]:
+def curve_rows(updates: list[int], start_set: str, cfr: dict[int, float] | None = None, kind: str = "online"
+               ) -> list[dict]:
     cfr = cfr or {}
-    return [{"updates": u, "env_steps": 28_000 + 4 * u, "wall_s": u / 4, "kept_file": f"policy-u{u:07d}.pt",
-             "trained_on": "cpu", "nice": 0, "start_set": start_set, "mean_length": 500 + u / 100,
-             "cfr": cfr.get(u, 0.1)} for u in updates]
+    return [{"updates": u, "kind": kind, "env_steps": 28_000 + 4 * u, "wall_s": u / 4,
+             "kept_file": f"policy-u{u:07d}.pt", "trained_on": "cpu", "nice": 0, "start_set": start_set,
+             "mean_length": 500 + u / 100, "cfr": cfr.get(u, 0.1)} for u in updates]
 
 
 def write_curve(run: RunDir, rows: list[dict]) -> None:
@@ -47,12 +50,12 @@ def write_curve(run: RunDir, rows: list[dict]) -> None:
 
 
 def make_drive_run(folder: Path, env_steps: int | None = None, kept: list[int] = (), curve: list[dict] = (),
-             strategy: str = "bmc", seed: int = 0) -> RunDir:
+             strategy: str = "bmc", seed: int = 0, **learner) -> RunDir:
     """A run folder as the steps leave it: its config, a checkpoint with this clock, kept policies, a curve."""
     run = RunDir(folder)
     folder.mkdir(parents=True, exist_ok=True)
     config = load_config("drive", overrides={"run.name": folder.name, "exploration.strategy": strategy,
-                                             "run.seed": seed})
+                                             "run.seed": seed, **{f"learner.{key}": value for key, value in learner.items()}})
     run.config.write_text(to_toml(config))
     if env_steps is not None:
         save_checkpoint(run.checkpoints, {"clock": {"env_steps": env_steps}, "learner": {"updates": 7}})
@@ -120,6 +123,88 @@ def test_what_a_run_folder_needs_next(tmp_path):
     assert next_step(full.root, BUDGET) == "curve"
 
 
+SHADOWS = list(range(18_000, 30_001, 1_000))  # kept from learner.keep_shadows_from 18,000; read from 20,000
+
+
+def shadowed_run(tmp_path: Path) -> RunDir:
+    """A drive run that kept target and EMA policies from 20,000 updates on, its online curve read; its online
+    candidates hold weights that average by hand (26,000 to 30,000: a mean of 28,000)."""
+    run = make_drive_run(tmp_path / "run", BUDGET, KEPT, curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test")
+                         + curve_rows(KEPT[-5:], "train"), keep_target=True, ema_updates=5_000)
+    for updates in KEPT[-5:]:
+        KeptPolicy(updates=updates, env_steps=28_000 + 4 * updates, wall_s=1.0, cpu="cpu", config={},
+                   online={"w": torch.full((2,), float(updates))}).save(run.policy(updates))
+    for kind in ("target", "ema"):
+        run.policy_folder(kind).mkdir()
+        for updates in SHADOWS:
+            run.policy(updates, kind).write_bytes(b"kept")
+    return run
+
+
+def test_a_run_with_shadow_policies_reads_chooses_and_evaluates_each_kind(tmp_path):
+    run, opts = shadowed_run(tmp_path), options(tmp_path)
+    assert grid_cells.shadow_kinds(run) == ["target", "ema"]
+    assert next_step(run.root, BUDGET) == "curve"  # the shadows' curve is missing
+    [shadow_pass] = grid_job.curve_commands(run, opts)
+    assert shadow_pass[5:shadow_pass.index("--preset")] == [
+        "--kinds", "target,ema", "--sets", "train,test", "--from-updates", "20000", "--every", "1000"]
+    late = sorted(grid_cells.shadow_curve_wanted(run, "target"))  # where the online curve reads, from 20,000
+    assert late == list(range(20_000, 30_001, 2_000))
+    online_rows = curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test") + curve_rows(KEPT[-5:], "train")
+    shadow_rows = [row for kind in ("target", "ema") for start_set in ("train", "test")
+                   for row in curve_rows(late[:-1], start_set, kind=kind)]
+    write_curve(run, online_rows + shadow_rows)
+    assert next_step(run.root, BUDGET) == "curve"  # 30,000 of the shadows still missing
+    shadow_rows += [row for kind in ("target", "ema") for start_set in ("train", "test")
+                    for row in curve_rows([30_000], start_set, kind=kind)]
+    write_curve(run, online_rows + shadow_rows)
+    assert next_step(run.root, BUDGET) == "choose"
+    passes = [command[5:command.index("--preset")] for command in grid_job.choice_commands(run, opts)]
+    assert passes == [["--kinds", kind, "--sets", "train", "--from-updates", "26000", "--every", "1000"]
+                      for kind in ("target", "ema")]  # 27,000 and 29,000 are off the curve's schedule
+    with pytest.raises(grid_cells.ExperimentError, match="lacks train rows of the target policies"):
+        choose(run)
+    write_curve(run, online_rows + shadow_rows + curve_rows([27_000], "train", {27_000: 0.9}, kind="target")
+                + curve_rows([29_000], "train", kind="target") + curve_rows([27_000, 29_000], "train", kind="ema"))
+    assert grid_job.choice_commands(run, opts) == []
+    choice = choose(run)
+    assert choice["updates"] == 30_000 and list(choice["kinds"]) == ["target", "ema", "mean"]
+    assert choice["kinds"]["target"]["updates"] == 27_000 and choice["kinds"]["ema"]["updates"] == 30_000
+    assert choice["kinds"]["target"]["among"] == KEPT[-5:] == choice["kinds"]["mean"]["among"]
+    mean = KeptPolicy.load(run.policy(30_000, "mean"))
+    assert mean.kind == "mean" and mean.averaged == tuple(KEPT[-5:]) and mean.online["w"].tolist() == [28_000.0] * 2
+    assert next_step(run.root, BUDGET) == "evaluate"
+    commands = grid_job.evaluate_commands(run, opts)
+    assert [(command[4], command[6]) for command in commands] == [
+        (str(run.policy(30_000)), str(run.evaluation)),
+        (str(run.policy(27_000, "target")), str(run.root / "evaluation-target")),
+        (str(run.policy(30_000, "ema")), str(run.root / "evaluation-ema")),
+        (str(run.policy(30_000, "mean")), str(run.root / "evaluation-mean"))]
+    assert "--no-random-baseline" not in commands[0] and all("--no-random-baseline" in c for c in commands[1:])
+    fake_evaluation(run.evaluation, [100, 50], updates=30_000)
+    fake_evaluation(run.evaluation_of("target"), [100, 50], updates=27_000)
+    assert next_step(run.root, BUDGET) == "evaluate" and len(grid_job.evaluate_commands(run, opts)) == 2
+    fake_evaluation(run.evaluation_of("ema"), [100, 50], updates=30_000)
+    fake_evaluation(run.evaluation_of("mean"), [100, 50], updates=30_000)
+    assert next_step(run.root, BUDGET) == "done"
+    exported = export_run(run, tmp_path / "export")
+    assert all((exported / f"evaluation-{kind}" / "summary.csv").is_file() for kind in ("target", "ema", "mean"))
+    assert next_step(exported, BUDGET) == "done"
+    shutil.rmtree(exported / "evaluation-ema")  # an export lacking a kind's evaluation is not finished
+    assert next_step(exported, BUDGET) == "train"
+
+
+def test_a_choice_without_a_kind_the_run_kept_is_made_again(tmp_path):
+    run = shadowed_run(tmp_path)
+    (run.root / "choice.json").write_text(json.dumps({"updates": 30_000, "among": KEPT[-5:]}))  # online only
+    assert not grid_cells.choice_current(run, grid_cells.read_choice(run))
+    (run.root / "choice.json").write_text(json.dumps({"updates": 30_000, "among": KEPT[-5:],
+                                                      "kinds": {"best": {"updates": 1}}}))
+    assert grid_cells.read_choice(run) is None  # not a kind: made again, never evaluated
+    run_without = make_drive_run(tmp_path / "plain", BUDGET, KEPT, keep_target=True)
+    assert grid_cells.shadow_kinds(run_without) == []  # on, but none kept (a budget short of keep_shadows_from)
+
+
 def test_the_policy_is_chosen_on_the_train_starts_among_the_last_five_kept(tmp_path):
     test_cfr = {26_000: 1.0}  # the best on the test starts must not decide
     rows = (curve_rows(KEPT, "test", test_cfr) + curve_rows(KEPT[-5:], "train", {27_000: 0.8, 29_000: 0.8})
@@ -159,20 +244,21 @@ def test_the_curve_passes_ask_only_for_what_is_missing(tmp_path):
     write_curve(run, curve_rows(list(range(1_000, 20_001, 1_000)), "test"))
     assert len(grid_job.curve_commands(run, opts)) == 1
     assert [command[5:] for command in grid_job.choice_commands(run, opts)] == [
-        ["--sets", "train", "--from-updates", "26000", "--every", "1000", "--preset", "drive"]]
-    evaluate = grid_job.evaluate_command(run, opts, 29_000)
-    assert evaluate[3:6] == ["--checkpoint", str(run.policy(29_000)), "--out"]
+        ["--kinds", "online", "--sets", "train", "--from-updates", "26000", "--every", "1000", "--preset", "drive"]]
+    (run.root / "choice.json").write_text(json.dumps({"updates": 29_000, "among": KEPT[-5:]}))
+    [evaluate] = grid_job.evaluate_commands(run, opts)
+    assert evaluate[3:7] == ["--checkpoint", str(run.policy(29_000)), "--out", str(run.evaluation)]
     assert evaluate[-2:] == ["--evaluation.episodes_per_start", "10"]
 
 
 def test_the_choice_passes_read_its_candidates_and_not_a_policy_kept_at_a_stop(tmp_path):
     run = make_drive_run(tmp_path / "run", BUDGET, [*KEPT[:-3], 27_688, *KEPT[-3:], 30_024])
     assert choice_candidates(run) == [27_000, 28_000, 29_000, 30_000, 30_024]
-    spans = [command[5:command.index("--preset")] for command in grid_job.choice_commands(run, options(tmp_path))]
+    spans = [command[7:command.index("--preset")] for command in grid_job.choice_commands(run, options(tmp_path))]
     assert spans == [["--sets", "train", "--from-updates", "27000", "--every", "1000"],
                      ["--sets", "train", "--from-updates", "30024"]]
     write_curve(run, curve_rows([27_000, 28_000, 29_000, 30_000], "train"))
-    spans = [command[5:command.index("--preset")] for command in grid_job.choice_commands(run, options(tmp_path))]
+    spans = [command[7:command.index("--preset")] for command in grid_job.choice_commands(run, options(tmp_path))]
     assert spans == [["--sets", "train", "--from-updates", "30024"]]
 
 

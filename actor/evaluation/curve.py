@@ -36,7 +36,8 @@ from common.config import Config
 from common.config_values import load_config, to_dict
 from common.eta import Eta, clock_time
 from common.options import ConfigError
-from common.run_dir import RunDir
+from common.presets import GRID_SHADOWS_FROM
+from common.run_dir import POLICY_KINDS, RunDir
 
 CURVE_TRIALS = 5  # trials per start: a curve evaluates many policies, so fewer than a table's 30
 DRIVE_LENGTH = 1000.0  # steps: a greedy test mean length this long is driving
@@ -49,6 +50,12 @@ MILESTONES = (("drive", "mean_length", DRIVE_LENGTH, False, "greedy test mean le
               ("drive_held", "mean_length", DRIVE_LENGTH, True,
                "greedy test mean length >= 1,000 steps at every kept policy from there on"),
               ("half_cfr", "cfr", 0.5, False, "greedy test CFR >= 50%"))
+
+# The late curve: the kept policies from here on, where every run of the first grid had driven; how far the
+# greedy policy swings there is what the shadow kinds (learner.keep_target, ema_updates) are read on.
+LATE_FROM = GRID_SHADOWS_FROM
+KEEPING = {"online": "learner.keep_every or learner.keep_every_s", "target": "learner.keep_target",
+           "ema": "learner.ema_updates", "mean": "deploy/tools/average_policies.py"}
 
 log = logging.getLogger("evaluate")
 
@@ -101,32 +108,34 @@ def warn_if_crowding(run: RunDir, args: argparse.Namespace, cores: int | None = 
 
 def evaluate_curve(run: RunDir, out_dir: Path, start_sets: Sequence[str], configure: Callable[[dict], Config],
                    nice: int, show_status: bool = True, from_updates: int = 0, every: int = 1,
-                   to_updates: int | None = None) -> list[dict] | None:
-    """Evaluates the kept policies (those kept from `from_updates` to `to_updates`, at multiples of `every`)
-    the CSV lacks, on the start sets it lacks them on (a curve of the test set, rerun with train,test, adds the
-    train rows), writing it after each; returns all its rows, or None when nothing was added (nothing new, or
-    every new file skipped)."""
-    kept = run.kept_policies()
-    if not kept:
-        raise EvaluationError(f"no kept policies in {run.policies}/ (the learner keeps them with "
-                              "learner.keep_every or learner.keep_every_s)")
-    kept = curve_policies(kept, from_updates, every, to_updates)
+                   to_updates: int | None = None, kinds: Sequence[str] = ("online",)) -> list[dict] | None:
+    """Evaluates the kept policies of `kinds` (those kept from `from_updates` to `to_updates`, at multiples of
+    `every`) the CSV lacks, on the start sets it lacks them on (a curve of the test set, rerun with train,test,
+    adds the train rows), writing it after each; returns all its rows (of every kind), or None when nothing
+    was added (nothing new, or every new file skipped)."""
+    kept = []
+    for kind in kinds:
+        found = run.kept_policies(kind)
+        if not found:
+            raise EvaluationError(f"no kept {kind} policies in {run.policy_folder(kind)}/ (the learner keeps them "
+                                  f"with {KEEPING[kind]})")
+        kept += [(updates, kind, file) for updates, file in curve_policies(found, from_updates, every, to_updates)]
     if not kept:
         until = "" if to_updates is None else f", --to-updates {to_updates:,d}"
         raise EvaluationError(f"--from-updates {from_updates:,d}{until}, --every {every:,d}: no policy in "
                               f"{run.policies}/ was kept in that span at such a multiple")
     path = out_dir / CURVE_CSV
-    rows = read_curve(path)
-    done = {(int(row["updates"]), row["start_set"]) for row in rows}
-    todo = [(updates, file, missing) for updates, file in kept
-            if (missing := [name for name in start_sets if (updates, name) not in done])]
+    rows = read_curve(path, kind=None)
+    done = {(int(row["updates"]), row["start_set"], row["kind"]) for row in rows}
+    todo = [(updates, kind, file, missing) for updates, kind, file in sorted(kept)
+            if (missing := [name for name in start_sets if (updates, name, kind) not in done])]
     if not todo:
         print(f"curve: nothing new: all {len(kept)} kept policies are in {path}", file=sys.stderr)
         return None
     eta, added = Eta(len(todo)), 0
     eta.update(0)
-    for number, (updates, file, missing) in enumerate(todo, 1):
-        new = policy_rows(file, updates, missing, configure, nice, show_status)
+    for number, (updates, kind, file, missing) in enumerate(todo, 1):
+        new = policy_rows(file, updates, missing, configure, nice, show_status, kind)
         if new:
             rows = write_curve(path, rows + new)
             added += 1
@@ -148,12 +157,14 @@ def curve_policies(kept: Sequence[tuple[int, Path]], from_updates: int = 0, ever
 
 
 def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: Callable[[dict], Config],
-                nice: int, show_status: bool) -> list[dict]:
+                nice: int, show_status: bool, kind: str = "online") -> list[dict]:
     """The curve's rows of one kept policy; none, with a log line, when the file cannot be used."""
     try:
         policy = KeptPolicy.load(file)
         if policy.updates != updates:
             raise CheckpointError(f"its name says update {updates}, it holds update {policy.updates}")
+        if policy.kind != kind:
+            raise CheckpointError(f"it lies with the {kind} policies but holds a {policy.kind} one")
         config = configure(policy.config)
         weights = policy.weights()
         check_weights(config, weights)
@@ -165,9 +176,9 @@ def policy_rows(file: Path, updates: int, start_sets: Sequence[str], configure: 
 
 
 def curve_row(policy: KeptPolicy, summary: SetSummary, edges: Sequence[float], nice: int) -> dict:
-    return {"updates": policy.updates, "env_steps": policy.env_steps, "wall_s": round(policy.wall_s, 3),
-            "kept_file": policy.path.name, "trained_on": policy.cpu, "trained_precision": policy.precision,
-            "nice": nice,
+    return {"updates": policy.updates, "kind": policy.kind, "env_steps": policy.env_steps,
+            "wall_s": round(policy.wall_s, 3), "kept_file": policy.path.name, "trained_on": policy.cpu,
+            "trained_precision": policy.precision, "nice": nice,
             **summary_columns(summary, edges)}
 
 
@@ -179,10 +190,10 @@ def headline(rows: list[dict]) -> str:
 
 # --- the CSV ----------------------------------------------------------------------------------------------
 
-def read_curve(path: Path) -> list[dict]:
-    """The rows of a curve CSV, [] when there is none yet. A curve written before the coverage columns
-    reads them as "nan" (not measured), and before the learner's precision column as "" (not recorded), so
-    that a rerun can add rows with them to it."""
+def read_curve(path: Path, kind: str | None = "online") -> list[dict]:
+    """The rows of a curve CSV of one policy kind (None: of all), [] when there is none yet. A curve written
+    before the coverage columns reads them as "nan" (not measured), before the learner's precision column as
+    "" (not recorded), and before the kinds as online, so that a rerun can add rows with them to it."""
     if not path.exists():
         return []
     try:
@@ -194,8 +205,14 @@ def read_curve(path: Path) -> list[dict]:
     except (OSError, csv.Error, KeyError, TypeError, ValueError) as error:
         raise EvaluationError(f"{path} is not a curve of evaluate --curve ({type(error).__name__}: {error}); "
                               "move it away or give another --out") from None
-    return [{"trained_precision": "", **row, **{column: "nan" for column in COVERAGE_COLUMNS if column not in row}}
-            for row in rows]
+    rows = [{"trained_precision": "", "kind": "online", **row,
+             **{column: "nan" for column in COVERAGE_COLUMNS if column not in row}} for row in rows]
+    return rows if kind is None else of_kind(rows, kind)
+
+
+def of_kind(rows: Sequence[dict], kind: str = "online") -> list[dict]:
+    """A curve's rows of one policy kind (rows without a kind are online ones)."""
+    return [row for row in rows if row.get("kind", "online") == kind]
 
 
 def write_curve(path: Path, rows: list[dict]) -> list[dict]:
@@ -206,7 +223,9 @@ def write_curve(path: Path, rows: list[dict]) -> list[dict]:
     if any(set(row) != set(columns) for row in rows):
         raise EvaluationError(f"{path} has other columns than this evaluation writes (other reward bins?); "
                               "give another --out")
-    rows = sorted(rows, key=lambda row: (int(row["updates"]), row["start_set"] != "train"))  # train, then test
+    # by updates, the kinds in POLICY_KINDS' order, train then test
+    rows = sorted(rows, key=lambda row: (int(row["updates"]), POLICY_KINDS.index(row["kind"]),
+                                         row["start_set"] != "train"))
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with temporary.open("w", newline="") as handle:
@@ -289,6 +308,20 @@ def curve_summary(rows: Sequence[dict], evaluated_on: str | None = None) -> dict
     }
 
 
+def late_curves(rows: Sequence[dict], from_updates: int = LATE_FROM) -> dict[str, dict]:
+    """Per policy kind that has test rows kept at `from_updates` or later: how many, the mean and the least of
+    their greedy test CFR, and their mean test length."""
+    late = {}
+    for kind in POLICY_KINDS:
+        test = [row for row in of_kind(rows, kind) if row["start_set"] == "test" and int(row["updates"]) >= from_updates]
+        if test:
+            cfr = [float(row["cfr"]) for row in test]
+            late[kind] = {"from_updates": from_updates, "policies": len(test), "test_cfr_mean": sum(cfr) / len(cfr),
+                          "test_cfr_min": min(cfr),
+                          "test_mean_length_mean": sum(float(row["mean_length"]) for row in test) / len(test)}
+    return late
+
+
 def summary_lines(summary: dict) -> list[str]:
     lines = []
     for name, *_ in MILESTONES:
@@ -315,6 +348,11 @@ def summary_lines(summary: dict) -> list[str]:
         lines.append(f"chosen on the training starts{among} (highest train CFR, then mean length): update "
                      f"{chosen['updates']:,d} ({chosen['kept_file']}): train CFR {100 * chosen['train_cfr']:.0f}%, "
                      f"mean length {chosen['train_mean_length']:,.0f}; {test}")
+    for kind, late in summary.get("late_curve", {}).items():
+        lines.append(f"late curve of the {kind} policies ({late['policies']} kept from {late['from_updates']:,d} "
+                     f"updates): test CFR {100 * late['test_cfr_mean']:.1f}% on average, "
+                     f"{100 * late['test_cfr_min']:.0f}% at the least; mean length "
+                     f"{late['test_mean_length_mean']:,.0f}")
     nice = ", ".join(str(value) for value in summary["nice"])
     lines.append(f"evaluated on {summary['evaluated_on']} at nice {nice}")
     return lines
@@ -378,9 +416,14 @@ def plot_curve(rows: Sequence[dict], path: Path, title: str) -> None:
 
 
 def write_outputs(out_dir: Path, rows: list[dict], run_name: str, evaluated_now: bool = True) -> tuple[dict, list[Path]]:
-    """The figure and the summary of all the curve's rows. Redrawn without evaluating (evaluated_now False),
-    the summary keeps the evaluation CPU it named: this machine may not be the one that evaluated."""
-    figure = out_dir / CURVE_PNG
-    plot_curve(rows, figure, f"greedy learning curve of {run_name} (bands: intervals over the trials)")
-    summary = curve_summary(rows, None if evaluated_now else previous_evaluation_cpu(out_dir / SUMMARY_JSON))
+    """The figure and the summary of the curve's online rows, with the late curve of every kind it holds.
+    Redrawn without evaluating (evaluated_now False), the summary keeps the evaluation CPU it named: this
+    machine may not be the one that evaluated."""
+    figure, online = out_dir / CURVE_PNG, of_kind(rows)
+    if not online:
+        raise EvaluationError(f"{out_dir / CURVE_CSV} has no rows of the online policies: evaluate them first "
+                              "(--kinds online), the summary and figure are theirs")
+    plot_curve(online, figure, f"greedy learning curve of {run_name} (bands: intervals over the trials)")
+    summary = curve_summary(online, None if evaluated_now else previous_evaluation_cpu(out_dir / SUMMARY_JSON))
+    summary["late_curve"] = late_curves(rows)
     return summary, [out_dir / CURVE_CSV, figure, *write_summary(out_dir, summary, run_name)]

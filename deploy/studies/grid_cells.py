@@ -15,6 +15,12 @@ running again resumes:
               choice.json: chosen on the train starts so that its test reading is not the best of several draws
     evaluate  the chosen policy on both start sets at --trials per start (evaluate --checkpoint), into
               evaluation/
+
+A run that keeps shadow policies (beyond the paper: learner.keep_target, learner.ema_updates) is read on
+them too, each kind as a policy of its own: its curve on both start sets at every policy the online curve
+reads from LATE_FROM (20,000) updates on; its choice among its last CHOICE_AMONG kept, by the same rule; that
+policy's evaluation into evaluation-<kind>/. So is the mean of the last CHOICE_AMONG kept online policies
+(kind mean, written at the choice to policies/mean/), at its choice point only.
 """
 
 from __future__ import annotations
@@ -28,13 +34,14 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from actor.evaluation.curve import CURVE_CSV, CURVE_TRIALS, chosen_on_train, read_curve
+from actor.evaluation.curve import CURVE_CSV, CURVE_TRIALS, LATE_FROM, chosen_on_train, read_curve
 from common.analysis.tables import SUMMARY_CSV, read_facts
-from common.checkpoint import Checkpoint, CheckpointError
+from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy
 from common.config_values import load_config
 from common.cpu_capability import cpu_label
 from common.options import ConfigError
-from common.run_dir import RunDir
+from common.run_dir import POLICY_KINDS, RunDir
+from deploy.tools.average_policies import average
 
 PROTOCOL_PRESET = "drive"  # common/presets.py: 30,000 updates, updates from 28,000 env steps for every strategy
 CURVE_DENSE_UNTIL = 20_000  # every kept policy up to here: where the paper's learner first drives
@@ -133,25 +140,51 @@ def curve_wanted(kept: list[int], every: int) -> set[int]:
     return {updates for updates in kept if on_schedule(updates, every)}
 
 
-def curve_read(run: RunDir, start_set: str = "test") -> set[int]:
-    """The kept policies (by updates) the run's curve has rows of on a start set."""
-    return {int(row["updates"]) for row in read_curve(run.curve / CURVE_CSV) if row["start_set"] == start_set}
+def shadow_curve_wanted(run: RunDir, kind: str) -> set[int]:
+    """The kept policies of a shadow kind (by updates) the protocol reads on both start sets: those at which
+    the online curve reads one, from LATE_FROM on."""
+    kept = [updates for updates, _ in run.kept_policies(kind) if updates >= LATE_FROM]
+    return curve_wanted(kept, keep_every(run))
 
 
-def choice_candidates(run: RunDir) -> list[int]:
-    """The updates of the last CHOICE_AMONG kept policies on the run's schedule (multiples of
+def curve_read(run: RunDir, start_set: str = "test", kind: str = "online") -> set[int]:
+    """The kept policies (by updates) of a kind the run's curve has rows of on a start set."""
+    return {int(row["updates"]) for row in read_curve(run.curve / CURVE_CSV, kind) if row["start_set"] == start_set}
+
+
+def shadow_kinds(run: RunDir) -> list[str]:
+    """The shadow kinds the run's learner kept beside its online policies (learner.keep_target, ema_updates),
+    of those it has kept files of."""
+    learner = run_learner(run)
+    return [kind for kind, on in (("target", learner.keep_target), ("ema", learner.ema_updates > 0))
+            if on and run.kept_policies(kind)]
+
+
+def chosen_kinds(run: RunDir) -> list[str]:
+    """Every kind a policy is to be chosen of: online, the shadow kinds kept, and with them the mean."""
+    shadows = shadow_kinds(run)
+    return ["online", *shadows, *(["mean"] if shadows else [])]
+
+
+def choice_candidates(run: RunDir, kind: str = "online") -> list[int]:
+    """The updates of the last CHOICE_AMONG kept policies of a kind on the run's schedule (multiples of
     learner.keep_every) and of its last one: a policy kept when the run was stopped would otherwise take a
     scheduled one's place, and the candidates would depend on the interruptions."""
-    kept = [updates for updates, _ in run.kept_policies()]
+    kept = [updates for updates, _ in run.kept_policies(kind)]
     every = keep_every(run)
     return ([updates for updates in kept[:-1] if updates % every == 0] + kept[-1:])[-CHOICE_AMONG:]
 
 
-def keep_every(run: RunDir) -> int:
+def run_learner(run: RunDir):
+    """The learner section of the run's config.toml (common.config.LearnerConfig)."""
     try:
-        every = load_config(toml_path=run.config).learner.keep_every
+        return load_config(toml_path=run.config).learner
     except (ConfigError, OSError, ValueError) as error:
-        raise ExperimentError(f"{run.root}: cannot read its learner.keep_every from {run.config}: {error}") from None
+        raise ExperimentError(f"{run.root}: cannot read its learner settings from {run.config}: {error}") from None
+
+
+def keep_every(run: RunDir) -> int:
+    every = run_learner(run).keep_every
     if every <= 0:
         raise ExperimentError(f"{run.root}: the grid reads a run on the policies it keeps every "
                               "learner.keep_every updates; it is 0")
@@ -225,31 +258,68 @@ def read_choice(run: RunDir) -> dict | None:
     except (OSError, ValueError):
         return None
     valid = (isinstance(choice, dict) and isinstance(choice.get("updates"), int)
-             and isinstance(choice.get("among"), list))
+             and isinstance(choice.get("among"), list) and isinstance(choice.get("kinds", {}), dict))
+    kinds = choice.get("kinds", {}) if valid else {}
+    valid = valid and all(kind in POLICY_KINDS[1:] and isinstance(chosen, dict) and isinstance(chosen.get("updates"), int)
+                          for kind, chosen in kinds.items())
     return choice if valid else None
 
 
-def evaluated_updates(run: RunDir) -> int | None:
-    """The updates of the policy the run's evaluation read (its facts), None without one."""
-    if not (run.evaluation / SUMMARY_CSV).is_file():
+def evaluated_updates(run: RunDir, kind: str = "online") -> int | None:
+    """The updates of the policy of a kind the run's evaluation read (its facts), None without one."""
+    folder = run.evaluation_of(kind)
+    if not (folder / SUMMARY_CSV).is_file():
         return None
-    updates = str(read_facts(run.evaluation).get("updates", ""))
+    updates = str(read_facts(folder).get("updates", ""))
     return int(updates) if updates.isdigit() else None
+
+
+def chosen_updates(choice: dict, kind: str = "online") -> int | None:
+    """The updates of the policy of a kind that choice.json names; None where it names none of that kind."""
+    chosen = choice if kind == "online" else choice.get("kinds", {}).get(kind)
+    return chosen.get("updates") if isinstance(chosen, dict) else None
+
+
+def to_evaluate(run: RunDir, choice: dict) -> list[str]:
+    """The kinds choice.json chose a policy of that the run's evaluations have not read yet."""
+    return [kind for kind in ["online", *choice.get("kinds", {})]
+            if evaluated_updates(run, kind) != chosen_updates(choice, kind)]
+
+
+def choice_current(run: RunDir, choice: dict) -> bool:
+    """Whether choice.json chose every kind among the candidates the run's kept policies now give."""
+    kinds = choice.get("kinds", {})
+    return (choice.get("among") == choice_candidates(run) and list(kinds) == chosen_kinds(run)[1:]
+            and all(isinstance(kinds[kind], dict) and kinds[kind].get("among") == choice_candidates(run, candidates_of(kind))
+                    for kind in kinds))
+
+
+def candidates_of(kind: str) -> str:
+    """The kind whose kept policies a kind's choice is among: the mean is of the online ones."""
+    return "online" if kind == "mean" else kind
+
+
+def shadow_curve_done(run: RunDir) -> bool:
+    return all(shadow_curve_wanted(run, kind) <= curve_read(run, start_set, kind)
+               for kind in shadow_kinds(run) for start_set in ("train", "test"))
 
 
 def next_step(run_dir: Path, budget: int) -> str:
     """The step the run in run_dir needs next, from what it holds on disk (budget: its total env steps)."""
     run = RunDir(run_dir)
     if not run.checkpoint.is_file():
-        return DONE if read_choice(run) and evaluated_updates(run) is not None else TRAIN
+        choice = read_choice(run)
+        return DONE if choice and evaluated_updates(run) is not None and not to_evaluate(run, choice) else TRAIN
     if checkpoint_env_steps(run.checkpoint) < budget:
         return RESUME  # also a run read earlier at a smaller budget
     if not curve_wanted([updates for updates, _ in run.kept_policies()], keep_every(run)) <= curve_read(run):
         return CURVE
+    if not shadow_curve_done(run):
+        return CURVE
     choice = read_choice(run)
-    if choice is None or choice.get("among") != choice_candidates(run):
+    if choice is None or not choice_current(run, choice):
         return CHOOSE
-    return DONE if evaluated_updates(run) == choice["updates"] else EVALUATE
+    return EVALUATE if to_evaluate(run, choice) else DONE
 
 
 # --- the steps' outputs ------------------------------------------------------------------------------------------
@@ -268,17 +338,38 @@ def read_cell(folder: Path) -> dict | None:
 
 
 def choose(run: RunDir) -> dict:
-    """Writes choice.json: the run's policy, chosen on the train starts among its last CHOICE_AMONG kept."""
-    among = choice_candidates(run)
-    if not among:
-        raise ExperimentError(f"{run.root}: no kept policy to choose among (learner.keep_every was 0)")
-    rows = [row for row in read_curve(run.curve / CURVE_CSV) if int(row["updates"]) in among]
-    if {int(row["updates"]) for row in rows if row["start_set"] == "train"} != set(among):
-        raise ExperimentError(f"{run.root}: the curve lacks train rows of the policies kept at "
-                              f"{', '.join(map(str, among))}")
-    chosen = chosen_on_train(rows)
-    choice = {"updates": chosen["updates"], "kept_file": str(run.policy(chosen["updates"]).name), "among": among,
-              "trials_per_start": CURVE_TRIALS,
-              **{key: chosen[key] for key in ("train_cfr", "train_mean_length", "test_cfr", "test_mean_length")}}
+    """Writes choice.json: the run's policy, chosen on the train starts among its last CHOICE_AMONG kept, and
+    (under "kinds") the same of each shadow kind, and the mean of the online candidates."""
+    choice = choice_of(run, "online")
+    kinds = {kind: choice_of(run, kind) for kind in shadow_kinds(run)}
+    if kinds:
+        kinds["mean"] = mean_of_candidates(run)
+    choice = {**choice, **({"kinds": kinds} if kinds else {})}
     (run.root / CHOICE_JSON).write_text(json.dumps(choice, indent=1) + "\n")
     return choice
+
+
+def choice_of(run: RunDir, kind: str) -> dict:
+    """The kept policy of a kind chosen on the train starts among its candidates, as choice.json names it."""
+    among = choice_candidates(run, kind)
+    if not among:
+        raise ExperimentError(f"{run.root}: no kept {kind} policy to choose among")
+    rows = [row for row in read_curve(run.curve / CURVE_CSV, kind) if int(row["updates"]) in among]
+    if {int(row["updates"]) for row in rows if row["start_set"] == "train"} != set(among):
+        raise ExperimentError(f"{run.root}: the curve lacks train rows of the {kind} policies kept at "
+                              f"{', '.join(map(str, among))}")
+    chosen = chosen_on_train(rows)
+    return {"updates": chosen["updates"], "kept_file": str(run.policy(chosen["updates"], kind).name), "among": among,
+            "trials_per_start": CURVE_TRIALS,
+            **{key: chosen[key] for key in ("train_cfr", "train_mean_length", "test_cfr", "test_mean_length")}}
+
+
+def mean_of_candidates(run: RunDir) -> dict:
+    """Writes the mean of the online candidates' weights to policies/mean/ (dated as the latest of them)."""
+    among = choice_candidates(run)
+    try:
+        mean = average([KeptPolicy.load(run.policy(updates)) for updates in among])
+        mean.save(run.policy(mean.updates, "mean"))
+    except (CheckpointError, OSError) as error:
+        raise ExperimentError(f"{run.root}: cannot average the policies kept at {among}: {error}") from None
+    return {"updates": mean.updates, "kept_file": run.policy(mean.updates, "mean").name, "among": among}

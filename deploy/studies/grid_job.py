@@ -22,10 +22,12 @@ from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.child_process import Child
 from deploy.soak import TreePeak
+from actor.evaluation.curve import LATE_FROM
 from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
-                               ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps, choice_candidates,
-                               choose, curve_read, curve_wanted, keep_every, next_step, read_cell, read_choice, record_step,
-                               write_cell)
+                                       ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps,
+                                       choice_candidates, choose, chosen_updates, curve_read, curve_wanted, keep_every,
+                                       next_step, read_cell, read_choice, record_step, shadow_curve_done, shadow_kinds,
+                                       to_evaluate, write_cell)
 from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
 STACK_SCRIPT = Path(__file__).resolve().parents[1] / "stack.py"
@@ -136,6 +138,9 @@ def curve_commands(run: RunDir, options: Options) -> list[list[str]]:
     if any(updates > CURVE_DENSE_UNTIL for updates in missing):
         passes.append(curve_command(run, options, "--sets", "test", "--from-updates", str(CURVE_DENSE_UNTIL + 1),
                                     "--every", str(CURVE_LATE_EVERY)))
+    if not shadow_curve_done(run):  # the shadow kinds on both sets where the online curve reads, from LATE_FROM
+        passes.append(curve_command(run, options, "--kinds", ",".join(shadow_kinds(run)), "--sets", "train,test",
+                                    "--from-updates", str(LATE_FROM), "--every", str(every)))
     return passes
 
 
@@ -146,25 +151,30 @@ def follow_command(run: RunDir, options: Options) -> list[str]:
 
 
 def choice_commands(run: RunDir, options: Options) -> list[list[str]]:
-    """The passes on the train starts that the choice still needs: its candidates on the schedule, then the
-    last policy where that is off it; a policy kept at a stop among them is not read."""
-    candidates = choice_candidates(run)
-    if not candidates:
-        raise ExperimentError(f"{run.root}: no kept policy to choose among (learner.keep_every was 0)")
-    every, missing = keep_every(run), set(candidates) - curve_read(run, "train")
-    passes = []
-    if any(updates % every == 0 for updates in missing):
-        passes.append(curve_command(run, options, "--sets", "train", "--from-updates", str(candidates[0]),
-                                    "--every", str(every)))
-    if any(updates % every for updates in missing):
-        passes.append(curve_command(run, options, "--sets", "train", "--from-updates", str(candidates[-1])))
+    """The passes on the train starts that the choice still needs, of every kept kind: its candidates on the
+    schedule, then the last policy where that is off it; a policy kept at a stop among them is not read."""
+    passes, every = [], keep_every(run)
+    for kind in ["online", *shadow_kinds(run)]:
+        candidates = choice_candidates(run, kind)
+        if not candidates:
+            raise ExperimentError(f"{run.root}: no kept {kind} policy to choose among (learner.keep_every was 0)")
+        missing = set(candidates) - curve_read(run, "train", kind)
+        if any(updates % every == 0 for updates in missing):
+            passes.append(curve_command(run, options, "--kinds", kind, "--sets", "train", "--from-updates",
+                                        str(candidates[0]), "--every", str(every)))
+        if any(updates % every for updates in missing):
+            passes.append(curve_command(run, options, "--kinds", kind, "--sets", "train", "--from-updates",
+                                        str(candidates[-1])))
     return passes
 
 
-def evaluate_command(run: RunDir, options: Options, updates: int) -> list[str]:
-    """The chosen policy on both start sets (and the random baseline) into the run's evaluation folder."""
-    return [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.policy(updates)),
-            "--out", str(run.evaluation), *options.extra, "--evaluation.episodes_per_start", str(options.trials)]
+def evaluate_commands(run: RunDir, options: Options) -> list[list[str]]:
+    """Each kind's chosen policy not yet evaluated, on both start sets, into evaluation/ (online, with the
+    random baseline) or evaluation-<kind>/."""
+    choice = read_choice(run)
+    return [[sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.policy(chosen_updates(choice, kind), kind)),
+             "--out", str(run.evaluation_of(kind)), *([] if kind == "online" else ["--no-random-baseline"]),
+             *options.extra, "--evaluation.episodes_per_start", str(options.trials)] for kind in to_evaluate(run, choice)]
 
 
 def check_config_flags(specs: list[RunSpec], options: Options) -> None:
@@ -321,9 +331,9 @@ class RunJob:
             self._wait_all()
 
     def _evaluate(self, _: str) -> None:
-        self._start(evaluate_command(self.run, self.options, read_choice(self.run)["updates"]), "evaluate",
-                    is_evaluation_line, echo=False)  # its summary.md, printed at the end, is in the log
-        self._wait_all()
+        for command in evaluate_commands(self.run, self.options):  # each summary.md, printed at its end, is in the log
+            self._start(command, "evaluate", is_evaluation_line, echo=False)
+            self._wait_all()
 
     def _start(self, command: list[str], what: str, is_status, echo: bool) -> Child:
         if self.stopping.is_set():

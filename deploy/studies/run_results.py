@@ -7,6 +7,7 @@ nothing large:
     config.toml      the run's resolved config, which says who the run is: strategy, replay capacity, seed
     summary.json     the run summary: updates, env steps, achieved env steps per update, restarts
     evaluation/      evaluate's episodes.csv, summary.csv, summary.md, facts.json and config.toml
+    evaluation-<kind>/  the same of the run's chosen policy of another kind (target, ema, mean), where it has them
     training.csv     one row per training episode, in the order the episodes ended: return, length, epsilon,
                      off_greedy (actions not argmax Q; -1 where not counted; absent in older exports)
     learner.csv      one row per learner report: updates, |loss_k - loss_k-1|
@@ -37,7 +38,7 @@ from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMAR
 from common.config import Config
 from common.config_values import load_config
 from common.options import ConfigError
-from common.run_dir import RunDir
+from common.run_dir import POLICY_KINDS, RunDir
 from deploy.studies.comparison import EvaluatedRun
 from deploy.studies.grid_cells import CELL_JSON, CHOICE_JSON, STEPS_CSV, read_cell, run_name
 from replay.recorder.reader import LogError
@@ -156,9 +157,11 @@ def export_run(run: RunDir, destination: Path) -> Path:
     shutil.copy2(run.config, copy.config)
     if run.summary.is_file():
         shutil.copy2(run.summary, copy.summary)
-    for name in EVALUATION_FILES:
-        if (run.evaluation / name).is_file():
-            shutil.copy2(run.evaluation / name, copy.evaluation / name)
+    for kind in POLICY_KINDS:  # evaluation/, and evaluation-<kind>/ of a grid run's other kinds
+        for name in EVALUATION_FILES:
+            if (run.evaluation_of(kind) / name).is_file():
+                copy.evaluation_of(kind).mkdir(exist_ok=True)
+                shutil.copy2(run.evaluation_of(kind) / name, copy.evaluation_of(kind) / name)
     for relative in GRID_FILES:
         if (run.root / relative).is_file():
             (staging / relative).parent.mkdir(parents=True, exist_ok=True)

@@ -73,8 +73,8 @@ def average(policies: list[KeptPolicy]) -> KeptPolicy:
         raise CheckpointError("averaging takes at least two policies")
     first = policies[0]
     for policy in policies:
-        if policy.averaged:
-            raise CheckpointError(f"{policy.path} is a mean already: average the kept policies it was made of")
+        if policy.averaged or policy.kind != "online":
+            raise CheckpointError(f"{policy.path} is a {policy.kind} policy: the mean is of kept online policies")
         if policy.config.get("network") != first.config.get("network"):
             raise CheckpointError(f"{policy.path} is of another network than {first.path} (their configs' "
                                   "network sections differ)")
@@ -85,7 +85,7 @@ def average(policies: list[KeptPolicy]) -> KeptPolicy:
             for name in first.online}
     latest = max(policies, key=lambda policy: policy.updates)
     updates = tuple(sorted(policy.updates for policy in policies))
-    return dataclasses.replace(latest, online=mean, averaged=updates, path=None)
+    return dataclasses.replace(latest, online=mean, averaged=updates, kind="mean", path=None)
 
 
 def main(argv: list[str] | None = None) -> None:
