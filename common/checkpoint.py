@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from common import atomic_file
 from common.run_dir import CHECKPOINT_FILE, POLICY_KINDS, find_checkpoint
 
 SECTIONS = ("learner", "exploration", "clock", "config")
@@ -242,14 +242,9 @@ def save_checkpoint(directory: Path, payload: dict[str, Any]) -> Path:
 
 
 def write_atomically(path: Path, payload: dict[str, Any]) -> Path:
-    """Writes to a temporary file, then renames it over `path`: a crash leaves the old file or the new one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(payload, temporary)
-    with open(temporary, "rb") as handle:
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
-    return path
+    """Writes to a temporary file, then renames it over `path`: a crash leaves the old file or the new one, a
+    failure no part. Through a handle, so that a full disk's OSError is the cause of torch's RuntimeError."""
+    return atomic_file.write_atomically(path, lambda handle: torch.save(payload, handle))
 
 
 def load_checkpoint(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:

@@ -22,11 +22,12 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
+
+from common.atomic_file import pid_alive as _alive, write_text_atomically
 
 CHECKPOINTS = "checkpoints"
 CHECKPOINT_FILE = "latest.pt"
@@ -200,13 +201,12 @@ class RunStatus:
     elapsed_s: float = 0.0  # since this stack started
     restarts: dict[str, int] = field(default_factory=dict)  # process -> times it was started again
     pids: dict[str, int] = field(default_factory=dict)  # process -> its pid now
+    disk_free_bytes: int | None = None  # free on the run folder's disk; None where unknown
     time: float = 0.0  # wall clock (time.time()) when written
 
     def write(self, path: Path) -> None:
         """Atomically: a reader sees the previous status or this one, never a part."""
-        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        temporary.write_text(json.dumps(dataclasses.asdict(self), indent=2) + "\n")
-        os.replace(temporary, path)
+        write_text_atomically(path, json.dumps(dataclasses.asdict(self), indent=2) + "\n")
 
     def training(self) -> bool:
         """Whether the stack still trains: its phase says so and one of its processes lives (a stack killed
@@ -228,16 +228,6 @@ class RunStatus:
         return cls(**values)
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    return True
-
-
 def _fits(name: str, value) -> bool:
     """Whether a value read from a status file has its field's type."""
     def count(item) -> bool:
@@ -252,6 +242,8 @@ def _fits(name: str, value) -> bool:
         return isinstance(value, dict) and all(isinstance(key, str) and count(item) for key, item in value.items())
     if name in ("mean_return", "eta_s"):
         return value is None or number(value)
+    if name == "disk_free_bytes":
+        return value is None or count(value)
     if name in ("elapsed_s", "time"):
         return number(value)
     return count(value)

@@ -48,7 +48,9 @@ import zenoh
 
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
+from common.disk_space import DISK_FULL_EXIT, is_disk_full
 from common.heap import keep_releasing_free_heap
+from common.log_streams import tolerate_full_disk
 from common.logs import setup_logging
 from common.transport import Declared, alive_keys, declare_liveliness, open_session
 from common.keys import Keys
@@ -80,11 +82,19 @@ def run_main(main: Callable[[], int | str | None]) -> None:
     interpreter's finalization. Zenoh's threads may still be letting go of a callback then, which takes
     the GIL; a finalizing interpreter answers with a thread exit that unwinds through Rust, and the
     process aborts ("FATAL: exception not rethrown", exit code -6 instead of 0): seen in about one stop
-    in twenty of an actor that had reopened its session. An uncaught exception ends it the usual way."""
+    in twenty of an actor that had reopened its session. Its log lines cannot end it on a full disk
+    (common/log_streams.py), and an exception of a full disk ends it with DISK_FULL_EXIT, which the stack
+    answers by waiting for space; any other uncaught exception ends it the usual way."""
+    tolerate_full_disk()
     try:
         returned = main()
     except SystemExit as exit_:
         returned = exit_.code
+    except Exception as error:  # noqa: BLE001 - only a full disk's is answered here
+        if not is_disk_full(error):
+            raise
+        log.error("stopping: the disk is full (%s)", error, exc_info=True)
+        returned = DISK_FULL_EXIT
     if isinstance(returned, str):
         print(returned, file=sys.stderr)
     code = returned if isinstance(returned, int) else 0 if returned is None else 1

@@ -13,6 +13,8 @@ import select
 import sys
 import threading
 
+from common.disk_space import is_disk_full
+
 GONE_EVENTS = select.POLLERR | select.POLLHUP  # Linux: a pipe with no reader left; a hung-up terminal
 
 
@@ -28,8 +30,9 @@ class Console:
             return
         try:
             print(*parts, sep="", end=end, file=getattr(sys, name), flush=True)
-        except OSError:  # BrokenPipeError on a closed pipe, EIO on a hung-up terminal
-            self._lost(name)
+        except OSError as error:  # BrokenPipeError on a closed pipe, EIO on a hung-up terminal
+            if not is_disk_full(error):  # a file on a full disk still has its reader: the line alone is lost
+                self._lost(name)
 
     def check(self) -> bool:
         """Whether both streams still have a reader, asked without writing (so a run that prints a line a

@@ -9,7 +9,8 @@ run's status file (phase, env steps of the budget, updates, mean return, ETA,
 restarts, pids; RunStatus) and, on a terminal, one live line with the
 same figures.
 
-Any process that dies otherwise is started again after a backoff (RESTART_BACKOFF_S,
+A process that ends for a full disk (DISK_FULL_EXIT) is started again once the disk has room (DiskWatch), which
+the live line shows. Any process that dies otherwise is started again after a backoff (RESTART_BACKOFF_S,
 doubled for each death in a row up to RESTART_BACKOFF_MAX_S; a process that lived
 STABLE_S starts from the first step again): the replay with --resume (its snapshot
 and counters), the learner with --resume once it has a checkpoint, the recorder
@@ -37,15 +38,18 @@ import time
 
 import zenoh
 
+from common.atomic_file import remove_dead_temporaries, write_text_atomically
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
 from common.cpu_capability import exit_if_unrunnable
+from common.disk_space import DISK_FULL_EXIT, size_text
 from common.run_dir import RunDir
 from common.shell import env_stopping_with_this, on_stop_signals, run_main, stop_with_parent
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
 from deploy.console import Console
+from deploy.disk_watch import DiskWatch
 from deploy.stack_monitor import StackMonitor
 from deploy.run_claim import RunClaimError, claim_run
 
@@ -55,6 +59,7 @@ RESTART_BACKOFF_MAX_S = 30.0
 STABLE_S = 60.0  # a process that lived this long before dying is restarted after RESTART_BACKOFF_S again
 FINAL_METRICS_WAIT_S = 5.0
 WATCHER_CONNECT_S = 180.0  # how long the stack waits for its replay's router: a loaded machine starts it slowly
+SPACE_POLL_S = 5.0  # how often the stack looks for room to start a process that ended for a full disk
 STATUS_PERIOD_S = 1.0  # the status file and the live line
 LOGGED_LINE_PERIOD_S = 30.0  # the live line, logged, when stdout is not a terminal
 
@@ -76,6 +81,7 @@ class Role:
         self.restarts = 0
         self.deaths_in_a_row = 0
         self.restart_at: float | None = None  # set while waiting to be started again
+        self.waits_for_space = False  # it ended for a full disk: started again once there is room
 
     def backoff_s(self) -> float:
         return min(RESTART_BACKOFF_S * 2 ** (self.deaths_in_a_row - 1), RESTART_BACKOFF_MAX_S)
@@ -102,6 +108,7 @@ class Stack:
         self.roles["learner"] = Role("learner", "learner.main", client)
         self.learner_finished = False  # the learner exited by itself: the budget is paid for
         self.status_failed = False
+        self.disk = DiskWatch(run, lambda line: self.console.say(f"\n{line}", err=True))
         for actor_id in range(actors):
             self.roles[f"actor-{actor_id}"] = Role(f"actor-{actor_id}", "actor.main",
                                                    client + ["--actor.actor_id", str(actor_id)])
@@ -121,14 +128,15 @@ class Stack:
     def report(self, monitor: StackMonitor, phase: str, line: str = "") -> None:
         """Rewrites the status file (a failure is said once; the run goes on) and prints the live line:
         ``line`` "live" rewrites it in place, "logged" prints it on a line of its own, "" not at all."""
+        free = self.disk.look()
         try:
-            monitor.status(phase, self.restarts, self.pids).write(self.run.status)
+            monitor.status(phase, self.restarts, self.pids, free).write(self.run.status)
         except OSError as error:
             if not self.status_failed:
                 self.console.say(f"\ncannot write the status file: {error}", err=True)
             self.status_failed = True
         if line:
-            self.console.say("\r" if line == "live" else "", monitor.line(sum(self.restarts.values())),
+            self.console.say("\r" if line == "live" else "", monitor.line(sum(self.restarts.values()), free),
                              end="" if line == "live" else "\n")
 
     def start_all(self) -> None:
@@ -149,7 +157,10 @@ class Stack:
                 if code is not None:
                     self._died(role, code, now)
                 elif role.restart_at is not None and now >= role.restart_at:
-                    role.restart_at = None
+                    if role.waits_for_space and not self.disk.room_to_start():
+                        role.restart_at = now + SPACE_POLL_S
+                        continue
+                    role.restart_at, role.waits_for_space = None, False
                     role.restarts += 1
                     self._start(role)
             if now - last_report >= STATUS_PERIOD_S and self.console.check():
@@ -163,6 +174,12 @@ class Stack:
     def _died(self, role: Role, code: int, now: float) -> None:
         role.deaths_in_a_row = 1 if now - role.started >= STABLE_S else role.deaths_in_a_row + 1
         role.restart_at = now + role.backoff_s()
+        if code == DISK_FULL_EXIT:  # restarted now, it would only die again: it waits for room
+            role.waits_for_space = True
+            self.console.say(f"\n{role.name} stopped: the disk of {self.run.root} is full "
+                             f"({size_text(self.disk.free)} free); it starts again once there is room "
+                             f"(see {self.run.log(role.name)})", err=True)
+            return
         self.console.say(f"\n{role.name} exited with code {code}; restarting it in {role.backoff_s():.0f}s "
                          f"(see {self.run.log(role.name)})", err=True)
 
@@ -268,7 +285,13 @@ def main(argv: list[str] | None = None) -> int:
     except RunClaimError as error:
         print(f"deploy/run.sh: {error}", file=sys.stderr)
         return 2
-    run.config.write_text(to_toml(config))
+    remove_dead_temporaries(run.root)  # the run's other processes start after this
+    try:
+        write_text_atomically(run.config, to_toml(config))
+    except OSError as error:  # the roles read it: a stack cannot run without it
+        print(f"deploy/run.sh: cannot write {run.config}: {error}; free space and start again", file=sys.stderr)
+        claim.close()
+        return 1
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
     actors = args.actors or config.actor.num_actors or default_actor_count()
     stop = threading.Event()
@@ -304,11 +327,16 @@ def main(argv: list[str] | None = None) -> int:
             session.close()
     stack.report(monitor, "finished" if stack.learner_finished else "stopped")
     summary = monitor.summary(config, stack.restarts, stack.learner_finished)
-    run.summary.write_text(json.dumps(summary, indent=2) + "\n")
+    written = run.summary
+    try:
+        write_text_atomically(run.summary, json.dumps(summary, indent=2) + "\n")
+    except OSError as error:  # the run itself is safe: the learner's checkpoint holds it
+        console.say(f"cannot write the summary {run.summary}: {error}", err=True)
+        written = "no summary written"
     ratio = summary["env_steps_per_update"]
     shown = f"{ratio:.3f}" if isinstance(ratio, (int, float)) else "unknown"
     console.say(f"run: {summary['env_steps']:,d} env steps, {summary['updates']:,d} updates, {shown} env steps "
-                f"per update (configured {config.pace.env_steps_per_update:g}); {run.summary}")
+                f"per update (configured {config.pace.env_steps_per_update:g}); {written}")
     restarted = ", ".join(f"{name} {count}" for name, count in stack.restarts.items() if count) or "none"
     console.say(f"stopped; restarts: {restarted}; logs in {run.logs}/")
     claim.close()

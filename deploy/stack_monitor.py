@@ -9,6 +9,7 @@ import time
 from collections import deque
 
 from common.config import Config
+from common.disk_space import size_text
 from common.eta import Eta
 from common.pacing import updates_paid_for
 from common.run_dir import RunStatus
@@ -76,7 +77,7 @@ class StackMonitor:
             self.eta = Eta(owed, ETA_WINDOW_S, self._clock)
         self.eta.update(updates)
 
-    def line(self, restarts: int = 0) -> str:
+    def line(self, restarts: int = 0, disk_free: int | None = None) -> str:
         with self._lock:
             mean_return = self._mean_return()
             learner = self.learner
@@ -92,16 +93,17 @@ class StackMonitor:
                     f"upd/s {_number(learner, 'updates_per_s', 0.0):5.2f} | "
                     f"steps/s {self.env_step_speed.per_s() or 0.0:6.1f} | "
                     f"steps/upd {_number(learner, 'env_steps_per_update', math.nan):5.2f} | "
-                    f"restarts {restarts}")
+                    f"restarts {restarts}" + ("" if disk_free is None else f" | disk free {size_text(disk_free)}"))
 
-    def status(self, phase: str, restarts: dict[str, int], pids: dict[str, int]) -> RunStatus:
+    def status(self, phase: str, restarts: dict[str, int], pids: dict[str, int],
+               disk_free: int | None = None) -> RunStatus:
         with self._lock:
             return RunStatus(phase=phase, env_steps=self._replay_count("env_steps_total"),
                              total_env_steps=self.total_env_steps, updates=_count(self.learner, "updates"),
                              episodes=self.episodes, mean_return=self._mean_return(),
                              eta_s=self.eta.remaining_s() if self.eta else None,
                              elapsed_s=self._clock() - self._started,
-                             restarts=dict(restarts), pids=dict(pids), time=time.time())
+                             restarts=dict(restarts), pids=dict(pids), disk_free_bytes=disk_free, time=time.time())
 
     def _replay_count(self, name: str) -> int:
         return getattr(self.replay, name) if self.replay is not None else 0

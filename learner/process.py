@@ -13,12 +13,14 @@ import time
 import torch
 import zenoh
 
+from common.atomic_file import remove_dead_temporaries
 from common.checkpoint import CheckpointError
 from common.strategy_build import exploration_message
 from common.config import Config
 from common.logs import Every
 from common.pacing import rate_limit_from_config
 from common.hub_link import Declare, HubLink, keep_hearing
+from common.run_dir import RunDir
 from common.shell import Service
 from common.transport import publisher, request, serve, subscribe
 from common.shared_memory import SharedMemory
@@ -35,6 +37,8 @@ def run_learner(config: Config, resume: bool = False) -> None:
     """Trains until the step budget is spent or SIGINT/SIGTERM; checkpoints at exit."""
     service = Service("learner", config)
     service.claim()  # before the checkpoint is read: a learner that is stopping writes it last
+    run = RunDir.of(config)
+    remove_dead_temporaries(run.checkpoints, run.policies)
     if config.learner.torch_threads:
         torch.set_num_threads(config.learner.torch_threads)
     process = LearnerService(config)
@@ -118,7 +122,7 @@ def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, lin
     batch = _first_batch(process, outputs, prefetcher, stop)
     if batch is None and not process.finished():
         prefetcher.close()
-        log.info("stopped before updates started; checkpoint %s", process.checkpoint())
+        log.info("stopped before updates started; checkpoint %s", process.try_checkpoint() or "not written")
         return
     if batch is None:
         log.info("resumed with every update the closed run pays for already made (%d): it ends", process.updates)
@@ -146,7 +150,7 @@ def _train(process: LearnerService, outputs: Outputs, stop: threading.Event, lin
     finally:
         prefetcher.close()
         outputs.weights(process.make_weights())
-        path = process.checkpoint()
+        path = process.try_checkpoint() or "not written (see above)"
         process.keep_last_policy()
         outputs.metrics({**metrics.values(), "final": 1})
         log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "

@@ -34,6 +34,7 @@ import torch
 
 from common.checkpoint import Checkpoint
 from common.cpu_capability import cpu_label
+from common.disk_space import RetriedWrites
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
@@ -184,6 +185,7 @@ class LearnerService:
         self.latest_weights: Weights | None = None
         self.shelf = WeightsShelf(lambda: self.latest_weights)  # the latest weights in pieces, for downloads
         self.checkpoint_dir = RunDir.of(config).checkpoints
+        self.checkpoint_writes = RetriedWrites("checkpoint", RunDir.of(config).checkpoint, log)
         self.shape = RunShape.of(config)
         self.rejections = Rejections(log)
         self.failed_updates = 0
@@ -341,9 +343,13 @@ class LearnerService:
         return Checkpoint(learner=self.learner.state_dict(), exploration=self.strategy.state_dict(), clock=clock,
                           config=to_dict(self.config)).save(self.checkpoint_dir)
 
+    def try_checkpoint(self) -> Path | None:
+        """A checkpoint, or None where it cannot be written (a full disk): training goes on (RetriedWrites)."""
+        return self.checkpoint_writes.attempt(self.checkpoint)
+
     def checkpoint_if_due(self) -> None:
         if self.checkpoints.due(self.updates):
-            self.checkpoint()
+            self.try_checkpoint()
 
     def keep_policy(self) -> None:
         """Keeps the online weights, and the shadow kinds due beside them, with the run's updates, env steps and
@@ -412,6 +418,7 @@ class LearnerMetrics:
             "weights_version": self.process.latest_weights.version if self.process.latest_weights else -1,
             "bmc_observations": self.process.bmc_observations,
             "failed_updates": self.process.failed_updates,
+            "checkpoints_failed": self.process.checkpoint_writes.failed,  # not written: a full disk, say
             # what the updates actually ran: "auto" resolves on the first batch (learner/update.py)
             "precision": self.process.learner.precision,
             "update_path": self.process.learner.update_path,

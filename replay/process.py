@@ -12,12 +12,13 @@ import threading
 import time
 from pathlib import Path
 
+from common.atomic_file import remove_dead_temporaries, write_text_atomically
 from common.config import Config
+from common.disk_space import RetriedWrites
 from common.logs import Every
 from common.run_dir import RunDir
 from common.shell import Service
 from common.transport import publisher, put_once, serve_deferred, subscribe
-from common.logs import ThrottledLog
 from common.wire.messages import ReplayStats
 from replay.acks import AckBook
 from replay.service import KILOBYTE, MEGABYTE, ReplayService
@@ -34,12 +35,9 @@ def counters_path(config: Config) -> Path:
     return RunDir.of(config).replay_counters
 
 
-def save_counters(path: Path, state: dict) -> None:
+def save_counters(path: Path, state: dict) -> Path:
     """Atomic: a temporary file renamed over the old one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    temporary.write_text(json.dumps(state))
-    os.replace(temporary, path)
+    return write_text_atomically(path, json.dumps(state))
 
 
 SPEED_COUNTERS = ("inserted", "traces_served", "env_steps_total")  # the replay's counters given per second too
@@ -72,6 +70,7 @@ def run_replay(config: Config, resume: bool = False) -> None:
     """Serves until SIGINT/SIGTERM; with resume, restores the run's snapshot and counters."""
     shell = Service("replay", config)
     shell.claim()  # before the snapshot is read: a replay that is stopping writes it last
+    remove_dead_temporaries(RunDir.of(config).replay_counters.parent)  # the snapshot's folder lies inside
     stop = shell.stop
     service = ReplayService(config)
     path = counters_path(config)
@@ -201,17 +200,14 @@ def _report_until(stop: threading.Event, service: ReplayService, receivers: dict
                   path: Path) -> None:
     meter = CounterSpeeds()
     log_every = Every(config.replay.log_period_s)
-    warn = ThrottledLog(logger=log)
+    counters = RetriedWrites("rate limiter's counters", path, log)  # a full disk: said once, not every period
     while not stop.wait(config.replay.stats_period_s):
         # messages that are not wire messages or whose fields are invalid, refused before the service saw them
         malformed = {f"malformed_{door}": receiver.rejected for door, receiver in receivers.items()}
         stats = service.stats(rejected={**malformed, "rejected_messages": receivers["episodes"].rejected})
         stats.speeds = meter.speeds({name: getattr(stats, name) for name in SPEED_COUNTERS}, SPEED_COUNTERS)
         stats_out.put(stats)
-        try:
-            save_counters(path, service.limiter_state())
-        except OSError as error:
-            warn.warning("cannot save the rate limiter's counters to %s: %s", path, error)
+        counters.attempt(lambda: save_counters(path, service.limiter_state()))
         if log_every.due():
             _log_stats(stats)
 

@@ -35,6 +35,7 @@ from typing import NamedTuple
 import msgpack
 import numpy as np
 
+from common.atomic_file import write_atomically
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from replay.store import StoredEpisode
@@ -193,12 +194,7 @@ class Snapshotter:
                 "episodes": [[seq, *self._locations[seq]] for seq in sorted(live)],
                 "store": view.store, "limiter": view.limiter, "ledger": view.ledger,
             }, use_bin_type=True)
-            temporary = self.directory / f".{MANIFEST}.tmp"
-            with open(temporary, "wb") as handle:
-                handle.write(manifest)
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(temporary, self.directory / MANIFEST)
+            write_atomically(self.directory / MANIFEST, lambda handle: handle.write(manifest))
             _fsync_directory(self.directory)
         except OSError as error:
             raise SnapshotError(f"cannot write the snapshot in {self.directory}: {error}") from None
@@ -216,14 +212,18 @@ class Snapshotter:
         path = self.directory / _segment_name(number)
         offset = 0
         locations = {}
-        with open(path, "wb") as handle:
-            for stored in episodes:
-                record = encode_record(stored)
-                handle.write(record)
-                locations[stored.seq] = (number, offset, len(record))
-                offset += len(record)
-            handle.flush()
-            os.fsync(handle.fileno())
+        try:
+            with open(path, "wb") as handle:
+                for stored in episodes:
+                    record = encode_record(stored)
+                    handle.write(record)
+                    locations[stored.seq] = (number, offset, len(record))
+                    offset += len(record)
+                handle.flush()
+                os.fsync(handle.fileno())
+        except OSError:  # no manifest names it: a part left behind would only hold space
+            path.unlink(missing_ok=True)
+            raise
         self._next_segment += 1
         self._locations.update(locations)
         self._segment_bytes[number] = offset

@@ -8,7 +8,8 @@ dropped and counted (per key, in the recorder's Stats and in the file's
 writer thread does everything else: time stamps, weights sampling, views,
 compression, and a flush every ``recorder.flush_period_s`` that closes the open
 chunk, so a recorder killed with SIGKILL leaves a file readable up to that flush
-(``d3rqn-log recover``).
+(``d3rqn-log recover``). A full disk pauses the recording: the file is cut back to its last flush, and once
+space returns the recording goes on in the next numbered file.
 
 Weights (48 MB each) are kept sparsely: the first, one per
 ``recorder.weights_every_versions`` versions, and the newest one when recording stops.
@@ -26,10 +27,12 @@ import threading
 import time
 from collections import Counter, deque
 from pathlib import Path
+from typing import Callable
 
 import zenoh
 
 from common.config import Config, RecorderConfig
+from common.disk_space import free_bytes, is_disk_full, size_text
 from common.run_dir import RunDir, next_free_path
 from common.shell import Service
 from common.transport import Declared, publisher
@@ -41,6 +44,10 @@ from replay.recorder.views import ViewMaker
 from replay.recorder.writer import MEGABYTE, LogWriter
 
 log = logging.getLogger("recorder")
+
+PAUSE_POLL_S = 1.0  # how often a recording paused for a full disk looks for space
+# the free space a paused recording waits for: a few chunks, so that it does not pause again at once
+RESUME_CHUNKS, RESUME_MIN_BYTES = 4, 32 * MEGABYTE
 
 
 class HandOff:
@@ -127,10 +134,22 @@ class WeightsSampler:
 
 
 class Recorder:
-    """Samples in through `offer`, file out through a writer thread."""
+    """Samples in through `offer`, file out through a writer thread.
 
-    def __init__(self, writer: LogWriter, config: RecorderConfig, board: EventsWriter | None = None) -> None:
-        self.writer = writer
+    Given `reopen` (a new LogWriter for the next file), a full disk pauses the recording instead of ending it:
+    the file is cut back to its last flush (readable so far), what arrives meanwhile is dropped and counted,
+    and once `free_space()` is at least resume_bytes again the recording goes on in the file reopen gives."""
+
+    def __init__(self, writer: LogWriter, config: RecorderConfig, board: EventsWriter | None = None,
+                 reopen: Callable[[], LogWriter] | None = None,
+                 free_space: Callable[[], int | None] | None = None) -> None:
+        self.writer: LogWriter | None = writer  # None once it was abandoned and no other opened before the end
+        self.path = writer.path  # of the latest file
+        self._reopen = reopen
+        self._free_space = free_space or (lambda: free_bytes(writer.path.parent))
+        self.resume_bytes = max(RESUME_CHUNKS * int(config.chunk_mb * MEGABYTE), RESUME_MIN_BYTES)
+        self.pauses = 0
+        self._earlier = (0, 0)  # wire and view messages of the files written before this one
         self.board = board
         self.flush_period_s = config.flush_period_s
         self.handoff = HandOff(config.queue_messages, int(config.queue_mb * MEGABYTE))
@@ -177,27 +196,80 @@ class Recorder:
         """Writes what is queued and the newest weights, then closes the file."""
         self.handoff.close()
         self._thread.join()
-        if self.error is None:
-            held = self.sampler.take_held()
-            if held is not None:
-                self.writer.write(*held)
-            self.writer.close({key: str(value) for key, value in self.snapshot().items()})
+        if self.error is None and self.writer is not None:
+            self._finish(self.writer)
         self._to_board(lambda board: board.close())
 
-    def _write_all(self) -> None:
-        next_flush = time.monotonic() + self.flush_period_s
+    def _finish(self, writer: LogWriter) -> None:
         try:
-            while not self.handoff.drained:
-                arrival = self.handoff.take(max(0.0, next_flush - time.monotonic()))
-                if arrival is not None:
-                    self._write(arrival)
-                if time.monotonic() >= next_flush:
-                    self.writer.flush()
-                    self._to_board(lambda board: board.flush())
-                    next_flush = time.monotonic() + self.flush_period_s
-        except Exception as error:  # disk full, closed file...: stop writing; the file stays recoverable
+            held = self.sampler.take_held()
+            if held is not None:
+                writer.write(*held)
+            writer.close({key: str(value) for key, value in self.snapshot().items()})
+        except OSError as error:
+            if not is_disk_full(error):
+                raise
+            writer.abandon()
+            log.error("the disk is full: %s ends without its summary; it reads up to its last flush", writer.path)
+
+    def _write_all(self) -> None:
+        try:
+            while True:
+                try:
+                    return self._write_until_drained()
+                except Exception as error:
+                    if self._reopen is None or not is_disk_full(error):
+                        raise
+                    if not self._pause(error):
+                        return
+        except Exception as error:  # a closed file, a bug...: stop writing; the file stays recoverable
             self.error = error
             log.exception("the writer failed; recording stops")
+
+    def _write_until_drained(self) -> None:
+        next_flush = time.monotonic() + self.flush_period_s
+        while not self.handoff.drained:
+            arrival = self.handoff.take(max(0.0, next_flush - time.monotonic()))
+            if arrival is not None:
+                self._write(arrival)
+            if time.monotonic() >= next_flush:
+                self.writer.flush()
+                self._to_board(lambda board: board.flush())
+                next_flush = time.monotonic() + self.flush_period_s
+
+    def _pause(self, error: BaseException) -> bool:
+        """Abandons the file the disk refused, drops what arrives until space returns, then goes on in a new
+        file: True; False where recording stopped meanwhile."""
+        writer, self.writer = self.writer, None
+        writer.abandon()
+        self.pauses += 1
+        self._earlier = (self._earlier[0] + writer.messages, self._earlier[1] + writer.view_messages)
+        log.error("the disk is full (%s, %s free): recording pauses and drops what arrives; %s reads up to its "
+                  "last flush (%s); it goes on in a new file once %s are free", error,
+                  size_text(self._free_space()), writer.path, size_text(writer.flushed_bytes),
+                  size_text(self.resume_bytes))
+        while not self.handoff.drained:
+            free = self._free_space()
+            if free is None or free >= self.resume_bytes:
+                try:
+                    self.writer = self._reopen()
+                except OSError as again:
+                    if not is_disk_full(again):
+                        raise
+                else:
+                    self.path = self.writer.path
+                    log.info("space is back (%s free): recording goes on in %s", size_text(free), self.path)
+                    return True
+            self._drop_for(PAUSE_POLL_S)
+        return False
+
+    def _drop_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0 and not self.handoff.drained:
+            arrival = self.handoff.take(left)
+            if arrival is not None:
+                with self._lock:
+                    self.dropped[arrival.key] += 1
 
     def _write(self, arrival: Arrival) -> None:
         seen = peek(arrival.data)
@@ -222,9 +294,12 @@ class Recorder:
         with self._lock:
             dropped = dict(self.dropped)
             received = self.received
+        writer, (written, views) = self.writer, self._earlier
+        if writer is not None:
+            written, views = written + writer.messages, views + writer.view_messages
         values: dict[str, int | float] = {
-            "received": received, "written": self.writer.messages, "views_written": self.writer.view_messages,
-            "dropped": sum(dropped.values()),
+            "received": received, "written": written, "views_written": views, "pauses": self.pauses,
+            "paused": int(writer is None), "dropped": sum(dropped.values()),
             "queue_messages": depth, "queue_mb": queued_bytes / MEGABYTE,
             "weights_kept": self.sampler.kept, "weights_skipped": self.sampler.skipped,
         }
@@ -250,7 +325,8 @@ def run_recorder(config: Config, output: Path | None = None, tensorboard: Path |
                           config.recorder.image_format)
     board = None if tensorboard is None else EventsWriter(tensorboard, keys.root)
     with service.session() as session:
-        recorder = Recorder(LogWriter(path, config, views), config.recorder, board)
+        recorder = Recorder(LogWriter.open(path, config, views), config.recorder, board,
+                            reopen=lambda: LogWriter.open(next_free_path(path), config, views))
         recorder.start()
         service.on_close(recorder.stop)  # once nothing more arrives: after the subscription's undeclare
         subscription = Declared(keys.all).attach(session.declare_subscriber(keys.all, recorder.on_sample))
@@ -263,5 +339,5 @@ def run_recorder(config: Config, output: Path | None = None, tensorboard: Path |
             stats_out.put(Stats(source="recorder", time=time.time(), values=values))
             log.info("received %(received)d, written %(written)d, dropped %(dropped)d, "
                      "queue %(queue_messages)d (%(queue_mb).1f MB)", values)
-    log.info("stopped; %s: %s", path, recorder.snapshot())
+    log.info("stopped; %s: %s", recorder.path, recorder.snapshot())
     return 1 if recorder.error is not None else 0

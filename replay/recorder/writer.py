@@ -9,7 +9,9 @@ so even a file cut short says which run it belongs to.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 from pathlib import Path
 
 from mcap.well_known import SchemaEncoding
@@ -44,7 +46,18 @@ class LogWriter:
         self._schemas: dict[str, int] = {}
         self.messages = 0  # wire messages
         self.view_messages = 0
+        self.flushed_bytes = 0  # the file's length at the last flush: whole records up to there
+        self._flushed_messages = (0, 0)  # the wire and view messages up to there
         self.flush()
+
+    @classmethod
+    def open(cls, path: Path, config: Config, views: ViewMaker | None) -> LogWriter:
+        """A new log at path; where even its beginning cannot be written (a full disk), no file is left."""
+        try:
+            return cls(path, config, views)
+        except OSError:
+            path.unlink(missing_ok=True)
+            raise
 
     def write(self, arrival: Arrival, peek: Peek) -> None:
         """One wire message, then its views."""
@@ -80,6 +93,15 @@ class LogWriter:
     def flush(self) -> None:
         """Closes the open chunk and hands everything to the OS: a killed process loses nothing written before."""
         self._mcap.flush()
+        self.flushed_bytes, self._flushed_messages = self._file.tell(), (self.messages, self.view_messages)
+
+    def abandon(self) -> None:
+        """Closes a file that can no longer be written (a full disk) without its end, cut back to its last flush:
+        it reads up to there (unfinished_ok, as a killed recorder's), and `d3rqn-log recover` makes it whole."""
+        with contextlib.suppress(OSError):  # what its buffer held is what the disk refused
+            self._file.close()
+        os.truncate(self.path, self.flushed_bytes)
+        self.messages, self.view_messages = self._flushed_messages
 
     def close(self, counters: dict[str, str] | None = None) -> None:
         if counters is not None:
