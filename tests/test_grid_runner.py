@@ -75,6 +75,9 @@ def test_runs_are_named_by_cell_and_seed_and_the_grid_orders_them():
     assert specs[4].option_flags() == ["--learner.n_step", "3"]
     assert RunSpec("bmc", 1000, 0, "stored").option_flags() == ["--learner.stored_state", "true",
                                                                 "--learner.burn_in", "0"]
+    assert RunSpec("bmc", 1000, 0, "lrdecay").option_flags() == [
+        "--learner.lr_decay_from", "20000", "--learner.lr_decay_to", "30000", "--learner.lr_final_scale", "0.1"]
+    assert RunSpec("bmc", 1000, 0, "lrdecay").name == "bmc-b1000-lrdecay-s0"
 
 
 def test_the_budget_in_updates_sets_each_runs_step_budget_from_its_own_ratio(tmp_path):

@@ -63,6 +63,8 @@ OPTION_SETS: dict[str, tuple[str, dict[str, Any]]] = {
     "batch20": ("20 traces per batch", {"learner.batch_size": 20}),
     "ratio2": ("1 update per 2 env steps", {"pace.env_steps_per_update": 2.0}),
     "bfloat16": ("bfloat16 learner (same math)", {"learner.precision": "bfloat16"}),
+    "lrdecay": ("Adam's rate falling linearly to a tenth from 20,000 to 30,000 updates (beyond the paper)",
+                {"learner.lr_decay_from": 20_000, "learner.lr_decay_to": 30_000, "learner.lr_final_scale": 0.1}),
     "combination": ("stored LSTM state, 2 steps of burn-in, bfloat16 where native (fast preset + stored state)",
                     {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}),
 }
