@@ -367,17 +367,22 @@ def test_a_run_with_a_damaged_checkpoint_fails_alone(tmp_path, monkeypatch, caps
     assert "cannot read the step count of" in out and (tmp_path / "results" / "runs" / "vdbe-b1000-s0").is_dir()
 
 
-def test_a_run_exported_finished_is_done_where_its_folder_is_not(tmp_path, monkeypatch, capsys):
-    """A fresh clone with the finished runs' exports committed goes on to the next run: an export of the run
-    finished at this budget counts as done when its run folder holds nothing; at another budget, or once a
-    run folder is started here, it does not."""
+def finished_export(tmp_path: Path) -> Path:
+    """The export of vdbe-b1000-s0 finished at 30,000 updates, in tmp_path/export/."""
     finished = make_drive_run(tmp_path / "elsewhere" / "vdbe-b1000-s0", BUDGET, KEPT,
                               curve_rows(sorted(curve_wanted(KEPT, 1_000)), "test") + curve_rows(KEPT[-5:], "train"),
                               strategy="vdbe")
     grid_cells.write_cell(finished, RunSpec("vdbe", 1000, 0), 30_000)
     choose(finished)
     fake_evaluation(finished.evaluation, [100, 100], updates=30_000)
-    exported = export_run(finished, tmp_path / "export")
+    return export_run(finished, tmp_path / "export")
+
+
+def test_a_run_exported_finished_is_done_where_its_folder_is_not(tmp_path, monkeypatch, capsys):
+    """A fresh clone with the finished runs' exports committed goes on to the next run: an export of the run
+    finished at this budget counts as done when its run folder holds nothing; at another budget, or once a
+    run folder is started here, it does not."""
+    exported = finished_export(tmp_path)
     argv = ["--strategies", "vdbe,bmc", "--seeds", "0", "--runs-dir", str(tmp_path / "runs"),
             "--export", str(exported.parent)]
     assert experiments.main([*argv, "--cells"]) == 0
@@ -393,6 +398,24 @@ def test_a_run_exported_finished_is_done_where_its_folder_is_not(tmp_path, monke
     make_drive_run(tmp_path / "runs" / "vdbe-b1000-s0", 90_000, KEPT[:15], strategy="vdbe")
     assert experiments.main([*argv, "--cells"]) == 0
     assert capsys.readouterr().out.splitlines()[0].endswith("next: resume")  # a run started here is its folder
+
+
+def test_the_report_alone_says_which_runs_no_export_holds_finished(tmp_path, capsys):
+    """The job after a scheduler's tasks: a run whose task did not finish is named with its next step; a
+    run finished in its folder and exported is not, nor one exported elsewhere and merged."""
+    exported = finished_export(tmp_path)
+    make_drive_run(tmp_path / "runs" / "bmc-b1000-s0", 90_000, KEPT[:15])
+    argv = ["--strategies", "vdbe,bmc,softmax", "--seeds", "0", "--runs-dir", str(tmp_path / "runs"), "--report-only"]
+    experiments.main([*argv, "--export", str(exported.parent)])
+    assert ("grid: 2 runs of 3 not finished and exported: cell 1 bmc-b1000-s0 (next: resume); cell 2 "
+            "softmax-b1000-s0 (next: train)") in capsys.readouterr().out
+    experiments.main([*argv, "--merge", str(exported.parent)])  # the run folder exists, the export is merged
+    assert "grid: 2 runs of 3 not finished and exported: cell 1 bmc" in capsys.readouterr().out
+    make_drive_run(tmp_path / "runs" / "vdbe-b1000-s0", 90_000, KEPT[:15], strategy="vdbe")  # trained on here
+    experiments.main([*argv, "--export", str(exported.parent)])
+    assert "2 runs of 3 not finished" in capsys.readouterr().out  # its export still holds it finished
+    experiments.main([*argv, "--export", str(exported.parent), "--updates", "40000"])
+    assert "3 runs of 3 not finished and exported: cell 0 vdbe-b1000-s0 (next: resume)" in capsys.readouterr().out
 
 
 def test_a_damaged_steps_row_is_left_out(tmp_path):

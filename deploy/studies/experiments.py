@@ -177,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--progress-s", type=float, default=60.0,
                         help="seconds between the status lines of the running runs and the grid (default: 60)")
     parser.add_argument("--report-only", action="store_true",
-                        help="train and evaluate nothing; export the finished runs on disk and rebuild the report")
+                        help="train and evaluate nothing; rebuild the report from the exported runs and say which "
+                             "runs of the grid none of them holds finished")
     parser.add_argument("--export", type=Path, default=None,
                         help="where each finished run's small outputs go, to commit or copy (default: "
                              "<runs-dir>/results/runs); the report reads them from there")
@@ -258,6 +259,15 @@ def list_cells(plan: Plan) -> None:
               f"seed {spec.seed}  next: {step}")
 
 
+def missing_runs(plan: Plan) -> list[str]:
+    """The runs that no folder of exported runs holds finished at this budget, each with the step its run
+    folder needs next: the report after a scheduler's tasks says which of them did not finish."""
+    folders = [plan.options.export_dir, *plan.options.merge]
+    return [f"cell {number} {spec.name} (next: {step_of(plan.options.run_dir(spec), run_budget(spec, plan.options))})"
+            for number, spec in zip(plan.numbers, plan.specs)
+            if not any(plan.options.finished_export(spec, folder) for folder in folders)]
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         plan = parse_arguments(argv)
@@ -277,6 +287,9 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("interrupted: the running stacks checkpointed; the same command resumes", file=sys.stderr)
             return 130
+    elif missing := missing_runs(plan):
+        print(f"grid: {counted(len(missing), 'run')} of {len(plan.specs)} not finished and exported: "
+              + "; ".join(missing), flush=True)
     if not options.export_dir.is_dir():
         print(f"grid: no run has finished yet ({options.export_dir} is empty); no report", flush=True)
         return 1 if failed else 0

@@ -68,8 +68,12 @@ class Options:
     def exported(self, spec: RunSpec) -> Path | None:
         """Its export, when that holds the run finished at this budget and its run folder holds nothing: a
         fresh clone or another machine, with the finished runs' exports committed, goes on to the next."""
-        folder = self.export_dir / spec.name
-        if self.run(spec).config.is_file() or read_cell(folder) != {**asdict(spec), "updates": self.updates}:
+        return None if self.run(spec).config.is_file() else self.finished_export(spec, self.export_dir)
+
+    def finished_export(self, spec: RunSpec, exports: Path) -> Path | None:
+        """The run's folder in a folder of exported runs, where that holds it finished at this budget."""
+        folder = exports / spec.name
+        if read_cell(folder) != {**asdict(spec), "updates": self.updates}:
             return None
         return folder if next_step(folder, run_budget(spec, self)) == DONE else None
 
