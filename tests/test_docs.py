@@ -32,7 +32,10 @@ COMMANDS = {
     "deploy/run.sh": "deploy/stack.py",
     "deploy.reference_loop": "deploy/reference_loop.py",
 }
-EXTERNAL = {"pip", "tensorboard", "python3.11", "source", "openssl", "deploy/test.sh"}  # flags not ours
+EXTERNAL = {"pip", "tensorboard", "python3.11", "source", "openssl", "deploy/test.sh",  # flags not ours
+            "sbatch", "squeue", "scontrol", "scancel", "rsync"}
+# A command whose flags it does not take itself go on to another's parser: that one's flags are its too.
+PASSED_ON = {"deploy/slurm/submit.py": "deploy/studies/experiments.py"}
 CONFIG_ENTRY_POINTS = {"add_config_arguments", "parse_service_args"}  # a parser these get has every config flag
 ON_PURPOSE_WRONG = {"--run.nam"}  # docs/configuration.md shows how a mistyped flag is refused
 
@@ -118,6 +121,8 @@ def command_flags(line: str) -> tuple[str, frozenset[str] | None]:
         return "", every_flag()
     by_subcommand = parser_flags(source)
     flags = set(by_subcommand.get(None, frozenset({"--help"})))
+    if source in PASSED_ON:
+        flags |= parser_flags(PASSED_ON[source])[None]
     subcommand = next((later for later in words[1:] if later in by_subcommand), None)
     if subcommand is not None:  # `d3rqn-log info ...`, `deploy/studies/study.py run ...`: that subcommand's flags too
         flags |= by_subcommand[subcommand]
