@@ -371,6 +371,13 @@ def test_the_shadow_kinds_are_rows_of_their_own_and_the_online_summary_stays_the
     with pytest.raises(SystemExit):
         main(["--curve", str(run.root), *CURVE_FLAGS, "--kinds", "mean"])  # none kept of that kind
     assert "no kept mean policies" in capsys.readouterr().err
+    rows[0]["kind"] = "best"  # a damaged cell: a clear error, not a crash when the curve is rewritten
+    with (run.curve / "curve.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    with pytest.raises(EvaluationError, match="kind 'best' is not one of"):
+        read_curve(run.curve / "curve.csv")
     with pytest.raises(SystemExit):
         main(["--curve", str(run.root), *CURVE_FLAGS, "--kinds", "target,best"])
     assert "--kinds: choose from online, target, ema, mean" in capsys.readouterr().err

@@ -207,6 +207,10 @@ def read_curve(path: Path, kind: str | None = "online") -> list[dict]:
                               "move it away or give another --out") from None
     rows = [{"trained_precision": "", "kind": "online", **row,
              **{column: "nan" for column in COVERAGE_COLUMNS if column not in row}} for row in rows]
+    strange = sorted({row["kind"] for row in rows} - set(POLICY_KINDS))
+    if strange:
+        raise EvaluationError(f"{path}: kind {strange[0]!r} is not one of {', '.join(POLICY_KINDS)}; move it away "
+                              "or give another --out")
     return rows if kind is None else of_kind(rows, kind)
 
 
