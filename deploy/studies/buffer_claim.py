@@ -174,7 +174,10 @@ def buffer_lines(runs: Sequence[GridRun], drive_updates, bootstrap: Bootstrap) -
     cfr = buffer_pairs(runs, chosen_test_cfr)
     drive = buffer_pairs(runs, drive_updates)
     past = 1.0 + max((item.run.trained_updates or 0 for item in runs), default=0)
-    lines = [__doc__.split("\n\n")[1].replace("\n", " "), ""]
+    lines = [__doc__.split("\n\n")[1].replace("\n", " "), "",
+             "At 13% of the paper's budget the random phase alone fills 1,000 episodes, and the two buffers differ "
+             "mostly in how much of the learner's diet it stays (docs/results/buffer-fill.md): read a gap with that.",
+             ""]
     if not cfr:
         return lines + ["No strategy and seed has runs at both buffers yet.", "", *fill_lines(runs)]
     lines += ["| Strategy | Seed | Test CFR at 1,000 | at 2,000 | Updates to drive at 1,000 | at 2,000 |",
