@@ -116,6 +116,10 @@ class ReplayConfig:
     stats_period_s: float = option(1.0, "how often the replay publishes its stats and checks the actors' hold", "s")
     log_period_s: float = option(10.0, "how often the replay logs a status line", "s")
     seed: int = option(0, "seed of the replay's trace sampling")
+    sample_by_steps: bool = option(False, "beyond the paper: every trace the store holds equally likely (an episode in "
+                                          "proportion to its starts), not an episode uniformly, then a start (the paper's); "
+                                          "at a short budget the random phase's short episodes are otherwise half the "
+                                          "traces drawn (docs/results/buffer-fill.md)")
     reward_limit: float = option(100.0, "an episode (or trace batch) with a reward of larger magnitude is refused as "
                                         "absurd; the env's rewards exp(-beta d) lie in [0, 1]")
     snapshot_period_s: float = option(

@@ -76,9 +76,8 @@ class ReplayService:
             capacity=config.replay.capacity,
             budget_bytes=int(config.replay.memory_budget_mb * MEGABYTE),
             trace_length=config.learner.trace_length,
-            seed=config.replay.seed,
-            state_units=stored_units(config),
-        )
+            seed=config.replay.seed, state_units=stored_units(config),
+            by_steps=config.replay.sample_by_steps)
         self.limiter = RateLimiter(rate_limit_from_config(config))
         self.max_trace_batch = config.replay.max_batch_size
         self.learner_stock = learner_stock(config.learner.prefetch)

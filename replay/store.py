@@ -69,11 +69,13 @@ class StoredEpisode:
 
 
 class EpisodeStore:
-    """Holds up to `capacity` episodes within `budget_bytes`; samples traces uniformly."""
+    """Holds up to `capacity` episodes within `budget_bytes`; samples an episode uniformly, then a start in it
+    (or, with by_steps, every trace held alike)."""
 
     def __init__(self, capacity: int, budget_bytes: int, trace_length: int, seed: int = 0,
-                 state_units: int = 0) -> None:
+                 state_units: int = 0, by_steps: bool = False) -> None:
         self.capacity = capacity
+        self.by_steps = by_steps  # replay.sample_by_steps: every trace held equally likely (beyond the paper)
         self.state_units = state_units  # learner.stored_state: keep LSTM state rows of this many units; 0: none
         self.budget_bytes = budget_bytes
         self.trace_length = trace_length
@@ -163,7 +165,7 @@ class EpisodeStore:
         if not self._episodes:
             raise LookupError("the replay holds no episode long enough to sample")
         steps = self.trace_length
-        picks = self._rng.integers(len(self._episodes), size=batch_size)
+        picks = self._picks(batch_size)
         stacks, actions, rewards, terminated, versions, states = [], [], [], [], [], []
         for pick in picks:
             episode = self._episodes[int(pick)]
@@ -191,6 +193,15 @@ class EpisodeStore:
             episodes_stored=len(self._episodes),
             initial_state=np.stack(states) if states else no_states(),
         )
+
+    def _picks(self, batch_size: int) -> np.ndarray:
+        """The episodes of a batch's traces: uniformly (the paper's), or in proportion to their trace starts,
+        which with a uniform start inside makes every trace the store holds equally likely."""
+        if not self.by_steps:
+            return self._rng.integers(len(self._episodes), size=batch_size)
+        starts = np.fromiter((episode.length - self.trace_length + 1 for episode in self._episodes), np.float64,
+                             len(self._episodes))
+        return self._rng.choice(len(starts), size=batch_size, p=starts / starts.sum())
 
     def _evict_oldest(self) -> None:
         oldest = self._episodes.popleft()

@@ -80,6 +80,16 @@ def test_runs_are_named_by_cell_and_seed_and_the_grid_orders_them():
     assert RunSpec("bmc", 1000, 0, "lrdecay").name == "bmc-b1000-lrdecay-s0"
 
 
+@pytest.mark.parametrize("name", sorted(grid_cells.OPTION_SETS))
+def test_every_option_set_is_a_valid_config_on_the_grids_preset(name):
+    """Each set's flags, as the runner passes them, load onto the drive preset and take effect."""
+    flags = RunSpec("bmc", 1000, 0, name).option_flags()
+    config = load_config("drive", overrides=dict(zip((flag[2:] for flag in flags[::2]), flags[1::2])))
+    for key, value in grid_cells.OPTION_SETS[name][1].items():
+        section, option = key.split(".")
+        assert getattr(getattr(config, section), option) == value, key
+
+
 def test_the_budget_in_updates_sets_each_runs_step_budget_from_its_own_ratio(tmp_path):
     opts = options(tmp_path)
     command = grid_job.stack_command(RunSpec("vdbe", 1000, 2), opts, resume=False)

@@ -136,3 +136,37 @@ def test_a_stored_state_store_serves_zero_rows_for_an_episode_kept_without_them(
     store.restore([dataclasses.replace(StoredEpisode.from_episode(make_episode(6)), seq=0)], {})
     batch = store.sample(2)
     assert batch.initial_state.shape == (2, 2, 3) and not batch.initial_state.any()
+
+
+def test_by_steps_makes_every_trace_held_equally_likely():
+    """Lengths 10 and 40 with traces of 10: 1 and 31 starts. An episode uniformly draws the short one half the
+    time; by steps, 1 time in 32."""
+    shares = {}
+    for by_steps in (False, True):
+        store = EpisodeStore(capacity=10, budget_bytes=1 << 30, trace_length=10, seed=6, by_steps=by_steps)
+        store.add(make_episode(10, first_value=200))
+        store.add(make_episode(40, first_value=0))
+        first = store.sample(4000).observations_array()[:, 0, 0, 0, 0]
+        shares[by_steps] = float(np.mean(first == 200))
+    assert shares[False] == pytest.approx(1 / 2, abs=0.03)
+    assert shares[True] == pytest.approx(1 / 32, abs=0.01)
+
+
+def test_the_papers_sampling_is_unchanged_by_the_option_being_there():
+    """Off, a batch draws exactly what the paper's rule draws from the same seed: an episode, then a start."""
+    store = EpisodeStore(capacity=10, budget_bytes=1 << 30, trace_length=3, seed=11)
+    for index in range(4):
+        store.add(make_episode(5 + index, first_value=50 * index))
+    batch = store.sample(16)
+    rng = np.random.default_rng(11)
+    picks = rng.integers(4, size=16)
+    starts = [int(rng.integers(5 + pick - 3 + 1)) for pick in picks]
+    assert batch.observations_array()[:, 0, 0, 0, 0].tolist() == [50 * p + s for p, s in zip(picks, starts)]
+
+
+def test_the_replay_samples_by_steps_only_when_its_config_says_so():
+    from common.config_values import load_config
+    from replay.service import ReplayService
+
+    assert not ReplayService(load_config("smoke")).store.by_steps
+    assert ReplayService(load_config("smoke", overrides={"replay.sample_by_steps": True})).store.by_steps

@@ -74,6 +74,8 @@ OPTION_SETS: dict[str, tuple[str, dict[str, Any]]] = {
                {"learner.lr": 3e-4, "learner.grad_clip_norm": 40.0}),
     "start10k": ("updates from 10,000 env steps, not 28,000; decreasing epsilon's schedule not moved (beyond the "
                  "paper)", {"pace.start_steps": 10_000}),
+    "bysteps": ("every trace held equally likely, not an episode uniformly then a start (beyond the paper)",
+                {"replay.sample_by_steps": True}),
 }
 
 TRAIN, RESUME, CURVE, CHOOSE, EVALUATE, DONE = "train", "resume", "curve", "choose", "evaluate", "done"
