@@ -263,7 +263,7 @@ def test_help_lists_the_presets_and_what_each_changes(capsys):
 
 
 def test_the_stack_help_follows_its_preset():
-    stack = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
+    stack = Path(__file__).resolve().parents[1] / "deploy" / "launcher" / "stack.py"
     result = subprocess.run([sys.executable, str(stack), "--preset", "local", "--help"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0

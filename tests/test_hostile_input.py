@@ -20,7 +20,7 @@ from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights, flat_values
 from common.wire.run_shape import RunShape, check_episode, stat_number
-from deploy.stack import StackMonitor
+from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerService
 from replay.service import MAX_PENDING, ReplayService

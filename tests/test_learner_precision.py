@@ -22,7 +22,7 @@ from common.config import LearnerConfig
 from common.config_values import load_config
 from common.options import ConfigError
 from common.wire.messages import Stats
-from deploy.stack import StackMonitor
+from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import LearnerMetrics, LearnerService
 from learner.loss import one_pass_loss

@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-import deploy.studies.experiments as experiments
-import deploy.studies.grid_job as grid_job
+import deploy.grid.experiments as experiments
+import deploy.grid.grid_job as grid_job
 from actor.gate import HoldLog
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config
@@ -15,7 +15,7 @@ from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus
 from common.wire.messages import EpisodeRecord, ReplayStats, Stats
 from wire_examples import example_rate, example_replay_stats
-from deploy.stack import Stack, StackMonitor
+from deploy.launcher.stack import Stack, StackMonitor
 from fake_clock import FakeClock
 from learner.prefetch import Prefetcher
 from learner.service import LearnerMetrics, LearnerService

@@ -9,7 +9,7 @@ holds stalls the whole update, and the niceness does not help (issue 38, item 7)
 * crowded: the same learner, beside a follower of every core's worth of workers, 1 torch thread each, at
   nice 15: what `evaluate --follow` ran before it warned (`evaluate` now warns on this layout);
 * shared: the learner on one core fewer, beside a follower of 1 worker x 1 thread at nice 15: the layout
-  `deploy/studies/experiments.py --curve-beside` and `evaluate`'s warning give;
+  `deploy/grid/experiments.py --curve-beside` and `evaluate`'s warning give;
 * alone, one core fewer: the learner of `shared`, nothing beside (what the follower itself costs).
 
 The learner is `DoubleQLearner.update` on one batch of the config's sizes (paper: B = 10, T = 10, LSTM

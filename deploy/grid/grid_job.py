@@ -1,6 +1,6 @@
-"""One run of a grid, step by step (deploy/studies/grid_cells.py decides the steps from its folder): its config and
+"""One run of a grid, step by step (deploy/grid/grid_cells.py decides the steps from its folder): its config and
 commands (the stack, the greedy test curve, the choice, the final evaluation), and RunJob, which runs them
-as children with the soak beside the stack. deploy/studies/experiments.py runs a grid of these.
+as children with the soak beside the stack. deploy/grid/experiments.py runs a grid of these.
 """
 
 from __future__ import annotations
@@ -20,18 +20,18 @@ from common.config_cli import add_config_arguments, config_from_args, parse_flag
 from common.eta import clock_time
 from common.options import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
-from deploy.child_process import Child
-from deploy.soak import TreePeak
+from deploy.grid.child_process import Child
+from deploy.labs.soak import TreePeak
 from actor.evaluation.curve import LATE_FROM
-from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
+from deploy.grid.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                        ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps,
                                        choice_candidates, choose, chosen_updates, curve_read, curve_wanted, keep_every,
                                        late_kinds, next_step, read_cell, read_choice, record_step, shadow_curve_done, shadow_kinds,
                                        to_evaluate, write_cell)
 from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
-STACK_SCRIPT = Path(__file__).resolve().parents[1] / "stack.py"
-SOAK_SCRIPT = Path(__file__).resolve().parents[1] / "soak.py"
+STACK_SCRIPT = Path(__file__).resolve().parents[1] / "launcher" / "stack.py"
+SOAK_SCRIPT = Path(__file__).resolve().parents[1] / "labs" / "soak.py"
 RESULTS_DIR = "results"
 EXPORTED_RUNS = "runs"
 # Keys the grid sets for each run; giving them as config flags would contradict it.
@@ -85,8 +85,8 @@ class Options:
 # --- a run's config and commands -----------------------------------------------------------------------------
 
 def config_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="deploy/studies/experiments.py", add_help=False,
-                                     usage="deploy/studies/experiments.py [options] [config flags of deploy/stack.py --help]")
+    parser = argparse.ArgumentParser(prog="deploy/grid/experiments.py", add_help=False,
+                                     usage="deploy/grid/experiments.py [options] [config flags of deploy/launcher/stack.py --help]")
     add_config_arguments(parser)
     return parser
 
@@ -234,7 +234,7 @@ def trains_since(run: RunDir, since: float) -> bool:
 
 @dataclass
 class RunJob:
-    """One run of the grid, stepped through its steps (deploy/studies/grid_cells.py) on its own thread."""
+    """One run of the grid, stepped through its steps (deploy/grid/grid_cells.py) on its own thread."""
 
     number: int
     total: int

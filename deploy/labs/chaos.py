@@ -1,8 +1,8 @@
 """Chaos run: a local stack trains while a process of it (replay, learner, recorder or an actor) is SIGKILLed
 every few minutes; then the run is closed at a budget just ahead of it, and checked.
 
-    .venv/bin/python deploy/chaos.py --minutes 30                          # the paper's local job, 1-3 min apart
-    .venv/bin/python deploy/chaos.py --minutes 1 --kill-every 8 12 --cycle --preset smoke ...   # the CI test's
+    .venv/bin/python deploy/labs/chaos.py --minutes 30                          # the paper's local job, 1-3 min apart
+    .venv/bin/python deploy/labs/chaos.py --minutes 1 --kill-every 8 12 --cycle --preset smoke ...   # the CI test's
 
 What it checks, into <run>/chaos/report.json and report.md (exit code 0 when all hold):
 
@@ -14,8 +14,8 @@ What it checks, into <run>/chaos/report.json and report.md (exit code 0 when all
   pace.error_buffer_updates more;
 - log: every flight-log segment of the run reads to its end (a killed recorder's up to its last flush).
 
-It samples the processes' memory and the run folder's size as deploy/soak.py does, into <run>/soak/.
-Flags it does not know go to deploy/run.sh (deploy/stack.py), e.g. --preset, --run.name, --actors.
+It samples the processes' memory and the run folder's size as deploy/labs/soak.py does, into <run>/soak/.
+Flags it does not know go to deploy/run.sh (deploy/launcher/stack.py), e.g. --preset, --run.name, --actors.
 """
 
 from __future__ import annotations
@@ -36,13 +36,13 @@ from common.checkpoint import Checkpoint
 from common.config_cli import config_from_args, parse_flags
 from common.config_values import load_config
 from common.run_dir import RunDir, RunStatus, StatusError
-from deploy import soak
-from deploy.stack import build_parser
+from deploy.labs import soak
+from deploy.launcher.stack import build_parser
 from replay.recorder.reader import LogError, LogFile
 from replay.snapshot import manifest_held
 
-ROOT = Path(__file__).resolve().parents[1]
-STACK = ROOT / "deploy" / "stack.py"
+ROOT = Path(__file__).resolve().parents[2]
+STACK = ROOT / "deploy" / "launcher" / "stack.py"
 RESTORED = re.compile(r"restored (\d+) episodes from the snapshot .*\((\d+) records skipped\)")
 
 
@@ -225,8 +225,8 @@ def write_report(chaos: Chaos) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="deploy/chaos.py", description=__doc__.splitlines()[0],
-                                     usage="deploy/chaos.py [options] [flags of deploy/run.sh]")
+    parser = argparse.ArgumentParser(prog="deploy/labs/chaos.py", description=__doc__.splitlines()[0],
+                                     usage="deploy/labs/chaos.py [options] [flags of deploy/run.sh]")
     parser.add_argument("--minutes", type=float, default=30.0, help="how long the killing goes on (default 30)")
     parser.add_argument("--kill-every", type=float, nargs=2, default=(60.0, 180.0), metavar=("MIN_S", "MAX_S"),
                         help="seconds between kills, drawn uniformly (default 60 180)")
