@@ -70,7 +70,7 @@ from common.logs import Every
 from common.network import initial_network
 from common.pacing import env_steps_ceiling
 from common.rejections import Rejections
-from common.shell import Service
+from common.shell import Shell
 from common.transport import publisher, request, subscribe, watch_liveliness
 from common.keys import Keys
 from common.wire.errors import WireError
@@ -289,24 +289,24 @@ def _declaring(config: Config, keys: Keys, actor: Actor, outbox: Outbox, replay:
 def run_actor(config: Config, max_episodes: int | None = None) -> None:
     """Runs episodes until stopped (SIGINT/SIGTERM) or after max_episodes (then waits until they are sent)."""
     actor_id = config.actor.actor_id
-    service = Service("actor", config, actor_id)
-    stop = service.stop
+    shell = Shell("actor", config, actor_id)
+    stop = shell.stop
     torch.set_num_threads(1)  # one core per actor; the learner owns the rest
     actor = Actor(config, actor_id)
     log.info("actor %d (seed %d, incarnation %x), %d simulator(s), strategy %s until the learner's exploration "
              "state says otherwise", actor_id, actor.seed, actor.incarnation, len(actor.slots),
              config.exploration.strategy)
-    keys = service.keys
+    keys = shell.keys
     outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE),
                     incarnation=actor.incarnation, actor_id=actor_id, resend_after_s=config.actor.resend_after_s,
                     keep_within_s=config.actor.resend_after_s + 2 * config.replay.snapshot_period_s,
                     max_in_flight_bytes=int(config.actor.in_flight_mb * MEGABYTE))
     replay = ReplayWatch(actor.mailbox.replay_gone)  # a restarted replay's rate limiter must see every step
     sending = threading.Event()  # the sender and the stats thread stop once driving is over
-    with service.session() as session:
-        service.on_close(sending.set)
-        link = HubLink(service, session, _declaring(config, keys, actor, outbox, replay))
-        service.on_close(link.close)
+    with shell.session() as session:
+        shell.on_close(sending.set)
+        link = HubLink(shell, session, _declaring(config, keys, actor, outbox, replay))
+        shell.on_close(link.close)
         threads = [
             threading.Thread(target=_download_weights if config.actor.weights_download else _fetch_latest_weights,
                              args=(link, keys, actor, stop), daemon=True),

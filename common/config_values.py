@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from common.config import Config, sections
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.presets import PRESETS
 
 

@@ -14,7 +14,7 @@ from common.exploration.boltzmann import MaxBoltzmann, Softmax
 from common.exploration.epsilon_greedy import ConstantEpsilonGreedy, DecreasingEpsilonGreedy
 from common.exploration.names import strategy_named
 from common.exploration.vdbe import Vdbe, VdbeSoftmax
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.messages import ExplorationState
 
 

@@ -1,4 +1,5 @@
-"""The learner process: trains on the replay's trace batches and broadcasts weights and exploration.
+"""The learner service: the learner's state and its doors; it trains on the replay's trace batches and makes
+the weights and exploration state it broadcasts. Its process (session, threads, the loop) is learner/process.py.
 
 Top to bottom, one loop: take a prefetched batch, update, feed the exploration
 strategy, broadcast what changed, checkpoint now and then, and keep the policy
@@ -381,18 +382,18 @@ class LearnerService:
 class LearnerMetrics:
     """Running figures for the learner's log line and metrics message."""
 
-    def __init__(self, process: LearnerService, prefetcher: Prefetcher) -> None:
-        self.process = process
+    def __init__(self, service: LearnerService, prefetcher: Prefetcher) -> None:
+        self.service = service
         self.prefetcher = prefetcher
         self.started = time.monotonic()
         self.losses: list[float] = []
         self.loss_diffs: list[float] = []
         self._previous_loss: float | None = None
-        self._window_start = (time.monotonic(), process.updates, 0.0)
+        self._window_start = (time.monotonic(), service.updates, 0.0)
 
     def loss(self, value: float) -> None:
         if not math.isfinite(value):
-            log.warning("non-finite loss %s at update %d", value, self.process.updates)
+            log.warning("non-finite loss %s at update %d", value, self.service.updates)
         if self._previous_loss is not None:
             self.loss_diffs.append(abs(value - self._previous_loss))
         self._previous_loss = value
@@ -402,11 +403,11 @@ class LearnerMetrics:
         now = time.monotonic()
         window_time, window_updates, window_data_wait = self._window_start
         elapsed = max(now - window_time, 1e-9)
-        updates = self.process.updates
-        strategy = self.process.strategy
+        updates = self.service.updates
+        strategy = self.service.strategy
         values = {
             "updates": updates,
-            "env_steps": self.process.clock.env_steps,
+            "env_steps": self.service.clock.env_steps,
             "loss": float(np.mean(self.losses)) if self.losses else float("nan"),
             # the paper's training figure: |loss_k - loss_k-1| of consecutive updates, averaged here
             "loss_abs_diff": float(np.mean(self.loss_diffs)) if self.loss_diffs else float("nan"),
@@ -415,20 +416,20 @@ class LearnerMetrics:
             "updates_per_s": (updates - window_updates) / elapsed,
             # waiting for a batch: the replay holds replies while the learner is ahead of the ratio
             "data_wait_share": (self.prefetcher.wait_s - window_data_wait) / elapsed,
-            "weights_version": self.process.latest_weights.version if self.process.latest_weights else -1,
-            "bmc_observations": self.process.bmc_observations,
-            "failed_updates": self.process.failed_updates,
-            "checkpoints_failed": self.process.checkpoint_writes.failed,  # not written: a full disk, say
+            "weights_version": self.service.latest_weights.version if self.service.latest_weights else -1,
+            "bmc_observations": self.service.bmc_observations,
+            "failed_updates": self.service.failed_updates,
+            "checkpoints_failed": self.service.checkpoint_writes.failed,  # not written: a full disk, say
             # what the updates actually ran: "auto" resolves on the first batch (learner/update.py)
-            "precision": self.process.learner.precision,
-            "update_path": self.process.learner.update_path,
-            **self.process.rejections.values(),
+            "precision": self.service.learner.precision,
+            "update_path": self.service.learner.update_path,
+            **self.service.rejections.values(),
             **self._link_values(),
         }
-        achieved = self.process.env_steps_per_update()
+        achieved = self.service.env_steps_per_update()
         if math.isfinite(achieved):  # the whole run's ratio, from the replay's start mark
             values["env_steps_per_update"] = achieved
-            values["start_env_steps"] = float(self.process.clock.start_env_steps)
+            values["start_env_steps"] = float(self.service.clock.start_env_steps)
         log.info("updates %(updates)d, env steps %(env_steps)d, loss %(loss).5f, epsilon %(epsilon).3f, "
                  "%(updates_per_s).2f updates/s (%(precision)s, update path %(update_path)s), waiting for data "
                  "%(data_wait_share).0f%% of the time, %(ratio).3f env steps per update", {**values, "data_wait_share": 100 * values["data_wait_share"],
@@ -439,8 +440,8 @@ class LearnerMetrics:
         return values
 
     def _link_values(self) -> dict:
-        link = self.process.link
+        link = self.service.link
         if link is None:
             return {}
-        return {"sessions_reopened": link.reopened, "hub_silent_s": round(self.process.silent_s(), 1),
+        return {"sessions_reopened": link.reopened, "hub_silent_s": round(self.service.silent_s(), 1),
                 **{f"malformed_{door}": rejected for door, rejected in link.rejected().items()}}

@@ -47,7 +47,7 @@ def test_no_role_imports_another_and_common_imports_none():
 
 def folder_of(module: str) -> str:
     """The folder of a dotted module name inside this project: common.wire.messages -> common/wire; a package
-    (a folder with __init__.py) is its own folder: common.options -> common/options."""
+    (a folder with __init__.py) is its own folder: common.wire -> common/wire."""
     parts = module.split(".")
     return "/".join(parts) if (ROOT.joinpath(*parts) / "__init__.py").exists() else "/".join(parts[:-1])
 

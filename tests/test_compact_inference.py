@@ -14,7 +14,7 @@ from common import cpu_capability
 from common.config_values import load_config
 from common.strategy_build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.messages import Weights
 from tests.cpu_support import needs_bfloat16
 

@@ -10,7 +10,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit, parse_
 from common.config_values import config_fields, flat_items, load_config, to_toml, toml_value
 from common.exploration.bmc import BMC_OBSERVATIONS
 from common.exploration.names import STRATEGIES
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.presets import PRESETS
 
 

@@ -26,7 +26,7 @@ COMMANDS = {
     "replay": "replay/main.py", "replay.main": "replay/main.py",
     "learner": "learner/main.py", "learner.main": "learner/main.py",
     "actor": "actor/main.py", "actor.main": "actor/main.py",
-    "evaluate": "actor/evaluate.py",
+    "evaluate": "actor/evaluation/command.py",
     "d3rqn-log": "replay/recorder/cli.py",  # the next word is its subcommand
     "d3rqn-certs": "common/certs.py",
     "deploy/run.sh": "deploy/launcher/stack.py",

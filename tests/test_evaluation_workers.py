@@ -97,7 +97,7 @@ def test_a_worker_waiting_on_an_empty_queue_stops_when_its_parent_dies(monkeypat
     assert len(list(queued_jobs(Jobs(jobs, on_empty=parent_dies), parent_pid=parent))) == 2
 
 
-# A grid runner (deploy/child_process.Child starts its stack and evaluate) that starts a long evaluate, says its pid,
+# A grid runner (deploy/grid/child_process.Child starts its stack and evaluate) that starts a long evaluate, says its pid,
 # and waits.
 RUNNER = """
 import signal, sys, time
@@ -106,7 +106,7 @@ if sys.argv[3] == "ignored":  # a runner started in the background of a script: 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 from deploy.grid.child_process import Child
 run_dir, out = sys.argv[1], Path(sys.argv[2])
-child = Child([sys.executable, "-m", "actor.evaluate", "--checkpoint", run_dir, "--out", str(out / "evaluation"),
+child = Child([sys.executable, "-m", "actor.evaluation.command", "--checkpoint", run_dir, "--out", str(out / "evaluation"),
                "--evaluation.episodes_per_start", "200", "--evaluation.workers", "1"], out / "evaluate.log", None, None)
 print(child.process.pid, flush=True)
 time.sleep(300)

@@ -16,7 +16,7 @@ from common.exploration.epsilon_greedy import (ConstantEpsilonConfig, Decreasing
                                                decreasing_epsilon)
 from common.exploration.names import STRATEGIES
 from common.exploration.vdbe import VdbeConfig, vdbe_f
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.envelope import decode, encode
 from common.wire.messages import ExplorationState
 

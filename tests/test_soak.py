@@ -210,7 +210,7 @@ def test_a_child_started_from_a_thread_is_counted_in_its_parents_tree():
         parent.wait()
 
 
-# A grid runner that starts the soak beside a run (deploy/child_process.Child, as grid_job does), says its pid, waits.
+# A grid runner that starts the soak beside a run (deploy/grid/child_process.Child, as grid_job does), says its pid, waits.
 RUNNER = """
 import sys, time
 from pathlib import Path

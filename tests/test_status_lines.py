@@ -80,11 +80,11 @@ def test_the_line_shows_the_temperature_beside_epsilon_since_softmax_explores_at
 
 def test_the_learners_metrics_carry_its_strategys_temperature_to_the_line(tmp_path):
     config = load_config("smoke", overrides={"exploration.strategy": "softmax", "run.runs_dir": str(tmp_path)})
-    process = LearnerService(config)
-    process.strategy.start()
+    service = LearnerService(config)
+    service.strategy.start()
     prefetcher = Prefetcher(lambda request: None, 4, 10, depth=1)
     try:
-        values = LearnerMetrics(process, prefetcher).values()
+        values = LearnerMetrics(service, prefetcher).values()
     finally:
         prefetcher.close()
     assert (values["epsilon"], values["kappa"]) == (1.0, config.exploration.softmax.kappa)

@@ -11,7 +11,7 @@ from common.config_values import load_config
 from common.strategy_build import STRATEGY_CLASSES, make_strategy
 from common.exploration.names import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
                                       strategy_rank)
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from deploy.studies.comparison import STRATEGY_NAMES
 
 SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}

@@ -71,7 +71,7 @@ def untrained_policy(config: Config, folder: Path) -> Path:
 
 def start_follower(policy: Path, workers: int, out: Path) -> subprocess.Popen:
     """`evaluate` on the policy with `workers` workers x 1 torch thread at nice 15, long enough to outlast a case."""
-    command = [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(policy), "--nice", str(FOLLOWER_NICE),
+    command = [sys.executable, "-m", "actor.evaluation.command", "--checkpoint", str(policy), "--nice", str(FOLLOWER_NICE),
                "--no-random-baseline", "--out", str(out), "--evaluation.workers", str(workers),
                "--evaluation.torch_threads", "1", "--evaluation.episodes_per_start", "500"]
     return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)

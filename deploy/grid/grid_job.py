@@ -18,7 +18,7 @@ from actor.evaluation.status import is_evaluation_line
 from common.config import Config
 from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
 from deploy.grid.child_process import Child
 from deploy.labs.soak import TreePeak
@@ -127,7 +127,7 @@ def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
 
 
 def curve_command(run: RunDir, options: Options, *span: str) -> list[str]:
-    return [sys.executable, "-m", "actor.evaluate", "--curve", str(run.root), *span, *options.extra]
+    return [sys.executable, "-m", "actor.evaluation.command", "--curve", str(run.root), *span, *options.extra]
 
 
 def curve_commands(run: RunDir, options: Options) -> list[list[str]]:
@@ -176,7 +176,7 @@ def evaluate_commands(run: RunDir, options: Options) -> list[list[str]]:
     """Each kind's chosen policy not yet evaluated, on both start sets, into evaluation/ (online, with the
     random baseline) or evaluation-<kind>/."""
     choice = read_choice(run)
-    return [[sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.policy(chosen_updates(choice, kind), kind)),
+    return [[sys.executable, "-m", "actor.evaluation.command", "--checkpoint", str(run.policy(chosen_updates(choice, kind), kind)),
              "--out", str(run.evaluation_of(kind)), *([] if kind == "online" else ["--no-random-baseline"]),
              *options.extra, "--evaluation.episodes_per_start", str(options.trials)] for kind in to_evaluate(run, choice)]
 

@@ -37,7 +37,7 @@ from common.analysis.figures import RunCurves
 from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
 from common.config import Config
 from common.config_values import load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import POLICY_KINDS, RunDir
 from deploy.studies.comparison import EvaluatedRun
 from deploy.grid.grid_cells import CELL_JSON, CHOICE_JSON, STEPS_CSV, read_cell, run_name

@@ -32,7 +32,7 @@ from actor.evaluation import EvaluationError
 from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read_curve
 from common.analysis.plotting import finish_figure, pyplot
 from common.config_values import flat_items, load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from deploy.studies.differences import chance_apart, lie_apart
 from deploy.grid.grid_cells import OPTION_SETS
 

@@ -48,7 +48,7 @@ from common.config_cli import add_config_arguments, parse_flags
 from common.config_values import to_toml
 from common.eta import Eta
 from common.network import D3RQN, load_numpy_weights
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 
 FRONT_ZOOM = 3  # the 66 x 200 camera frame becomes 198 x 600
 CAPTION_ROWS = 102  # below the camera frame: the left column is as tall as the top-down view

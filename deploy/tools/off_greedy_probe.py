@@ -37,7 +37,7 @@ from common.config import Config
 from common.config_cli import add_config_arguments, parse_flags
 from common.exploration.base import softmax_probabilities
 from common.network import D3RQN, load_numpy_weights
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 
 
 def rule_off_greedy(q_rows: np.ndarray, epsilon: float, kappa: float) -> float:
