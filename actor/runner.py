@@ -65,7 +65,7 @@ from actor.mailbox import Mailbox
 from actor.weights_download import download_weights
 from actor.sim import make_env
 from common.config import Config
-from common.strategy_build import make_strategy, same_strategy, strategy_from_state
+from common.exploration.build import make_strategy, same_strategy, strategy_from_state
 from common.logs import Every
 from common.network import initial_network
 from common.pacing import env_steps_ceiling

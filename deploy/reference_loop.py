@@ -54,7 +54,7 @@ from actor.runner import actor_seed
 from actor.sim import make_env
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
-from common.strategy_build import make_strategy
+from common.exploration.build import make_strategy
 from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of, updates_paid_for
 from common.stored_state import state_row
 from common.wire.state_rows import stored_units

@@ -15,7 +15,7 @@ import zenoh
 
 from common.atomic_file import remove_dead_temporaries
 from common.checkpoint import CheckpointError
-from common.strategy_build import exploration_message
+from common.exploration.build import exploration_message
 from common.config import Config
 from common.logs import Every
 from common.pacing import rate_limit_from_config

@@ -39,7 +39,7 @@ from common.disk_space import RetriedWrites
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
-from common.strategy_build import make_strategy
+from common.exploration.build import make_strategy
 from common.pacing import achieved_ratio, env_steps_ceiling
 from common.rejections import Rejections
 from common.run_dir import RunDir

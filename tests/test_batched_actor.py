@@ -13,7 +13,7 @@ from actor.gate import EpisodeGate, HoldLog
 from actor.runner import Actor, ReplayWatch, _drive, actor_seed, env_seed
 from actor.sim import make_env
 from common.config_values import load_config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
 from common.schema.fields import ConfigError
 from common.wire.envelope import decode, encode

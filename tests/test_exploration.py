@@ -11,7 +11,7 @@ from common.exploration.base import softmax_probabilities, state_positive, state
 from common.exploration.bmc import (BmcConfig, BmcPosterior, EpsilonBmc, bmc_observation_count,
                                     greedy_and_uniform_returns, newest_transitions, student_t_pdf)
 from common.exploration.boltzmann import MaxBoltzmann, MaxBoltzmannConfig, SoftmaxConfig
-from common.strategy_build import exploration_message, make_strategy, same_strategy, strategy_from_state
+from common.exploration.build import exploration_message, make_strategy, same_strategy, strategy_from_state
 from common.exploration.epsilon_greedy import (ConstantEpsilonConfig, DecreasingEpsilonConfig, DecreasingEpsilonGreedy,
                                                decreasing_epsilon)
 from common.exploration.names import STRATEGIES

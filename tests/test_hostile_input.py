@@ -13,7 +13,7 @@ import zstandard
 from actor.mailbox import Mailbox
 from actor.runner import Actor
 from common.config_values import load_config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.rejections import Rejections
 from common.wire.errors import WireError

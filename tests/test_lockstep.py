@@ -15,7 +15,7 @@ from actor.sim import make_env
 from common.analysis.stats import digest_of_actions
 from common.config_values import load_config
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.wire.messages import Weights
 from deploy import reference_loop
 
