@@ -60,7 +60,7 @@ from actor.batched_q import BatchedQ, choose_precision
 from actor.delivery import REPLAY_WAIT_LOG_S, Outbox
 from actor.gate import HOLD_LOG_S, EpisodeGate, HoldLog
 from common.hub_link import Declare, HubLink, keep_hearing
-from actor.lockstep import Lockstep, Trajectory, episode_message
+from actor.lockstep import Lockstep, Trajectory, episode_message, training_actions
 from actor.mailbox import Mailbox
 from actor.weights_download import download_weights
 from actor.sim import make_env
@@ -206,6 +206,7 @@ class Actor:
         """One action per running simulator, each drawn from its own generator (and its Q-values' row)."""
         if not running:
             return []
+        rngs = [slot.rng for slot in running]
         if not self.uses_network():
             if self.config.learner.stored_state:
                 # The random phase acts uniformly but still runs the network, so that its episodes store the
@@ -213,9 +214,9 @@ class Actor:
                 self._q_values(running)
             for slot in running:
                 slot.off_greedy = None
-            return [int(slot.rng.integers(self.config.network.n_actions)) for slot in running]
+            return training_actions(self.strategy, None, rngs, self.config.network.n_actions)
         q_values = self._q_values(running).numpy()
-        actions = [self.strategy.act(row, slot.rng) for row, slot in zip(q_values, running)]
+        actions = training_actions(self.strategy, q_values, rngs, self.config.network.n_actions)
         for slot, row, action in zip(running, q_values, actions):
             if slot.off_greedy is not None:
                 slot.off_greedy += int(action != int(np.argmax(row)))

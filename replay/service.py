@@ -37,7 +37,7 @@ from pathlib import Path
 from common.config import Config
 from common.exploration.names import starts_by_steps
 from common.logs import Every, ThrottledLog
-from common.pacing import learner_stock, rate_limit_from_config
+from common.pacing import learner_stock, rate_limit_from_config, updates_ceiling
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.wire.state_rows import stored_units
@@ -82,10 +82,7 @@ class ReplayService:
         self.limiter = RateLimiter(rate_limit_from_config(config))
         self.max_trace_batch = config.replay.max_batch_size
         self.learner_stock = learner_stock(config.learner.prefetch)
-        # No learner makes more updates than the budget pays for, plus its buffer and a buffer of episodes in flight.
-        self.max_learner_updates = math.ceil((config.pace.total_env_steps + config.replay.capacity
-                                              * config.env.max_steps) / config.pace.env_steps_per_update
-                                             + config.pace.error_buffer_updates)
+        self.max_learner_updates = updates_ceiling(config)
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._pending: deque[PendingQuery] = deque()
