@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from actor.lockstep import Lockstep, episode_message, training_actions
-from actor.runner import actor_seed
+from actor.acting import actor_seed
 from actor.sim import make_env
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config

@@ -10,7 +10,8 @@ import torch
 from actor.batched_q import BatchedQ
 from actor.delivery import Outbox
 from actor.gate import EpisodeGate, HoldLog
-from actor.runner import Actor, ReplayWatch, _drive, actor_seed, env_seed
+from actor.acting import Actor, actor_seed, env_seed
+from actor.runner import ReplayWatch, _drive
 from actor.sim import make_env
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy

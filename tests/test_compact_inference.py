@@ -9,7 +9,7 @@ import torch
 
 import actor.batched_q as batched_q_module
 from actor.batched_q import BatchedQ, choose_precision
-from actor.runner import Actor
+from actor.acting import Actor
 from common import cpu_capability
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy

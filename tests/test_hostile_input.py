@@ -11,7 +11,7 @@ import pytest
 import zstandard
 
 from actor.mailbox import Mailbox
-from actor.runner import Actor
+from actor.acting import Actor
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy

@@ -10,7 +10,7 @@ import torch
 
 from actor.evaluation.episodes import EpisodeJob, GreedyPolicy, evaluation_env_config, run_lockstep
 from actor.lockstep import Lockstep, episode_message, training_actions
-from actor.runner import Actor
+from actor.acting import Actor
 from actor.sim import make_env
 from common.analysis.stats import digest_of_actions
 from common.config_values import load_config

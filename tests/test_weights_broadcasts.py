@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from actor.runner import Actor
+from actor.acting import Actor
 from common.config_values import load_config
 from common.network import D3RQN, weights_to_numpy
 from common.schema.fields import ConfigError

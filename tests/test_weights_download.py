@@ -115,7 +115,8 @@ def test_the_learner_serves_pieces_and_refuses_and_counts_other_asks(tmp_path):
 
 
 def test_a_downloading_actor_is_late_only_after_three_periods_without_a_download(tmp_path):
-    from actor.runner import Actor, _stale
+    from actor.acting import Actor
+    from actor.runner import _stale
     config = load_config("smoke", overrides={"network.lstm_units": 16, "actor.weights_download": True,
                                              "actor.weights_download_period_s": 10.0})
     actor = Actor(config, 0)

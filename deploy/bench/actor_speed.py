@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from actor.evaluation.episodes import GreedyPolicy
-from actor.runner import Actor
+from actor.acting import Actor
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.config import Config
 from common.exploration.build import exploration_message, make_strategy

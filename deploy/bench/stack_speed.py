@@ -27,7 +27,7 @@ from tempfile import TemporaryDirectory
 import numpy as np
 import torch
 
-from actor.runner import Actor
+from actor.acting import Actor
 from common.config import Config, TransportConfig
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
