@@ -222,6 +222,12 @@ class LearnerConfig:
     burn_in: int = option(
         0, "with stored_state: leading steps of each trace that run from the stored state without gradient and "
            "count no error (R2D2's burn-in), before the steps that train; must lie in [0, trace_length)", "steps")
+    shift_pad: int = option(
+        0, "beyond the paper: random-shift augmentation of the frames the learner trains on (DrQ, Kostrikov et al. "
+           "2020; DrQ(epsilon) in Dopamine's Atari-100k configurations pads by 4): each trace's frames are padded by "
+           "this many pixels, repeating the edge, and cropped back to their size at one random offset for all its "
+           "steps, the same for its online and target passes (learner/frame_shift.py), drawn from learner.seed; "
+           "the actors and the evaluation see the frames as they are. 0: off, the paper's frames", "px")
     precision: str = option(
         "float32", "beyond the paper: the number format of the update's convolutions and LSTM input projection, "
                    "forward and backward (the trace paths): float32 (the paper's); bfloat16 (master weights, Adam's "
@@ -273,6 +279,7 @@ class LearnerConfig:
         check(0.0 < self.lr_final_scale <= 1.0, "lr_final_scale", "must lie in (0, 1]")
         check(self.grad_clip_norm >= 0, "grad_clip_norm", "must be >= 0 (0: off)")
         check(self.keep_shadows_from >= 0, "keep_shadows_from", "must be >= 0")
+        check(self.shift_pad >= 0, "shift_pad", f"must be >= 0 pixels (0: off), got {self.shift_pad}")
 
 
 @dataclass

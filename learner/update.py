@@ -20,6 +20,9 @@ Per step (docs/method.md, "The update"), in this order:
    first n_mask steps, averaged over the B traces;
 4. one Adam step.
 
+With learner.shift_pad (beyond the paper, DrQ's random shift) each trace's frames are first shifted by one
+offset for all its steps (learner/frame_shift.py); every pass below reads the shifted frames.
+
 Afterwards, for the exploration strategies (unmasked steps only): Q(h_t, a*_t)
 before the step (a* greedy before the step, from the same pass), optionally
 the same after the step (one more no-grad pass, only for VDBE), and BMC's G_Q,
@@ -47,6 +50,7 @@ learner/update_path.py; this module is the step itself (DoubleQLearner).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -59,6 +63,7 @@ from common.config import LearnerConfig, NetworkConfig
 from common.exploration.bmc import greedy_and_uniform_returns
 from common.network import D3RQN, initial_network, resolve_device, weights_to_numpy
 from learner.allocator import keep_freed_memory
+from learner.frame_shift import draw_offsets, shift_frames
 from learner.loss import (LossFunction, LossTerms, burn_in_steps, one_pass_terms, start_state, taken_action_values,
                           trace_pass_loss, trace_pixels)
 from learner.trace_batch import BatchStager, TraceArrays, TraceTensors, _wait_until_ready, to_tensors
@@ -109,6 +114,9 @@ class DoubleQLearner:
         self.optimizer = _adam(self.online.parameters(), learner.lr)
         # beyond the paper: a slow average of the online weights, for kept policies only (learner/weight_average.py)
         self.average = WeightAverage(self.online, learner.ema_updates) if learner.ema_updates > 0 else None
+        # beyond the paper: DrQ's random shifts (learner/frame_shift.py), from a generator of their own, so that the
+        # shifts follow from learner.seed and nothing else draws from it
+        self.shifts = torch.Generator().manual_seed(learner.seed) if learner.shift_pad > 0 else None
         self.updates = 0
         self.split_passes = False  # the target pass on a helper thread (update path "trace-split")
         self.precision = learner.precision  # "auto" until the first batch has timed both
@@ -144,8 +152,9 @@ class DoubleQLearner:
 
     @property
     def stages_pixels(self) -> bool:
-        """Whether staged batches carry their frames scaled ahead (the trace passes read them so)."""
-        return self.loss_function is trace_pass_loss
+        """Whether staged batches carry their frames scaled ahead (the trace passes read them so); not when
+        they are shifted first, at the update."""
+        return self.loss_function is trace_pass_loss and self.shifts is None
 
     def prepare(self, batch: TraceArrays) -> TraceTensors:
         """Checks a batch and moves it to the learner's device (the copy-in part of update())."""
@@ -162,11 +171,22 @@ class DoubleQLearner:
         """
         tensors = batch if isinstance(batch, TraceTensors) else self.prepare(batch)
         _wait_until_ready(tensors)
+        tensors = self.shifted(tensors)
         if self.precision == "auto":
             self.use_precision(choose_learner_precision(self, tensors))
         if self.update_path == "auto":
             self.use_path(choose_update_path(self, tensors))
         return self._update(tensors, with_q_after)
+
+    def shifted(self, tensors: TraceTensors) -> TraceTensors:
+        """The batch with each trace's frames shifted by one offset (learner.shift_pad), or as it is when off.
+
+        Drawn here, in the order of the updates rather than of the prefetcher's threads, so that a run is the same
+        from the same seed; every pass of the update (online, target, VDBE's after) reads these frames."""
+        if self.shifts is None:
+            return tensors
+        offsets = draw_offsets(self.shifts, tensors.observations.shape[0], self.config.shift_pad)
+        return dataclasses.replace(tensors, observations=shift_frames(tensors.observations, offsets), pixels=None)
 
     def _update(self, tensors: TraceTensors, with_q_after: bool) -> UpdateResult:
         if self.split_passes:
@@ -256,12 +276,14 @@ class DoubleQLearner:
 
     def state_dict(self) -> dict:
         average = {"ema": self.average.state_dict()} if self.average is not None else {}
+        shifts = {"shifts": self.shifts.get_state()} if self.shifts is not None else {}
         return {
             "online": self.online.state_dict(),
             "target": self.target.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
             **average,
+            **shifts,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -277,6 +299,8 @@ class DoubleQLearner:
         self.updates = int(state["updates"])
         if self.average is not None:
             self._load_average(state.get("ema"))
+        if self.shifts is not None and "shifts" in state:  # a checkpoint from before the shifts: drawn from the seed
+            self.shifts.set_state(state["shifts"])
 
     def _load_average(self, state: dict | None) -> None:
         if state is None:

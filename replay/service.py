@@ -373,7 +373,8 @@ class ReplayService:
                 snapshot_age_s=None if self.snapshot_taken is None else now - self.snapshot_taken,
                 frame_bytes_mean=store.frame_bytes_mean if store.frames else None,
                 rate=self.limiter.state(now), snapshot=dict(self.snapshot_stats),
-                rejected={**self.rejections.values(), **(rejected or {})}, speeds=dict(speeds or {}))
+                rejected={**self.rejections.values(), **(rejected or {})}, speeds=dict(speeds or {}),
+                fill=store.fill.state())
         return stats
 
     def limiter_state(self) -> dict:

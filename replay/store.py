@@ -19,6 +19,7 @@ import numpy as np
 from common.wire.state_rows import STATE_DTYPE, bytes_per_step, no_states
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, TraceBatch
+from replay.buffer_fill import BufferFill
 
 
 # actions (int64), rewards (float32) and weights versions (int64) of one stored step
@@ -86,6 +87,7 @@ class EpisodeStore:
         self.evicted_for_budget = 0  # evictions while fewer than `capacity` episodes were held
         self.short_dropped = 0
         self.env_steps_total = 0  # every step received, stored or not: the system's step count
+        self.fill = BufferFill()  # the random phase's share held and served; when the buffer first filled
 
     def __len__(self) -> int:
         return len(self._episodes)
@@ -99,6 +101,7 @@ class EpisodeStore:
         self._append(dataclasses.replace(StoredEpisode.from_episode(episode, self.state_units), seq=self.inserted))
         self.inserted += 1
         self._evict_to_fit()
+        self.fill.on_count(len(self._episodes), self.capacity, self.env_steps_total)
         return True
 
     def _append(self, stored: StoredEpisode) -> None:
@@ -106,6 +109,7 @@ class EpisodeStore:
         self.bytes += stored.nbytes
         self.frames += len(stored.frames)
         self.state_bytes += 0 if stored.states is None else stored.states.nbytes
+        self.fill.on_held(stored.weights_version, +1)
 
     def _evict_to_fit(self) -> None:
         while len(self._episodes) > self.capacity or (self.bytes > self.budget_bytes and len(self._episodes) > 1):
@@ -122,7 +126,7 @@ class EpisodeStore:
         return list(self._episodes)
 
     def counters(self) -> dict[str, int]:
-        return {name: getattr(self, name) for name in self.COUNTERS}
+        return {**{name: getattr(self, name) for name in self.COUNTERS}, **self.fill.counters()}
 
     def restore(self, episodes: list[StoredEpisode], counters: dict[str, int]) -> None:
         """An empty store takes a snapshot's episodes (oldest first) and counters; the newest that fit
@@ -131,6 +135,7 @@ class EpisodeStore:
             raise RuntimeError("restore into a store that holds episodes")
         for name in self.COUNTERS:
             setattr(self, name, int(counters.get(name, 0)))
+        self.fill.restore(counters)
         for stored in episodes:
             self._append(self._with_usable_states(stored))
         self.inserted = max(self.inserted, max((stored.seq + 1 for stored in episodes), default=0))
@@ -174,6 +179,7 @@ class EpisodeStore:
             if self.state_units:  # an episode kept without rows (restored from another run) starts from zero
                 states.append(episode.states[start] if episode.states is not None
                               else np.zeros((2, self.state_units), STATE_DTYPE))
+        self.fill.on_sample(np.stack(versions))
         return TraceBatch(
             request_id=request_id,
             observations=FrameStack.concat(stacks),
@@ -191,4 +197,5 @@ class EpisodeStore:
         self.bytes -= oldest.nbytes
         self.frames -= len(oldest.frames)
         self.state_bytes -= 0 if oldest.states is None else oldest.states.nbytes
+        self.fill.on_held(oldest.weights_version, -1)
         self.evicted += 1

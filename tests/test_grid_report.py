@@ -18,15 +18,16 @@ from tests.grid_runs import fake_evaluation
 CURVE = {1000: 200, 2000: 1200, 3000: 800, 4000: 1100, 6000: 1500}  # updates: greedy test mean length
 
 
-def exported_run(top: Path, strategy: str, seed: int, starts: list[int], curve: dict[int, float] = CURVE) -> Path:
+def exported_run(top: Path, strategy: str, seed: int, starts: list[int], curve: dict[int, float] = CURVE,
+                 capacity: int = 1000, summary: dict | None = None) -> Path:
     """An exported grid run: its greedy test curve, its choice, and its chosen policy's evaluation (one
     greedy episode per start, of these lengths; 100 reaches the cap)."""
-    folder = top / f"{strategy}-b1000-s{seed}"
+    folder = top / f"{strategy}-b{capacity}-s{seed}"
     (folder / "curve").mkdir(parents=True)
     config = load_config("drive", overrides={"run.name": folder.name, "exploration.strategy": strategy,
-                                             "run.seed": seed})
+                                             "run.seed": seed, "replay.capacity": capacity})
     (folder / "config.toml").write_text(to_toml(config))
-    (folder / "cell.json").write_text(json.dumps({"strategy": strategy, "capacity": 1000, "seed": seed,
+    (folder / "cell.json").write_text(json.dumps({"strategy": strategy, "capacity": capacity, "seed": seed,
                                                   "options": "paper", "updates": 6000}))
     (folder / "choice.json").write_text(json.dumps({"updates": 6000, "among": [2000, 3000, 4000, 6000]}))
     with (folder / "curve" / "curve.csv").open("w", newline="") as handle:
@@ -38,7 +39,8 @@ def exported_run(top: Path, strategy: str, seed: int, starts: list[int], curve: 
                              "kept_file": f"policy-u{updates:07d}.pt", "trained_on": "AMD EPYC", "nice": 0,
                              "start_set": "test", "mean_length": length, "cfr": 0.5})
     fake_evaluation(folder / "evaluation", starts, updates=6000, progress=True)
-    (folder / "summary.json").write_text(json.dumps({"updates": 6050}))  # trained past the chosen policy
+    # trained past the chosen policy
+    (folder / "summary.json").write_text(json.dumps({"updates": 6050, **(summary or {})}))
     return folder
 
 

@@ -50,7 +50,9 @@ def started(config) -> LearnerService:
     return service
 
 
-def test_resume_continues_as_if_never_stopped(config):
+@pytest.mark.parametrize("shift_pad", [0, 4])  # 4: the random shifts' generator is checkpointed too
+def test_resume_continues_as_if_never_stopped(config, shift_pad):
+    config.learner.shift_pad = shift_pad
     data = batches(6)
     uninterrupted = started(config)
     for batch in data:

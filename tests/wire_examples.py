@@ -8,8 +8,8 @@ import numpy as np
 
 from common.wire.codecs import Message
 from common.wire.frames import FrameStack
-from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, RateState,
-                                  ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights, WeightsPiece,
+from common.wire.messages import (BufferFillState, Episode, EpisodeAck, EpisodeRecord, ExplorationState,
+                                  RateState, ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights, WeightsPiece,
                                   WeightsPieceAsk)
 
 SMALL_FRAME = (6, 8, 3)
@@ -60,7 +60,9 @@ def example_replay_stats(rate: RateState | None = None, **changes) -> ReplayStat
                   pending_requests=1, rejected_requests=0, expired_requests=0, failed_samples=0, episodes_missing=0,
                   episode_sources=1, restored_episodes=0, restore_skipped=0, late_episodes=0, late_env_steps=0,
                   snapshot_age_s=None, frame_bytes_mean=3_300.0, rate=rate, snapshot={"snapshots_written": 0},
-                  rejected={"rejected_total": 0}, speeds={"inserted_per_s": 0.5})
+                  rejected={"rejected_total": 0}, speeds={"inserted_per_s": 0.5},
+                  fill=BufferFillState(held_random_steps=300, sampled_batches=48, sampled_steps=48 * 320,
+                                       sampled_random_steps=4_000))
     return ReplayStats(**{**fields, **changes})
 
 

@@ -233,6 +233,19 @@ class RateState(Message):
 
 
 @dataclass(eq=False)
+class BufferFillState(Message):
+    """The random phase's share of what the replay holds and serves, and its first fill (replay/buffer_fill.py)."""
+    held_random_steps: int = wired(COUNT, default=0)  # stored steps acted without trained weights
+    sampled_batches: int = wired(COUNT, default=0)  # batches the sample counters cover
+    sampled_steps: int = wired(COUNT, default=0)
+    sampled_random_steps: int = wired(COUNT, default=0)
+    full_at_env_steps: int = wired(COUNT, default=0)  # when the store first held replay.capacity episodes; 0: never
+    full_at_batches: int = wired(COUNT, default=0)
+    sampled_steps_after_full: int = wired(COUNT, default=0)
+    sampled_random_steps_after_full: int = wired(COUNT, default=0)
+
+
+@dataclass(eq=False)
 class ReplayStats(Message):
     """The replay's counters, on replay/stats every replay.stats_period_s (replay/process.py)."""
     time: float = wired(Real())
@@ -261,6 +274,8 @@ class ReplayStats(Message):
     snapshot: dict[str, int | float] = wired(NumberDict())  # snapshots_written, snapshot_failures, ...
     rejected: dict[str, int | float] = wired(NumberDict())  # rejected_<kind>, malformed_<door>, rejected_total
     speeds: dict[str, int | float] = wired(NumberDict())  # <counter>_per_s over the last period
+    # absent from the stats of replays that predate it
+    fill: BufferFillState = wired(Nested(BufferFillState), default_factory=BufferFillState)
 
 
 COUNTER_TYPES = (Stats, RateState, ReplayStats)  # the messages of counters that logs keep as flat rows

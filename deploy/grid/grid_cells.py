@@ -67,6 +67,13 @@ OPTION_SETS: dict[str, tuple[str, dict[str, Any]]] = {
                 {"learner.lr_decay_from": 20_000, "learner.lr_decay_to": 30_000, "learner.lr_final_scale": 0.1}),
     "combination": ("stored LSTM state, 2 steps of burn-in, bfloat16 where native (fast preset + stored state)",
                     {"learner.stored_state": True, "learner.burn_in": 2, "learner.precision": "auto"}),
+    # issue 61's candidates for fewer updates to drive (stored-burnin2 above is another)
+    "shift": ("random shift of the learner's frames, pad 4, one offset per trace (DrQ; beyond the paper)",
+              {"learner.shift_pad": 4}),
+    "lr3e-4": ("Adam's rate 3e-4, the gradient's norm clipped at 40 (beyond the paper)",
+               {"learner.lr": 3e-4, "learner.grad_clip_norm": 40.0}),
+    "start10k": ("updates from 10,000 env steps, not 28,000; decreasing epsilon's schedule not moved (beyond the "
+                 "paper)", {"pace.start_steps": 10_000}),
 }
 
 TRAIN, RESUME, CURVE, CHOOSE, EVALUATE, DONE = "train", "resume", "curve", "choose", "evaluate", "done"

@@ -3,6 +3,7 @@ line, the status file and the run's summary."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -120,6 +121,7 @@ class StackMonitor:
         with self._lock:
             learner = dict(self.learner)
             replay_steps, replay_episodes = self._replay_count("env_steps_total"), self._replay_count("inserted")
+            fill = dataclasses.asdict(self.replay.fill) if self.replay is not None else None
         ratio = stat_number(learner, "env_steps_per_update")
         return {
             "run": config.run.name,
@@ -134,6 +136,10 @@ class StackMonitor:
             # the replay's counters come back with its snapshot, so they count the episodes of a resumed
             # run's earlier stacks too; "episodes" counts only what this stack saw
             "replay_episodes_total": replay_episodes,
+            # when the buffer first filled, and the random phase's share of what it held and served
+            # (replay/buffer_fill.py); None before the replay's first stats
+            "replay_capacity": config.replay.capacity,
+            "replay_fill": fill,
             "episodes": self.episodes,
             "restarts": dict(restarts or {}),
             # what the learner's updates ran, from its own metrics (learner.precision and update_path "auto"

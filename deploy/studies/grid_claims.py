@@ -28,12 +28,13 @@ CLAIMS = (
 )
 
 
-def claim_readings(runs: Sequence[GridRun], bootstrap: Bootstrap, cell: CELL = (1000, "paper")) -> list[dict]:
-    """The paper's claims on the runs of one cell (the paper's learner at buffer 1,000): each group of
-    strategies pooled, a run scored by its chosen policy's test CFR per start."""
+def claim_readings(runs: Sequence[GridRun], bootstrap: Bootstrap,
+                   cells: Sequence[CELL] = ((1000, "paper"),)) -> list[dict]:
+    """The paper's claims on the runs of these cells pooled (by default the paper's learner at buffer 1,000):
+    each group of strategies pooled, a run scored by its chosen policy's test CFR per start."""
     readings = []
     for number, text, better, worse in CLAIMS:
-        groups = [[item.start_cfr for item in runs if item.cell == cell and item.run.strategy in side]
+        groups = [[item.start_cfr for item in runs if item.cell in cells and item.run.strategy in side]
                   for side in (better, worse)]
         if not all(groups):
             readings.append({"claim": number, "text": text, "reading": "not asked (a side has no runs)"})
@@ -76,16 +77,9 @@ def pairs_off_even(pairs: Sequence[dict]) -> list[dict]:
 def claims_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     """The report's section on the paper's claims and the pairs."""
     lines = [_rule_text(), ""]
-    for reading in claim_readings(runs, bootstrap):
-        if "p_value" not in reading:
-            lines.append(f"- Claim {reading['claim']} ({reading['text']}): {reading['reading']}.")
-            continue
-        lines.append(f"- Claim {reading['claim']} ({reading['text']}): **{reading['reading']}**; runs "
-                     f"{reading['runs']}, one-sided Mann-Whitney p = {reading['p_value']:.4f} (the least these "
-                     f"runs can give: {reading['smallest_p']:.2g}), P(better > worse) = {reading['improvement']:.3f} "
-                     f"[{reading['improvement_low']:.3f}, {reading['improvement_high']:.3f}].")
-        if "reverse" in reading:
-            lines.append(_reverse_text(reading["reverse"]))
+    for label, cells in claim_cells(runs):
+        lines += ([f"{label}:", ""] if label else []) + _reading_lines(claim_readings(runs, bootstrap, cells))
+        lines += [""] if label else []
     lines += ["", f"A claim about one pair of strategies needs {across_seeds.seeds_to_support()} seeds a side: with "
               f"3 against 3 the least one-sided p-value is {across_seeds.smallest_p_value(3, 3):.2f}, not below "
               f"{across_seeds.SIGNIFICANCE}. Every pair's probability of improvement, as a guide:", "",
@@ -95,6 +89,32 @@ def claims_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
         interval = "(one run each)" if row["runs"] == (1, 1) else f"[{row['low']:.2f}, {row['high']:.2f}]"
         lines.append(f"| {row['first']} | {row['second']} | {row['improvement']:.2f} {interval} |")
     return lines + ["", *more_seeds_lines(pairs_off_even(pairs))]
+
+
+def claim_cells(runs: Sequence[GridRun]) -> list[tuple[str, tuple[CELL, ...]]]:
+    """The cells the claims are read on: buffer 1,000 alone where the grid has no other buffer; else each
+    buffer of the paper's learner, then all of them pooled (strategy group x buffer), each with its label."""
+    buffers = sorted({item.run.capacity for item in runs if item.run.options == "paper"})
+    if buffers in ([], [1000]):
+        return [("", ((1000, "paper"),))]
+    cells = [(f"At buffer {buffer:,d}", ((buffer, "paper"),)) for buffer in buffers]
+    return cells + [("Both buffers pooled (each group's runs at every buffer)",
+                     tuple((buffer, "paper") for buffer in buffers))]
+
+
+def _reading_lines(readings: Sequence[dict]) -> list[str]:
+    lines = []
+    for reading in readings:
+        if "p_value" not in reading:
+            lines.append(f"- Claim {reading['claim']} ({reading['text']}): {reading['reading']}.")
+            continue
+        lines.append(f"- Claim {reading['claim']} ({reading['text']}): **{reading['reading']}**; runs "
+                     f"{reading['runs']}, one-sided Mann-Whitney p = {reading['p_value']:.4f} (the least these "
+                     f"runs can give: {reading['smallest_p']:.2g}), P(better > worse) = {reading['improvement']:.3f} "
+                     f"[{reading['improvement_low']:.3f}, {reading['improvement_high']:.3f}].")
+        if "reverse" in reading:
+            lines.append(_reverse_text(reading["reverse"]))
+    return lines
 
 
 def _reverse_text(found: across_seeds.Claim) -> str:

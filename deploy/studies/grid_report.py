@@ -10,7 +10,10 @@ and merges runs of several machines:
   stratified bootstrap interval (common/analysis/across_seeds.py);
 - the paper's two claims read by the rule of common/analysis/across_seeds.py, with the probability of
   improvement, and what the seeds can carry at all (deploy/studies/grid_claims.py);
-- figures: the greedy test curves (median over seeds, band their range), and each seed's time to drive;
+- the buffer's claim on seed-paired runs at 1,000 and 2,000, and each run's buffer fill
+  (deploy/studies/buffer_claim.py), where the grid has runs at 2,000;
+- figures: the greedy test curves (median over seeds, band their range; a panel per buffer), each seed's time
+  to drive, and each strategy's buffer pairs;
 - what the grid cost (deploy/studies/grid_costs.py): each run's machine time, training and reading it, and its
   machines; the soak across the grid: hours, restarts, memory per process, the largest run folder.
 
@@ -37,6 +40,7 @@ from common.analysis.intervals import Bootstrap
 from common.analysis.plotting import finish_figure, pyplot
 from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
 from common.exploration.names import STRATEGIES
+from deploy.studies import buffer_claim
 from deploy.studies.comparison import read_episodes_csv
 from deploy.grid.grid_cells import counted, on_schedule, read_choice
 from deploy.studies.grid_claims import claims_lines
@@ -124,6 +128,12 @@ def curve_mean(rows: Sequence[dict]) -> float:
     return float(np.sum((lengths[1:] + lengths[:-1]) / 2 * np.diff(updates)) / (updates[-1] - updates[0]))
 
 
+def updates_to_drive(item: GridRun) -> int | None:
+    """The updates until the greedy test mean length first reached 1,000 steps; None: not by the budget."""
+    drive = first_reaching(item.test_rows, "mean_length", DRIVE_LENGTH)
+    return int(drive["updates"]) if drive else None
+
+
 def run_row(item: GridRun) -> dict:
     drive = first_reaching(item.test_rows, "mean_length", DRIVE_LENGTH)
     held = first_reaching(item.test_rows, "mean_length", DRIVE_LENGTH, held=True)
@@ -179,26 +189,28 @@ def strategy_rows(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[dict]:
 
 # --- figures ---------------------------------------------------------------------------------------------------
 
-def plot_curves(runs: Sequence[GridRun], path: Path, cell: CELL) -> None:
-    """Greedy test mean length against updates: per strategy the median over seeds at the policies every seed
-    has, and a band from the lowest seed to the highest."""
+def plot_curves(runs: Sequence[GridRun], path: Path, cells: Sequence[CELL]) -> None:
+    """Greedy test mean length against updates, a panel per cell: per strategy the median over seeds at the
+    policies every seed has, and a band from the lowest seed to the highest."""
     plt = pyplot()
-    figure, ax = plt.subplots(figsize=(10, 5.5), dpi=90)
+    figure, axes = plt.subplots(1, len(cells), figsize=(10 * len(cells), 5.5), dpi=90, sharey=True, squeeze=False)
     colours = dict(zip(STRATEGIES, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
-    for strategy in STRATEGIES:
-        seeds = [item for item in runs if item.cell == cell and item.run.strategy == strategy]
-        if not seeds:
-            continue
-        shared = sorted(set.intersection(*({int(row["updates"]) for row in item.test_rows} for item in seeds)))
-        values = np.asarray([[float(next(row for row in item.test_rows if int(row["updates"]) == u)["mean_length"])
-                              for item in seeds] for u in shared]).reshape(len(shared), len(seeds))
-        ax.plot(shared, np.median(values, axis=1), color=colours[strategy], linewidth=2,
-                label=f"{strategy} ({counted(len(seeds), 'seed')})")
-        ax.fill_between(shared, values.min(axis=1), values.max(axis=1), color=colours[strategy], alpha=0.12, linewidth=0)
-    ax.axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
-    ax.set(xlabel="updates", ylabel="greedy test mean length (steps)")
-    finish_figure(plt, figure, [ax], path, f"greedy test curves, buffer {cell[0]}, {cell[1]} learner: median over "
-                                          "seeds, band lowest to highest")
+    for ax, cell in zip(axes[0], cells):
+        for strategy in STRATEGIES:
+            seeds = [item for item in runs if item.cell == cell and item.run.strategy == strategy]
+            if seeds:
+                _draw_median_and_range(ax, seeds, colours[strategy], f"{strategy} ({counted(len(seeds), 'seed')})")
+        ax.axhline(DRIVE_LENGTH, color="grey", linestyle=":", linewidth=1)
+        ax.set(xlabel="updates", ylabel="greedy test mean length (steps)", title=f"buffer {cell[0]:,d}, {cell[1]}")
+    finish_figure(plt, figure, list(axes[0]), path, "greedy test curves: median over seeds, band lowest to highest")
+
+
+def _draw_median_and_range(ax, seeds: Sequence[GridRun], colour, label: str) -> None:
+    shared = sorted(set.intersection(*({int(row["updates"]) for row in item.test_rows} for item in seeds)))
+    values = np.asarray([[float(next(row for row in item.test_rows if int(row["updates"]) == u)["mean_length"])
+                          for item in seeds] for u in shared]).reshape(len(shared), len(seeds))
+    ax.plot(shared, np.median(values, axis=1), color=colour, linewidth=2, label=label)
+    ax.fill_between(shared, values.min(axis=1), values.max(axis=1), color=colour, alpha=0.12, linewidth=0)
 
 
 def plot_time_to_drive(rows: Sequence[dict], path: Path, budget: int) -> None:
@@ -280,6 +292,9 @@ def report_lines(runs: Sequence[GridRun], bootstrap: Bootstrap) -> list[str]:
     lines += ["", "## The prediction, on the runs after it", "", *prediction_lines(runs)]
     lines += ["", "## What the strategies explored", "", *explored_lines(runs)]
     lines += ["", "## The paper's claims", "", *claims_lines(runs, bootstrap)]
+    if any(item.run.capacity == buffer_claim.LARGE for item in runs):
+        lines += ["", "## The buffer: 1,000 against 2,000", "",
+                  *buffer_claim.buffer_lines(runs, updates_to_drive, bootstrap)]
     soaks = soak_rows(runs)
     soak_hours = {row["run"]: row["hours"] for row in soaks}
     lines += ["", "## Machine time", "", *machine_lines([machine_row(item, soak_hours.get(item.run.name))
@@ -331,15 +346,21 @@ def report_on(folders: Sequence[Path], out: Path, bootstrap: Bootstrap | None = 
     out.mkdir(parents=True, exist_ok=True)
     rows = [run_row(item) for item in runs]
     paths = [write_csv(out / "grid_runs.csv", rows), write_csv(out / "grid_strategies.csv", strategy_rows(runs, bootstrap))]
-    cell = (1000, "paper") if any(item.cell == (1000, "paper") for item in runs) else runs[0].cell
-    plot_curves(runs, out / "curves.png", cell)
+    cells = sorted({item.cell for item in runs if item.cell[1] == "paper"}) or [runs[0].cell]
+    cell = cells[0]
+    plot_curves(runs, out / "curves.png", cells)
     budget = max(int(item.test_rows[-1]["updates"]) for item in runs if item.test_rows)
     plot_time_to_drive([row for row in rows if (row["capacity"], row["options"]) == cell], out / "time_to_drive.png",
                        budget)
+    figures = ["curves.png", "time_to_drive.png"]
+    pairs = buffer_claim.buffer_pairs(runs, buffer_claim.chosen_test_cfr)
+    if pairs:
+        buffer_claim.plot_buffer_pairs(pairs, out / "buffer_pairs.png")
+        figures.append("buffer_pairs.png")
     (out / "grid.md").write_text("\n".join(report_lines(runs, bootstrap)
-                                           + ["", "![curves](curves.png)", "", "![time to drive](time_to_drive.png)"])
+                                           + [line for name in figures for line in ("", f"![{name[:-4].replace('_', ' ')}]({name})")])
                                  + "\n")
-    return [out / "grid.md", *paths, out / "curves.png", out / "time_to_drive.png"]
+    return [out / "grid.md", *paths, *(out / name for name in figures)]
 
 
 def main(argv: list[str] | None = None) -> int:
