@@ -27,8 +27,8 @@ from common.shared_memory import SharedMemory
 from common.keys import Keys
 from common.wire.messages import Stats, TraceBatchRequest, Weights
 from learner.prefetch import Prefetcher
-from learner.service import (IDLE_POLL_S, SAMPLE_TIMEOUT_S, WAIT_LOG_S, Admitted, Cadence, LearnerMetrics,
-                             LearnerService)
+from learner.metrics import LearnerMetrics
+from learner.service import IDLE_POLL_S, SAMPLE_TIMEOUT_S, WAIT_LOG_S, Admitted, Cadence, LearnerService
 
 log = logging.getLogger("learner")
 

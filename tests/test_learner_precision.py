@@ -24,7 +24,8 @@ from common.schema.fields import ConfigError
 from common.wire.messages import Stats
 from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
-from learner.service import LearnerMetrics, LearnerService
+from learner.metrics import LearnerMetrics
+from learner.service import LearnerService
 from learner.loss import one_pass_loss
 from learner.update import DoubleQLearner
 from learner.update_path import candidate_paths, choose_learner_precision, interleaved_cpu_seconds, precision_from_timings

@@ -18,7 +18,8 @@ from wire_examples import example_rate, example_replay_stats
 from deploy.launcher.stack import Stack, StackMonitor
 from fake_clock import FakeClock
 from learner.prefetch import Prefetcher
-from learner.service import LearnerMetrics, LearnerService
+from learner.metrics import LearnerMetrics
+from learner.service import LearnerService
 
 
 
