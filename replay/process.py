@@ -21,7 +21,8 @@ from common.shell import Shell
 from common.transport import publisher, put_once, serve_deferred, subscribe
 from common.wire.messages import ReplayStats
 from replay.acks import AckBook
-from replay.service import KILOBYTE, MEGABYTE, ReplayService
+from replay.memory_budget import KILOBYTE, MEGABYTE
+from replay.service import ReplayService
 from replay.snapshot import SnapshotError
 
 log = logging.getLogger("replay")
