@@ -29,7 +29,8 @@ import torch
 
 from common import cpu_capability
 from common.process_config import INFERENCE_PRECISIONS
-from common.network import CONV_LAYERS, D3RQN, conv_relu, fused_relu_convolution_available, load_numpy_weights
+from common.network import CONV_LAYERS, D3RQN, load_numpy_weights
+from common.trace_pass import conv_relu, fused_relu_convolution_available
 from common.wire.state_rows import STATE_DTYPE
 
 # auto takes bfloat16 only when it is clearly faster: a near tie is not worth a change in the policy's numbers.

@@ -4,8 +4,9 @@ Training episodes (the actor, actor/runner.py; the reference loop,
 deploy/reference_loop.py) and evaluation episodes (actor/evaluation/) are all
 stepped and recorded here, so the two cannot drift apart: the same reset, the
 same step, the same end rule, the same record. The caller chooses the actions
-(a batched network, a strategy, a baseline) and what to make of an ended
-episode: ``episode_message`` makes the replay's Episode of a training one.
+(a batched network, a strategy, a baseline; a training episode by ``training_actions``,
+the one acting rule) and what to make of an ended episode: ``episode_message``
+makes the replay's Episode of a training one.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.exploration.base import ExplorationStrategy
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode
 from common.wire.state_rows import no_states
@@ -83,6 +85,16 @@ class Lockstep:
                 trajectory.truncated = not terminated
                 ended.append((slot, self.running.pop(slot)))
         return ended
+
+
+def training_actions(strategy: ExplorationStrategy, q_values: np.ndarray | None, rngs: list[np.random.Generator],
+                     n_actions: int) -> list[int]:
+    """The acting rule of training, which the actor and the reference loop share: uniform at random until the
+    network acts (q_values None: updates have not started, or no weights came yet), then the strategy's rule
+    on each simulator's row of Q-values; each draw from that simulator's own generator."""
+    if q_values is None:
+        return [int(rng.integers(n_actions)) for rng in rngs]
+    return [strategy.act(row, rng) for row, rng in zip(q_values, rngs)]
 
 
 def episode_message(trajectory: Trajectory, *, actor_id: int, seed: int, episode_index: int, epsilon: float,

@@ -2,7 +2,7 @@
 
 A config is a tree of dataclasses, one per section (``Config.learner``, ``Config.exploration.bmc``, ...);
 a strategy's section is declared next to its rule (common/exploration/). Each field is declared with
-``option()`` (common/options/), whose one documentation string (with the unit and choices) is the
+``option()`` (common/schema/fields.py), whose one documentation string (with the unit and choices) is the
 flag's ``--help`` line, and every section checks its values (``validate``); a bad one raises
 ``ConfigError`` whose one-line message names the key.
 
@@ -22,7 +22,7 @@ from common.exploration.boltzmann import MaxBoltzmannConfig, SoftmaxConfig
 from common.exploration.epsilon_greedy import ConstantEpsilonConfig, DecreasingEpsilonConfig
 from common.exploration.names import STRATEGIES
 from common.exploration.vdbe import VdbeConfig
-from common.options import ConfigError, check, check_positive, option
+from common.schema.fields import ConfigError, check, check_positive, option
 from common.process_config import ActorConfig, RecorderConfig, RunConfig, TransportConfig
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS
 

@@ -13,7 +13,7 @@ from typing import Any
 
 from common.config import Config
 from common.config_values import MOVED_KEYS, config_fields, flat_items, load_config, to_toml, toml_value
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.presets import PRESETS, Preset
 
 

@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import tomllib
-import typing
 from pathlib import Path
 from typing import Any
 
 from common.config import Config, sections
-from common.options import ConfigError
+from common.schema.fields import ConfigError, coerce, field_types
 from common.presets import PRESETS
 
 
@@ -64,13 +62,13 @@ def set_value(config: Config, dotted_key: str, value: Any) -> None:
     *parents, name = dotted_key.split(".")
     target: Any = config
     for part in parents:
-        if not dataclasses.is_dataclass(target) or part not in _field_types(target):
+        if not dataclasses.is_dataclass(target) or part not in field_types(target):
             raise ConfigError(f"{dotted_key}: unknown key")
         target = getattr(target, part)
-    types = _field_types(target) if dataclasses.is_dataclass(target) else {}
+    types = field_types(target) if dataclasses.is_dataclass(target) else {}
     if name not in types or dataclasses.is_dataclass(types[name]):
         raise ConfigError(f"{dotted_key}: unknown key")
-    setattr(target, name, _coerce(dotted_key, types[name], value))
+    setattr(target, name, coerce(dotted_key, types[name], value))
 
 
 def flat_items(config: Any, prefix: str = "") -> dict[str, Any]:
@@ -121,55 +119,6 @@ def config_fields() -> dict[str, dataclasses.Field]:
             if not dataclasses.is_dataclass(getattr(section, f.name)):
                 fields[f"{path}.{f.name}" if path else f.name] = f
     return fields
-
-
-def _field_types(instance: Any) -> dict[str, Any]:
-    return typing.get_type_hints(type(instance))
-
-
-def _coerce(key: str, kind: Any, value: Any) -> Any:
-    origin = typing.get_origin(kind)
-    if origin is list:
-        (item_kind,) = typing.get_args(kind)
-        if isinstance(value, str):
-            value = [part for part in (p.strip() for p in value.split(",")) if part]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key}: expected a list, got {value!r}")
-        return [_coerce(key, item_kind, item) for item in value]
-    if kind is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
-            return value.lower() in ("true", "1", "yes", "on")
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
-    if kind is int:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        if isinstance(value, int):
-            return value
-        if isinstance(value, str):
-            try:
-                return int(value.replace("_", ""))
-            except ValueError:
-                pass
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-        raise ConfigError(f"{key}: expected an integer, got {value!r}")
-    if kind is float:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected a number, got {value!r}")
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{key}: expected a number, got {value!r}") from None
-        if not math.isfinite(number):
-            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
-        return number
-    if kind is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{key}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{key}: unsupported field type {kind!r}")
 
 
 def _flatten(nested: dict[str, Any], prefix: str = "") -> dict[str, Any]:

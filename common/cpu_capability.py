@@ -90,7 +90,7 @@ def bfloat16_problem() -> str | None:
 def _bfloat16_trial() -> None:
     import torch  # here: a process that asks for float32 only never waits for torch on this account
 
-    from common.network import conv_relu, fused_relu_convolution_available
+    from common.trace_pass import conv_relu, fused_relu_convolution_available
     pixels = torch.ones(1, 3, 8, 8, dtype=torch.bfloat16, requires_grad=True)
     weight = torch.ones(4, 3, 3, 3, dtype=torch.bfloat16, requires_grad=True)
     torch.nn.functional.conv2d(pixels, weight, stride=2).sum().backward()

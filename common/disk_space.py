@@ -2,7 +2,7 @@
 be written said once per spell, not at every try, while the process goes on.
 
 A role that ends for a full disk all the same exits with DISK_FULL_EXIT; the stack then restarts it once space
-returns, not in a loop (deploy/stack.py).
+returns, not in a loop (deploy/launcher/stack.py).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ episodes still reached the replay for minutes while no weights, acks or rate wor
 held, and outran the rate limiter. A client learner's batch requests reached the replay, which served
 them, while no batch and no stats word came back for three minutes, until the replay restarted. The
 replay announces its word at least every replay.stats_period_s. After a role's silence_reopen_s without
-it, and again after each further span, keep_hearing() replaces the session (Service.reopen) and HubLink
+it, and again after each further span, keep_hearing() replaces the session (Shell.reopen) and HubLink
 declares everything again on the new one (the actor also holds its next episode after
 actor.silence_hold_s, actor/mailbox.py).
 """
@@ -19,7 +19,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from common.shell import Service
+from common.shell import Shell
 from common.transport import Publisher, Receiver
 
 log = logging.getLogger("hub_link")
@@ -30,9 +30,9 @@ Declare = Callable[[zenoh.Session], tuple[dict[str, Receiver], dict[str, Publish
 class HubLink:
     """The session in use, with its receivers and publishers by name; `declare` makes them on a session."""
 
-    def __init__(self, service: Service, session: zenoh.Session, declare: Declare) -> None:
-        self._service = service
-        self.role = service.role
+    def __init__(self, shell: Shell, session: zenoh.Session, declare: Declare) -> None:
+        self._shell = shell
+        self.role = shell.role
         self._declare = declare
         self._lock = threading.Lock()
         self._rejected_before: dict[str, int] = {}  # receivers of sessions given up
@@ -68,7 +68,7 @@ class HubLink:
 
     def reopen(self) -> bool:
         """A fresh session with everything declared again; False where none opened (the old one stays)."""
-        return self._service.reopen(self._take)
+        return self._shell.reopen(self._take)
 
     def _take(self, session: zenoh.Session) -> None:
         """Declares on a fresh session and uses it from now on; what was declared on the old one goes."""

@@ -95,3 +95,10 @@ def env_steps_ceiling(config) -> int:
     and what is still in flight then is less than a full buffer of full-length episodes. Counts above it
     come from no replay of this run, and the roles refuse them."""
     return config.pace.total_env_steps + config.replay.capacity * config.env.max_steps
+
+
+def updates_ceiling(config) -> int:
+    """More updates than this no learner of the config makes: what the most env steps it can count
+    (env_steps_ceiling) pay for from a start mark of 0, plus its error buffer. Claims above it are refused."""
+    return math.ceil(updates_paid_for(env_steps_ceiling(config), 0.0, config.pace.env_steps_per_update)
+                     + config.pace.error_buffer_updates)

@@ -72,7 +72,7 @@ PRESETS: dict[str, Preset] = {
             "learner.precision": "auto",
         }),
     "drive": Preset(
-        "the main job and every cell of the grid (deploy/studies/experiments.py): the paper's agent, buffer and ratio, "
+        "the main job and every cell of the grid (deploy/grid/experiments.py): the paper's agent, buffer and ratio, "
         "30,000 updates (past the knee of 15,000-24,000 where the paper's learner first drives), updates starting "
         "at 28,000 env steps for every strategy, decreasing epsilon's schedule scaled to that budget, "
         "learner.precision auto (beyond the paper: bfloat16 where the CPU does it natively and measures faster); "

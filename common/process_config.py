@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.options import check, check_positive, option
+from common.schema.fields import check, check_positive, option
 
 
 TRANSPORT_MODES = ("peer", "client", "router")

@@ -10,7 +10,7 @@
     traffic.mcap                the flight recorder's log; traffic-2.mcap, ... after each restart
     evaluation/                 evaluate's report
     status.json                 what the stack is doing, rewritten while it runs (RunStatus)
-    soak/                       deploy/soak.py's samples of memory, folder size and restarts
+    soak/                       deploy/labs/soak.py's samples of memory, folder size and restarts
     summary.json                the stack's figures of the whole run, written when it stops
     abandoned/<time>/           what an attempt that never checkpointed left behind (the grid runner)
 
@@ -131,7 +131,7 @@ class RunDir:
 
     @property
     def tensorboard(self) -> Path:
-        """The recorder's live TensorBoard event files (deploy/stack.py --tensorboard)."""
+        """The recorder's live TensorBoard event files (deploy/launcher/stack.py --tensorboard)."""
         return self.root / "tensorboard"
 
     @property
@@ -144,7 +144,7 @@ class RunDir:
 
     @property
     def stack_lock(self) -> Path:
-        """Locked (flock) by the stack that runs the run: one at a time (deploy/run_claim.py)."""
+        """Locked (flock) by the stack that runs the run: one at a time (deploy/launcher/run_claim.py)."""
         return self.root / ".stack.lock"
 
     @property

@@ -2,12 +2,12 @@
 
 Each of them starts the same way and ends the same way; only the middle is its own:
 
-    service = Service("replay", config)      # log lines, stop on SIGINT/SIGTERM, the run's keys
+    shell = Shell("replay", config)      # log lines, stop on SIGINT/SIGTERM, the run's keys
     ...                                      # the role's own set-up, which may take a while
-    with service.session() as session:       # the session, and the token <run>/alive/replay/0
-        episodes = subscribe(session, service.keys.episodes, on_episode)
-        service.on_close(episodes.undeclare)
-        while not service.stop.wait(1.0):
+    with shell.session() as session:       # the session, and the token <run>/alive/replay/0
+        episodes = subscribe(session, shell.keys.episodes, on_episode)
+        shell.on_close(episodes.undeclare)
+        while not shell.stop.wait(1.0):
             ...
     # however the block was left: stop set, on_close callbacks run, the token undeclared, session closed
 
@@ -20,10 +20,10 @@ moment each declare a claim, <token>/claim/<zid>, for a second; the lower zid go
 waits. A role with state in the run folder calls claim() first, which opens the session and waits
 then, so that it reads the checkpoint or snapshot a stopping holder wrote last:
 
-    service = Service("learner", config)
-    service.claim()                          # the session, once no other learner holds the token
+    shell = Shell("learner", config)
+    shell.claim()                          # the session, once no other learner holds the token
     ...                                      # read the checkpoint
-    with service.session() as session:       # the same session, now with the token
+    with shell.session() as session:       # the same session, now with the token
 
 A session that cannot open (a bad endpoint, a port in use, no router, a missing TLS file) is
 one line in the log and exit code 1, not a traceback. A role's module ends with run_main(main), which
@@ -49,7 +49,7 @@ import zenoh
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
 from common.disk_space import DISK_FULL_EXIT, is_disk_full
-from common.heap import keep_releasing_free_heap
+from common.malloc_trim import keep_releasing_free_heap
 from common.log_streams import tolerate_full_disk
 from common.logs import setup_logging
 from common.transport import Declared, alive_keys, declare_liveliness, open_session
@@ -163,7 +163,7 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
-class Service:
+class Shell:
     """One process of a run: its log, its stop event, its keys and, within session(), its session.
 
     The process's log lines say `role` (`role-<process_id>` when an id is given, as actors have);
@@ -179,7 +179,7 @@ class Service:
         setup_logging(role if process_id is None else f"{role}-{process_id}")
         self.stop = stop_on_signals()
         stop_with_parent(self.stop)
-        keep_releasing_free_heap(self.stop)  # a role holds its peak for good otherwise (common/heap.py)
+        keep_releasing_free_heap(self.stop)  # a role holds its peak for good otherwise (common/malloc_trim.py)
         self.keys = Keys(config.transport.namespace, config.run.name)
         self._closing: contextlib.ExitStack | None = None
         self._held: tuple[zenoh.Session, Declared] | None = None  # the open session and its token
@@ -233,7 +233,7 @@ class Service:
         """Has the session's end call callback (an undeclare, or telling threads to finish), before
         the token goes and the session closes; the latest given runs first."""
         if self._closing is None:
-            raise RuntimeError("on_close() belongs inside `with service.session()`")
+            raise RuntimeError("on_close() belongs inside `with shell.session()`")
         self._closing.callback(callback)
 
     def _close_held(self) -> None:

@@ -37,7 +37,7 @@ timeout 240 "$PYTHON" deploy/bench/learner_speed.py --network.device "$DEVICE" -
 actors=$(( $(nproc) > 6 ? $(nproc) - 4 : 1 ))
 step "the paper's method for ${STACK_S} s: learner on $DEVICE, $actors actors on the CPU"
 rm -rf /tmp/device-runs
-timeout -s TERM -k 60 "$STACK_S" "$PYTHON" deploy/stack.py --preset paper --actors "$actors" \
+timeout -s TERM -k 60 "$STACK_S" "$PYTHON" deploy/launcher/stack.py --preset paper --actors "$actors" \
     --network.device "$DEVICE" --run.runs_dir /tmp/device-runs --run.name device-paper \
     2>&1 | tee "$OUT/stack.txt"
 sleep 5  # the stack's own shutdown writes the last status

@@ -22,7 +22,7 @@ RUNS=runs/device-grid
 mkdir -p "$RUNS"
 workers=$(( $(nproc) > 6 ? $(nproc) - 4 : 1 ))  # the curve's; the learner, replay, recorder and actor keep 4
 # shellcheck disable=SC2206  # split on purpose: flags
-grid=("$PYTHON" deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2 ${GRID_ARGS:-})
+grid=("$PYTHON" deploy/grid/experiments.py --buffers 1000 --seeds 0,1,2 ${GRID_ARGS:-})
 run=$("${grid[@]}" --runs-dir "$RUNS" --cells | awk -v cell="$CELL" '$1 == cell {print $2}')
 [ -n "$run" ] || { echo "no cell $CELL in the grid"; exit 2; }
 

@@ -3,7 +3,7 @@ then read as the grid reads a run: its greedy test curve, its policy chosen on t
 last five kept, and that policy evaluated on both start sets. It ends with the chosen policy in
 runs/<run>/policy.pt and its evaluation in runs/<run>/evaluation/.
 
-Every flag of deploy/stack.py --help applies (the preset, the strategy, --resume, ...); with another preset
+Every flag of deploy/launcher/stack.py --help applies (the preset, the strategy, --resume, ...); with another preset
 or budget the same steps follow. Stopped by Ctrl-C, SIGTERM or SIGHUP (but under nohup), it stops where it
 is (the stack checkpoints); the same command with --resume (while training) or as it was (after) goes on.
 """
@@ -21,12 +21,12 @@ from actor.evaluation import EvaluationError
 from common.config_cli import parse_config_or_exit
 from common.run_dir import RunDir
 from common.shell import env_stopping_with_this, on_stop_signals
-from deploy.studies.experiments import preset_flags
-from deploy.studies.grid_job import Options, choice_commands, curve_commands, evaluate_commands
-from deploy.studies.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
+from deploy.grid.experiments import preset_flags
+from deploy.grid.grid_job import Options, choice_commands, curve_commands, evaluate_commands
+from deploy.grid.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS, RESUME, TRAIN, ExperimentError, choose,
                                next_step, read_choice)
 from deploy.studies.run_results import greedy_headline
-from deploy.stack import build_parser
+from deploy.launcher.stack import build_parser
 
 STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
 POLICY_FILE = "policy.pt"

@@ -49,12 +49,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from actor.lockstep import Lockstep, episode_message
-from actor.runner import actor_seed
+from actor.lockstep import Lockstep, episode_message, training_actions
+from actor.acting import actor_seed
 from actor.sim import make_env
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit, print_config
-from common.strategy_build import make_strategy
+from common.exploration.build import make_strategy
 from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of, updates_paid_for
 from common.stored_state import state_row
 from common.wire.state_rows import stored_units
@@ -123,10 +123,8 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
                 frame = torch.from_numpy(episode.observation).view(1, 1, *episode.observation.shape)
                 q_values, state = acting(frame.to(learner.device), state)
             torch.set_num_threads(update_threads)
-        if strategy.started:
-            action = strategy.act(q_values[0, 0].cpu().numpy(), rng)
-        else:
-            action = int(rng.integers(config.network.n_actions))
+        acted_on = q_values[0].cpu().numpy() if strategy.started else None  # the weights come at the start
+        (action,) = training_actions(strategy, acted_on, [rng], config.network.n_actions)
         episode_over = bool(core.step({0: action}, tag=acting_version))
         env_steps += 1
 

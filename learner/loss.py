@@ -12,7 +12,8 @@ from typing import Callable
 
 import torch
 
-from common.network import D3RQN, RecurrentState, scale_frames
+from common.network import D3RQN, RecurrentState
+from common.trace_pass import scale_frames
 from common.stored_state import lstm_state
 from learner.trace_batch import TraceTensors
 

@@ -1,4 +1,5 @@
-"""The learner process: trains on the replay's trace batches and broadcasts weights and exploration.
+"""The learner service: the learner's state and its doors; it trains on the replay's trace batches and makes
+the weights and exploration state it broadcasts. Its process (session, threads, the loop) is learner/process.py.
 
 Top to bottom, one loop: take a prefetched batch, update, feed the exploration
 strategy, broadcast what changed, checkpoint now and then, and keep the policy
@@ -24,12 +25,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from common.checkpoint import Checkpoint
@@ -38,7 +37,7 @@ from common.disk_space import RetriedWrites
 from common.config import Config
 from common.config_values import to_dict
 from common.eta import clock_time
-from common.strategy_build import make_strategy
+from common.exploration.build import make_strategy
 from common.pacing import achieved_ratio, env_steps_ceiling
 from common.rejections import Rejections
 from common.run_dir import RunDir
@@ -47,7 +46,6 @@ from common.wire.messages import RateState, ReplayStats, TraceBatch, Weights, We
 from common.wire.run_shape import RunShape, check_trace_batch
 from learner.feed import feed_strategy
 from learner.keep import PolicyKeeper, policies_now
-from learner.prefetch import Prefetcher
 from learner.trace_batch import TraceArrays, TraceTensors
 from learner.update import DoubleQLearner
 from learner.weights_shelf import WeightsShelf
@@ -376,71 +374,3 @@ class LearnerService:
         self._resumed_env_steps = self.clock.env_steps
         log.info("resumed from %s: %d updates, %d env steps, %s of wall time", self.checkpoint_dir, self.updates,
                  self.clock.env_steps, clock_time(self.clock.earlier_wall_s))
-
-
-class LearnerMetrics:
-    """Running figures for the learner's log line and metrics message."""
-
-    def __init__(self, process: LearnerService, prefetcher: Prefetcher) -> None:
-        self.process = process
-        self.prefetcher = prefetcher
-        self.started = time.monotonic()
-        self.losses: list[float] = []
-        self.loss_diffs: list[float] = []
-        self._previous_loss: float | None = None
-        self._window_start = (time.monotonic(), process.updates, 0.0)
-
-    def loss(self, value: float) -> None:
-        if not math.isfinite(value):
-            log.warning("non-finite loss %s at update %d", value, self.process.updates)
-        if self._previous_loss is not None:
-            self.loss_diffs.append(abs(value - self._previous_loss))
-        self._previous_loss = value
-        self.losses.append(value)
-
-    def values(self) -> dict:
-        now = time.monotonic()
-        window_time, window_updates, window_data_wait = self._window_start
-        elapsed = max(now - window_time, 1e-9)
-        updates = self.process.updates
-        strategy = self.process.strategy
-        values = {
-            "updates": updates,
-            "env_steps": self.process.clock.env_steps,
-            "loss": float(np.mean(self.losses)) if self.losses else float("nan"),
-            # the paper's training figure: |loss_k - loss_k-1| of consecutive updates, averaged here
-            "loss_abs_diff": float(np.mean(self.loss_diffs)) if self.loss_diffs else float("nan"),
-            "epsilon": float(strategy.epsilon),
-            "kappa": float(strategy.kappa),  # 0: exploring actions are uniform
-            "updates_per_s": (updates - window_updates) / elapsed,
-            # waiting for a batch: the replay holds replies while the learner is ahead of the ratio
-            "data_wait_share": (self.prefetcher.wait_s - window_data_wait) / elapsed,
-            "weights_version": self.process.latest_weights.version if self.process.latest_weights else -1,
-            "bmc_observations": self.process.bmc_observations,
-            "failed_updates": self.process.failed_updates,
-            "checkpoints_failed": self.process.checkpoint_writes.failed,  # not written: a full disk, say
-            # what the updates actually ran: "auto" resolves on the first batch (learner/update.py)
-            "precision": self.process.learner.precision,
-            "update_path": self.process.learner.update_path,
-            **self.process.rejections.values(),
-            **self._link_values(),
-        }
-        achieved = self.process.env_steps_per_update()
-        if math.isfinite(achieved):  # the whole run's ratio, from the replay's start mark
-            values["env_steps_per_update"] = achieved
-            values["start_env_steps"] = float(self.process.clock.start_env_steps)
-        log.info("updates %(updates)d, env steps %(env_steps)d, loss %(loss).5f, epsilon %(epsilon).3f, "
-                 "%(updates_per_s).2f updates/s (%(precision)s, update path %(update_path)s), waiting for data "
-                 "%(data_wait_share).0f%% of the time, %(ratio).3f env steps per update", {**values, "data_wait_share": 100 * values["data_wait_share"],
-                                                      "ratio": achieved})
-        self.losses.clear()
-        self.loss_diffs.clear()
-        self._window_start = (now, updates, self.prefetcher.wait_s)
-        return values
-
-    def _link_values(self) -> dict:
-        link = self.process.link
-        if link is None:
-            return {}
-        return {"sessions_reopened": link.reopened, "hub_silent_s": round(self.process.silent_s(), 1),
-                **{f"malformed_{door}": rejected for door, rejected in link.rejected().items()}}

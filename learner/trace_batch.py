@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from common.config import LearnerConfig, NetworkConfig
-from common.network import scale_frames
+from common.trace_pass import scale_frames
 
 if TYPE_CHECKING:
     from learner.update import DoubleQLearner

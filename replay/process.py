@@ -17,11 +17,12 @@ from common.config import Config
 from common.disk_space import RetriedWrites
 from common.logs import Every
 from common.run_dir import RunDir
-from common.shell import Service
+from common.shell import Shell
 from common.transport import publisher, put_once, serve_deferred, subscribe
 from common.wire.messages import ReplayStats
 from replay.acks import AckBook
-from replay.service import KILOBYTE, MEGABYTE, ReplayService
+from replay.memory_budget import KILOBYTE, MEGABYTE
+from replay.service import ReplayService
 from replay.snapshot import SnapshotError
 
 log = logging.getLogger("replay")
@@ -68,7 +69,7 @@ def physical_memory_bytes() -> int | None:
 
 def run_replay(config: Config, resume: bool = False) -> None:
     """Serves until SIGINT/SIGTERM; with resume, restores the run's snapshot and counters."""
-    shell = Service("replay", config)
+    shell = Shell("replay", config)
     shell.claim()  # before the snapshot is read: a replay that is stopping writes it last
     remove_dead_temporaries(RunDir.of(config).replay_counters.parent)  # the snapshot's folder lies inside
     stop = shell.stop

@@ -221,3 +221,20 @@ class RateLimiter:
 
 def _count(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def furthest_sound_counters(limit: RateLimit, saved: dict | None, snapshot: dict) -> tuple[dict, str]:
+    """Of the counters saved beside the snapshot (rate_limiter.json) and the snapshot's own, the sound ones
+    furthest on (env steps, then batches served; the saved file on a tie), and which they are; ValueError
+    if neither is sound."""
+    options = []
+    for state, source in ((saved, "rate_limiter.json"), (snapshot, "the snapshot")):
+        try:
+            RateLimiter(limit).load_state_dict(state)
+        except (ValueError, TypeError, AttributeError):
+            continue
+        options.append(((state["env_steps"], state["served"]), source == "rate_limiter.json", state, source))
+    if not options:
+        raise ValueError("neither the snapshot's nor rate_limiter.json's counters are sound")
+    _, _, state, source = max(options, key=lambda option: option[:2])
+    return state, source

@@ -28,16 +28,14 @@ what was not kept.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections import deque
-from pathlib import Path
 
 from common.config import Config
 from common.exploration.names import starts_by_steps
 from common.logs import Every, ThrottledLog
-from common.pacing import learner_stock, rate_limit_from_config
+from common.pacing import learner_stock, rate_limit_from_config, updates_ceiling
 from common.rejections import Rejections
 from common.run_dir import RunDir
 from common.wire.state_rows import stored_units
@@ -48,23 +46,18 @@ from common.wire.run_shape import RunShape, check_episode
 from replay.acks import AckBook
 from replay.ledger import EpisodeLedger
 from replay.hold_guard import HoldGuard
-from replay.rate_limiter import RateLimiter
+from replay.memory_budget import MEGABYTE, report_budget
+from replay.request_admission import log_recounted, request_fault
+from replay.rate_limiter import RateLimiter, furthest_sound_counters
 from replay.snapshot import Restored, SnapshotError, Snapshotter, SnapshotView
-from replay.store import EpisodeStore, full_episodes_fit, step_bytes
+from replay.store import EpisodeStore
 
 log = logging.getLogger("replay")
 
-MEGABYTE = 1 << 20
-KILOBYTE = 1 << 10
 HOLD_MAX_S = 10.0  # a held request is dropped after this (the learner asks again); below its 30 s timeout
 WAKE_S = 0.1  # reply threads look at expiries and the rate message at least this often
 MEASURE_AFTER_FRAMES = 1_000  # the budget check is repeated once with the measured frame size
 MAX_PENDING = 32  # held trace-batch requests; beyond, a request is refused at once (the learner keeps 2)
-
-
-def snapshot_path(config: Config) -> Path:
-    """Where the replay keeps its snapshot, in the run folder."""
-    return RunDir.of(config).replay_snapshot
 
 
 class ReplayService:
@@ -72,19 +65,14 @@ class ReplayService:
 
     def __init__(self, config: Config) -> None:
         self.config = config
-        self.store = EpisodeStore(
-            capacity=config.replay.capacity,
-            budget_bytes=int(config.replay.memory_budget_mb * MEGABYTE),
-            trace_length=config.learner.trace_length,
-            seed=config.replay.seed, state_units=stored_units(config),
-            by_steps=config.replay.sample_by_steps)
+        self.store = EpisodeStore(capacity=config.replay.capacity,
+                                  budget_bytes=int(config.replay.memory_budget_mb * MEGABYTE),
+                                  trace_length=config.learner.trace_length, seed=config.replay.seed,
+                                  state_units=stored_units(config), by_steps=config.replay.sample_by_steps)
         self.limiter = RateLimiter(rate_limit_from_config(config))
         self.max_trace_batch = config.replay.max_batch_size
         self.learner_stock = learner_stock(config.learner.prefetch)
-        # No learner makes more updates than the budget pays for, plus its buffer and a buffer of episodes in flight.
-        self.max_learner_updates = math.ceil((config.pace.total_env_steps + config.replay.capacity
-                                              * config.env.max_steps) / config.pace.env_steps_per_update
-                                             + config.pace.error_buffer_updates)
+        self.max_learner_updates = updates_ceiling(config)
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._pending: deque[PendingQuery] = deque()
@@ -98,7 +86,7 @@ class ReplayService:
         self.ledger = EpisodeLedger()
         self.hold_guard = HoldGuard.of(config)  # episodes begun while the actors were told to hold: refused
         self.rejections = Rejections(log)
-        self.snapshotter = Snapshotter(snapshot_path(config))
+        self.snapshotter = Snapshotter(RunDir.of(config).replay_snapshot)  # in the run folder
         self.acks = AckBook(durable_on_receipt=config.replay.snapshot_period_s <= 0)
         self._snapshot_lock = threading.Lock()  # one snapshot at a time
         self.snapshot_stats: dict[str, int | float] = {"snapshots_written": 0, "snapshot_failures": 0,
@@ -208,26 +196,10 @@ class ReplayService:
                 lost = self.limiter.on_learner_start(updates)
             else:
                 gained, unreceived = self.limiter.on_learner_updates(updates, self.learner_stock)
-        if lost:
-            log.info("a learner starts from %d updates: the %d batches served beyond them were lost with "
-                     "the learner that died, and are owed again", updates, lost)
-        if gained:
-            log.info("the learner has made %d updates, %d more than this replay counted served (lost with its "
-                     "counters when it died): counted served", updates, gained)
-        if unreceived:
-            log.warning("the learner has made %d updates and can hold %d batches more, but %d more were served: "
-                        "their replies never reached it; owed again", updates, self.learner_stock, unreceived)
+        log_recounted(updates, lost, gained, unreceived, self.learner_stock)
 
     def _request_fault(self, request) -> tuple[str, str] | None:
-        if not isinstance(request, TraceBatchRequest):
-            return "request_wrong_type", f"a {type(request).__name__} on replay/sample, not a TraceBatchRequest"
-        if request.trace_length != self.store.trace_length or not 0 < request.batch_size <= self.max_trace_batch:
-            return "request_size", (f"a request for {request.batch_size} traces of {request.trace_length} steps "
-                                    f"(serving up to {self.max_trace_batch} traces of {self.store.trace_length} steps)")
-        if request.learner_updates > self.max_learner_updates:
-            return "request_updates", (f"a request stating {request.learner_updates} learner updates, more than the "
-                                       f"run's budget pays for ({self.max_learner_updates})")
-        return None
+        return request_fault(request, self.store.trace_length, self.max_trace_batch, self.max_learner_updates)
 
     def on_exploration(self, state: ExplorationState, key: str = "") -> None:
         """The learner states its start rule with its exploration state; the state of a learner that
@@ -333,21 +305,7 @@ class ReplayService:
 
     def budget_report(self, frame_bytes: float, source: str) -> bool:
         """Logs how many full-length episodes the budget holds; a loud warning if fewer than capacity."""
-        replay, max_steps = self.config.replay, self.config.env.max_steps
-        fits = full_episodes_fit(self.store.budget_bytes, max_steps, frame_bytes, self.store.state_units)
-        needed_mb = math.ceil(replay.capacity * ((max_steps + 1) * frame_bytes
-                                                 + max_steps * step_bytes(self.store.state_units)) / MEGABYTE)
-        if fits >= replay.capacity:
-            log.info("memory budget %.0f MB holds %d episodes of env.max_steps = %d steps at %.2f KB per frame "
-                     "(%s): replay.capacity %d fits", replay.memory_budget_mb, fits, max_steps,
-                     frame_bytes / KILOBYTE, source, replay.capacity)
-            return True
-        log.warning("REPLAY.CAPACITY DOES NOT FIT: replay.memory_budget_mb %.0f holds only %d of %d episodes of "
-                    "env.max_steps = %d steps at %.2f KB per frame (%s); once episodes grow long the budget "
-                    "evicts early. Set --replay.memory_budget_mb %d (or more) to hold the configured buffer",
-                    replay.memory_budget_mb, fits, replay.capacity, max_steps, frame_bytes / KILOBYTE, source,
-                    needed_mb)
-        return False
+        return report_budget(self.config, self.store, frame_bytes, source)
 
     def _check_measured_budget(self) -> None:
         if not self._measured and self.store.frames >= MEASURE_AFTER_FRAMES:
@@ -427,16 +385,7 @@ class ReplayService:
         (nothing changed) if the snapshot's counters are not sound."""
         ledger = EpisodeLedger()
         ledger.load_state_dict(restored.ledger)
-        options = []
-        for state, source in ((counters, "rate_limiter.json"), (restored.limiter, "the snapshot")):
-            try:
-                RateLimiter(self.limiter.limit).load_state_dict(state)
-            except (ValueError, TypeError, AttributeError):
-                continue
-            options.append(((state["env_steps"], state["served"]), source == "rate_limiter.json", state, source))
-        if not options:
-            raise ValueError("neither the snapshot's nor rate_limiter.json's counters are sound")
-        _, _, state, source = max(options, key=lambda option: option[:2])
+        state, source = furthest_sound_counters(self.limiter.limit, counters, restored.limiter)
         with self._lock:
             self.store.restore(restored.episodes, restored.store)
             self.ledger = ledger

@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 
 from common.config import Config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire.codecs import Message
 from common.wire.envelope import encode

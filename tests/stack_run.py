@@ -1,4 +1,4 @@
-"""A local stack (deploy/stack.py) under test: started small, watched over Zenoh, stopped by itself.
+"""A local stack (deploy/launcher/stack.py) under test: started small, watched over Zenoh, stopped by itself.
 
     with StackRun(tmp_path, "name", actors=2) as run:
         run.wait(lambda w: w.updates() >= 5, "updates")
@@ -24,7 +24,7 @@ from common.keys import Keys
 from common.wire.messages import Episode, EpisodeRecord, ReplayStats, Stats, flat_values
 from tests.processes import children, free_port, kill_tree
 
-STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
+STACK = Path(__file__).resolve().parents[1] / "deploy" / "launcher" / "stack.py"
 # Small and quick on a shared 2-core machine: a small LSTM, 2 traces of 5 steps, one torch thread.
 SMALL = ["--preset", "smoke", "--network.lstm_units", "16", "--learner.batch_size", "2",
          "--learner.trace_length", "5", "--learner.n_mask", "2", "--learner.torch_threads", "1",

@@ -5,9 +5,9 @@ import numpy as np
 import torch
 
 from actor.mailbox import Mailbox
-from actor.runner import Actor, actor_seed
+from actor.acting import Actor, actor_seed
 from common.config_values import load_config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.wire.messages import Stats, Weights
 from wire_examples import example_rate

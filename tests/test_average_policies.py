@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from actor.evaluate import build_parser as evaluate_parser
+from actor.evaluation.command import build_parser as evaluate_parser
 from actor.evaluation.sources import checkpoint_source
 from common.checkpoint import CheckpointError, KeptPolicy, write_atomically
 from common.config_values import load_config, to_dict

@@ -10,12 +10,13 @@ import torch
 from actor.batched_q import BatchedQ
 from actor.delivery import Outbox
 from actor.gate import EpisodeGate, HoldLog
-from actor.runner import Actor, ReplayWatch, _drive, actor_seed, env_seed
+from actor.acting import Actor, actor_seed, env_seed
+from actor.runner import ReplayWatch, _drive
 from actor.sim import make_env
 from common.config_values import load_config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.envelope import decode, encode
 from common.wire.messages import Episode, Weights
 from replay.service import ReplayService

@@ -8,7 +8,7 @@ import numpy as np
 from common.config_values import load_config
 from common.wire.envelope import decode, encode
 from common.wire.messages import BufferFillState, ReplayStats, flat_values
-from deploy.stack_monitor import StackMonitor
+from deploy.launcher.stack_monitor import StackMonitor
 from replay.buffer_fill import random_steps
 from replay.store import EpisodeStore
 from tests.test_replay_store import make_episode

@@ -1,8 +1,8 @@
 """The chaos run, short: a small stack trains for a minute while its actor, learner, recorder and replay are
-SIGKILLed in turn every 8-12 s (deploy/chaos.py --cycle). Afterwards every process runs again, each killed
+SIGKILLed in turn every 8-12 s (deploy/labs/chaos.py --cycle). Afterwards every process runs again, each killed
 replay restored what its snapshot promised, the closed run's ratio is within the buffer, and every flight-log
 segment reads to its end. The long version (30 minutes, random kills 1-3 minutes apart) is the benchmark
-`deploy/chaos.py --minutes 30`."""
+`deploy/labs/chaos.py --minutes 30`."""
 
 import json
 import subprocess
@@ -11,7 +11,7 @@ from pathlib import Path
 
 from tests.stack_run import SMALL
 
-CHAOS = Path(__file__).resolve().parents[1] / "deploy" / "chaos.py"
+CHAOS = Path(__file__).resolve().parents[1] / "deploy" / "labs" / "chaos.py"
 
 
 def test_a_stack_whose_processes_are_killed_in_turn_keeps_its_promises(tmp_path):

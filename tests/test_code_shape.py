@@ -2,7 +2,8 @@
 common and their own modules, and common imports no role; what composes roles (the stack, the reference
 loop, the grid runner) lives in deploy/. Read from the import statements of every module, so a new arrow
 fails here. Inside common, no two folders import each other (the root's modules count as one folder). And a
-module does one thing: none outside the simulator (actor/sim/) exceeds MAX_LINES."""
+module does one thing: none outside the simulator (actor/sim/) exceeds MAX_LINES (the few NOT_YET_SPLIT: their size).
+"""
 
 from __future__ import annotations
 
@@ -12,7 +13,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("actor", "learner", "replay")
 PACKAGES = (*ROLES, "common", "deploy")
-MAX_LINES = 450
+MAX_LINES = 400
+# Modules over the cap that are still to split, each at its size when the cap came down from 450 (issue 64): one
+# may shrink, none may grow, and a new module joins none of them.
+NOT_YET_SPLIT = {"common/config.py": 450, "actor/evaluation/curve.py": 433, "common/transport.py": 421,
+                 "deploy/grid/grid_job.py": 419}
 
 
 def imported(path: Path) -> set[str]:
@@ -47,7 +52,7 @@ def test_no_role_imports_another_and_common_imports_none():
 
 def folder_of(module: str) -> str:
     """The folder of a dotted module name inside this project: common.wire.messages -> common/wire; a package
-    (a folder with __init__.py) is its own folder: common.options -> common/options."""
+    (a folder with __init__.py) is its own folder: common.wire -> common/wire."""
     parts = module.split(".")
     return "/".join(parts) if (ROOT.joinpath(*parts) / "__init__.py").exists() else "/".join(parts[:-1])
 
@@ -88,4 +93,4 @@ def test_no_module_outside_the_simulator_exceeds_the_size_of_one_job():
     sizes = {str(path.relative_to(ROOT)): len(path.read_text().splitlines())
              for package in PACKAGES for path in (ROOT / package).rglob("*.py")
              if (ROOT / "actor" / "sim") not in path.parents}
-    assert not {module: lines for module, lines in sizes.items() if lines > MAX_LINES}
+    assert not {module: lines for module, lines in sizes.items() if lines > NOT_YET_SPLIT.get(module, MAX_LINES)}

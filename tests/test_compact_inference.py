@@ -9,12 +9,12 @@ import torch
 
 import actor.batched_q as batched_q_module
 from actor.batched_q import BatchedQ, choose_precision
-from actor.runner import Actor
+from actor.acting import Actor
 from common import cpu_capability
 from common.config_values import load_config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.messages import Weights
 from tests.cpu_support import needs_bfloat16
 

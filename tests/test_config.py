@@ -10,7 +10,7 @@ from common.config_cli import add_config_arguments, parse_config_or_exit, parse_
 from common.config_values import config_fields, flat_items, load_config, to_toml, toml_value
 from common.exploration.bmc import BMC_OBSERVATIONS
 from common.exploration.names import STRATEGIES
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.presets import PRESETS
 
 
@@ -263,7 +263,7 @@ def test_help_lists_the_presets_and_what_each_changes(capsys):
 
 
 def test_the_stack_help_follows_its_preset():
-    stack = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
+    stack = Path(__file__).resolve().parents[1] / "deploy" / "launcher" / "stack.py"
     result = subprocess.run([sys.executable, str(stack), "--preset", "local", "--help"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0

@@ -94,7 +94,7 @@ def test_a_process_asked_for_bfloat16_on_a_cpu_without_it_stops_at_start_with_on
 
 def test_the_stack_checks_the_precisions_of_the_processes_it_starts_here():
     from common.config_values import load_config
-    from deploy.stack import stack_precisions
+    from deploy.launcher.stack import stack_precisions
     config = load_config("smoke", overrides={"actor.inference": "auto", "learner.precision": "bfloat16",
                                              "network.device": "cpu"})
     assert stack_precisions(config) == {"actor.inference": "auto", "learner.precision": "bfloat16"}

@@ -18,7 +18,7 @@ from common.keys import Keys
 from common.wire.codecs import Message
 from common.wire.envelope import encode
 from common.wire.messages import EpisodeRecord, ExplorationState, Stats
-from deploy.stack import main as stack_main
+from deploy.launcher.stack import main as stack_main
 from replay.recorder.arrival import Arrival, peek
 from replay.recorder.cli import main as log_main
 from replay.recorder.plot import updates_start

@@ -26,16 +26,16 @@ COMMANDS = {
     "replay": "replay/main.py", "replay.main": "replay/main.py",
     "learner": "learner/main.py", "learner.main": "learner/main.py",
     "actor": "actor/main.py", "actor.main": "actor/main.py",
-    "evaluate": "actor/evaluate.py",
+    "evaluate": "actor/evaluation/command.py",
     "d3rqn-log": "replay/recorder/cli.py",  # the next word is its subcommand
     "d3rqn-certs": "common/certs.py",
-    "deploy/run.sh": "deploy/stack.py",
+    "deploy/run.sh": "deploy/launcher/stack.py",
     "deploy.reference_loop": "deploy/reference_loop.py",
 }
 EXTERNAL = {"pip", "tensorboard", "python3.11", "source", "openssl", "deploy/test.sh",  # flags not ours
             "sbatch", "squeue", "scontrol", "scancel", "rsync"}
 # A command whose flags it does not take itself go on to another's parser: that one's flags are its too.
-PASSED_ON = {"deploy/slurm/submit.py": "deploy/studies/experiments.py"}
+PASSED_ON = {"deploy/slurm/submit.py": "deploy/grid/experiments.py"}
 CONFIG_ENTRY_POINTS = {"add_config_arguments", "parse_service_args"}  # a parser these get has every config flag
 ON_PURPOSE_WRONG = {"--run.nam"}  # docs/configuration.md shows how a mistyped flag is refused
 

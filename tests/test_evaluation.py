@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from actor.evaluate import build_parser, main
+from actor.evaluation.command import build_parser, main
 from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, PrivilegedPolicy, RandomPolicy, coverage_of,
                                        end_reason, episode_jobs, evaluation_env_config, progress_of, run_lockstep,

@@ -13,7 +13,7 @@ import pytest
 
 from actor.evaluation import episodes
 from actor.evaluation.episodes import EpisodeJob, queued_jobs
-from deploy.soak import children
+from deploy.labs.soak import children
 from tests.processes import alive
 from tests.test_evaluation import make_checkpoint
 
@@ -97,16 +97,16 @@ def test_a_worker_waiting_on_an_empty_queue_stops_when_its_parent_dies(monkeypat
     assert len(list(queued_jobs(Jobs(jobs, on_empty=parent_dies), parent_pid=parent))) == 2
 
 
-# A grid runner (deploy/child_process.Child starts its stack and evaluate) that starts a long evaluate, says its pid,
+# A grid runner (deploy/grid/child_process.Child starts its stack and evaluate) that starts a long evaluate, says its pid,
 # and waits.
 RUNNER = """
 import signal, sys, time
 from pathlib import Path
 if sys.argv[3] == "ignored":  # a runner started in the background of a script: SIGINT ignored, and so its children
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-from deploy.child_process import Child
+from deploy.grid.child_process import Child
 run_dir, out = sys.argv[1], Path(sys.argv[2])
-child = Child([sys.executable, "-m", "actor.evaluate", "--checkpoint", run_dir, "--out", str(out / "evaluation"),
+child = Child([sys.executable, "-m", "actor.evaluation.command", "--checkpoint", run_dir, "--out", str(out / "evaluation"),
                "--evaluation.episodes_per_start", "200", "--evaluation.workers", "1"], out / "evaluate.log", None, None)
 print(child.process.pid, flush=True)
 time.sleep(300)

@@ -11,12 +11,12 @@ from common.exploration.base import softmax_probabilities, state_positive, state
 from common.exploration.bmc import (BmcConfig, BmcPosterior, EpsilonBmc, bmc_observation_count,
                                     greedy_and_uniform_returns, newest_transitions, student_t_pdf)
 from common.exploration.boltzmann import MaxBoltzmann, MaxBoltzmannConfig, SoftmaxConfig
-from common.strategy_build import exploration_message, make_strategy, same_strategy, strategy_from_state
+from common.exploration.build import exploration_message, make_strategy, same_strategy, strategy_from_state
 from common.exploration.epsilon_greedy import (ConstantEpsilonConfig, DecreasingEpsilonConfig, DecreasingEpsilonGreedy,
                                                decreasing_epsilon)
 from common.exploration.names import STRATEGIES
 from common.exploration.vdbe import VdbeConfig, vdbe_f
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.envelope import decode, encode
 from common.wire.messages import ExplorationState
 

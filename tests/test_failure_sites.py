@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 
-from actor.evaluate import main as evaluate
+from actor.evaluation.command import main as evaluate
 from common.analysis.stats import SITE_FIELDS
 from common.analysis.tables import EPISODES_CSV
 from deploy.tools import failure_sites

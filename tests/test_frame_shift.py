@@ -10,7 +10,7 @@ import torch
 
 from common.config import LearnerConfig
 from common.config_values import load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from learner.frame_shift import draw_offsets, shift_frames
 from learner.update import DoubleQLearner
 from tests.test_update import TINY, flat_parameters, one_torch_thread, random_batch  # noqa: F401 (a fixture)

@@ -95,7 +95,7 @@ def test_any_other_write_error_is_raised():
 def test_the_stacks_console_on_a_full_disk_drops_the_line_and_the_run_goes_on(monkeypatch):
     import threading
 
-    from deploy.console import Console
+    from deploy.launcher.console import Console
     full = open(FULL_DEVICE, "w")
     monkeypatch.setattr(sys, "stdout", full)
     try:

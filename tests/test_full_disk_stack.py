@@ -12,11 +12,11 @@ import pytest
 from common.config_values import load_config
 from common.disk_space import DISK_FULL_EXIT, MEGABYTE
 from common.run_dir import RunDir, RunStatus
-from deploy import stack as stack_module
-from deploy.console import Console
-from deploy.disk_watch import START_MIN_BYTES, DiskWatch
-from deploy.stack import Stack
-from deploy.stack_monitor import StackMonitor
+from deploy.launcher import stack as stack_module
+from deploy.launcher.console import Console
+from deploy.launcher.disk_watch import START_MIN_BYTES, DiskWatch
+from deploy.launcher.stack import Stack
+from deploy.launcher.stack_monitor import StackMonitor
 
 
 class Ended:

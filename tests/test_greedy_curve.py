@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from actor.evaluate import build_parser, main
+from actor.evaluation.command import build_parser, main
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import (CURVE_TRIALS, crowding_warning, curve_config, curve_summary, first_reaching,
                                     late_curves, of_kind, read_curve, summary_lines, trained_with, unbridged,
@@ -25,7 +25,7 @@ from common.checkpoint import CheckpointError, KeptPolicy
 from common.config import EvaluationConfig
 from common.config_values import from_dict, load_config, to_dict, to_toml
 from common.network import D3RQN, load_numpy_weights
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import RunDir, RunStatus
 from learner.keep import PolicyKeeper
 from learner.service import CPU_LABEL, LearnerService
@@ -39,9 +39,9 @@ OLD_CURVE = Path(__file__).resolve().parents[1] / "results" / "time-to-drive" / 
 
 def learner(config, clock=time.monotonic, keep_every=0, keep_every_s=0.0) -> LearnerService:
     config.learner.keep_every, config.learner.keep_every_s = keep_every, keep_every_s
-    process = LearnerService(config, clock=clock)
-    process.start_updates()
-    return process
+    service = LearnerService(config, clock=clock)
+    service.start_updates()
+    return service
 
 
 def kept(config) -> list[int]:
@@ -241,7 +241,7 @@ def test_the_curve_evaluates_each_kept_policy_once_and_skips_a_damaged_one(tmp_p
     run.policy(20).write_bytes(b"half a file")
     caplog.set_level(logging.WARNING, logger="evaluate")
     lowered = []  # the test process keeps its priority: os.nice is asked, and answers as from niceness 6
-    monkeypatch.setattr("actor.evaluate.os.nice", lambda steps: lowered.append(steps) or 6 + steps)
+    monkeypatch.setattr("actor.evaluation.command.os.nice", lambda steps: lowered.append(steps) or 6 + steps)
     main(["--curve", str(run.root), *CURVE_FLAGS, "--nice", "1"])
     assert lowered == [1]
     assert any("skipped" in record.message and "policy-u0000020.pt" in record.message for record in caplog.records)
@@ -295,7 +295,7 @@ def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stop
         keep(config, 30)
         RunStatus(phase="finished").write(run.status)
 
-    monkeypatch.setattr("actor.evaluate.time.sleep", the_run_goes_on)
+    monkeypatch.setattr("actor.evaluation.command.time.sleep", the_run_goes_on)
     main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--follow", "5"])
     assert waits == [5.0]
     assert [row["updates"] for row in read_rows(run.curve / "curve.csv")] == ["10", "30"]
@@ -328,7 +328,7 @@ def test_follow_evaluates_the_policies_a_training_run_keeps_until_its_stack_stop
 
     RunStatus(phase="training", pids={"learner": os.getpid()}).write(run.status)
     keep(config, 50)
-    monkeypatch.setattr("actor.evaluate.time.sleep", the_coarse_run_goes_on)
+    monkeypatch.setattr("actor.evaluation.command.time.sleep", the_coarse_run_goes_on)
     main(["--curve", str(run.root), *CURVE_FLAGS, "--sets", "test", "--every", "60", "--follow", "5"])
     assert waits == [5.0, 5.0] and read_rows(run.curve / "curve.csv")[-1]["updates"] == "60"
 

@@ -1,4 +1,4 @@
-"""The grid runner (deploy/studies/experiments.py) and its cells (deploy/studies/grid_cells.py): runs named by cell, the
+"""The grid runner (deploy/grid/experiments.py) and its cells (deploy/grid/grid_cells.py): runs named by cell, the
 budget in updates, each step decided from the run folder, the curve's passes, the choice on the train
 starts, --cells and --cell, and the export of a grid run."""
 
@@ -15,12 +15,12 @@ from pathlib import Path
 import pytest
 import torch
 
-import deploy.studies.experiments as experiments
-import deploy.studies.grid_job as grid_job
+import deploy.grid.experiments as experiments
+import deploy.grid.grid_job as grid_job
 from common.checkpoint import KeptPolicy, save_checkpoint
 from common.config_values import load_config, to_toml
-from deploy.studies import grid_cells
-from deploy.studies.grid_cells import RunSpec, choice_candidates, choose, curve_wanted, next_step
+from deploy.grid import grid_cells
+from deploy.grid.grid_cells import RunSpec, choice_candidates, choose, curve_wanted, next_step
 from deploy.studies.run_results import export_run, read_exported
 from common.run_dir import RunDir
 from tests.grid_runs import fake_evaluation

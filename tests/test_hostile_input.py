@@ -11,16 +11,16 @@ import pytest
 import zstandard
 
 from actor.mailbox import Mailbox
-from actor.runner import Actor
+from actor.acting import Actor
 from common.config_values import load_config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.rejections import Rejections
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights, flat_values
 from common.wire.run_shape import RunShape, check_episode, stat_number
-from deploy.stack import StackMonitor
+from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerService
 from replay.service import MAX_PENDING, ReplayService
@@ -233,8 +233,8 @@ def trace_batch(config, **changes) -> TraceBatch:
 
 def test_the_learner_drops_batches_that_do_not_fit_and_goes_on(tmp_path):
     config = small_config(tmp_path)
-    process = LearnerService(config)
-    process.start_updates()
+    service = LearnerService(config)
+    service.start_updates()
     good = trace_batch(config)
     blobs = list(good.observations.blobs)
     blobs[3] = corrupt_blob(blobs[3])
@@ -248,39 +248,39 @@ def test_the_learner_drops_batches_that_do_not_fit_and_goes_on(tmp_path):
         "batch_wrong_type": Stats(source="replay", time=0.0, values={}),
     }
     for batch in bad.values():
-        assert process.train_on(batch) is None
-    assert process.updates == 0 and process.clock.env_steps == 0
-    assert process.train_on(good) is not None and process.updates == 1
-    counts = process.rejections.values()
+        assert service.train_on(batch) is None
+    assert service.updates == 0 and service.clock.env_steps == 0
+    assert service.train_on(good) is not None and service.updates == 1
+    counts = service.rejections.values()
     assert {kind: counts.get(f"rejected_{kind}") for kind in bad} == dict.fromkeys(bad, 1)
 
 
 def test_batches_are_checked_in_the_prefetch_thread_and_refusals_counted_by_the_loop(tmp_path):
     config = small_config(tmp_path)
-    process = LearnerService(config)
-    process.start_updates()
+    service = LearnerService(config)
+    service.start_updates()
     good = trace_batch(config)
     replies = iter([Stats(source="replay", time=0.0, values={}), good])
     prefetcher = Prefetcher(lambda request: next(replies, None), config.learner.batch_size,
-                            config.learner.trace_length, depth=1, prepare=process.admit)
+                            config.learner.trace_length, depth=1, prepare=service.admit)
     try:
         stop = threading.Event()
         refused, admitted = prefetcher.next(stop, timeout_s=10.0), prefetcher.next(stop, timeout_s=10.0)
     finally:
         prefetcher.close()
-    assert process.stager is None  # on a CPU the decoded arrays are used where they lie
+    assert service.stager is None  # on a CPU the decoded arrays are used where they lie
     assert refused.error is not None and refused.traces is None
     assert admitted.error is None and admitted.traces.observations.shape[0] == config.learner.batch_size
-    assert process.rejections.values().get("rejected_batch_wrong_type") is None  # not counted twice
-    assert process.train_on(refused) is None and process.train_on(admitted) is not None
-    assert process.rejections.values()["rejected_batch_wrong_type"] == 1 and process.updates == 1
+    assert service.rejections.values().get("rejected_batch_wrong_type") is None  # not counted twice
+    assert service.train_on(refused) is None and service.train_on(admitted) is not None
+    assert service.rejections.values()["rejected_batch_wrong_type"] == 1 and service.updates == 1
 
 
 def test_a_failing_update_is_dropped_counted_and_the_learner_goes_on_unless_it_always_fails(tmp_path):
     config = small_config(tmp_path)
-    process = LearnerService(config)
-    process.start_updates()
-    real_update, calls = process.learner.update, []
+    service = LearnerService(config)
+    service.start_updates()
+    real_update, calls = service.learner.update, []
 
     def flaky(*args, **kwargs):
         calls.append(1)
@@ -288,15 +288,15 @@ def test_a_failing_update_is_dropped_counted_and_the_learner_goes_on_unless_it_a
             raise RuntimeError("a bad moment")
         return real_update(*args, **kwargs)
 
-    process.learner.update = flaky
-    assert process.train_on(trace_batch(config)) is None
-    assert process.train_on(trace_batch(config)) is not None
-    assert process.failed_updates == 1 and process.updates == 1
-    process.learner.update = lambda *args, **kwargs: (_ for _ in ()).throw(RuntimeError("broken for good"))
+    service.learner.update = flaky
+    assert service.train_on(trace_batch(config)) is None
+    assert service.train_on(trace_batch(config)) is not None
+    assert service.failed_updates == 1 and service.updates == 1
+    service.learner.update = lambda *args, **kwargs: (_ for _ in ()).throw(RuntimeError("broken for good"))
     for _ in range(MAX_FAILED_IN_A_ROW - 1):
-        assert process.train_on(trace_batch(config)) is None
+        assert service.train_on(trace_batch(config)) is None
     with pytest.raises(RuntimeError, match="broken for good"):
-        process.train_on(trace_batch(config))
+        service.train_on(trace_batch(config))
 
 
 ABSURD_RATE = example_rate(env_steps=10**15, start_env_steps=900.0)  # beyond the budget plus a full buffer
@@ -309,19 +309,19 @@ ABSURD_RATE = example_rate(env_steps=10**15, start_env_steps=900.0)  # beyond th
     (example_rate(), example_replay_stats()),  # each on the other's key
     (Weights(version=1, tensors={}), Weights(version=1, tensors={}))], ids=["untyped", "absurd", "swapped", "weights"])
 def test_the_learner_takes_only_the_replays_typed_word_with_counts_that_fit_the_run(tmp_path, stats, rate):
-    process = LearnerService(small_config(tmp_path))
-    process.on_replay_stats(stats)
-    process.on_replay_rate(rate)
-    assert process.clock.env_steps == 0 and process.clock.start_env_steps is None and process.episodes_stored == 0
-    assert process.rejections.total == 2
+    service = LearnerService(small_config(tmp_path))
+    service.on_replay_stats(stats)
+    service.on_replay_rate(rate)
+    assert service.clock.env_steps == 0 and service.clock.start_env_steps is None and service.episodes_stored == 0
+    assert service.rejections.total == 2
 
 
 def test_the_latest_weights_go_only_to_a_plain_query(tmp_path):
-    process = LearnerService(small_config(tmp_path))
-    process.make_weights()
-    assert process.serve_latest_weights(None) is process.latest_weights
-    assert process.serve_latest_weights(Stats(source="x", time=0.0, values={})) is None
-    assert process.rejections.values()["rejected_weights_query"] == 1
+    service = LearnerService(small_config(tmp_path))
+    service.make_weights()
+    assert service.serve_latest_weights(None) is service.latest_weights
+    assert service.serve_latest_weights(Stats(source="x", time=0.0, values={})) is None
+    assert service.rejections.values()["rejected_weights_query"] == 1
 
 
 # --- the actor -------------------------------------------------------------------------------------

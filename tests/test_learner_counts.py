@@ -37,47 +37,47 @@ def rate(env_steps: int, start: float) -> RateState:
     return example_rate(env_steps=env_steps, start_env_steps=start, batches_served=0)
 
 
-def run_updates(process: LearnerService, updates: int, per_update: float, mark: int = 1_000) -> int:
+def run_updates(service: LearnerService, updates: int, per_update: float, mark: int = 1_000) -> int:
     """Updates paced at exactly `per_update` env steps each, as the replay's rate limiter serves them."""
-    process.on_replay_rate(rate(mark, mark))
-    process.start_updates()
+    service.on_replay_rate(rate(mark, mark))
+    service.start_updates()
     steps = mark
     for index in range(updates):
         steps = mark + round((index + 1) * per_update)
-        process.train_on(batch(index, steps))
+        service.train_on(batch(index, steps))
     return steps - mark
 
 
 @pytest.mark.parametrize("per_update", [4.0, 2.5, 6.0])
 def test_per_step_bmc_observes_one_transition_per_env_step(tmp_path, per_update):
-    process = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": per_update}))
-    assert process.config.exploration.bmc.observations == "per_step"
-    env_steps = run_updates(process, 8, per_update)
-    assert process.strategy.returns == process.bmc_observations == env_steps  # 32, 20 or 48
-    assert process.strategy.returns / env_steps == 1.0
-    assert process.strategy.posterior.count == env_steps
+    service = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": per_update}))
+    assert service.config.exploration.bmc.observations == "per_step"
+    env_steps = run_updates(service, 8, per_update)
+    assert service.strategy.returns == service.bmc_observations == env_steps  # 32, 20 or 48
+    assert service.strategy.returns / env_steps == 1.0
+    assert service.strategy.posterior.count == env_steps
 
 
 def test_per_transition_bmc_observes_every_unmasked_transition(tmp_path):
-    process = LearnerService(config_with(tmp_path, **{"exploration.bmc.observations": "per_transition",
+    service = LearnerService(config_with(tmp_path, **{"exploration.bmc.observations": "per_transition",
                                                       "pace.env_steps_per_update": 4.0}))
-    env_steps = run_updates(process, 8, 4.0)
-    assert process.strategy.returns == 8 * TRACES * (STEPS - MASK) == 48
-    assert process.strategy.returns / env_steps == 1.5
+    env_steps = run_updates(service, 8, 4.0)
+    assert service.strategy.returns == 8 * TRACES * (STEPS - MASK) == 48
+    assert service.strategy.returns / env_steps == 1.5
 
 
 def test_per_step_cannot_observe_more_than_a_batch_holds(tmp_path):
-    process = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": 20.0}))
-    run_updates(process, 3, 20.0)
-    assert process.strategy.returns == 3 * 6
+    service = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": 20.0}))
+    run_updates(service, 3, 20.0)
+    assert service.strategy.returns == 3 * 6
 
 
 def test_the_achieved_ratio_counts_from_the_replays_start_mark(tmp_path):
-    process = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": 4.0}))
-    run_updates(process, 10, 4.0, mark=500)
-    assert process.env_steps_per_update() == pytest.approx(4.0)
-    process.on_replay_rate(rate(548, 500))  # 12 updates due, 10 made
-    assert process.env_steps_per_update() == pytest.approx(4.8)
+    service = LearnerService(config_with(tmp_path, **{"pace.env_steps_per_update": 4.0}))
+    run_updates(service, 10, 4.0, mark=500)
+    assert service.env_steps_per_update() == pytest.approx(4.0)
+    service.on_replay_rate(rate(548, 500))  # 12 updates due, 10 made
+    assert service.env_steps_per_update() == pytest.approx(4.8)
 
 
 def test_the_run_ends_when_the_limiter_closed_it_and_the_updates_it_says_are_due_are_made():
@@ -102,20 +102,20 @@ def test_an_unpaced_run_ends_once_closed_without_paying_the_rest():
 
 
 def test_the_replays_close_comes_on_both_of_its_keys_and_what_does_not_fit_is_refused(tmp_path):
-    process = LearnerService(config_with(tmp_path, **{"pace.total_env_steps": 1_000}))
-    process.on_replay_rate(example_rate(env_steps=1_040, start_env_steps=1_000.0, closed=True))
-    assert process.clock.closed and not process.finished()  # 10 updates due, none made
-    process.on_replay_stats(example_replay_stats(example_rate(env_steps=1_040, start_env_steps=1_000.0), episodes=5))
-    assert not process.clock.closed and process.episodes_stored == 5
+    service = LearnerService(config_with(tmp_path, **{"pace.total_env_steps": 1_000}))
+    service.on_replay_rate(example_rate(env_steps=1_040, start_env_steps=1_000.0, closed=True))
+    assert service.clock.closed and not service.finished()  # 10 updates due, none made
+    service.on_replay_stats(example_replay_stats(example_rate(env_steps=1_040, start_env_steps=1_000.0), episodes=5))
+    assert not service.clock.closed and service.episodes_stored == 5
     closing = example_rate(env_steps=10**12, start_env_steps=1_000.0, closed=True)  # past budget plus buffer
-    process.on_replay_rate(closing)
-    process.on_replay_stats(example_replay_stats(closing))
+    service.on_replay_rate(closing)
+    service.on_replay_stats(example_replay_stats(closing))
     for wrong in (Stats(source="rate_limiter", time=0.0, values={"env_steps": 1_040, "closed": 1}),
                   example_replay_stats()):  # an older replay's untyped word; the stats on the rate's key
-        process.on_replay_rate(wrong)
-    process.on_replay_stats(example_rate(closed=True))
-    assert not process.clock.closed and process.episodes_stored == 5
-    counts = process.rejections.values()
+        service.on_replay_rate(wrong)
+    service.on_replay_stats(example_rate(closed=True))
+    assert not service.clock.closed and service.episodes_stored == 5
+    counts = service.rejections.values()
     assert (counts["rejected_rate_values"], counts["rejected_stats_values"]) == (1, 1)
     assert (counts["rejected_rate_wrong_type"], counts["rejected_stats_wrong_type"]) == (2, 1)
 
@@ -134,10 +134,10 @@ def test_reports_only_move_the_count_forward_and_survive_a_checkpoint():
 def test_a_learner_resumed_after_its_last_update_ends_without_waiting_for_a_batch(tmp_path):
     """A closed run whose updates are all made gets no batch from the replay: the wait for the first one must
     end by itself, or the resumed stack never ends (seen in the chaos run's closing stack)."""
-    process = LearnerService(config_with(tmp_path, **{"pace.total_env_steps": 1_000,
+    service = LearnerService(config_with(tmp_path, **{"pace.total_env_steps": 1_000,
                                                       "learner.log_period_s": 0.05}))
-    process.on_replay_rate(example_rate(env_steps=1_000, start_env_steps=0.0, closed=True, batches_served=50))
-    process.learner.updates = math.ceil(process.clock.updates_due())
+    service.on_replay_rate(example_rate(env_steps=1_000, start_env_steps=0.0, closed=True, batches_served=50))
+    service.learner.updates = math.ceil(service.clock.updates_due())
     stop = threading.Event()
     guard = threading.Timer(20.0, stop.set)  # the wait must end before this stops it
     guard.start()
@@ -152,7 +152,7 @@ def test_a_learner_resumed_after_its_last_update_ends_without_waiting_for_a_batc
             pass
 
     try:
-        assert process.finished() and _first_batch(process, Outputs(), NoBatch(), stop) is None
+        assert service.finished() and _first_batch(service, Outputs(), NoBatch(), stop) is None
         assert not stop.is_set()
     finally:
         guard.cancel()

@@ -20,11 +20,12 @@ import learner.update_path as path_module
 from common import cpu_capability
 from common.config import LearnerConfig
 from common.config_values import load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.messages import Stats
-from deploy.stack import StackMonitor
+from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
-from learner.service import LearnerMetrics, LearnerService
+from learner.metrics import LearnerMetrics
+from learner.service import LearnerService
 from learner.loss import one_pass_loss
 from learner.update import DoubleQLearner
 from learner.update_path import candidate_paths, choose_learner_precision, interleaved_cpu_seconds, precision_from_timings
@@ -202,16 +203,16 @@ def test_auto_chooses_under_a_busy_neighbour_as_it_does_quietly_and_the_metrics_
         "network.frame_height": TINY.frame_height, "network.frame_width": TINY.frame_width,
         "network.lstm_units": TINY.lstm_units, "learner.precision": "auto", "learner.update_path": "trace",
         "run.runs_dir": str(tmp_path)})
-    process = LearnerService(config)
+    service = LearnerService(config)
     neighbours = spinning_neighbours(os.cpu_count() or 2)
     try:
-        process.learner.update(random_batch(np.random.default_rng(5), batch=4))
+        service.learner.update(random_batch(np.random.default_rng(5), batch=4))
     finally:
         stop(neighbours)
-    assert process.learner.precision == quiet_choice
+    assert service.learner.precision == quiet_choice
     prefetcher = Prefetcher(lambda request: None, 4, 10, depth=1)
     try:
-        values = LearnerMetrics(process, prefetcher).values()
+        values = LearnerMetrics(service, prefetcher).values()
     finally:
         prefetcher.close()
     assert (values["precision"], values["update_path"]) == (quiet_choice, "trace")

@@ -6,7 +6,7 @@ import torch
 
 from common.checkpoint import SECTIONS as CHECKPOINT_SECTIONS, CheckpointError, load_checkpoint
 from common.config_values import load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.wire.frames import FrameStack
 from common.wire.messages import TraceBatch
 from learner.service import LearnerService
@@ -37,17 +37,17 @@ def batches(count: int) -> list[TraceBatch]:
     return made
 
 
-def train(process: LearnerService, batch: TraceBatch) -> None:
-    """As in service: the replay's stats move the clock, then the batch is trained on."""
+def train(service: LearnerService, batch: TraceBatch) -> None:
+    """As in the process: the replay's stats move the clock, then the batch is trained on."""
     rate = example_rate(env_steps=batch.env_steps_total, start_env_steps=None, batches_served=0)
-    process.on_replay_stats(example_replay_stats(rate, episodes=batch.episodes_stored))
-    process.train_on(batch)
+    service.on_replay_stats(example_replay_stats(rate, episodes=batch.episodes_stored))
+    service.train_on(batch)
 
 
 def started(config) -> LearnerService:
-    process = LearnerService(config)
-    process.start_updates()
-    return process
+    service = LearnerService(config)
+    service.start_updates()
+    return service
 
 
 @pytest.mark.parametrize("shift_pad", [0, 4])  # 4: the random shifts' generator is checkpointed too
@@ -98,15 +98,15 @@ def test_damaged_or_missing_checkpoint_is_a_clear_error(config, tmp_path):
 def test_the_learner_checkpoints_every_n_updates_or_every_period_by_its_clock(config):
     clock = FakeClock()
     config.learner.checkpoint_every, config.learner.checkpoint_every_s = 5, 10.0
-    process = LearnerService(config, clock=clock)
-    process.start_updates()
+    service = LearnerService(config, clock=clock)
+    service.start_updates()
     written = []
     for batch in batches(10):
         clock.now += 3.0  # an update takes 3 s
-        train(process, batch)
-        process.checkpoint_if_due()
-        if process.checkpoint_dir.joinpath("latest.pt").exists():
-            updates = load_checkpoint(process.checkpoint_dir, CHECKPOINT_SECTIONS)["learner"]["updates"]
+        train(service, batch)
+        service.checkpoint_if_due()
+        if service.checkpoint_dir.joinpath("latest.pt").exists():
+            updates = load_checkpoint(service.checkpoint_dir, CHECKPOINT_SECTIONS)["learner"]["updates"]
             written += [] if written and written[-1] == updates else [updates]
     # 12 s at update 4 (by time), the 5th (by count), 27 s at update 9 (12 s after 15 s), the 10th
     assert written == [4, 5, 9, 10]

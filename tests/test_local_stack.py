@@ -1,4 +1,4 @@
-"""The main job, deploy/stack.py: starts the roles, restarts a dead actor, stops cleanly on a hangup,
+"""The main job, deploy/launcher/stack.py: starts the roles, restarts a dead actor, stops cleanly on a hangup,
 and keeps the configured update ratio over a whole run."""
 
 import json
@@ -14,7 +14,7 @@ import pytest
 from common.presets import PRESETS
 from tests.processes import children, from_a_terminal, kill_tree, wait_for
 
-STACK = Path(__file__).resolve().parents[1] / "deploy" / "stack.py"
+STACK = Path(__file__).resolve().parents[1] / "deploy" / "launcher" / "stack.py"
 
 
 def test_stack_restarts_a_dead_actor_and_stops_cleanly_on_a_hangup(tmp_path):
@@ -95,8 +95,8 @@ def test_the_stacks_watcher_waits_for_a_slow_router_then_gives_up_with_a_line(mo
 
     from common.config import TransportConfig
     from common.transport import free_port
-    from deploy import stack
-    from deploy.console import Console
+    from deploy.launcher import stack
+    from deploy.launcher.console import Console
 
     monkeypatch.setattr(stack, "WATCHER_CONNECT_S", 1.0)
     transport = TransportConfig(mode="client", connect=[f"tcp/127.0.0.1:{free_port()}"], connect_timeout_s=0.3)

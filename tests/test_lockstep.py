@@ -9,15 +9,16 @@ import pytest
 import torch
 
 from actor.evaluation.episodes import EpisodeJob, GreedyPolicy, evaluation_env_config, run_lockstep
-from actor.lockstep import Lockstep, episode_message
-from actor.runner import Actor
+from actor.lockstep import Lockstep, episode_message, training_actions
+from actor.acting import Actor
 from actor.sim import make_env
 from common.analysis.stats import digest_of_actions
 from common.config_values import load_config
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.wire.messages import Weights
 from deploy import reference_loop
+from deploy.tools import off_greedy_probe
 
 
 class CountingEnv:
@@ -120,3 +121,28 @@ def test_the_actor_the_evaluation_and_the_reference_loop_all_step_on_the_core(mo
                                                                 "network.lstm_units": 16}), evaluate_at_end=False)
     assert by_actor > 0 and by_evaluation > 0
     assert len(stepped) == loop.env_steps
+
+
+def test_the_acting_rule_is_uniform_until_the_network_acts_then_the_strategys():
+    config = greedy_config()
+    strategy = make_strategy(config.exploration, 5)
+    draws = training_actions(strategy, None, [np.random.default_rng(seed) for seed in (1, 2)], 5)
+    assert draws == [int(np.random.default_rng(seed).integers(5)) for seed in (1, 2)]  # each its own generator
+    strategy.start()  # constant epsilon 0: greedy from here
+    rows = np.array([[0.0, 3.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 9.0]])
+    assert training_actions(strategy, rows, [np.random.default_rng(0)] * 2, 5) == [1, 4]
+
+
+def test_the_reference_loop_acts_by_the_actors_rule_and_the_probe_on_the_core(monkeypatch):
+    import deploy.reference_loop as loop_module
+    calls, stepped = [], []
+    monkeypatch.setattr(loop_module, "training_actions", lambda *args: calls.append(args) or training_actions(*args))
+    original = Lockstep.step
+    monkeypatch.setattr(Lockstep, "step", lambda self, actions, tag=-1: stepped.append(1) or original(self, actions, tag))
+    loop = reference_loop.train(load_config("smoke", overrides={"pace.total_env_steps": 30,
+                                                                "network.lstm_units": 16}), evaluate_at_end=False)
+    assert len(calls) == loop.env_steps
+    stepped[:] = []
+    config = greedy_config()
+    rows = off_greedy_probe.greedy_q_rows(config, weights_to_numpy(D3RQN(config.network)), 1, 3)
+    assert len(stepped) == len(rows) == 3

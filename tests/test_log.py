@@ -235,10 +235,10 @@ def test_cli_refuses_a_bad_file_in_one_line(tmp_path, capsys, content):
 
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory):
-    """deploy/stack.py with the smoke preset and one actor, until the learner's step budget is spent."""
+    """deploy/launcher/stack.py with the smoke preset and one actor, until the learner's step budget is spent."""
     base = tmp_path_factory.mktemp("stack")
     log = base / "stack.log"
-    process = start(["deploy/stack.py", "--preset", "smoke", "--actors", "1", "--run.name", RUN,
+    process = start(["deploy/launcher/stack.py", "--preset", "smoke", "--actors", "1", "--run.name", RUN,
                      "--run.runs_dir", str(base / "runs"), "--pace.total_env_steps", str(STACK_ENV_STEPS),
                      "--recorder.flush_period_s", "0.5", "--tensorboard",
                      "--pace.error_buffer_updates", "1e9"],  # neither the actor nor the learner waits for the other

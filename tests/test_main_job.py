@@ -16,7 +16,7 @@ import pytest
 
 from common.run_dir import RunDir
 from deploy import main_job
-from deploy.studies.grid_cells import curve_wanted, read_choice
+from deploy.grid.grid_cells import curve_wanted, read_choice
 from tests.grid_runs import fake_evaluation
 from tests.processes import from_a_terminal
 from tests.test_grid_runner import BUDGET, KEPT, curve_rows, make_drive_run, write_curve

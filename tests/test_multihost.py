@@ -14,7 +14,7 @@ the learner's weights: actor 1's from broadcasts, actor 2's downloaded piece by 
 
 Needs root (CI runs as root) and iproute2; elsewhere the tests are skipped with the reason.
 Namespaces (named per test run), links and processes are removed at the end, also on failure.
-The lab itself is deploy/netns_lab.py; tests/test_network_faults.py puts faults on its links.
+The lab itself is deploy/labs/netns_lab.py; tests/test_network_faults.py puts faults on its links.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from __future__ import annotations
 import pytest
 
 from common.certs import main as certs_main
-from deploy.netns_lab import HUB, Lab, LabError, config_flags, why_no_lab
+from deploy.labs.netns_lab import HUB, Lab, LabError, config_flags, why_no_lab
 from tests.processes import wait_for
 from tests.zenoh_peer import PATH as PEER
 from tests.zenoh_peer import read_lines

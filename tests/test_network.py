@@ -6,9 +6,10 @@ import common.network as network_module
 from common.config import NetworkConfig
 from common.config_values import load_config
 from common.network import (
-    D3RQN, conv_input_extent, conv_output_shape, load_numpy_weights, resolve_device, scale_frames, weights_to_numpy,
+    D3RQN, conv_input_extent, conv_output_shape, load_numpy_weights, resolve_device, weights_to_numpy,
 )
-from common.options import ConfigError
+from common.trace_pass import scale_frames
+from common.schema.fields import ConfigError
 
 TINY = NetworkConfig(frame_height=36, frame_width=40, lstm_units=8, n_actions=5)
 

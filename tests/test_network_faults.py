@@ -1,4 +1,4 @@
-"""Network faults between hosts while a run trains, in the lab of deploy/netns_lab.py: the hub (replay
+"""Network faults between hosts while a run trains, in the lab of deploy/labs/netns_lab.py: the hub (replay
 as router, learner, a watcher) and two actor hosts. One lab serves the module; each test puts one fault
 on actor 1's link (or kills the hub's replay), takes it off, and checks:
 
@@ -30,7 +30,7 @@ import pytest
 
 from common.config_values import load_config
 from common.wire.run_shape import RunShape
-from deploy.netns_lab import Lab, LabError, config_flags, why_no_lab
+from deploy.labs.netns_lab import Lab, LabError, config_flags, why_no_lab
 from replay.snapshot import Snapshotter
 from tests.processes import wait_for
 from tests.zenoh_peer import PATH as PEER

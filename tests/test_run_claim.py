@@ -1,5 +1,5 @@
-"""One stack per run folder (deploy/run_claim.py), and a stack that stops cleanly once nobody reads its
-output (deploy/console.py)."""
+"""One stack per run folder (deploy/launcher/run_claim.py), and a stack that stops cleanly once nobody reads its
+output (deploy/launcher/console.py)."""
 
 import io
 import json
@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from common.run_dir import RunDir
-from deploy.console import Console
-from deploy.run_claim import RunClaimError, claim_run, lingering_pids
+from deploy.launcher.console import Console
+from deploy.launcher.run_claim import RunClaimError, claim_run, lingering_pids
 from tests.processes import wait_for
 
 
@@ -105,7 +105,7 @@ def test_a_file_system_without_locks_is_said_and_the_run_goes_on(tmp_path, monke
     def no_locks(handle, operation):
         raise OSError(37, "No locks available")
 
-    monkeypatch.setattr("deploy.run_claim.fcntl.flock", no_locks)
+    monkeypatch.setattr("deploy.launcher.run_claim.fcntl.flock", no_locks)
     claim_run(run).close()
     assert "cannot lock" in caplog.text and "No locks available" in caplog.text
 

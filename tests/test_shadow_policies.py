@@ -17,13 +17,13 @@ from tests.test_learner_resume import batches, config, train  # noqa: F401 (conf
 def shadowed(config, horizon=2, keep_target=True, keep_every=1, shadows_from=0) -> LearnerService:
     config.learner.keep_target, config.learner.ema_updates = keep_target, horizon
     config.learner.keep_every, config.learner.keep_shadows_from = keep_every, shadows_from
-    process = LearnerService(config)
-    process.start_updates()
-    return process
+    service = LearnerService(config)
+    service.start_updates()
+    return service
 
 
-def online(process: LearnerService) -> dict[str, torch.Tensor]:
-    return {name: tensor.clone() for name, tensor in process.learner.online.state_dict().items()}
+def online(service: LearnerService) -> dict[str, torch.Tensor]:
+    return {name: tensor.clone() for name, tensor in service.learner.online.state_dict().items()}
 
 
 @pytest.mark.parametrize("stride, factors", [

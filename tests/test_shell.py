@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from common.config_values import load_config
-from common.shell import PARENT_ENV, Service, first_claim, stop_with_parent
+from common.shell import PARENT_ENV, Shell, first_claim, stop_with_parent
 from tests.processes import from_a_terminal, loopback_endpoint, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines
 
@@ -83,7 +83,7 @@ def test_a_role_that_crashes_in_native_code_leaves_its_python_stacks_in_its_log(
 
 def leave_by_raising(endpoint: str, events) -> None:
     """In a spawned process: two on_close callbacks, then the role fails inside the session."""
-    service = Service("probe", load_config("smoke", overrides={"run.name": RUN, "transport.listen": [endpoint]}))
+    service = Shell("probe", load_config("smoke", overrides={"run.name": RUN, "transport.listen": [endpoint]}))
     try:
         with service.session() as session:
             service.on_close(lambda: events.put(("first", service.stop.is_set(), session.is_closed())))
@@ -207,7 +207,7 @@ def claim_together(endpoint: str, barrier, events) -> None:
     seconds to set up (reading a checkpoint) before it declares the token, and holds it until told."""
     config = load_config("smoke", overrides={"run.name": RUN, "transport.connect": [endpoint],
                                              "transport.mode": "client"})
-    service = Service("learner", config)
+    service = Shell("learner", config)
     barrier.wait(30)
     try:
         service.claim()

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from actor.evaluate import build_parser as evaluate_parser, main as evaluate
+from actor.evaluation.command import build_parser as evaluate_parser, main as evaluate
 from actor.evaluation import curve
 from actor.evaluation.sources import checkpoint_source
 from common.checkpoint import (POLICY_ENCODINGS, Checkpoint, CheckpointError, KeptPolicy,

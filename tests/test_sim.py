@@ -23,7 +23,7 @@ from actor.sim.progress import ProgressMeter
 from actor.sim.road import LaneLocator, road_network
 from actor.sim.world_image import ASPHALT, CENTRE_DASH, GRASS, PARKED_CAR, TREE, world_image
 from common.config import EnvConfig
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 
 STRAIGHT = 2  # action index of zero steering
 # The hand-computed steps below assume 2 m per step: 10 m/s at 5 decisions per second. The

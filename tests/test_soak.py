@@ -1,4 +1,4 @@
-"""deploy/soak.py: what one sample reads of a run, and the growth figures of its summary, from hand-made rows."""
+"""deploy/labs/soak.py: what one sample reads of a run, and the growth figures of its summary, from hand-made rows."""
 
 import csv
 import json
@@ -14,7 +14,7 @@ import pytest
 
 from common.run_dir import RunDir, RunStatus
 from common.wire.frames import FrameStack
-from deploy import soak
+from deploy.labs import soak
 from replay.snapshot import MANIFEST, SnapshotView, Snapshotter, manifest_held
 from replay.store import StoredEpisode
 from tests.processes import alive, wait_for
@@ -210,13 +210,13 @@ def test_a_child_started_from_a_thread_is_counted_in_its_parents_tree():
         parent.wait()
 
 
-# A grid runner that starts the soak beside a run (deploy/child_process.Child, as grid_job does), says its pid, waits.
+# A grid runner that starts the soak beside a run (deploy/grid/child_process.Child, as grid_job does), says its pid, waits.
 RUNNER = """
 import sys, time
 from pathlib import Path
-from deploy.child_process import Child
+from deploy.grid.child_process import Child
 run = Path(sys.argv[1])
-child = Child([sys.executable, "deploy/soak.py", str(run), "--every", "0.5"], run / "soak.log", None, None)
+child = Child([sys.executable, "deploy/labs/soak.py", str(run), "--every", "0.5"], run / "soak.log", None, None)
 print(child.process.pid, flush=True)
 time.sleep(120)
 """

@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-import deploy.studies.experiments as experiments
-import deploy.studies.grid_job as grid_job
+import deploy.grid.experiments as experiments
+import deploy.grid.grid_job as grid_job
 from actor.gate import HoldLog
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config
@@ -15,10 +15,11 @@ from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus
 from common.wire.messages import EpisodeRecord, ReplayStats, Stats
 from wire_examples import example_rate, example_replay_stats
-from deploy.stack import Stack, StackMonitor
+from deploy.launcher.stack import Stack, StackMonitor
 from fake_clock import FakeClock
 from learner.prefetch import Prefetcher
-from learner.service import LearnerMetrics, LearnerService
+from learner.metrics import LearnerMetrics
+from learner.service import LearnerService
 
 
 
@@ -80,11 +81,11 @@ def test_the_line_shows_the_temperature_beside_epsilon_since_softmax_explores_at
 
 def test_the_learners_metrics_carry_its_strategys_temperature_to_the_line(tmp_path):
     config = load_config("smoke", overrides={"exploration.strategy": "softmax", "run.runs_dir": str(tmp_path)})
-    process = LearnerService(config)
-    process.strategy.start()
+    service = LearnerService(config)
+    service.strategy.start()
     prefetcher = Prefetcher(lambda request: None, 4, 10, depth=1)
     try:
-        values = LearnerMetrics(process, prefetcher).values()
+        values = LearnerMetrics(service, prefetcher).values()
     finally:
         prefetcher.close()
     assert (values["epsilon"], values["kappa"]) == (1.0, config.exploration.softmax.kappa)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from common.config import LearnerConfig
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from learner.step_size import clip_gradient, learning_rate, set_learning_rate
 from tests.test_learner_resume import batches, config, train  # noqa: F401 (config: a fixture)
 from learner.service import LearnerService
@@ -56,8 +56,8 @@ def test_wrong_values_are_refused(overrides, message):
         dataclasses.replace(LearnerConfig(), **overrides).validate()
 
 
-def gradient_norm(process: LearnerService) -> float:
-    grads = [parameter.grad for parameter in process.learner.online.parameters() if parameter.grad is not None]
+def gradient_norm(service: LearnerService) -> float:
+    grads = [parameter.grad for parameter in service.learner.online.parameters() if parameter.grad is not None]
     return float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(grad) for grad in grads])))
 
 
@@ -68,10 +68,10 @@ def test_the_learner_clips_and_decays_its_steps(config):
     assert gradient_norm(plain) > 1e-3
     config.learner.grad_clip_norm = 1e-3
     config.learner.lr_decay_from, config.learner.lr_decay_to, config.learner.lr_final_scale = 1, 3, 0.5
-    process = LearnerService(config)
-    process.start_updates()
+    service = LearnerService(config)
+    service.start_updates()
     for batch in batches(3):
-        train(process, batch)
-    assert gradient_norm(process) == pytest.approx(1e-3, rel=1e-4)  # the last update's gradient, clipped
+        train(service, batch)
+    assert gradient_norm(service) == pytest.approx(1e-3, rel=1e-4)  # the last update's gradient, clipped
     # the third update followed 2 updates: halfway from 1 to 3, lr x (1 - 0.5 x 0.5)
-    assert process.learner.optimizer.param_groups[0]["lr"] == pytest.approx(config.learner.lr * 0.75)
+    assert service.learner.optimizer.param_groups[0]["lr"] == pytest.approx(config.learner.lr * 0.75)

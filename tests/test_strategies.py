@@ -8,10 +8,11 @@ import pytest
 from common.analysis.figures import EPSILON_STRATEGIES
 from common.config import ExplorationConfig
 from common.config_values import load_config
-from common.strategy_build import STRATEGY_CLASSES, make_strategy
+from common.exploration.build import make_strategy
+from common.exploration.names import SECTIONS as SECTION_CLASSES
 from common.exploration.names import (REGISTRY, STRATEGIES, epsilon_groups, starts_by_steps, strategy_named,
                                       strategy_rank)
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from deploy.studies.comparison import STRATEGY_NAMES
 
 SECTIONS = {field.name for field in dataclasses.fields(ExplorationConfig)} - {"strategy"}
@@ -34,11 +35,18 @@ def test_every_strategy_has_config_sections_and_every_section_a_strategy():
     assert {section for strategy in REGISTRY for section in strategy.sections} == SECTIONS
 
 
+def test_the_registrys_section_classes_are_the_configs():
+    """A strategy rebuilt from the learner's state (build.py) takes its sections from the registry: the very
+    dataclasses the config declares."""
+    config = ExplorationConfig()
+    assert {name: type(getattr(config, name)) for name in SECTIONS} == SECTION_CLASSES
+
+
 @pytest.mark.parametrize("name", STRATEGIES)
 def test_each_name_builds_its_class_with_the_params_of_its_sections(name):
     config = ExplorationConfig(strategy=name)
     policy = make_strategy(config, 5)
-    assert type(policy) is STRATEGY_CLASSES[name] and policy.name == name
+    assert type(policy) is strategy_named(name).cls and policy.name == name
     expected = {key: value for section in strategy_named(name).sections
                 for key, value in dataclasses.asdict(getattr(config, section)).items()}
     assert policy.params() == expected

@@ -19,7 +19,7 @@ from common.access import GRANTS, acl_config
 from common.certs import main as certs_main
 from common.config import TransportConfig
 from common.config_values import load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.transport import zenoh_config
 from tests.processes import free_port, start, stop, wait_for
 from tests.zenoh_peer import PATH as PEER, read_lines

@@ -14,7 +14,7 @@ from common.config import LearnerConfig, NetworkConfig
 from common.config_values import load_config
 from common.exploration.bmc import greedy_and_uniform_returns
 from common.network import D3RQN
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from learner.allocator import keep_freed_memory
 from deploy.bench.reference_update import paper_reference_loss, same_history_reference_loss
 import learner.loss as loss_module

@@ -27,7 +27,7 @@ import common.network as network_module
 from common import cpu_capability
 from common.config import LearnerConfig
 from common.stored_state import lstm_state, state_row
-from common.network import scale_frames
+from common.trace_pass import scale_frames
 from learner.update import DoubleQLearner
 from tests.test_update import TINY, one_torch_thread, random_batch  # noqa: F401 (an autouse fixture)
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from actor.runner import Actor
+from actor.acting import Actor
 from common.config_values import load_config
 from common.network import D3RQN, weights_to_numpy
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.transport import loopback_endpoint
 from common.wire.envelope import decode, encode
 from common.wire.errors import WireError
@@ -146,13 +146,13 @@ def test_a_value_beyond_the_encodings_range_is_refused_when_sending(encoding, va
 
 
 def test_the_learner_broadcasts_and_serves_its_configured_encoding(tmp_path):
-    process = LearnerService(small_config(tmp_path, **{"learner.weights_encoding": "bfloat16"}))
-    weights = process.make_weights()
-    assert weights.encoding == "bfloat16" and process.serve_latest_weights(None) is weights
+    service = LearnerService(small_config(tmp_path, **{"learner.weights_encoding": "bfloat16"}))
+    weights = service.make_weights()
+    assert weights.encoding == "bfloat16" and service.serve_latest_weights(None) is weights
     with torch.no_grad():
-        process.learner.online.lstm.bias_ih_l0[0] = 1e38  # a diverged weight float16 cannot hold
-    process.config.learner.weights_encoding = "float16"
-    assert process.make_weights().encoding == "float32"  # sent whole instead, with a warning
+        service.learner.online.lstm.bias_ih_l0[0] = 1e38  # a diverged weight float16 cannot hold
+    service.config.learner.weights_encoding = "float16"
+    assert service.make_weights().encoding == "float32"  # sent whole instead, with a warning
 
 
 def test_an_actor_acts_with_compact_weights_as_with_whole_ones(tmp_path):

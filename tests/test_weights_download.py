@@ -103,19 +103,20 @@ def test_a_piece_outside_its_weights_or_empty_or_too_large_does_not_decode(offse
 
 def test_the_learner_serves_pieces_and_refuses_and_counts_other_asks(tmp_path):
     config = load_config("smoke", overrides={"network.lstm_units": 16, "run.runs_dir": str(tmp_path)})
-    process = LearnerService(config)
-    assert process.serve_weights_piece(WeightsPieceAsk(version=-1, offset=0, size=PIECE)) is None  # none yet
-    sent = process.make_weights()
-    piece = process.serve_weights_piece(WeightsPieceAsk(version=-1, offset=0, size=PIECE))
+    service = LearnerService(config)
+    assert service.serve_weights_piece(WeightsPieceAsk(version=-1, offset=0, size=PIECE)) is None  # none yet
+    sent = service.make_weights()
+    piece = service.serve_weights_piece(WeightsPieceAsk(version=-1, offset=0, size=PIECE))
     assert (piece.version, piece.offset, len(piece.data), piece.total_bytes) == (sent.version, 0, PIECE,
                                                                                len(encode(sent)))
-    assert process.serve_weights_piece(WeightsPieceAsk(version=-1, offset=piece.total_bytes, size=PIECE)) is None
-    assert process.serve_weights_piece(None) is None and process.serve_weights_piece(sent) is None
-    assert process.rejections.values()["rejected_weights_piece_query"] == 2
+    assert service.serve_weights_piece(WeightsPieceAsk(version=-1, offset=piece.total_bytes, size=PIECE)) is None
+    assert service.serve_weights_piece(None) is None and service.serve_weights_piece(sent) is None
+    assert service.rejections.values()["rejected_weights_piece_query"] == 2
 
 
 def test_a_downloading_actor_is_late_only_after_three_periods_without_a_download(tmp_path):
-    from actor.runner import Actor, _stale
+    from actor.acting import Actor
+    from actor.runner import _stale
     config = load_config("smoke", overrides={"network.lstm_units": 16, "actor.weights_download": True,
                                              "actor.weights_download_period_s": 10.0})
     actor = Actor(config, 0)

@@ -6,7 +6,7 @@ x start sets -> episodes and table rows), sources (the weights: a checkpoint or
 the live learner), curve (the greedy learning curve of the policies a run kept).
 The tables' figures and files (stats, intervals, tables) are in common/analysis/,
 which the comparison across runs (deploy/studies/comparison.py) shares. The command
-line is actor/evaluate.py.
+line is actor/evaluation/command.py.
 """
 
 

@@ -35,7 +35,7 @@ from common.cpu_capability import cpu_model
 from common.config import Config
 from common.config_values import load_config, to_dict
 from common.eta import Eta, clock_time
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.presets import GRID_SHADOWS_FROM
 from common.run_dir import POLICY_KINDS, RunDir
 

@@ -51,7 +51,7 @@ from actor.sim.road import lane_locator, neighbourhood_road
 from actor.sim.vehicles import EgoVehicle
 from actor.sim.world_image import ground_image, world_image
 from common.config import EnvConfig
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 
 STEERING_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)  # times the maximum angle; positive turns right
 START_SETS = ("train", "test")

@@ -18,7 +18,7 @@ The actor only calls ``act``. The learner calls the hooks after each update
 - ``on_update(q_before, q_after)``: VDBE (vdbe);
 - ``on_returns(g_greedy, g_uniform)``: epsilon-BMC (bmc).
 
-The modules: names (what each strategy is called and where its settings live),
+The modules: names (the one registry: what each strategy is called, its class, where its settings live),
 base (the rule and the state every strategy shares), epsilon_greedy, vdbe, bmc,
 boltzmann (Softmax and Max-Boltzmann), build (a strategy from a config or from
 another process's state). The learner is the authority on the strategy: an actor

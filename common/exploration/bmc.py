@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.exploration.base import ExplorationStrategy, state_positive
-from common.options import check, check_positive, option
+from common.schema.fields import check, check_positive, option
 
 
 BMC_OBSERVATIONS = ("per_step", "per_transition")

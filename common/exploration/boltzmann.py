@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from common.exploration.base import ExplorationStrategy
-from common.options import check_positive, check_probability, option
+from common.schema.fields import check_positive, check_probability, option
 
 
 @dataclass

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from common.exploration.base import ExplorationStrategy
-from common.options import check, check_probability, option
+from common.schema.fields import check, check_probability, option
 
 
 @dataclass

@@ -1,34 +1,47 @@
-"""The seven exploration strategies by name: what each is called and where its settings live.
+"""The one registry of the seven exploration strategies: what each is called, its class and where its
+settings live (the config sections its class is built with).
 
-Every module that names a strategy takes the name from here: the config's choices, the
+Every module that names or builds a strategy takes it from here: the config's choices, the
 learner's exploration state, the replay's start rule, the grid's runs, the tables' and
-figures' labels. The classes are in the modules of common/exploration/, one per name, with their
-parameters.
+figures' labels, and build.py. The classes are in the modules of common/exploration/, one per
+rule, with their parameters.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from common.exploration.base import ExplorationStrategy
+from common.exploration.bmc import BmcConfig, EpsilonBmc
+from common.exploration.boltzmann import MaxBoltzmann, MaxBoltzmannConfig, Softmax, SoftmaxConfig
+from common.exploration.epsilon_greedy import (ConstantEpsilonConfig, ConstantEpsilonGreedy, DecreasingEpsilonConfig,
+                                               DecreasingEpsilonGreedy)
+from common.exploration.vdbe import Vdbe, VdbeConfig, VdbeSoftmax
+
+# Each section of the config's exploration (exploration.<section>) and the dataclass that declares it.
+SECTIONS = {"constant": ConstantEpsilonConfig, "decreasing": DecreasingEpsilonConfig, "vdbe": VdbeConfig,
+            "bmc": BmcConfig, "softmax": SoftmaxConfig, "max_boltzmann": MaxBoltzmannConfig}
+
 
 @dataclass(frozen=True)
 class Strategy:
     name: str  # exploration.strategy, and the strategy an ExplorationState names
     display_name: str  # the paper's name, in tables and figures
+    cls: type[ExplorationStrategy]  # built with n_actions and its sections, in order
     sections: tuple[str, ...]  # the exploration.<section> configs of its params, in its class's argument order
     epsilon_group: str | None  # the panel of the epsilon figure that draws it; None: it has no epsilon
     starts_by_steps: bool = False  # updates start at pace.start_steps env steps, not pace.start_episodes
 
 
 REGISTRY = (
-    Strategy("constant", "Constant ε-greedy", ("constant",), "deterministic epsilon-greedy"),
-    Strategy("decreasing", "Decreasing ε-greedy", ("decreasing",), "deterministic epsilon-greedy",
-             starts_by_steps=True),
-    Strategy("vdbe", "VDBE", ("vdbe",), "adaptive epsilon-greedy"),
-    Strategy("bmc", "BMC", ("bmc",), "adaptive epsilon-greedy"),
-    Strategy("softmax", "Softmax", ("softmax",), None),
-    Strategy("max_boltzmann", "MBE", ("max_boltzmann",), "Max-Boltzmann"),
-    Strategy("vdbe_softmax", "VDBE-Softmax", ("vdbe", "softmax"), "Max-Boltzmann"),
+    Strategy("constant", "Constant ε-greedy", ConstantEpsilonGreedy, ("constant",), "deterministic epsilon-greedy"),
+    Strategy("decreasing", "Decreasing ε-greedy", DecreasingEpsilonGreedy, ("decreasing",),
+             "deterministic epsilon-greedy", starts_by_steps=True),
+    Strategy("vdbe", "VDBE", Vdbe, ("vdbe",), "adaptive epsilon-greedy"),
+    Strategy("bmc", "BMC", EpsilonBmc, ("bmc",), "adaptive epsilon-greedy"),
+    Strategy("softmax", "Softmax", Softmax, ("softmax",), None),
+    Strategy("max_boltzmann", "MBE", MaxBoltzmann, ("max_boltzmann",), "Max-Boltzmann"),
+    Strategy("vdbe_softmax", "VDBE-Softmax", VdbeSoftmax, ("vdbe", "softmax"), "Max-Boltzmann"),
 )
 STRATEGIES = tuple(strategy.name for strategy in REGISTRY)
 DISPLAY_NAMES = {strategy.name: strategy.display_name for strategy in REGISTRY}

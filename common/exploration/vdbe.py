@@ -16,7 +16,7 @@ import numpy as np
 
 from common.exploration.base import ExplorationStrategy, state_probability
 from common.exploration.boltzmann import SoftmaxConfig
-from common.options import check_positive, check_probability, option
+from common.schema.fields import check_positive, check_probability, option
 
 
 @dataclass

@@ -27,7 +27,7 @@ import time
 
 import torch
 
-from actor.runner import Actor
+from actor.acting import Actor
 from actor_speed import acting_actor  # deploy/bench is this script's directory
 from common.config import Config
 from common.cpu_capability import describe_cpu

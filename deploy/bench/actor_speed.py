@@ -36,10 +36,10 @@ import numpy as np
 import torch
 
 from actor.evaluation.episodes import GreedyPolicy
-from actor.runner import Actor
+from actor.acting import Actor
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.config import Config
-from common.strategy_build import exploration_message, make_strategy
+from common.exploration.build import exploration_message, make_strategy
 from common.network import weights_to_numpy
 from common.wire.messages import Weights
 from env_speed import one_core  # deploy/bench is this script's directory

@@ -9,7 +9,7 @@ holds stalls the whole update, and the niceness does not help (issue 38, item 7)
 * crowded: the same learner, beside a follower of every core's worth of workers, 1 torch thread each, at
   nice 15: what `evaluate --follow` ran before it warned (`evaluate` now warns on this layout);
 * shared: the learner on one core fewer, beside a follower of 1 worker x 1 thread at nice 15: the layout
-  `deploy/studies/experiments.py --curve-beside` and `evaluate`'s warning give;
+  `deploy/grid/experiments.py --curve-beside` and `evaluate`'s warning give;
 * alone, one core fewer: the learner of `shared`, nothing beside (what the follower itself costs).
 
 The learner is `DoubleQLearner.update` on one batch of the config's sizes (paper: B = 10, T = 10, LSTM
@@ -71,7 +71,7 @@ def untrained_policy(config: Config, folder: Path) -> Path:
 
 def start_follower(policy: Path, workers: int, out: Path) -> subprocess.Popen:
     """`evaluate` on the policy with `workers` workers x 1 torch thread at nice 15, long enough to outlast a case."""
-    command = [sys.executable, "-m", "actor.evaluate", "--checkpoint", str(policy), "--nice", str(FOLLOWER_NICE),
+    command = [sys.executable, "-m", "actor.evaluation.command", "--checkpoint", str(policy), "--nice", str(FOLLOWER_NICE),
                "--no-random-baseline", "--out", str(out), "--evaluation.workers", str(workers),
                "--evaluation.torch_threads", "1", "--evaluation.episodes_per_start", "500"]
     return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)

@@ -34,7 +34,8 @@ import torch
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.cpu_capability import bfloat16_problem, describe_cpu
-from common.network import D3RQN, conv_input_extent, resolve_device, scale_frames
+from common.network import D3RQN, conv_input_extent, resolve_device
+from common.trace_pass import scale_frames
 from common.wire.frames import FrameStack
 from deploy.bench.flops import update_flops
 from deploy.bench.gemm_peak import Clock, Gemms, shape_flops

@@ -1,4 +1,4 @@
-"""Figures from the multi-host lab (deploy/netns_lab.py) on this machine; needs root, iproute2, nftables.
+"""Figures from the multi-host lab (deploy/labs/netns_lab.py) on this machine; needs root, iproute2, nftables.
 
 - hosts: env steps/s and learner updates/s with 1, 2 and 4 actor hosts (one actor each), over
   `--seconds` of training after the learner's first updates;
@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 from common.eta import clock_time
-from deploy.netns_lab import Lab, config_flags, why_no_lab
+from deploy.labs.netns_lab import Lab, config_flags, why_no_lab
 
 BASE = ["--preset", "smoke", "--pace.total_env_steps", "100000000", "--run.runs_dir", "runs"]
 STATUS = re.compile(r"updates (\d+), env steps (\d+),")

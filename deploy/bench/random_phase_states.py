@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from actor.runner import Actor
+from actor.acting import Actor
 from common.config_values import load_config
 from common.cpu_capability import describe_cpu
 

@@ -1,6 +1,6 @@
 """The flight recorder's cost: the stack's env steps/s with and without it, and log bytes per 1,000 env steps.
 
-Runs deploy/stack.py (smoke preset, --actors 1) in rounds of two runs, recorder on
+Runs deploy/launcher/stack.py (smoke preset, --actors 1) in rounds of two runs, recorder on
 and off (which goes first alternates), and watches each run over Zenoh. Uniform
 random acting while the learner starts is several times faster than acting with
 the network and lasts a varying number of steps, so the figure is taken after it: from the first episode the
@@ -73,7 +73,7 @@ class Watch:
 
 def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[str]) -> dict:
     port = free_port()
-    command = [sys.executable, "deploy/stack.py", "--preset", "smoke", "--actors", "1", "--port", str(port),
+    command = [sys.executable, "deploy/launcher/stack.py", "--preset", "smoke", "--actors", "1", "--port", str(port),
                "--run.name", name, "--run.runs_dir", str(runs_dir), "--pace.total_env_steps", str(NEVER),
                "--recorder.enabled", "true" if record else "false", *extra]
     watch = Watch(steps)

@@ -27,7 +27,7 @@ from tempfile import TemporaryDirectory
 import numpy as np
 import torch
 
-from actor.runner import Actor
+from actor.acting import Actor
 from common.config import Config, TransportConfig
 from common.config_cli import add_config_arguments, parse_config_or_exit
 from common.config_values import to_toml
@@ -63,13 +63,13 @@ def time_update_paths(config: Config) -> None:
 
 
 def local_stack(config: Config, seconds: float, actors: int) -> tuple[float, float]:
-    """Starts deploy/stack.py; returns (env steps/s, updates/s) over the window after updates start."""
+    """Starts deploy/launcher/stack.py; returns (env steps/s, updates/s) over the window after updates start."""
     with TemporaryDirectory() as runs:
         port = free_port()
         flags = ["--config", str(Path(runs) / "bench.toml"), "--run.runs_dir", runs, "--run.name", "bench",
                  "--actors", str(actors), "--port", str(port), "--recorder.enabled", "false"]
         (Path(runs) / "bench.toml").write_text(to_toml(config))
-        stack = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "stack.py"), *flags],
+        stack = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "launcher" / "stack.py"), *flags],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         session = open_session(TransportConfig(mode="client", connect=[loopback_endpoint(port)]))
         seen: dict[str, ReplayStats] = {}  # the replay's latest stats

@@ -1,4 +1,4 @@
-"""Submits a grid of deploy/studies/experiments.py to Slurm (docs/slurm.md): an array of one task per run
+"""Submits a grid of deploy/grid/experiments.py to Slurm (docs/slurm.md): an array of one task per run
 (deploy/slurm/grid.sbatch, SLURM_ARRAY_TASK_ID its --cell) and, after every task has ended
 (--dependency=afterany), the job that builds the report and says which runs are missing.
 
@@ -20,8 +20,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from deploy.studies import experiments
-from deploy.studies.grid_cells import ExperimentError, counted
+from deploy.grid import experiments
+from deploy.grid.grid_cells import ExperimentError, counted
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = Path(__file__).resolve().with_name("grid.sbatch")

@@ -1,2 +1,2 @@
-"""Studies and their reports: the grid runner (experiments.py, a cell's job grid_job.py, its cells
-grid_cells.py), the reports that rebuild from committed runs, and the comparisons between them."""
+"""Studies and their reports: the reports that rebuild from committed runs (the grid's among them), and the
+comparisons between them. The grid runner itself is deploy/grid/."""

@@ -131,7 +131,7 @@ def more_seeds_lines(pairs: Sequence[dict]) -> list[str]:
     first = pairs[0]
     return [f"Pairs whose interval lies off 0.5, the farthest first: {'; '.join(order)}. Seeds 3 and 4 of the first "
             f"(5 a side; the least p-value {across_seeds.smallest_p_value(5, 5):.4f}): `.venv/bin/python "
-            f"deploy/studies/experiments.py --strategies {first['first']},{first['second']} --buffers 1000 "
+            f"deploy/grid/experiments.py --strategies {first['first']},{first['second']} --buffers 1000 "
             f"--seeds 3,4`."]
 
 

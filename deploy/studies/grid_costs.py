@@ -1,6 +1,6 @@
 """What the grid cost, for its report (deploy/studies/grid_report.py): each run's machine time (training, and
 reading it: curve, choice, evaluation) from its steps.csv, and the soak across the runs (hours, restarts, each
-process's memory growth and size, the largest run folder) from their soak summaries (deploy/soak.py).
+process's memory growth and size, the largest run folder) from their soak summaries (deploy/labs/soak.py).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from actor.evaluation.curve import trained_with
-from deploy.studies.grid_cells import STEPS_CSV, counted, read_steps
+from deploy.grid.grid_cells import STEPS_CSV, counted, read_steps
 
 if TYPE_CHECKING:
     from deploy.studies.grid_report import GridRun

@@ -42,7 +42,7 @@ from common.analysis.tables import EPISODES_CSV, SUMMARY_CSV
 from common.exploration.names import STRATEGIES
 from deploy.studies import buffer_claim
 from deploy.studies.comparison import read_episodes_csv
-from deploy.studies.grid_cells import counted, on_schedule, read_choice
+from deploy.grid.grid_cells import counted, on_schedule, read_choice
 from deploy.studies.grid_claims import claims_lines
 from deploy.studies.grid_costs import machine_lines, machine_row, soak_lines, soak_rows
 from deploy.studies.grid_failures import failed_test_sites, prediction_lines, site_lines, start_lines

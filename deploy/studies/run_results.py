@@ -11,10 +11,10 @@ nothing large:
     training.csv     one row per training episode, in the order the episodes ended: return, length, epsilon,
                      off_greedy (actions not argmax Q; -1 where not counted; absent in older exports)
     learner.csv      one row per learner report: updates, |loss_k - loss_k-1|
-    cell.json        a grid run's cell: strategy, capacity, learner option set, seed, budget (deploy/studies/grid_cells.py)
+    cell.json        a grid run's cell: strategy, capacity, learner option set, seed, budget (deploy/grid/grid_cells.py)
     choice.json      a grid run's policy, chosen on the train starts among its last kept
     curve/           its greedy curve: curve.csv, curve_summary.json and .md, curve.png
-    soak/            its soak: soak.csv, soak_summary.json and .md, soak.png (deploy/soak.py)
+    soak/            its soak: soak.csv, soak_summary.json and .md, soak.png (deploy/labs/soak.py)
 
 Checkpoints, replay snapshots and MCAP logs stay in the run folder. A run is known by its strategy, capacity,
 learner option set and seed, so runs exported on several machines merge into one set (collect) and none
@@ -37,10 +37,10 @@ from common.analysis.figures import RunCurves
 from common.analysis.tables import EPISODES_CSV, FACTS_JSON, SUMMARY_CSV, SUMMARY_MD, read_facts
 from common.config import Config
 from common.config_values import load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import POLICY_KINDS, RunDir
 from deploy.studies.comparison import EvaluatedRun
-from deploy.studies.grid_cells import CELL_JSON, CHOICE_JSON, STEPS_CSV, read_cell, run_name
+from deploy.grid.grid_cells import CELL_JSON, CHOICE_JSON, STEPS_CSV, read_cell, run_name
 from replay.recorder.reader import LogError
 from replay.recorder.run_curves import read_run_curves
 
@@ -48,7 +48,7 @@ CONFIG_TOML = "config.toml"  # evaluate's copy of its config, in evaluation/
 TRAINING_CSV = "training.csv"
 LEARNER_CSV = "learner.csv"
 EVALUATION_FILES = (EPISODES_CSV, SUMMARY_CSV, SUMMARY_MD, FACTS_JSON, CONFIG_TOML)
-# a grid run's files (deploy/studies/experiments.py), by their path in the run folder and in the export
+# a grid run's files (deploy/grid/experiments.py), by their path in the run folder and in the export
 GRID_FILES = (CELL_JSON, CHOICE_JSON, STEPS_CSV, *(f"curve/{name}" for name in (CURVE_CSV, SUMMARY_JSON, CURVE_SUMMARY_MD,
                                                                       CURVE_PNG)),
               *(f"soak/{name}" for name in ("soak.csv", "soak.png", "soak_summary.json", "soak_summary.md")))

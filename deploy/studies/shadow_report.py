@@ -33,7 +33,7 @@ from common.analysis.intervals import Bootstrap
 from common.analysis.paired import paired_improvement_estimate, signed_rank_p
 from common.analysis.tables import SUMMARY_CSV
 from common.run_dir import POLICY_KINDS
-from deploy.studies.grid_cells import read_choice
+from deploy.grid.grid_cells import read_choice
 from deploy.studies.run_results import ExportedRun, collect
 
 READINGS_CSV = "shadow_runs.csv"

@@ -1,8 +1,8 @@
 """The study's report (issue 24): the paper's learner and each option beyond it, 2 seeds each, read on greedy
 learning curves at a fixed budget.
 
-The study's configurations are the grid runner's learner option sets (deploy/studies/grid_cells.py OPTION_SETS); a
-run of one is trained, read on its curve and exported by deploy/studies/experiments.py (`--options NAME`). The study's
+The study's configurations are the grid runner's learner option sets (deploy/grid/grid_cells.py OPTION_SETS); a
+run of one is trained, read on its curve and exported by deploy/grid/experiments.py (`--options NAME`). The study's
 own runs (results/study/runs, results/time-to-drive) were trained on the `local` preset before the runner
 took over, and this report rebuilds from them. The CPU differs between sessions, so wall time is derived:
 the updates a configuration needs times its seconds per update, from one run of deploy/bench/option_costs.py
@@ -32,9 +32,9 @@ from actor.evaluation import EvaluationError
 from actor.evaluation.curve import CURVE_CSV, DRIVE_LENGTH, first_reaching, read_curve
 from common.analysis.plotting import finish_figure, pyplot
 from common.config_values import flat_items, load_config
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from deploy.studies.differences import chance_apart, lie_apart
-from deploy.studies.grid_cells import OPTION_SETS
+from deploy.grid.grid_cells import OPTION_SETS
 
 ROOT = Path(__file__).resolve().parents[2]
 PRESET = "local"  # the preset the study's runs were trained on

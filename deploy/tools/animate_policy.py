@@ -38,6 +38,7 @@ from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import (EpisodeJob, GreedyPolicy, end_reason, evaluation_env_config, progress_of,
                                        trial_seed)
 from actor.evaluation.sources import check_weights, checkpoint_source
+from actor.lockstep import Lockstep, Trajectory
 from actor.sim import START_SETS, STEERING_LEVELS, make_env, start_poses
 from actor.sim.camera import TopDownCamera
 from actor.sim.pictures import label
@@ -48,7 +49,7 @@ from common.config_cli import add_config_arguments, parse_flags
 from common.config_values import to_toml
 from common.eta import Eta
 from common.network import D3RQN, load_numpy_weights
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 
 FRONT_ZOOM = 3  # the 66 x 200 camera frame becomes 198 x 600
 CAPTION_ROWS = 102  # below the camera frame: the left column is as tall as the top-down view
@@ -165,27 +166,26 @@ def animate(config: Config, weights: dict[str, np.ndarray], job: EpisodeJob, max
     network = D3RQN(config.network)
     load_numpy_weights(network, weights)
     policy = GreedyPolicy(network, 1)
-    env = make_env(evaluation_env_config(config))
-    sim, camera = env.unwrapped, topdown_camera(config)
+    core = Lockstep([make_env(evaluation_env_config(config))], config.evaluation.max_steps, keep_frames=False)
+    sim, camera = core.envs[0].unwrapped, topdown_camera(config)
     started, eta, shown = time.monotonic(), Eta(max_steps), time.monotonic()
     try:
-        observation, _ = env.reset(seed=job.seed, options={"start_set": job.start_set,
-                                                           "start_index": job.start_index})
+        drive = core.begin(0, seed=job.seed, options={"start_set": job.start_set, "start_index": job.start_index})
         policy.begin(0, job, sim.pose)
         step, reward, end, progress_m, size = 0, None, None, math.nan, (0, 0)
         while True:
-            action = None if end is not None else policy.act([0], [observation], [sim.pose])[0]
+            action = None if end is not None else policy.act([0], [drive.observation], [sim.pose])[0]
             if end is not None or step % stride == 0:
-                picture = frame(observation, camera.view(*sim.pose, TOPDOWN_PX, TOPDOWN_PX, sim.traffic_rectangles()),
+                picture = frame(drive.observation,
+                                camera.view(*sim.pose, TOPDOWN_PX, TOPDOWN_PX, sim.traffic_rectangles()),
                                 caption(job, step, action, reward, progress_m, end, config.env.max_steer_deg))
                 video.add(picture)
                 size = (picture.shape[1], picture.shape[0])
             if end is not None:
                 break
-            observation, reward, terminated, _, info = env.step(action)
-            step, progress_m = step + 1, progress_of(info)
-            end = end_reason(info, terminated, step, config.evaluation.max_steps)
-            end = "cut" if end is None and step >= max_steps else end
+            ended = core.step({0: action})
+            step, reward, progress_m = drive.length, drive.rewards[-1], progress_of(drive.info)
+            end = _end_of(drive, bool(ended), step >= max_steps, config.evaluation.max_steps)
             eta.update(step)
             if show_progress and time.monotonic() - shown >= PROGRESS_EVERY_S:
                 shown = time.monotonic()
@@ -193,8 +193,16 @@ def animate(config: Config, weights: dict[str, np.ndarray], job: EpisodeJob, max
                       f"{eta.per_s() or 0:.0f} steps/s, at most {eta.text()} left", file=sys.stderr, flush=True)
         video.close()
     finally:
-        env.close()
+        core.envs[0].close()
     return Drive(step, end, video.count, size, progress_m, time.monotonic() - started)
+
+
+def _end_of(drive: Trajectory, ended: bool, cut: bool, max_steps: int) -> str | None:
+    """Why the drive ends after this step, as the evaluation reads an episode the acting core ended (the
+    simulator's own cut is the cap); "cut" where only this video's shorter cap stops it."""
+    if ended:
+        return end_reason(drive.info, drive.terminated, drive.length, max_steps) or "cap"
+    return "cut" if cut else None
 
 
 def _main(args: argparse.Namespace) -> Drive | None:

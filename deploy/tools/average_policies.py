@@ -30,7 +30,7 @@ from actor.evaluation import EvaluationError
 from actor.evaluation.sources import check_weights
 from common.checkpoint import CheckpointError, KeptPolicy
 from common.config_values import from_dict
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import RunDir
 
 DEFAULT_LAST = 5

@@ -34,7 +34,7 @@ from common.analysis.stats import SITE_FIELDS, EvaluationEpisode
 from common.analysis.tables import EPISODES_CSV, failure_site, failures_by_site
 from common.checkpoint import CheckpointError
 from common.config_cli import add_config_arguments, parse_flags
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from deploy.studies.comparison import ComparisonError, read_episodes_csv
 
 GREEDY = "greedy"

@@ -31,13 +31,14 @@ from actor.batched_q import BatchedQ
 from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import evaluation_env_config
 from actor.evaluation.sources import checkpoint_source
+from actor.lockstep import Lockstep
 from actor.sim import make_env, start_poses
 from common.checkpoint import CheckpointError
 from common.config import Config
 from common.config_cli import add_config_arguments, parse_flags
 from common.exploration.base import softmax_probabilities
 from common.network import D3RQN, load_numpy_weights
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 
 
 def rule_off_greedy(q_rows: np.ndarray, epsilon: float, kappa: float) -> float:
@@ -54,18 +55,16 @@ def greedy_q_rows(config: Config, weights: dict[str, np.ndarray], starts: int, s
     network = D3RQN(config.network)
     load_numpy_weights(network, weights)
     q = BatchedQ(network, 1)
-    env = make_env(evaluation_env_config(config), seed=config.evaluation.seed)
+    core = Lockstep([make_env(evaluation_env_config(config), seed=config.evaluation.seed)], steps, keep_frames=False)
     rows = []
     for start in range(starts):
-        observation, _ = env.reset(options={"start_set": "train", "start_index": start})
+        drive = core.begin(0, options={"start_set": "train", "start_index": start})
         q.reset(0)
-        for _ in range(steps):
-            values = q.q_values([0], [observation])[0].numpy()
+        while 0 in core.running:  # until the simulator ends the drive, or `steps` of it
+            values = q.q_values([0], [drive.observation])[0].numpy()
             rows.append(values)
-            observation, _, terminated, truncated, _ = env.step(int(np.argmax(values)))
-            if terminated or truncated:
-                break
-    env.close()
+            core.step({0: int(np.argmax(values))})
+    core.envs[0].close()
     return np.asarray(rows, dtype=np.float64)
 
 

@@ -1,6 +1,6 @@
 """The option reference of docs/configuration.md, generated from the config schema (common/config.py).
 
-Every option of the typed configuration is declared with ``option()`` (common/options/), whose
+Every option of the typed configuration is declared with ``option()`` (common/schema/fields.py), whose
 documentation string, unit and choices are what ``--help`` shows. This script writes the same facts as
 markdown: the presets (common/presets.py) and the keys each sets, then one table per config section with
 every flag, its default (the paper's values) and its meaning. The reference lives in docs/configuration.md

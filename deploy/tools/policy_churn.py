@@ -42,7 +42,7 @@ from common.config import Config
 from common.config_values import from_dict
 from common.eta import Eta
 from common.network import D3RQN, load_numpy_weights
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import POLICY_KINDS, RunDir
 
 CHURN_CSV = "churn.csv"

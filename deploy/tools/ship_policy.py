@@ -29,7 +29,7 @@ from actor.evaluation import EvaluationError
 from actor.evaluation.sources import check_weights
 from common.checkpoint import POLICY_ENCODINGS, CheckpointError, KeptPolicy, load_checkpoint_or_policy
 from common.config_values import from_dict
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 
 ENCODINGS = [name for name in POLICY_ENCODINGS if name != "float32"]
 MB = 1e6

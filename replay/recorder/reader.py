@@ -30,7 +30,7 @@ from mcap.summary import Summary
 
 from common.config import Config
 from common.config_values import from_dict
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.keys import Keys
 from common.wire.codecs import Message
 from common.wire.envelope import decode

@@ -34,7 +34,7 @@ import zenoh
 from common.config import Config, RecorderConfig
 from common.disk_space import free_bytes, is_disk_full, size_text
 from common.run_dir import RunDir, next_free_path
-from common.shell import Service
+from common.shell import Shell
 from common.transport import Declared, publisher
 from common.logs import ThrottledLog
 from common.wire.messages import Stats, Weights
@@ -315,8 +315,8 @@ def default_log_path(config: Config) -> Path:
 def run_recorder(config: Config, output: Path | None = None, tensorboard: Path | None = None) -> int:
     """Records until SIGINT/SIGTERM, with TensorBoard event files in `tensorboard` if given; returns the
     exit code (1 if the writer failed)."""
-    service = Service("recorder", config, sole=False)  # several may record a run
-    keys = service.keys
+    shell = Shell("recorder", config, sole=False)  # several may record a run
+    keys = shell.keys
     path = next_free_path(output or default_log_path(config))
     path.parent.mkdir(parents=True, exist_ok=True)
     views = None
@@ -324,17 +324,17 @@ def run_recorder(config: Config, output: Path | None = None, tensorboard: Path |
         views = ViewMaker(keys.root, 1.0 / config.env.policy_frequency, config.recorder.images,
                           config.recorder.image_format)
     board = None if tensorboard is None else EventsWriter(tensorboard, keys.root)
-    with service.session() as session:
+    with shell.session() as session:
         recorder = Recorder(LogWriter.open(path, config, views), config.recorder, board,
                             reopen=lambda: LogWriter.open(next_free_path(path), config, views))
         recorder.start()
-        service.on_close(recorder.stop)  # once nothing more arrives: after the subscription's undeclare
+        shell.on_close(recorder.stop)  # once nothing more arrives: after the subscription's undeclare
         subscription = Declared(keys.all).attach(session.declare_subscriber(keys.all, recorder.on_sample))
         stats_out = publisher(session, keys.metrics_source("recorder", "0"), reliable=False)
-        service.on_close(subscription.undeclare)
-        service.on_close(stats_out.undeclare)
+        shell.on_close(subscription.undeclare)
+        shell.on_close(stats_out.undeclare)
         log.info("recording %s into %s%s", keys.all, path, "" if board is None else f", curves into {tensorboard}")
-        while recorder.alive and not service.stop.wait(config.recorder.stats_period_s):
+        while recorder.alive and not shell.stop.wait(config.recorder.stats_period_s):
             values = recorder.snapshot()
             stats_out.put(Stats(source="recorder", time=time.time(), values=values))
             log.info("received %(received)d, written %(written)d, dropped %(dropped)d, "

@@ -1,5 +1,5 @@
 """TensorBoard event files of a run's curves: written live by the recorder (``d3rqn-log record
---tensorboard DIR``, ``deploy/stack.py --tensorboard``) and from a log by ``d3rqn-log export
+--tensorboard DIR``, ``deploy/launcher/stack.py --tensorboard``) and from a log by ``d3rqn-log export
 --tensorboard DIR``, the same series (``scalars.py``) either way.
 
 Every point is one scalar event with step = its env steps and wall time = its log time, so

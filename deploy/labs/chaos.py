@@ -1,8 +1,8 @@
 """Chaos run: a local stack trains while a process of it (replay, learner, recorder or an actor) is SIGKILLed
 every few minutes; then the run is closed at a budget just ahead of it, and checked.
 
-    .venv/bin/python deploy/chaos.py --minutes 30                          # the paper's local job, 1-3 min apart
-    .venv/bin/python deploy/chaos.py --minutes 1 --kill-every 8 12 --cycle --preset smoke ...   # the CI test's
+    .venv/bin/python deploy/labs/chaos.py --minutes 30                          # the paper's local job, 1-3 min apart
+    .venv/bin/python deploy/labs/chaos.py --minutes 1 --kill-every 8 12 --cycle --preset smoke ...   # the CI test's
 
 What it checks, into <run>/chaos/report.json and report.md (exit code 0 when all hold):
 
@@ -14,8 +14,8 @@ What it checks, into <run>/chaos/report.json and report.md (exit code 0 when all
   pace.error_buffer_updates more;
 - log: every flight-log segment of the run reads to its end (a killed recorder's up to its last flush).
 
-It samples the processes' memory and the run folder's size as deploy/soak.py does, into <run>/soak/.
-Flags it does not know go to deploy/run.sh (deploy/stack.py), e.g. --preset, --run.name, --actors.
+It samples the processes' memory and the run folder's size as deploy/labs/soak.py does, into <run>/soak/.
+Flags it does not know go to deploy/run.sh (deploy/launcher/stack.py), e.g. --preset, --run.name, --actors.
 """
 
 from __future__ import annotations
@@ -32,17 +32,19 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from common.atomic_file import pid_alive
 from common.checkpoint import Checkpoint
 from common.config_cli import config_from_args, parse_flags
 from common.config_values import load_config
+from common.pacing import achieved_ratio, updates_paid_for
 from common.run_dir import RunDir, RunStatus, StatusError
-from deploy import soak
-from deploy.stack import build_parser
+from deploy.labs import soak
+from deploy.launcher.stack import build_parser
 from replay.recorder.reader import LogError, LogFile
 from replay.snapshot import manifest_held
 
-ROOT = Path(__file__).resolve().parents[1]
-STACK = ROOT / "deploy" / "stack.py"
+ROOT = Path(__file__).resolve().parents[2]
+STACK = ROOT / "deploy" / "launcher" / "stack.py"
 RESTORED = re.compile(r"restored (\d+) episodes from the snapshot .*\((\d+) records skipped\)")
 
 
@@ -88,16 +90,6 @@ def wait_until(condition, timeout_s: float, poll_s: float = 0.5) -> bool:
     return False
 
 
-def alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's: alive
-        pass
-    return True
-
-
 def restored_lines(run: RunDir) -> list[tuple[int, int]]:
     """(episodes, records skipped) of every snapshot restore the replay's log tells of, in order."""
     try:
@@ -119,7 +111,7 @@ def kill_one(chaos: Chaos, process: str, started: float, settle_s: float) -> Kil
     os.kill(pid, signal.SIGKILL)
     killed_at = time.monotonic()
     if wait_until(lambda: (now := status(run)) is not None and now.pids.get(process, pid) != pid
-                  and alive(now.pids[process]), settle_s):
+                  and pid_alive(now.pids[process]), settle_s):
         kill.replaced_after_s = round(time.monotonic() - killed_at, 1)
     if process == "replay" and wait_until(lambda: len(restored_lines(run)) > restores, settle_s):
         kill.restored, kill.skipped = restored_lines(run)[restores]
@@ -156,7 +148,7 @@ def check_alive(chaos: Chaos, settle_s: float) -> bool:
         time.sleep(3.0)
         last = status(chaos.run)
         return (first is not None and last is not None and first.restarts == last.restarts
-                and all(alive(pid) for pid in last.pids.values()))
+                and all(pid_alive(pid) for pid in last.pids.values()))
     return wait_until(settled, settle_s, poll_s=0.0)
 
 
@@ -187,13 +179,13 @@ def stop_stack(stack: subprocess.Popen, timeout_s: float = 120.0) -> int:
 def check_ratio(chaos: Chaos) -> bool:
     config = load_config(toml_path=chaos.run.config)
     counters = json.loads(chaos.run.replay_counters.read_text())
-    due = (counters["env_steps"] - counters["start_mark"]) / config.pace.env_steps_per_update
+    due = updates_paid_for(counters["env_steps"], counters["start_mark"], config.pace.env_steps_per_update)
     updates = Checkpoint.load(chaos.run.checkpoint).updates
     buffer = config.pace.error_buffer_updates
     chaos.facts.update(updates=updates, updates_due=round(due, 2), error_buffer_updates=buffer,
                        env_steps=counters["env_steps"], lost_updates=counters.get("lost_updates", 0),
                        recounted_updates=counters.get("recounted_updates", 0),
-                       env_steps_per_update=round((counters["env_steps"] - counters["start_mark"]) / updates, 4))
+                       env_steps_per_update=round(achieved_ratio(counters["env_steps"], counters["start_mark"], updates), 4))
     return due <= updates <= due + buffer
 
 
@@ -225,8 +217,8 @@ def write_report(chaos: Chaos) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="deploy/chaos.py", description=__doc__.splitlines()[0],
-                                     usage="deploy/chaos.py [options] [flags of deploy/run.sh]")
+    parser = argparse.ArgumentParser(prog="deploy/labs/chaos.py", description=__doc__.splitlines()[0],
+                                     usage="deploy/labs/chaos.py [options] [flags of deploy/run.sh]")
     parser.add_argument("--minutes", type=float, default=30.0, help="how long the killing goes on (default 30)")
     parser.add_argument("--kill-every", type=float, nargs=2, default=(60.0, 180.0), metavar=("MIN_S", "MAX_S"),
                         help="seconds between kills, drawn uniformly (default 60 180)")

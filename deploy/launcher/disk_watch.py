@@ -1,6 +1,6 @@
 """The stack's eye on its run folder's disk: the free space for the live line and the status file, a warning while
 it is less than the next checkpoint and snapshot need, and whether a process that ended for a full disk may
-start again (deploy/stack.py waits until it may, instead of restarting it into the same wall)."""
+start again (deploy/launcher/stack.py waits until it may, instead of restarting it into the same wall)."""
 
 from __future__ import annotations
 

@@ -20,9 +20,9 @@ and at the end the run's summary file gives env steps, updates and the achieved
 env steps per update of the whole run, from the learner's last metrics, and the
 restarts of each process.
 
-One stack runs a run folder at a time (deploy/run_claim.py). A stack whose
+One stack runs a run folder at a time (deploy/launcher/run_claim.py). A stack whose
 output nobody reads any more (its reader killed, a terminal hung up) stops
-the run cleanly as Ctrl-C does (deploy/console.py).
+the run cleanly as Ctrl-C does (deploy/launcher/console.py).
 """
 
 from __future__ import annotations
@@ -48,10 +48,10 @@ from common.run_dir import RunDir
 from common.shell import env_stopping_with_this, on_stop_signals, run_main, stop_with_parent
 from common.transport import free_port, open_session, subscribe
 from common.keys import Keys
-from deploy.console import Console
-from deploy.disk_watch import DiskWatch
-from deploy.stack_monitor import StackMonitor
-from deploy.run_claim import RunClaimError, claim_run
+from deploy.launcher.console import Console
+from deploy.launcher.disk_watch import DiskWatch
+from deploy.launcher.stack_monitor import StackMonitor
+from deploy.launcher.run_claim import RunClaimError, claim_run
 
 STOP_GRACE_S = 20.0
 RESTART_BACKOFF_S = 1.0  # the wait before restarting a process that died, doubled for each death in a row

@@ -1,6 +1,6 @@
-"""One run of a grid, step by step (deploy/studies/grid_cells.py decides the steps from its folder): its config and
+"""One run of a grid, step by step (deploy/grid/grid_cells.py decides the steps from its folder): its config and
 commands (the stack, the greedy test curve, the choice, the final evaluation), and RunJob, which runs them
-as children with the soak beside the stack. deploy/studies/experiments.py runs a grid of these.
+as children with the soak beside the stack. deploy/grid/experiments.py runs a grid of these.
 """
 
 from __future__ import annotations
@@ -18,20 +18,20 @@ from actor.evaluation.status import is_evaluation_line
 from common.config import Config
 from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.eta import clock_time
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import RunDir, RunStatus, StatusError
-from deploy.child_process import Child
-from deploy.soak import TreePeak
+from deploy.grid.child_process import Child
+from deploy.labs.soak import TreePeak
 from actor.evaluation.curve import LATE_FROM
-from deploy.studies.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
+from deploy.grid.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                        ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps,
                                        choice_candidates, choose, chosen_updates, curve_read, curve_wanted, keep_every,
                                        late_kinds, next_step, read_cell, read_choice, record_step, shadow_curve_done, shadow_kinds,
                                        to_evaluate, write_cell)
 from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
-STACK_SCRIPT = Path(__file__).resolve().parents[1] / "stack.py"
-SOAK_SCRIPT = Path(__file__).resolve().parents[1] / "soak.py"
+STACK_SCRIPT = Path(__file__).resolve().parents[1] / "launcher" / "stack.py"
+SOAK_SCRIPT = Path(__file__).resolve().parents[1] / "labs" / "soak.py"
 RESULTS_DIR = "results"
 EXPORTED_RUNS = "runs"
 # Keys the grid sets for each run; giving them as config flags would contradict it.
@@ -85,8 +85,8 @@ class Options:
 # --- a run's config and commands -----------------------------------------------------------------------------
 
 def config_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="deploy/studies/experiments.py", add_help=False,
-                                     usage="deploy/studies/experiments.py [options] [config flags of deploy/stack.py --help]")
+    parser = argparse.ArgumentParser(prog="deploy/grid/experiments.py", add_help=False,
+                                     usage="deploy/grid/experiments.py [options] [config flags of deploy/launcher/stack.py --help]")
     add_config_arguments(parser)
     return parser
 
@@ -127,7 +127,7 @@ def stack_command(spec: RunSpec, options: Options, resume: bool) -> list[str]:
 
 
 def curve_command(run: RunDir, options: Options, *span: str) -> list[str]:
-    return [sys.executable, "-m", "actor.evaluate", "--curve", str(run.root), *span, *options.extra]
+    return [sys.executable, "-m", "actor.evaluation.command", "--curve", str(run.root), *span, *options.extra]
 
 
 def curve_commands(run: RunDir, options: Options) -> list[list[str]]:
@@ -176,7 +176,7 @@ def evaluate_commands(run: RunDir, options: Options) -> list[list[str]]:
     """Each kind's chosen policy not yet evaluated, on both start sets, into evaluation/ (online, with the
     random baseline) or evaluation-<kind>/."""
     choice = read_choice(run)
-    return [[sys.executable, "-m", "actor.evaluate", "--checkpoint", str(run.policy(chosen_updates(choice, kind), kind)),
+    return [[sys.executable, "-m", "actor.evaluation.command", "--checkpoint", str(run.policy(chosen_updates(choice, kind), kind)),
              "--out", str(run.evaluation_of(kind)), *([] if kind == "online" else ["--no-random-baseline"]),
              *options.extra, "--evaluation.episodes_per_start", str(options.trials)] for kind in to_evaluate(run, choice)]
 
@@ -234,7 +234,7 @@ def trains_since(run: RunDir, since: float) -> bool:
 
 @dataclass
 class RunJob:
-    """One run of the grid, stepped through its steps (deploy/studies/grid_cells.py) on its own thread."""
+    """One run of the grid, stepped through its steps (deploy/grid/grid_cells.py) on its own thread."""
 
     number: int
     total: int

@@ -45,7 +45,7 @@ from common.analysis.tables import SUMMARY_MD, write_evaluation
 from common.checkpoint import CheckpointError
 from common.config_cli import add_config_arguments, config_from_args, parse_flags
 from common.config_values import to_toml
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import POLICY_KINDS, RunDir, RunStatus, StatusError
 from common.shell import interrupt_main, run_main, stop_with_parent
 

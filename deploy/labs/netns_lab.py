@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-CONFIGS = Path(__file__).resolve().parent / "configs"
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SUBNET = "10.203.0"
 HUB = f"{SUBNET}.1"
 PORT = 7447

@@ -1,4 +1,4 @@
-"""The local stack's view of its run (deploy/stack.py): the system's metrics from Zenoh, rendered as the live
+"""The local stack's view of its run (deploy/launcher/stack.py): the system's metrics from Zenoh, rendered as the live
 line, the status file and the run's summary."""
 
 from __future__ import annotations

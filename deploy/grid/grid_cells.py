@@ -40,7 +40,7 @@ from common.analysis.tables import SUMMARY_CSV, read_facts
 from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy
 from common.config_values import load_config
 from common.cpu_capability import cpu_label
-from common.options import ConfigError
+from common.schema.fields import ConfigError
 from common.run_dir import POLICY_KINDS, RunDir
 from deploy.tools.average_policies import average
 

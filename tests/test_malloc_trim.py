@@ -1,4 +1,4 @@
-"""The heap's free pages handed back (common/heap.py): after a burst of frames made and freed, a process
+"""The heap's free pages handed back (common/malloc_trim.py): after a burst of frames made and freed, a process
 holds its peak until malloc_trim; without the call (not glibc) one log line, and nothing else."""
 
 import logging
@@ -8,11 +8,11 @@ import types
 
 import pytest
 
-from common import heap
+from common import malloc_trim
 
 BURST = """
 import resource, sys
-from common.heap import release_free_heap
+from common.malloc_trim import release_free_heap
 
 def rss_mb():
     with open("/proc/self/statm") as statm:
@@ -37,27 +37,27 @@ def test_a_burst_freed_goes_back_to_the_system():
 
 
 def test_a_c_library_without_malloc_trim_is_said_once_and_nothing_breaks(monkeypatch, caplog):
-    heap._malloc_trim.cache_clear()
-    monkeypatch.setattr(heap.ctypes, "CDLL", lambda _: types.SimpleNamespace())
+    malloc_trim._malloc_trim.cache_clear()
+    monkeypatch.setattr(malloc_trim.ctypes, "CDLL", lambda _: types.SimpleNamespace())
     try:
-        with caplog.at_level(logging.INFO, logger="common.heap"):
-            assert heap.release_free_heap() is None and heap.release_free_heap() is None
+        with caplog.at_level(logging.INFO, logger="common.malloc_trim"):
+            assert malloc_trim.release_free_heap() is None and malloc_trim.release_free_heap() is None
         assert [record.getMessage() for record in caplog.records] == [
             "this C library has no malloc_trim (it is not glibc): memory freed after a burst stays with the process"]
     finally:
-        heap._malloc_trim.cache_clear()
+        malloc_trim._malloc_trim.cache_clear()
 
 
 ROLE = """
 import threading, time
-from common import heap, shell
+from common import malloc_trim, shell
 from common.config import Config
 calls = []
-heap.TRIM_PERIOD_S = 0.01
-heap.release_free_heap = lambda: calls.append(1) or True
-service = shell.Service("replay", Config())
+malloc_trim.TRIM_PERIOD_S = 0.01
+malloc_trim.release_free_heap = lambda: calls.append(1) or True
+role = shell.Shell("replay", Config())
 time.sleep(0.5)
-service.stop.set()
+role.stop.set()
 thread = next(t for t in threading.enumerate() if t.name == "heap-trim")
 thread.join(5)
 print(len(calls), thread.is_alive())

@@ -9,8 +9,8 @@ soak_summary.json / .md: each process's memory growth over the second half of th
 when the replay is full, the replay's memory growth less that of its episodes (a replay at capacity still
 grows while its episodes lengthen), and the run folder's growth per hour of run time.
 
-    .venv/bin/python deploy/soak.py runs/default --every 30              # until the run stops
-    .venv/bin/python deploy/soak.py runs/default --report                # the figure and summary of what is there
+    .venv/bin/python deploy/labs/soak.py runs/default --every 30              # until the run stops
+    .venv/bin/python deploy/labs/soak.py runs/default --report                # the figure and summary of what is there
 
 A rerun appends to the CSV, so a resumed run's soak carries on. Its hours are the run's: a sample whose
 stack time (elapsed_s) is below the one before starts a new session (a resume), and the hours between the
@@ -36,7 +36,7 @@ import numpy as np
 from common.analysis.plotting import finish_figure, pyplot
 from common.run_dir import RunDir, RunStatus, StatusError
 from common.shell import stop_with_parent
-from deploy.console import Console
+from deploy.launcher.console import Console
 from replay.snapshot import manifest_held
 
 PARTS = {  # the run folder's parts, by what they are
@@ -320,7 +320,7 @@ def watch(run: RunDir, every_s: float, until_s: float, stop: threading.Event, co
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="deploy/soak.py", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="deploy/labs/soak.py", description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="the run folder, runs/<run>")
     parser.add_argument("--every", type=float, default=60.0, help="seconds between samples (default 60)")
     parser.add_argument("--until-s", type=float, default=math.inf, help="stop sampling after this many seconds")

@@ -1,24 +1,24 @@
 """The grid runner: trains a grid of cells (strategy x replay capacity x learner option set) x seeds on the
-protocol of deploy/studies/grid_cells.py, each run read on its greedy test curve, then reports.
+protocol of deploy/grid/grid_cells.py, each run read on its greedy test curve, then reports.
 
-Each run goes through the real distributed stack (deploy/stack.py, a subprocess) in
-<runs-dir>/<run name>/ with the soak sampled beside it (deploy/soak.py), then `evaluate --curve` (its greedy
+Each run goes through the real distributed stack (deploy/launcher/stack.py, a subprocess) in
+<runs-dir>/<run name>/ with the soak sampled beside it (deploy/labs/soak.py), then `evaluate --curve` (its greedy
 test curve), the choice of its policy on the train starts among its last five kept, and `evaluate
 --checkpoint` of that policy on both start sets. Each finished run is exported (deploy/studies/run_results.py) to
 --export, small enough to commit; the report (deploy/studies/grid_report.py) reads exported runs only, so runs from
 several machines merge (--merge) and it rebuilds from a fresh clone.
 
-One run's steps and commands are deploy/studies/grid_job.py. `--cells` lists the grid's runs, numbered from 0; `--cell I` runs only the I-th, so a scheduler (a Slurm
+One run's steps and commands are deploy/grid/grid_job.py. `--cells` lists the grid's runs, numbered from 0; `--cell I` runs only the I-th, so a scheduler (a Slurm
 array, a Kubernetes indexed job) can spread a grid over machines. Running the same command again resumes
 every run from what its folder holds.
 
-    .venv/bin/python deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2          # the comparison's 21 runs
-    .venv/bin/python deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2 --cells  # its numbered runs
-    .venv/bin/python deploy/studies/experiments.py --buffers 1000 --seeds 0,1,2 --cell 7 # one of them
-    .venv/bin/python deploy/studies/experiments.py --strategies bmc --buffers 1000 --options nstep3,batch20 --seeds 0,1
+    .venv/bin/python deploy/grid/experiments.py --buffers 1000 --seeds 0,1,2          # the comparison's 21 runs
+    .venv/bin/python deploy/grid/experiments.py --buffers 1000 --seeds 0,1,2 --cells  # its numbered runs
+    .venv/bin/python deploy/grid/experiments.py --buffers 1000 --seeds 0,1,2 --cell 7 # one of them
+    .venv/bin/python deploy/grid/experiments.py --strategies bmc --buffers 1000 --options nstep3,batch20 --seeds 0,1
 
 Every other flag is a config flag passed to every run's stack and evaluation (--preset, default drive;
---config FILE, --env.max_steps 500, ...; see deploy/stack.py --help).
+--config FILE, --env.max_steps 500, ...; see deploy/launcher/stack.py --help).
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ from common.eta import clock_time
 from common.exploration.names import STRATEGIES
 from common.presets import GRID_UPDATES
 from common.shell import on_stop_signals
-from deploy.studies.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, counted,
+from deploy.grid.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, counted,
                                        grid, next_step)
-from deploy.studies.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
+from deploy.grid.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
                              trained_share)
 from deploy.studies.run_results import ExportError
 
@@ -148,7 +148,7 @@ def parse_list(text: str, kind, what: str) -> list:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="deploy/studies/experiments.py", description=__doc__, allow_abbrev=False,
+    parser = argparse.ArgumentParser(prog="deploy/grid/experiments.py", description=__doc__, allow_abbrev=False,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--strategies", default=",".join(STRATEGIES),
                         help="comma-separated exploration strategies of the grid (default: all seven)")
@@ -275,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
             list_cells(plan)
             return 0
     except ExperimentError as error:
-        print(f"deploy/studies/experiments.py: error: {error}", file=sys.stderr)
+        print(f"deploy/grid/experiments.py: error: {error}", file=sys.stderr)
         return 2
     started, options = time.monotonic(), plan.options
     print(f"grid: {counted(len(plan.specs), 'run')} under {options.runs_dir}/, {options.updates:,d} updates each, "
@@ -297,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         paths = report_on([options.export_dir, *options.merge], options.runs_dir / RESULTS_DIR)
     except (ValueError, ExportError) as error:
-        print(f"deploy/studies/experiments.py: cannot write the report: {error}", file=sys.stderr)
+        print(f"deploy/grid/experiments.py: cannot write the report: {error}", file=sys.stderr)
         return 1
     print(f"grid finished in {clock_time(time.monotonic() - started)}; {failed} failed; report: "
           + ", ".join(str(path) for path in paths), flush=True)
