@@ -5,7 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from common.config import CAMERAS, UPDATE_PATHS, Config
+from common.config import UPDATE_PATHS, Config
+from common.sim_config import CAMERAS
 from common.config_cli import add_config_arguments, parse_config_or_exit, parse_flags
 from common.config_values import config_fields, flat_items, load_config, to_toml, toml_value
 from common.exploration.bmc import BMC_OBSERVATIONS

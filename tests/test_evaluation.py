@@ -24,7 +24,8 @@ from common.analysis.stats import (END_REASONS, EvaluationEpisode, digest_of_act
                                    summarise_all)
 from common.analysis.tables import bin_labels, failures_by_site, failures_by_start, markdown_table
 from common.checkpoint import save_checkpoint
-from common.config import EvaluationConfig, TransportConfig
+from common.config import TransportConfig
+from common.sim_config import EvaluationConfig
 from common.config_values import load_config, to_dict
 from common.transport import open_session, serve
 from common.keys import Keys

@@ -15,7 +15,7 @@ from actor.sim.front_camera import (AMBIENT, DIFFUSE, ONE, ROOF_RISE_M, SUBPIXEL
                                    _fill_convex, _fill_disc, front_strip)
 from actor.sim.neighbourhood import ParkedCar, neighbourhood
 from actor.sim.world_image import ASPHALT, HOUSE_ROOF, HOUSE_WALL, ground_image
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 
 CONFIG = EnvConfig()
 START = start_poses("train")[0]  # A1 -> B1, 15 m along a straight street, heading east

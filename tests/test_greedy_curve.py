@@ -22,7 +22,7 @@ from actor.evaluation.curve import (CURVE_TRIALS, crowding_warning, curve_config
 from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
-from common.config import EvaluationConfig
+from common.sim_config import EvaluationConfig
 from common.config_values import from_dict, load_config, to_dict, to_toml
 from common.network import D3RQN, load_numpy_weights
 from common.schema.fields import ConfigError

@@ -22,7 +22,7 @@ from actor.sim.privileged import PrivilegedDriver
 from actor.sim.progress import ProgressMeter
 from actor.sim.road import LaneLocator, road_network
 from actor.sim.world_image import ASPHALT, CENTRE_DASH, GRASS, PARKED_CAR, TREE, world_image
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 from common.schema.fields import ConfigError
 
 STRAIGHT = 2  # action index of zero steering

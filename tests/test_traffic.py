@@ -15,7 +15,7 @@ from actor.sim.geometry import rectangle_corners
 from actor.sim.privileged import PrivilegedDriver
 from actor.sim.traffic import TrafficVehicle, is_street
 from actor.sim.world_image import TRAFFIC_CAR
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 
 STRAIGHT = 2  # action index of zero steering
 TOPDOWN = EnvConfig(camera="topdown", traffic_vehicles=3)

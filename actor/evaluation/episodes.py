@@ -39,7 +39,8 @@ from actor.sim import START_SETS, make_env, start_poses
 from actor.sim.neighbourhood import place_counts
 from actor.sim.privileged import PrivilegedDriver
 from common.analysis.stats import TERMINAL_REASONS, EvaluationEpisode, digest_of_actions, reward_bin_counts
-from common.config import Config, EnvConfig
+from common.config import Config
+from common.sim_config import EnvConfig
 from common.network import D3RQN, load_numpy_weights
 
 POLICIES = ("greedy", "random", "privileged", "right-turns")

@@ -14,7 +14,8 @@ from actor.evaluation import EvaluationError
 from actor.evaluation.episodes import EpisodeJob, WorkerDone, WorkerFailed, evaluation_worker
 from actor.evaluation.status import EvaluationStatus
 from common.analysis.stats import EvaluationEpisode
-from common.config import Config, EvaluationConfig
+from common.config import Config
+from common.sim_config import EvaluationConfig
 
 WORKER_EXIT_TIMEOUT_S = 10.0
 

@@ -10,7 +10,7 @@ import gymnasium
 
 from actor.sim.env import START_SETS, STEERING_LEVELS, NeighbourhoodEnv
 from actor.sim.neighbourhood import Pose, neighbourhood
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 
 ENV_ID = "d3rqn/Neighbourhood-v0"
 

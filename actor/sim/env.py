@@ -50,7 +50,7 @@ from actor.sim.progress import ProgressMeter
 from actor.sim.road import lane_locator, neighbourhood_road
 from actor.sim.vehicles import EgoVehicle
 from actor.sim.world_image import ground_image, world_image
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 from common.schema.fields import ConfigError
 
 STEERING_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)  # times the maximum angle; positive turns right

@@ -29,7 +29,7 @@ from actor.sim.env import NeighbourhoodEnv
 from actor.sim.neighbourhood import neighbourhood
 from actor.sim.privileged import PrivilegedDriver
 from actor.sim.world_image import world_image
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 
 MAP_SCALE = 3.0  # px per metre of the map picture
 START_COLOURS = {"train": (30, 110, 255), "test": (255, 140, 0)}  # RGB

@@ -26,7 +26,7 @@ from actor.sim import layout
 from actor.sim.env import STEERING_LEVELS
 from actor.sim.geometry import Segments, rectangle_corners, right_of
 from actor.sim.neighbourhood import Neighbourhood, Street, neighbourhood
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 
 SPACING_M = 0.5  # between reference path points
 LOOKAHEAD_M = 7.0

@@ -73,7 +73,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from actor.sim import layout
 from actor.sim.geometry import rectangle_corners
 from actor.sim.neighbourhood import neighbourhood, street_name
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 
 HALF_LENGTH = layout.CAR_LENGTH_M / 2
 HALF_WIDTH = layout.CAR_WIDTH_M / 2

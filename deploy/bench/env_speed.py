@@ -35,7 +35,7 @@ import numpy as np
 from actor.sim.env import NeighbourhoodEnv
 from actor.sim.privileged import PrivilegedDriver
 from common.cpu_capability import describe_cpu
-from common.config import EnvConfig
+from common.sim_config import EnvConfig
 
 GRAYSCALE = {"type": "GrayscaleObservation", "observation_shape": (200, 66), "stack_size": 1,
              "weights": [0.2989, 0.5870, 0.1140], "scaling": 200 / 24.0}  # same width as our camera

@@ -26,7 +26,8 @@ from actor.batched_q import BatchedQ
 from actor.sim import make_env
 from actor.sim.privileged import PrivilegedDriver
 from common.checkpoint import Checkpoint
-from common.config import Config, EnvConfig, NetworkConfig
+from common.config import Config, NetworkConfig
+from common.sim_config import EnvConfig
 from common.config_values import from_dict
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
