@@ -28,7 +28,7 @@ from deploy.grid.grid_cells import (CHOOSE, CURVE, DONE, EVALUATE, FINAL_TRIALS,
 from deploy.studies.run_results import greedy_headline
 from deploy.launcher.stack import build_parser
 
-STACK_SCRIPT = Path(__file__).resolve().parent / "stack.py"
+STACK_SCRIPT = Path(__file__).resolve().parent / "launcher" / "stack.py"
 POLICY_FILE = "policy.pt"
 KEEP_EVERY = 1_000  # updates between kept policies when the config keeps none
 STOPPED = "main job: stopped; the same command (with --resume while it trains) goes on"

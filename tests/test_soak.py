@@ -227,7 +227,7 @@ def test_a_soak_whose_grid_runner_is_killed_reports_and_stops(tmp_path):
     run = RunDir(tmp_path / "run")
     run.root.mkdir()
     RunStatus("training", pids={"learner": os.getpid()}).write(run.status)
-    runner = subprocess.Popen([sys.executable, "-c", RUNNER, str(run.root)], cwd=Path(soak.__file__).parents[1],
+    runner = subprocess.Popen([sys.executable, "-c", RUNNER, str(run.root)], cwd=Path(soak.__file__).parents[2],
                               stdout=subprocess.PIPE, text=True)
     sampler = None
     try:
