@@ -10,6 +10,7 @@ import numpy as np
 
 from learner.prefetch import Prefetcher
 from learner.service import LearnerService
+from learner.update import UpdateResult
 
 log = logging.getLogger("learner")
 
@@ -24,7 +25,13 @@ class LearnerMetrics:
         self.losses: list[float] = []
         self.loss_diffs: list[float] = []
         self._previous_loss: float | None = None
+        self.grad_norms: list[float] = []  # measured every learner.update.GRAD_NORM_EVERY updates
         self._window_start = (time.monotonic(), service.updates, 0.0)
+
+    def on_update(self, result: UpdateResult) -> None:
+        self.loss(result.loss)
+        if result.grad_norm is not None:
+            self.grad_norms.append(result.grad_norm)
 
     def loss(self, value: float) -> None:
         if not math.isfinite(value):
@@ -46,6 +53,9 @@ class LearnerMetrics:
             "loss": float(np.mean(self.losses)) if self.losses else float("nan"),
             # the paper's training figure: |loss_k - loss_k-1| of consecutive updates, averaged here
             "loss_abs_diff": float(np.mean(self.loss_diffs)) if self.loss_diffs else float("nan"),
+            # the gradient's global norm before any clip (learner.grad_clip_norm is chosen from these)
+            "grad_norm": float(np.mean(self.grad_norms)) if self.grad_norms else float("nan"),
+            "grad_norm_max": float(np.max(self.grad_norms)) if self.grad_norms else float("nan"),
             "epsilon": float(strategy.epsilon),
             "kappa": float(strategy.kappa),  # 0: exploring actions are uniform
             "updates_per_s": (updates - window_updates) / elapsed,
@@ -71,6 +81,7 @@ class LearnerMetrics:
                                                       "ratio": achieved})
         self.losses.clear()
         self.loss_diffs.clear()
+        self.grad_norms.clear()
         self._window_start = (now, updates, self.prefetcher.wait_s)
         return values
 

@@ -136,9 +136,9 @@ def _train(service: LearnerService, outputs: Outputs, stop: threading.Event, lin
             outputs.exploration(service.strategy, force=True)  # a late actor holds until it has the state
     try:
         while batch is not None:
-            loss = service.train_on(batch)
-            if loss is not None:  # None: the batch was refused or its update failed (counted)
-                metrics.loss(loss)
+            result = service.train_on(batch)
+            if result is not None:  # None: the batch was refused or its update failed (counted)
+                metrics.on_update(result)
                 outputs.exploration(service.strategy)
                 if broadcasts.due(service.updates):
                     outputs.weights(service.make_weights())

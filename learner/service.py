@@ -47,7 +47,7 @@ from common.wire.run_shape import RunShape, check_trace_batch
 from learner.feed import feed_strategy
 from learner.keep import PolicyKeeper, policies_now
 from learner.trace_batch import TraceArrays, TraceTensors
-from learner.update import DoubleQLearner
+from learner.update import DoubleQLearner, UpdateResult
 from learner.weights_shelf import WeightsShelf
 
 log = logging.getLogger("learner")
@@ -297,9 +297,9 @@ class LearnerService:
         except ValueError as error:  # the sizes the network needs (learner.trace_batch.checked_arrays)
             return Admitted(batch, None, WireError(str(error), "shape"))
 
-    def train_on(self, batch: TraceBatch | Admitted) -> float | None:
+    def train_on(self, batch: TraceBatch | Admitted) -> UpdateResult | None:
         """One update on one batch (admitted already, or admitted here); feeds the strategy what it
-        needs; returns the loss, or None when the batch was refused or the update failed (counted)."""
+        needs; returns the update's result, or None when the batch was refused or the update failed (counted)."""
         admitted = batch if isinstance(batch, Admitted) else self.admit(batch)
         if admitted.error is not None:
             self.rejections.reject(f"batch_{admitted.error.kind}", str(admitted.error))
@@ -319,7 +319,7 @@ class LearnerService:
             return None
         self._failed_in_a_row = 0
         self.bmc_observations += feed_strategy(self.strategy, result, self.clock.env_steps, self.config)
-        return result.loss
+        return result
 
     def make_weights(self) -> Weights:
         """The online network's weights as broadcast and served, in learner.weights_encoding; whole

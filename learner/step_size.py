@@ -33,7 +33,14 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, config: LearnerConfig, u
             group["lr"] = learning_rate(config, updates)
 
 
-def clip_gradient(parameters, config: LearnerConfig) -> None:
-    """Scales the gradients to a global norm of at most learner.grad_clip_norm, where on."""
+def clip_gradient(parameters, config: LearnerConfig, measure: bool = False) -> float | None:
+    """Scales the gradients to a global norm of at most learner.grad_clip_norm, where on; returns their norm
+    before any clip where clipping or `measure` (the learner's figures, which a clip threshold is chosen from),
+    else None. Measuring only reads the gradients."""
+    parameters = list(parameters)
     if config.grad_clip_norm > 0:
-        torch.nn.utils.clip_grad_norm_(parameters, config.grad_clip_norm, foreach=True)
+        return float(torch.nn.utils.clip_grad_norm_(parameters, config.grad_clip_norm, foreach=True))
+    if not measure:
+        return None
+    grads = [parameter.grad for parameter in parameters if parameter.grad is not None]
+    return float(torch.nn.utils.get_total_norm(grads, foreach=True)) if grads else 0.0

@@ -74,6 +74,9 @@ from learner.weight_average import WeightAverage
 log = logging.getLogger("learner.update")
 
 
+GRAD_NORM_EVERY = 10  # updates between measures of the gradient's norm (a read of 12 M gradients, ~1% of an update)
+
+
 @dataclass
 class UpdateResult:
     """The loss and what the exploration strategies need, over the unmasked steps t >= n_mask."""
@@ -84,6 +87,7 @@ class UpdateResult:
     q_after: np.ndarray | None  # the same histories and actions after the step (only when asked)
     g_greedy: np.ndarray  # (B, T - n_mask) BMC's G_Q from the online Q(h_t+1, .)
     g_uniform: np.ndarray  # (B, T - n_mask) BMC's G_U
+    grad_norm: float | None = None  # the gradient's global norm before any clip, every GRAD_NORM_EVERY updates
 
 
 
@@ -197,13 +201,14 @@ class DoubleQLearner:
                                        self.config.masked_steps, self.config.n_step)
         self.optimizer.zero_grad(set_to_none=True)
         terms.loss.backward()
-        clip_gradient(self.online.parameters(), self.config)
+        grad_norm = clip_gradient(self.online.parameters(), self.config,
+                                  measure=self.updates % GRAD_NORM_EVERY == 0)
         set_learning_rate(self.optimizer, self.config, self.updates)
         self.optimizer.step()
         self.updates += 1
         if self.average is not None:
             self.average.update(self.online, self.updates)
-        return self.exploration_terms(tensors, terms, with_q_after)
+        return dataclasses.replace(self.exploration_terms(tensors, terms, with_q_after), grad_norm=grad_norm)
 
     def _split_trace_pass_loss(self, batch: TraceTensors) -> LossTerms:
         """trace_pass_loss with the soft target update and the target pass on a helper thread.

@@ -2,8 +2,10 @@
 and ETA, and an actor's held episodes counted once per period."""
 
 import logging
+import math
 import time
 
+import numpy as np
 import pytest
 
 import deploy.grid.experiments as experiments
@@ -20,6 +22,7 @@ from fake_clock import FakeClock
 from learner.prefetch import Prefetcher
 from learner.metrics import LearnerMetrics
 from learner.service import LearnerService
+from learner.update import UpdateResult
 
 
 
@@ -271,3 +274,17 @@ def test_a_rate_needs_time_between_two_samples():
     clock.now = 2.0
     eta.update(3)
     assert eta.per_s() == 0.0 and eta.remaining_s() is None
+
+
+def test_the_learners_metrics_give_the_gradients_norm_over_the_period_and_then_forget_it(tmp_path):
+    service = LearnerService(load_config("smoke", overrides={"run.runs_dir": str(tmp_path)}))
+    prefetcher = Prefetcher(lambda request: None, 4, 10, depth=1)
+    try:
+        metrics = LearnerMetrics(service, prefetcher)
+        for loss, norm in ((0.5, 2.0), (0.4, None), (0.3, 6.0)):
+            metrics.on_update(UpdateResult(1, loss, *([np.zeros((1, 1))] * 4), grad_norm=norm))
+        values = metrics.values()
+        assert (values["grad_norm"], values["grad_norm_max"], values["loss"]) == (4.0, 6.0, pytest.approx(0.4))
+        assert math.isnan(metrics.values()["grad_norm"])  # none measured since
+    finally:
+        prefetcher.close()

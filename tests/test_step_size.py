@@ -75,3 +75,30 @@ def test_the_learner_clips_and_decays_its_steps(config):
     assert gradient_norm(service) == pytest.approx(1e-3, rel=1e-4)  # the last update's gradient, clipped
     # the third update followed 2 updates: halfway from 1 to 3, lr x (1 - 0.5 x 0.5)
     assert service.learner.optimizer.param_groups[0]["lr"] == pytest.approx(config.learner.lr * 0.75)
+
+
+def test_the_norm_is_measured_before_the_clip_and_measuring_only_reads():
+    weight = torch.nn.Parameter(torch.zeros(2))
+    weight.grad = torch.tensor([3.0, 4.0])  # norm 5
+    assert clip_gradient([weight], LearnerConfig()) is None  # neither clipped nor asked
+    assert clip_gradient([weight], LearnerConfig(), measure=True) == pytest.approx(5.0)
+    assert weight.grad.tolist() == [3.0, 4.0]
+    assert clip_gradient([weight], LearnerConfig(grad_clip_norm=1.0)) == pytest.approx(5.0)  # the norm it clipped
+
+
+def test_the_learner_reports_the_norm_every_few_updates_and_trains_as_without(config, monkeypatch):
+    import learner.update as update
+
+    def run(every: int):
+        monkeypatch.setattr(update, "GRAD_NORM_EVERY", every)
+        service = LearnerService(config)
+        service.start_updates()
+        norms = [service.train_on(batch).grad_norm for batch in batches(3)]
+        return norms, service, gradient_norm(service)
+
+    norms, measured, last = run(1)
+    assert all(norm is not None for norm in norms) and norms[-1] == pytest.approx(last, rel=1e-5)
+    norms, unmeasured, _ = run(2)
+    assert norms[0] is not None and norms[1] is None and norms[2] is not None  # updates 0 and 2 of 0, 1, 2
+    for one, other in zip(measured.learner.online.parameters(), unmeasured.learner.online.parameters()):
+        assert torch.equal(one, other)
