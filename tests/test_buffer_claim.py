@@ -79,6 +79,8 @@ def test_the_fill_of_each_run_from_its_own_counters(tmp_path):
     exported_run(tmp_path, "bmc", 0, cap_share(8), capacity=2000,
                  summary={"replay_episodes_total": 1_650, "replay_fill": {**fill, "full_at_env_steps": 0}})
     exported_run(tmp_path, "bmc", 1, cap_share(8), summary={"replay_episodes_total": 1_700})  # before the counters
+    exported_run(tmp_path, "bmc", 2, cap_share(8), summary={"replay_episodes_total": "x",
+                                                             "replay_fill": {**fill, "sampled_steps": "many"}})
     rows = {(r["run"]): r for r in map(buffer_claim.fill_row, grid_report.read_runs([tmp_path]))}
     full = rows["bmc-b1000-s0"]
     assert (full["full_at_env_steps"], full["full_at_batches"]) == (90_000, 300)
@@ -86,6 +88,7 @@ def test_the_fill_of_each_run_from_its_own_counters(tmp_path):
     never = rows["bmc-b2000-s0"]
     assert (never["full_at_env_steps"], never["full_at_batches"], never["episodes_total"]) == (None, None, 1_650)
     assert not rows["bmc-b1000-s1"]["counted"]
+    assert not rows["bmc-b1000-s2"]["counted"] and rows["bmc-b1000-s2"]["episodes_total"] is None  # malformed
     lines = buffer_claim.fill_lines(grid_report.read_runs([tmp_path]))
     assert "| bmc-b1000-s0 | 1,000 | 1,724 | 90,000; 300 | 25.0% (5.0%) | 400 |" in lines
     assert "| bmc-b2000-s0 | 2,000 | 1,650 | never | 25.0% (–) | 400 |" in lines

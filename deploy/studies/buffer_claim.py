@@ -125,8 +125,12 @@ def fill_row(item: GridRun) -> dict:
         summary = json.loads(item.run.layout.summary.read_text())
     except (OSError, ValueError):
         summary = {}
-    fill = summary.get("replay_fill") if isinstance(summary.get("replay_fill"), dict) else None
-    row = {"run": item.run.name, "capacity": item.run.capacity, "episodes_total": summary.get("replay_episodes_total"),
+    fill = summary.get("replay_fill") if isinstance(summary, dict) else None
+    if not isinstance(fill, dict) or not all(isinstance(value, int) and value >= 0 for value in fill.values()):
+        fill = None  # absent (a run before the counters) or malformed: not counted
+    total = summary.get("replay_episodes_total") if isinstance(summary, dict) else None
+    row = {"run": item.run.name, "capacity": item.run.capacity,
+           "episodes_total": total if isinstance(total, int) else None,
            "counted": fill is not None, "full_at_env_steps": None, "full_at_batches": None,
            "served_random_share": None, "served_random_share_after_full": None, "sampled_batches": None}
     if fill is None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -51,7 +52,7 @@ def rebuild(lengths: Sequence[int], capacity: int, trace_length: int, start_step
     shares = random_shares(lengths, start_steps)
     kept = lengths >= trace_length
     held_random, full_at = 0.0, None
-    held: list[float] = []
+    held: deque[float] = deque()
     served_updates = served_random = after_updates = after_random = 0.0
     updates_before = 0.0
     for end, share, stored in zip(ends, shares, kept):
@@ -66,7 +67,7 @@ def rebuild(lengths: Sequence[int], capacity: int, trace_length: int, start_step
             held.append(float(share))
             held_random += share
             if len(held) > capacity:
-                held_random = max(0.0, held_random - held.pop(0))
+                held_random = max(0.0, held_random - held.popleft())
             if full_at is None and len(held) == capacity:
                 full_at = int(end)
     return BufferHistory(
