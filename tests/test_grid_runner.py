@@ -19,7 +19,7 @@ import deploy.grid.experiments as experiments
 import deploy.grid.grid_job as grid_job
 from common.checkpoint import KeptPolicy, save_checkpoint
 from common.config_values import load_config, to_toml
-from deploy.grid import grid_cells
+from deploy.grid import grid_cells, step_record
 from deploy.grid.grid_cells import RunSpec, choice_candidates, choose, curve_wanted, next_step
 from deploy.studies.run_results import export_run, read_exported
 from common.run_dir import RunDir
@@ -321,6 +321,24 @@ def test_a_grid_run_exports_its_cell_choice_curve_and_soak_under_its_cells_name(
     assert exported.identity == ("bmc", 1000, 1, "nstep3")
 
 
+def test_the_step_of_a_runner_killed_outright_is_recorded_as_killed_when_the_next_one_starts(tmp_path, monkeypatch):
+    """A runner killed with SIGKILL (Slurm's KillWait, the OOM killer) writes no row; the next runner on the
+    folder records its step as killed before it goes on."""
+    spec, opts = RunSpec("bmc", 1000, 0), options(tmp_path)
+    run = RunDir(tmp_path / spec.name)
+    stack = lambda self, command, what, is_status, echo: (make_drive_run(run.root, 90_000, KEPT[:15]), FakeChild())[1]
+    monkeypatch.setattr(grid_job.RunJob, "_start", stack)
+    monkeypatch.setattr(grid_job, "trains_since", lambda *_: False)
+    monkeypatch.setattr(grid_job, "record_step", lambda *_: None)  # as if it died before its step ended
+    experiments.run_grid([spec], opts, parallel=1)
+    monkeypatch.undo()
+    monkeypatch.setattr(grid_job.RunJob, "_start", stack)
+    monkeypatch.setattr(grid_job, "trains_since", lambda *_: False)
+    experiments.run_grid([spec], opts, parallel=1)
+    assert [(row["step"], row["outcome"]) for row in step_record.read_steps(run.root)] == [
+        ("train", "killed"), ("resume", "failed")]  # the stand-in stack stops short again
+
+
 def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_path, monkeypatch):
     """The steps with every child a stand-in that leaves what the real one would: a stack stopped short is
     resumed, then the curve, the choice and the evaluation follow; a second run of the grid does nothing."""
@@ -351,7 +369,7 @@ def test_a_run_steps_through_to_done_and_a_rerun_resumes_where_it_stopped(tmp_pa
     assert experiments.run_grid([spec], opts, parallel=1) == 0
     assert calls == ["resume", "curve", "curve", "curve", "evaluate"]  # the dense, the sparse, the choice's pass
     assert (tmp_path / "results" / "runs" / spec.name / "choice.json").is_file()
-    steps = grid_cells.read_steps(tmp_path / "results" / "runs" / spec.name)  # exported with the run
+    steps = step_record.read_steps(tmp_path / "results" / "runs" / spec.name)  # exported with the run
     assert [(row["step"], row["outcome"]) for row in steps] == [
         ("train", "failed"), ("resume", "done"), ("curve", "done"), ("choose", "done"), ("evaluate", "done")]
     assert all(row["wall_s"] >= 0 and row["cpu"] and row["cores"] >= 1 for row in steps)
@@ -428,17 +446,6 @@ def test_the_report_alone_says_which_runs_no_export_holds_finished(tmp_path, cap
     assert "3 runs of 3 not finished and exported: cell 0 vdbe-b1000-s0 (next: resume)" in capsys.readouterr().out
 
 
-def test_a_damaged_steps_row_is_left_out(tmp_path):
-    run = RunDir(tmp_path)
-    grid_cells.record_step(run, "train", 0.0, "done")
-    with (tmp_path / "steps.csv").open("a") as handle:
-        handle.write("curve,x,ten,cpu,2,done\n")
-    grid_cells.record_step(run, "curve", 1e9, "stopped")
-    assert [(row["step"], row["outcome"]) for row in grid_cells.read_steps(tmp_path)] == [
-        ("train", "done"), ("curve", "stopped")]
-    assert grid_cells.read_steps(tmp_path / "nothing") == []
-
-
 class FakeChild:
     process = type("Process", (), {"poll": staticmethod(lambda: 0)})()
     latest = ""
@@ -453,12 +460,14 @@ class FakeChild:
 class StackUntilInterrupted:
     """A stand-in for a run's stack (grid_job.Child) that trains until it is interrupted, as the real one does."""
     started: list = []
+    running = threading.Event()
     latest = ""
 
     def __init__(self, *_):
         self.interrupted = threading.Event()
         self.process = self
         StackUntilInterrupted.started.append(self)
+        StackUntilInterrupted.running.set()
 
     def poll(self) -> int | None:
         return 130 if self.interrupted.is_set() else None
@@ -476,11 +485,14 @@ def test_a_signal_to_the_grid_interrupts_its_stacks_and_the_grid(tmp_path, monke
     """Ctrl-C, a kill and a closed terminal (SIGHUP) all stop the running stacks as an interruption does, and
     the grid says it was interrupted, so that the same command resumes."""
     monkeypatch.setattr(StackUntilInterrupted, "started", [])
+    monkeypatch.setattr(StackUntilInterrupted, "running", threading.Event())
     monkeypatch.setattr(grid_job, "Child", StackUntilInterrupted)
     monkeypatch.setattr(grid_job, "trains_since", lambda *_: False)
     untouched = lambda *_: None  # not SIG_IGN, which a suite run under nohup passes on for SIGHUP
     before = signal.signal(signum, untouched)
-    timer = threading.Timer(1.0, os.kill, (os.getpid(), signum))
+    # the signal once the stack trains, however slowly a loaded machine starts the grid
+    timer = threading.Thread(target=lambda: StackUntilInterrupted.running.wait(60) and os.kill(os.getpid(), signum),
+                             daemon=True)
     timer.start()
     try:
         with pytest.raises(KeyboardInterrupt):
@@ -489,25 +501,11 @@ def test_a_signal_to_the_grid_interrupts_its_stacks_and_the_grid(tmp_path, monke
         assert len(stacks) == 1 and stacks[0].interrupted.is_set()
         assert signal.getsignal(signum) is untouched  # the grid's handler is given back
     finally:
-        timer.cancel()
+        StackUntilInterrupted.running.set()  # the signaller ends at once if the grid never started a stack
+        timer.join()
         signal.signal(signum, before)
 
 
 def test_a_grid_with_no_finished_run_has_no_report_and_says_so(tmp_path, capsys):
     assert experiments.main(["--strategies", "bmc", "--seeds", "0", "--runs-dir", str(tmp_path), "--report-only"]) == 0
     assert "no run has finished yet" in capsys.readouterr().out
-
-
-def test_a_steps_file_from_before_the_peak_column_takes_it_and_keeps_its_rows(tmp_path):
-    (tmp_path / "steps.csv").write_text("step,started,wall_s,cpu,cores,outcome\ntrain,0,3600,AMD EPYC,2,done\n")
-    grid_cells.record_step(RunDir(tmp_path), "curve", 0.0, "done", peak_mb=2100.4)
-    grid_cells.record_step(RunDir(tmp_path), "choose", 0.0, "done")
-    assert (tmp_path / "steps.csv").read_text().splitlines()[0] == ",".join(grid_cells.STEP_FIELDS)
-    steps = grid_cells.read_steps(tmp_path)
-    assert [(row["step"], row["wall_s"], row["peak_mb"]) for row in steps][0] == ("train", 3600.0, None)
-    assert [row["peak_mb"] for row in steps[1:]] == [2100.0, None]
-
-
-def test_a_step_whose_time_cannot_be_written_is_said_not_raised(tmp_path, capsys):
-    grid_cells.record_step(RunDir(tmp_path / "gone" / "run"), "curve", 0.0, "done")
-    assert "the curve step's time is not recorded" in capsys.readouterr().out

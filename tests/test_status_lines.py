@@ -10,6 +10,7 @@ import pytest
 
 import deploy.grid.experiments as experiments
 import deploy.grid.grid_job as grid_job
+from deploy.grid import run_progress
 from actor.gate import HoldLog
 from common.checkpoint import save_checkpoint
 from common.config_values import load_config
@@ -214,11 +215,11 @@ def test_what_a_run_has_trained_comes_from_its_checkpoint(tmp_path):
     short, fresh = RunDir(tmp_path / "short"), RunDir(tmp_path / "fresh")
     save_checkpoint(short.checkpoints, {"clock": {"env_steps": 400}})
     fresh.root.mkdir()
-    assert grid_job.trained_share(short.root, 1000) == 0.4
-    assert grid_job.trained_share(short.root, 300) == 1.0  # trained, waiting for its curve
-    assert grid_job.trained_share(fresh.root, 1000) == 0.0
+    assert run_progress.trained_share(short.root, 1000) == 0.4
+    assert run_progress.trained_share(short.root, 300) == 1.0  # trained, waiting for its curve
+    assert run_progress.trained_share(fresh.root, 1000) == 0.0
     short.checkpoint.write_bytes(b"damaged")
-    assert grid_job.trained_share(short.root, 1000) == 0.0
+    assert run_progress.trained_share(short.root, 1000) == 0.0
 
 
 def test_a_status_file_that_cannot_be_written_is_said_once_and_the_stack_goes_on(tmp_path, capsys):

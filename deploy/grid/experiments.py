@@ -39,8 +39,8 @@ from common.presets import GRID_UPDATES
 from common.shell import on_stop_signals
 from deploy.grid.grid_cells import (DONE, FINAL_TRIALS, OPTION_SETS, PROTOCOL_PRESET, ExperimentError, RunSpec, counted,
                                        grid, next_step)
-from deploy.grid.grid_job import (POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget,
-                             trained_share)
+from deploy.grid.grid_job import POLL_S, RESULTS_DIR, Options, RunJob, check_config_flags, run_budget
+from deploy.grid.run_progress import trained_share
 from deploy.studies.run_results import ExportError
 
 

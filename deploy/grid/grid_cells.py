@@ -26,11 +26,7 @@ policy's evaluation into evaluation-<kind>/. So is the mean of the last CHOICE_A
 
 from __future__ import annotations
 
-import csv
 import json
-import math
-import os
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -39,7 +35,6 @@ from actor.evaluation.curve import CURVE_CSV, CURVE_TRIALS, LATE_FROM, chosen_on
 from common.analysis.tables import SUMMARY_CSV, read_facts
 from common.checkpoint import Checkpoint, CheckpointError, KeptPolicy
 from common.config_values import load_config
-from common.cpu_capability import cpu_label
 from common.schema.fields import ConfigError
 from common.run_dir import POLICY_KINDS, RunDir
 from deploy.tools.average_policies import average
@@ -51,8 +46,6 @@ CHOICE_AMONG = 5  # the run's policy is chosen among its last five kept
 FINAL_TRIALS = 10  # trials per start of the chosen policy's evaluation (the paper: 30)
 CELL_JSON = "cell.json"  # who the run is: strategy, capacity, option set, seed, budget
 CHOICE_JSON = "choice.json"
-STEPS_CSV = "steps.csv"  # each step a run took: when, how long, on which machine, how it ended
-STEP_FIELDS = ("step", "started", "wall_s", "cpu", "cores", "outcome", "peak_mb")
 
 # name: (what it is, its options over the preset). Names are folder-safe; "paper" is the preset as it is.
 OPTION_SETS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -201,66 +194,6 @@ def keep_every(run: RunDir) -> int:
         raise ExperimentError(f"{run.root}: the grid reads a run on the policies it keeps every "
                               "learner.keep_every updates; it is 0")
     return every
-
-
-def record_step(run: RunDir, step: str, started: float, outcome: str, peak_mb: float = math.nan) -> None:
-    """Appends the step's row to steps.csv: the machine time a run took, summed over sessions and machines, and
-    the most memory the step's processes held at once (blank where not measured). A row that cannot be written
-    is said, not raised: it must not hide the step's own outcome."""
-    path = run.root / STEPS_CSV
-    try:
-        _current_header(path)
-        with path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=STEP_FIELDS)
-            if handle.tell() == 0:
-                writer.writeheader()
-            writer.writerow({"step": step, "started": round(started, 1), "wall_s": round(time.time() - started, 1),
-                             "cpu": cpu_label(), "cores": os.cpu_count(), "outcome": outcome,
-                             "peak_mb": round(peak_mb) if math.isfinite(peak_mb) else ""})
-    except (OSError, csv.Error, UnicodeDecodeError) as error:
-        print(f"{run.root}: the {step} step's time is not recorded: {error}", flush=True)
-
-
-def _current_header(path: Path) -> None:
-    """Rewrites a steps.csv written before a column was added with today's columns, blank in its rows."""
-    if not path.is_file():
-        return
-    with path.open(newline="") as handle:
-        if next(csv.reader(handle), list(STEP_FIELDS)) == list(STEP_FIELDS):
-            return
-        handle.seek(0)
-        rows = list(csv.DictReader(handle))
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=STEP_FIELDS, restval="", extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-
-
-def read_steps(folder: Path) -> list[dict]:
-    """The rows of a run's steps.csv that read (step, wall_s as a float, cpu, cores; peak_mb a float, None where
-    not measured); [] without one."""
-    try:
-        with (folder / STEPS_CSV).open(newline="") as handle:
-            rows = list(csv.DictReader(handle))
-    except (OSError, csv.Error, UnicodeDecodeError):
-        return []
-    steps = []
-    for row in rows:
-        try:
-            steps.append({**row, "wall_s": float(row["wall_s"]), "cores": int(row["cores"]),
-                          "peak_mb": _peak(row.get("peak_mb"))})
-        except (KeyError, TypeError, ValueError):
-            continue  # a damaged row: the others still count
-    return steps
-
-
-def _peak(text: str | None) -> float | None:
-    """A recorded peak in MB; None where blank, older than the column, or not a finite positive number."""
-    try:
-        value = float(text)
-    except (TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) and value > 0 else None
 
 
 def read_choice(run: RunDir) -> dict | None:

@@ -6,8 +6,6 @@ as children with the soak beside the stack. deploy/grid/experiments.py runs a gr
 from __future__ import annotations
 
 import argparse
-import datetime
-import shutil
 import sys
 import threading
 import time
@@ -26,8 +24,10 @@ from actor.evaluation.curve import LATE_FROM
 from deploy.grid.grid_cells import (CHOOSE, CURVE, CURVE_DENSE_UNTIL, CURVE_LATE_EVERY, DONE, EVALUATE, RESUME, TRAIN,
                                        ExperimentError, RunSpec, budget_env_steps, checkpoint_env_steps,
                                        choice_candidates, choose, chosen_updates, curve_read, curve_wanted, keep_every,
-                                       late_kinds, next_step, read_cell, read_choice, record_step, shadow_curve_done, shadow_kinds,
+                                       late_kinds, next_step, read_cell, read_choice, shadow_curve_done, shadow_kinds,
                                        to_evaluate, write_cell)
+from deploy.grid.run_progress import set_aside_stale_files, trains_since
+from deploy.grid.step_record import close_killed_step, open_step, record_step
 from deploy.studies.run_results import ExportError, export_run, greedy_headline
 
 STACK_SCRIPT = Path(__file__).resolve().parents[1] / "launcher" / "stack.py"
@@ -191,45 +191,6 @@ def check_config_flags(specs: list[RunSpec], options: Options) -> None:
         run_config(spec, options)
 
 
-def set_aside_stale_files(run_dir: Path) -> Path | None:
-    """Moves the logs of an attempt that never checkpointed out of the way of a fresh start.
-
-    Otherwise the new recorder would write traffic-2.mcap next to the old file and the
-    figures would read both as one run.
-    """
-    run = RunDir(run_dir)
-    stale = run.wire_log_segments() + [path for path in [run.logs] if path.is_dir()]
-    if not stale:
-        return None
-    target = run.abandoned(datetime.datetime.now().strftime("%Y%m%d-%H%M%S"))
-    target.mkdir(parents=True)
-    for path in stale:
-        shutil.move(path, target / path.name)
-    return target
-
-
-def trained_share(run_dir: Path, budget: int) -> float:
-    """How much of its budget (env steps) a run has trained: all once past its training, else what its
-    checkpoint holds (nothing without a readable one)."""
-    checkpoint = RunDir(run_dir).checkpoint
-    try:
-        if not checkpoint.is_file():
-            return 0.0 if next_step(run_dir, budget) == TRAIN else 1.0
-        return min(1.0, checkpoint_env_steps(checkpoint) / budget)  # whatever its later steps can read
-    except ExperimentError:
-        return 0.0
-
-
-def trains_since(run: RunDir, since: float) -> bool:
-    """Whether the run's stack, started at `since` (time.time()), says it trains: a resumed run's old
-    status.json says "stopped" until the new stack rewrites it."""
-    try:
-        status = RunStatus.read(run.status)
-    except StatusError:
-        return False
-    return status.time >= since and status.training()
-
-
 # --- one run ------------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -278,11 +239,15 @@ class RunJob:
             return
         if self.run.config.is_file() and read_cell(self.run.root) is None:  # a run started by hand
             write_cell(self.run, self.spec, self.options.updates)
+        if (killed := close_killed_step(self.run)) is not None:
+            print(f"{self.tag}: its last {killed} step ended without a word (its runner was killed); "
+                  f"recorded as killed, and it goes on from what its folder holds", flush=True)
         while (step := next_step(self.run.root, budget)) != DONE:
             if done and done[-1] == step:
                 raise ExperimentError(f"the {step} step left the run as it was; see {self.run.logs}/")
             print(f"{self.tag}: {step}", flush=True)
             self.phase, started, outcome = step, time.time(), "failed"
+            open_step(self.run, step, started)
             peak = TreePeak(lambda: [child.process.pid for child in list(self.children)]).start()
             try:
                 {TRAIN: self._train, RESUME: self._train, CURVE: self._curve, CHOOSE: self._choose,

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from actor.evaluation.curve import trained_with
-from deploy.grid.grid_cells import STEPS_CSV, counted, read_steps
+from deploy.grid.grid_cells import counted
+from deploy.grid.step_record import STEPS_CSV, read_steps
 
 if TYPE_CHECKING:
     from deploy.studies.grid_report import GridRun

@@ -40,7 +40,8 @@ from common.config_values import load_config
 from common.schema.fields import ConfigError
 from common.run_dir import POLICY_KINDS, RunDir
 from deploy.studies.comparison import EvaluatedRun
-from deploy.grid.grid_cells import CELL_JSON, CHOICE_JSON, STEPS_CSV, read_cell, run_name
+from deploy.grid.grid_cells import CELL_JSON, CHOICE_JSON, read_cell, run_name
+from deploy.grid.step_record import STEPS_CSV
 from replay.recorder.reader import LogError
 from replay.recorder.run_curves import read_run_curves
 
