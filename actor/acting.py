@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from actor.batched_q import BatchedQ, choose_precision
-from actor.lockstep import Lockstep, Trajectory, episode_message, training_actions
+from actor.lockstep import Lockstep, Trajectory, episode_message, network_acts, training_actions
 from actor.mailbox import Mailbox
 from actor.sim import make_env
 from common.config import Config
@@ -112,7 +112,7 @@ class Actor:
         self.strategy = replacement
 
     def uses_network(self) -> bool:
-        return self.weights_version >= 0 and self.strategy.started
+        return network_acts(self.strategy, self.weights_version)
 
     @property
     def running(self) -> list[EnvSlot]:

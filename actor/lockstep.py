@@ -87,11 +87,17 @@ class Lockstep:
         return ended
 
 
-def training_actions(strategy: ExplorationStrategy, q_values: np.ndarray | None, rngs: list[np.random.Generator],
-                     n_actions: int) -> list[int]:
+def network_acts(strategy: ExplorationStrategy | None, weights_version: int) -> bool:
+    """Whether training acts on the network: once the learner's strategy has started (updates started) and
+    weights from the learner came (version >= 0); before, the random phase (no strategy yet: none came)."""
+    return strategy is not None and strategy.started and weights_version >= 0
+
+
+def training_actions(strategy: ExplorationStrategy | None, q_values: np.ndarray | None,
+                     rngs: list[np.random.Generator], n_actions: int) -> list[int]:
     """The acting rule of training, which the actor and the reference loop share: uniform at random until the
-    network acts (q_values None: updates have not started, or no weights came yet), then the strategy's rule
-    on each simulator's row of Q-values; each draw from that simulator's own generator."""
+    network acts (q_values None: not ``network_acts``), then the strategy's rule on each simulator's row of
+    Q-values; each draw from that simulator's own generator."""
     if q_values is None:
         return [int(rng.integers(n_actions)) for rng in rngs]
     return [strategy.act(row, rng) for row, rng in zip(q_values, rngs)]

@@ -65,7 +65,8 @@ from common.shell import Shell
 from common.transport import publisher, request, subscribe, watch_liveliness
 from common.keys import Keys
 from common.wire.errors import WireError
-from common.wire.messages import EpisodeAck, Stats, WeightsPiece, WeightsPieceAsk
+from common.wire.messages import EpisodeAck, WeightsPiece, WeightsPieceAsk
+from common.wire.metrics import ActorStats
 
 MEGABYTE = 1 << 20
 
@@ -171,16 +172,16 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
              counts["episodes_dropped"], counts["episodes_released"])
 
 
-def _stats(actor: Actor, outbox: Outbox, link: HubLink) -> Stats:
+def _stats(actor: Actor, outbox: Outbox, link: HubLink) -> ActorStats:
     behind = actor.mailbox.weights_behind(actor.weights_version)
     actor.weights_behind_max = max(actor.weights_behind_max, behind)
-    values = {"episodes": actor.episode_index, **outbox.values(), "weights_version": actor.weights_version,
-              "weights_behind": behind, "weights_behind_max": actor.weights_behind_max,
-              "weights_superseded": actor.mailbox.superseded,
-              "weights_downloads": actor.weights_downloads, "weights_download_s": actor.weights_download_s, **actor.rejections.values(),
-              "sessions_reopened": link.reopened, "hub_silent_s": round(actor.mailbox.silent_s(), 1),
-              **{f"malformed_{door}": rejected for door, rejected in link.rejected().items()}}
-    return Stats(source="actor", time=time.time(), values=values)
+    return ActorStats(time=time.time(), episodes=actor.episode_index, **outbox.values(),
+                      weights_version=actor.weights_version, weights_behind=behind,
+                      weights_behind_max=actor.weights_behind_max, weights_superseded=actor.mailbox.superseded,
+                      weights_downloads=actor.weights_downloads, weights_download_s=actor.weights_download_s,
+                      sessions_reopened=link.reopened, hub_silent_s=round(actor.mailbox.silent_s(), 1),
+                      rejected={**actor.rejections.values(),
+                                **{f"malformed_{door}": rejected for door, rejected in link.rejected().items()}})
 
 
 def _report_stats(actor: Actor, outbox: Outbox, link: HubLink, stop: threading.Event) -> None:
@@ -192,12 +193,12 @@ def _report_stats(actor: Actor, outbox: Outbox, link: HubLink, stop: threading.E
         except Exception:  # the stats must never stop the actor
             log.warning("could not publish the actor's stats", exc_info=True)
             continue
-        if _stale(actor, stats.values["weights_behind"] > stale):
+        if _stale(actor, stats.weights_behind > stale):
             how = (f"downloads every {actor.config.actor.weights_download_period_s:g} s after the last: none has "
                    "finished for three periods" if actor.config.actor.weights_download else
                    f"broadcasts every {actor.config.learner.weights_every}: no newer broadcast has come through")
             log.warning("acting on weights v%d, %d updates behind the learner (%s; a slow or broken link?); acting "
-                        "on these meanwhile", actor.weights_version, stats.values["weights_behind"], how)
+                        "on these meanwhile", actor.weights_version, stats.weights_behind, how)
 
 
 def _stale(actor: Actor, behind_broadcasts: bool) -> bool:

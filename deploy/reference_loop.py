@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from actor.lockstep import Lockstep, episode_message, training_actions
+from actor.lockstep import Lockstep, episode_message, network_acts, training_actions
 from actor.acting import actor_seed
 from actor.sim import make_env
 from common.config import Config
@@ -59,6 +59,7 @@ from common.pacing import achieved_ratio, rate_limit_from_config, start_mark_of,
 from common.stored_state import state_row
 from common.wire.state_rows import stored_units
 from learner.feed import feed_strategy
+from learner.service import Cadence
 from learner.trace_batch import TraceArrays
 from learner.update import DoubleQLearner
 from replay.store import EpisodeStore
@@ -105,6 +106,8 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
     started_at: float | None = None
     start_mark: float | None = None  # env steps when updates started (the rate limiter's start mark)
     acting_version = -1  # the broadcast the acting weights come from; -1: none yet, acts at random
+    # The learner's broadcast rule, by updates only (no period): the loop's run must not depend on its speed.
+    broadcasts = Cadence(learner_config.weights_every, 0.0)
     env_steps = episodes = 0
     returns: deque[float] = deque(maxlen=100)
     result = None
@@ -123,7 +126,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
                 frame = torch.from_numpy(episode.observation).view(1, 1, *episode.observation.shape)
                 q_values, state = acting(frame.to(learner.device), state)
             torch.set_num_threads(update_threads)
-        acted_on = q_values[0].cpu().numpy() if strategy.started else None  # the weights come at the start
+        acted_on = q_values[0].cpu().numpy() if network_acts(strategy, acting_version) else None
         (action,) = training_actions(strategy, acted_on, [rng], config.network.n_actions)
         episode_over = bool(core.step({0: action}, tag=acting_version))
         env_steps += 1
@@ -153,7 +156,7 @@ def train(config: Config, evaluate_at_end: bool = True, update_seconds: float | 
             # 5. feed the strategy, as learner/service.py does after each update (the learner knows
             # the steps of the episodes the replay has received; here every step taken is known)
             feed_strategy(strategy, result, env_steps, config)
-            if learner.updates % learner_config.weights_every == 0:  # broadcast: the acting weights catch up
+            if broadcasts.due(learner.updates):  # broadcast: the acting weights catch up
                 acting.load_state_dict(learner.online.state_dict())
                 acting_version = learner.updates
 

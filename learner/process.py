@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
-import time
 
 import torch
 import zenoh
@@ -25,7 +24,8 @@ from common.shell import Shell
 from common.transport import publisher, request, serve, subscribe
 from common.shared_memory import SharedMemory
 from common.keys import Keys
-from common.wire.messages import Stats, TraceBatchRequest, Weights
+from common.wire.messages import TraceBatchRequest, Weights
+from common.wire.metrics import LearnerStats
 from learner.prefetch import Prefetcher
 from learner.metrics import LearnerMetrics
 from learner.service import IDLE_POLL_S, SAMPLE_TIMEOUT_S, WAIT_LOG_S, Admitted, Cadence, LearnerService
@@ -96,8 +96,8 @@ class Outputs:
             self._link.put("exploration", exploration_message(strategy, self._start_by_steps))
             self._last_exploration = state
 
-    def metrics(self, values: dict) -> None:
-        self._link.put("metrics", Stats(source="learner", time=time.time(), values=values))
+    def metrics(self, stats: LearnerStats) -> None:
+        self._link.put("metrics", stats)
 
 
 def _train(service: LearnerService, outputs: Outputs, stop: threading.Event, link: HubLink, keys: Keys) -> None:
@@ -132,7 +132,7 @@ def _train(service: LearnerService, outputs: Outputs, stop: threading.Event, lin
 
     def idle() -> None:  # while no batch comes: the learner is ahead, or the actors hold
         if heartbeat.due():
-            outputs.metrics(metrics.values())
+            outputs.metrics(metrics.report())
             outputs.exploration(service.strategy, force=True)  # a late actor holds until it has the state
     try:
         while batch is not None:
@@ -145,14 +145,14 @@ def _train(service: LearnerService, outputs: Outputs, stop: threading.Event, lin
                 service.checkpoint_if_due()
                 service.keep_policy_if_due()
             if heartbeat.due():
-                outputs.metrics(metrics.values())
+                outputs.metrics(metrics.report())
             batch = _next_batch(service, prefetcher, stop, idle)
     finally:
         prefetcher.close()
         outputs.weights(service.make_weights())
         path = service.try_checkpoint() or "not written (see above)"
         service.keep_last_policy()
-        outputs.metrics({**metrics.values(), "final": 1})
+        outputs.metrics(metrics.report(final=True))
         log.info("stopped after %d updates, %d env steps, %.3f env steps per update (configured %g); "
                  "checkpoint %s", service.updates, service.clock.env_steps, service.env_steps_per_update(),
                  service.config.pace.env_steps_per_update, path)

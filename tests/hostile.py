@@ -14,9 +14,10 @@ from common.network import D3RQN, weights_to_numpy
 from common.wire.codecs import Message
 from common.wire.envelope import encode
 from common.wire.frames import FrameStack
+from common.wire.metrics import ActorStats, LearnerStats
 from common.wire.messages import (Episode, EpisodeAck, EpisodeRecord, ExplorationState, RateState,
                                   ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights)
-from wire_examples import example_rate, example_replay_stats
+from wire_examples import example_actor_stats, example_learner_stats, example_rate, example_replay_stats
 
 FLOOD_ACTOR = 77  # the actor id of flooded episodes
 
@@ -68,6 +69,8 @@ def examples(config: Config) -> dict[type, Message]:
         Weights: Weights(version=3, tensors={"w": np.ones((2, 2), np.float32)}),
         ExplorationState: exploration_message(make_strategy(config.exploration, config.network.n_actions)),
         Stats: Stats(source="replay", time=1.0, values={"episodes": 3, "env_steps_total": 100}),
+        LearnerStats: example_learner_stats(),
+        ActorStats: example_actor_stats(),
         EpisodeRecord: EpisodeRecord(actor_id=FLOOD_ACTOR, episode_index=0, length=5, episode_return=1.0,
                                      collided=False, start_set="train", start_index=0, epsilon=1.0,
                                      weights_version=0, wall_time=1.0, time=1.0),
@@ -144,7 +147,8 @@ def misfit_replay_word() -> dict[str, bytes]:
 
 
 def misfit_stats() -> dict[str, bytes]:
-    """Stats messages, with a replay's or a rate limiter's source, whose values are missing, mistyped or absurd."""
+    """Stats messages, with a replay's or a rate limiter's source, whose values are missing, mistyped or absurd;
+    with a learner's or an actor's, an older sender's word that its typed message refuses on decode."""
     values = {
         "empty": {}, "text": {"env_steps_total": "many", "env_steps": "many", "hold_reason": 5, "updates": "x"},
         "nan": {"env_steps_total": float("nan"), "env_steps": float("inf"), "epsilon": float("nan")},

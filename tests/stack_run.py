@@ -21,7 +21,8 @@ from pathlib import Path
 from common.config import TransportConfig
 from common.transport import open_session, subscribe
 from common.keys import Keys
-from common.wire.messages import Episode, EpisodeRecord, ReplayStats, Stats, flat_values
+from common.wire.messages import Episode, EpisodeRecord, ReplayStats, flat_values
+from common.wire.metrics import ActorStats, LearnerStats
 from tests.processes import children, free_port, kill_tree
 
 STACK = Path(__file__).resolve().parents[1] / "deploy" / "launcher" / "stack.py"
@@ -56,12 +57,10 @@ class Watcher:
         with self.lock:
             if isinstance(message, EpisodeRecord) and message.actor_id in self.actor_ids:
                 self.records[message.actor_id] += 1
-            elif isinstance(message, Stats) and key.endswith("/metrics/learner/0") and message.source == "learner" \
-                    and isinstance(message.values.get("updates"), int):
-                self.learner = dict(message.values)
-            elif isinstance(message, Stats) and "/metrics/actor_stats/" in key and message.source == "actor" \
-                    and isinstance(message.values.get("episodes"), int):
-                self.actor_stats[key.rsplit("/", 1)[1]] = dict(message.values)
+            elif isinstance(message, LearnerStats) and key.endswith("/metrics/learner/0"):
+                self.learner = flat_values(message)
+            elif isinstance(message, ActorStats) and "/metrics/actor_stats/" in key:
+                self.actor_stats[key.rsplit("/", 1)[1]] = flat_values(message)
 
     def on_replay(self, message, key: str) -> None:
         if isinstance(message, ReplayStats):

@@ -4,12 +4,16 @@ import threading
 import numpy as np
 import torch
 
+from actor.delivery import Outbox
 from actor.mailbox import Mailbox
 from actor.acting import Actor, actor_seed
+from actor.runner import _stats
 from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
+from common.wire.envelope import decode, encode
 from common.wire.messages import Stats, Weights
+from common.wire.metrics import ActorStats
 from wire_examples import example_rate
 from learner.update import DoubleQLearner
 
@@ -184,3 +188,18 @@ def test_an_episode_counts_its_actions_that_were_not_argmax_q():
     assert record.off_greedy == record.length >= 1
     actor.strategy.act = lambda q, rng: int(np.argmax(q))
     assert actor.run_episode(stop)[1].off_greedy == 0
+
+
+def test_the_actors_stats_are_its_typed_counters_with_the_run_time_ones_in_their_mapping():
+    class Link:  # what _stats reads of the hub link
+        reopened = 2
+
+        def rejected(self):
+            return {"weights": 3}
+
+    actor = Actor(small_config(), actor_id=4)
+    actor.rejections.reject("weights_values", "a test")
+    actor.run_episode(threading.Event())
+    stats = decode(encode(_stats(actor, Outbox(10, 10**9), Link())), ActorStats)
+    assert (stats.episodes, stats.weights_version, stats.sessions_reopened) == (1, -1, 2)
+    assert stats.rejected == {"rejected_weights_values": 1, "rejected_total": 1, "malformed_weights": 3}

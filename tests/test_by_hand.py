@@ -10,7 +10,8 @@ from pathlib import Path
 
 from common.transport import subscribe
 from common.keys import Keys
-from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from common.wire.messages import EpisodeRecord, ExplorationState, flat_values
+from common.wire.metrics import LearnerStats
 from tests.processes import loopback_endpoint, router_client, start, stop
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -42,8 +43,8 @@ def test_the_readme_example_trains_with_the_learners_strategy(tmp_path):
         with lock:
             if isinstance(message, EpisodeRecord):
                 records.append(message)
-            elif isinstance(message, Stats) and message.source == "learner":
-                learner.append(dict(message.values))
+            elif isinstance(message, LearnerStats):
+                learner.append(flat_values(message))
 
     def on_exploration(message, key):
         with lock:

@@ -28,6 +28,7 @@ from replay.recorder.scalars import OFF_GREEDY_MEAN, RETURN_MEAN, read_series
 from replay.recorder.tensorboard_events import EventsWriter
 from replay.recorder.writer import LogWriter
 from tests.processes import loopback_endpoint, start, stop, wait_for
+from wire_examples import example_learner_stats
 
 CONFIG = load_config("smoke", overrides={"recorder.flush_period_s": 0.05})
 KEYS = Keys("d3rqn", CONFIG.run.name)
@@ -52,12 +53,15 @@ def run_messages(replay_env_steps: int = 0) -> list[tuple[str, Message]]:
     return [
         (KEYS.metrics_source("actor", 0), episode(0, 10, 1.0, epsilon=1.0)),
         (KEYS.replay_stats, stats("replay", env_steps_total=replay_env_steps, episodes=1, hold_reason="none")),
-        (KEYS.metrics_source("learner", 0), stats("learner", env_steps=10, updates=0, loss=math.nan)),
+        (KEYS.metrics_source("learner", 0), example_learner_stats(env_steps=10, updates=0, loss=math.nan,
+                                                                  updates_per_s=0.0, env_steps_per_update=None,
+                                                                  start_env_steps=None)),
         (KEYS.metrics_source("actor", 0), episode(1, 20, 3.0, epsilon=0.75, off_greedy=2)),
         (KEYS.exploration, exploration),
         (KEYS.metrics_source("actor", 0), episode(2, 30, 5.0, epsilon=0.5, off_greedy=9)),
-        (KEYS.metrics_source("learner", 0), stats("learner", env_steps=60, updates=12, loss=0.25, loss_abs_diff=0.5,
-                                                  updates_per_s=3.0, start_env_steps=25.0)),
+        (KEYS.metrics_source("learner", 0), example_learner_stats(env_steps=60, updates=12, loss=0.25,
+                                                                  loss_abs_diff=0.5, updates_per_s=3.0,
+                                                                  start_env_steps=25.0)),
     ]
 
 
@@ -131,7 +135,7 @@ def test_export_tensorboard_is_read_back_by_tensorboard(tmp_path, capsys):
     assert [(step, value) for step, value, _ in events["episode/epsilon"]] == [(10, 1.0), (30, 0.75), (60, 0.5)]
     assert events["learner/0/loss"] == [(60, 0.25, 7.0)]
     assert events["learner/0/loss_abs_diff"] == [(60, 0.5, 7.0)]
-    assert events["learner/0/updates_per_s"] == [(60, 3.0, 7.0)]
+    assert events["learner/0/updates_per_s"] == [(10, 0.0, 3.0), (60, 3.0, 7.0)]  # none before the start
     assert [(step, value) for step, value, _ in events["learner/0/updates"]] == [(10, 0.0), (60, 12.0)]
     assert events["replay/stats/env_steps_total"] == [(0, 0.0, 2.0)]
     assert events["exploration/epsilon"] == [(30, 0.75, 5.0)]

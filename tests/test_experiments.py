@@ -23,7 +23,9 @@ from common.config_values import load_config
 from common.run_dir import log_segments
 from common.keys import Keys
 from common.wire.envelope import encode
-from common.wire.messages import EpisodeRecord, Stats
+from common.wire.messages import EpisodeRecord
+from common.wire.metrics import LearnerStats
+from wire_examples import example_learner_stats
 from deploy.studies.comparison import (ComparisonError, EvaluatedRun, comparison_markdown, comparison_rows,
                                read_episodes_csv, write_comparison_csv)
 from deploy.studies.performance_profile import plot_performance_profiles
@@ -58,13 +60,12 @@ def record(length: int, episode_return: float, epsilon: float, off_greedy: int =
                                             weights_version=0, wall_time=0.1, time=1.0, off_greedy=off_greedy)
 
 
-def learner_report(updates: int, loss_abs_diff: float) -> tuple[str, Stats]:
-    return "metrics/learner/0", Stats(source="learner", time=1.0,
-                                      values={"updates": updates, "loss": 0.5, "loss_abs_diff": loss_abs_diff})
+def learner_report(updates: int, loss_abs_diff: float) -> tuple[str, LearnerStats]:
+    return "metrics/learner/0", example_learner_stats(updates=updates, loss=0.5, loss_abs_diff=loss_abs_diff)
 
 
-def progress(updates: int) -> tuple[str, Stats]:  # same source, other key: not a metrics report
-    return "learner/progress", Stats(source="learner", time=1.0, values={"updates": updates, "env_steps": 5})
+def progress(updates: int) -> tuple[str, LearnerStats]:  # same type, other key: not a metrics report
+    return "learner/progress", example_learner_stats(updates=updates, env_steps=5)
 
 
 def test_the_curves_of_a_resumed_run_join_its_logs_in_recording_order(tmp_path):

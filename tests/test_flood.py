@@ -15,6 +15,7 @@ from common.wire.envelope import decode, encode
 from common.wire.errors import WireError
 from common.wire.messages import (Episode, EpisodeAck, ExplorationState, RateState, ReplayStats, Stats,
                                   TraceBatchRequest, Weights)
+from common.wire.metrics import ActorStats, LearnerStats
 from common.wire.run_shape import RunShape, check_episode
 from replay.snapshot import Snapshotter
 from tests import hostile
@@ -90,8 +91,8 @@ def flood(run: StackRun, config, shape: RunShape, rng, genuine: Episode) -> tupl
     examples = hostile.examples(config)
     doors = {  # key -> the message type that belongs there
         keys.episodes: Episode, keys.replay_stats: ReplayStats, keys.replay_rate: RateState, keys.weights: Weights,
-        keys.exploration: ExplorationState, keys.metrics_source("learner", "0"): Stats,
-        keys.metrics_source("actor", "0"): Stats, keys.metrics_source("actor_stats", "1"): Stats,
+        keys.exploration: ExplorationState, keys.metrics_source("learner", "0"): LearnerStats,
+        keys.metrics_source("actor", "0"): Stats, keys.metrics_source("actor_stats", "1"): ActorStats,
         keys.metrics_source("recorder", "0"): Stats,
         keys.replay_sample: TraceBatchRequest, keys.weights_latest: TraceBatchRequest,
         keys.episode_acks(0): EpisodeAck, keys.episode_acks(1): EpisodeAck,

@@ -16,6 +16,7 @@ from common.config_values import load_config
 from common.exploration.build import exploration_message, make_strategy
 from common.network import D3RQN, weights_to_numpy
 from common.rejections import Rejections
+from common.wire.envelope import decode, encode
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
 from common.wire.messages import Episode, ExplorationState, Stats, TraceBatch, TraceBatchRequest, Weights, flat_values
@@ -24,7 +25,7 @@ from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerService
 from replay.service import MAX_PENDING, ReplayService
-from wire_examples import example_rate, example_replay_stats
+from wire_examples import example_learner_stats, example_rate, example_replay_stats
 
 SIZE, STEPS = 36, 12
 
@@ -382,10 +383,12 @@ def test_the_actor_keeps_its_strategy_against_an_unknown_or_broken_state(tmp_pat
 
 # --- the local stack's live line ---------------------------------------------------------------
 
-def test_the_stack_line_survives_missing_and_wrongly_typed_values():
+def test_the_stack_line_takes_only_checked_metrics_and_survives_the_rest():
     monitor = StackMonitor()
-    monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": "many", "epsilon": float("nan"),
-                                                                "final": "yes"}), "d3rqn/r/metrics/learner/0")
+    for values in ({"updates": "many", "epsilon": float("nan"), "final": "yes"}, {"updates": 5}):
+        with pytest.raises(WireError):  # an older learner's word with missing or wrongly typed values: refused
+            decode(encode(Stats(source="learner", time=0.0, values=values)))
+    monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": 9}), "d3rqn/r/metrics/learner/0")
     monitor.on_replay_stats(Stats(source="replay", time=0.0, values={"env_steps_total": -3}), "k")
     monitor.on_replay_stats(Weights(version=0, tensors={}), "k")
     monitor.on_metric(ExplorationState(strategy="x", params={}, epsilon=0.5, kappa=0.0, started=False,
@@ -400,7 +403,7 @@ def test_the_stack_line_survives_missing_and_wrongly_typed_values():
 def test_a_learner_stopped_by_hand_is_not_finished_in_the_run_summary():
     """Its final metrics come on any clean stop; only a learner that exited by itself paid for its budget."""
     monitor = StackMonitor()
-    monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": 7, "final": 1}), "d3rqn/r/metrics/learner/0")
+    monitor.on_metric(example_learner_stats(updates=7, final=True), "d3rqn/r/metrics/learner/0")
     assert monitor.learner_final.is_set()
     config = load_config("smoke")
     assert not monitor.summary(config)["learner_finished"]

@@ -21,7 +21,6 @@ from common import cpu_capability
 from common.config import LearnerConfig
 from common.config_values import load_config
 from common.schema.fields import ConfigError
-from common.wire.messages import Stats
 from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.metrics import LearnerMetrics
@@ -212,11 +211,11 @@ def test_auto_chooses_under_a_busy_neighbour_as_it_does_quietly_and_the_metrics_
     assert service.learner.precision == quiet_choice
     prefetcher = Prefetcher(lambda request: None, 4, 10, depth=1)
     try:
-        values = LearnerMetrics(service, prefetcher).values()
+        stats = LearnerMetrics(service, prefetcher).report()
     finally:
         prefetcher.close()
-    assert (values["precision"], values["update_path"]) == (quiet_choice, "trace")
+    assert (stats.precision, stats.update_path) == (quiet_choice, "trace")
     monitor = StackMonitor()
-    monitor.on_metric(Stats(source="learner", time=0.0, values=values), "d3rqn/r/metrics/learner/0")
+    monitor.on_metric(stats, "d3rqn/r/metrics/learner/0")
     summary = monitor.summary(config)
     assert (summary["learner_precision"], summary["learner_update_path"]) == (quiet_choice, "trace")

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from actor.evaluation.episodes import EpisodeJob, GreedyPolicy, evaluation_env_config, run_lockstep
-from actor.lockstep import Lockstep, episode_message, training_actions
+from actor.lockstep import Lockstep, episode_message, network_acts, training_actions
 from actor.acting import Actor
 from actor.sim import make_env
 from common.analysis.stats import digest_of_actions
@@ -133,15 +133,25 @@ def test_the_acting_rule_is_uniform_until_the_network_acts_then_the_strategys():
     assert training_actions(strategy, rows, [np.random.default_rng(0)] * 2, 5) == [1, 4]
 
 
+def test_the_network_acts_once_the_learners_strategy_started_and_its_weights_came():
+    strategy = make_strategy(greedy_config().exploration, 5)
+    assert not network_acts(None, 3)  # no strategy came from the learner yet
+    assert not network_acts(strategy, 3)  # updates have not started
+    strategy.start()
+    assert not network_acts(strategy, -1) and network_acts(strategy, 0)
+
+
 def test_the_reference_loop_acts_by_the_actors_rule_and_the_probe_on_the_core(monkeypatch):
     import deploy.reference_loop as loop_module
     calls, stepped = [], []
     monkeypatch.setattr(loop_module, "training_actions", lambda *args: calls.append(args) or training_actions(*args))
+    asked = []
+    monkeypatch.setattr(loop_module, "network_acts", lambda *args: asked.append(args) or network_acts(*args))
     original = Lockstep.step
     monkeypatch.setattr(Lockstep, "step", lambda self, actions, tag=-1: stepped.append(1) or original(self, actions, tag))
     loop = reference_loop.train(load_config("smoke", overrides={"pace.total_env_steps": 30,
                                                                 "network.lstm_units": 16}), evaluate_at_end=False)
-    assert len(calls) == loop.env_steps
+    assert len(calls) == len(asked) == loop.env_steps
     stepped[:] = []
     config = greedy_config()
     rows = off_greedy_probe.greedy_q_rows(config, weights_to_numpy(D3RQN(config.network)), 1, 3)

@@ -35,7 +35,9 @@ from replay.recorder.recorder import HandOff, Recorder, WeightsSampler
 from replay.recorder.recover import recover
 from replay.recorder.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns
 from replay.recorder.writer import LogWriter
+from common.wire.metrics import LearnerStats
 from tests.processes import loopback_endpoint, router_client, start, stop, wait_for
+from wire_examples import example_learner_stats
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "logrun"
@@ -124,8 +126,7 @@ def test_recorder_writes_bytes_times_views_and_counters(tmp_path):
     episode = make_episode(steps=4, index=0)
     sent = {
         keys.episodes: [encode(episode)],
-        keys.metrics_source("learner", 0): [encode(Stats(source="learner", time=1.5e9 + i,
-                                                         values={"loss": float("nan"), "updates": i}))
+        keys.metrics_source("learner", 0): [encode(example_learner_stats(time=1.5e9 + i, loss=float("nan"), updates=i))
                                             for i in range(3)],
         keys.exploration: [encode(ExplorationState(strategy="bmc", params={}, epsilon=0.5, kappa=0.0, started=True,
                                                    counters={"n": 1}, state={}))],
@@ -274,9 +275,9 @@ def test_the_stack_records_its_run(recorded_run):
         assert indexes[-1] + 1 == received_by_replay  # ... nor at the end (the recorder stops after the actors)
         versions = [peek(r.data).version for r in log.records([keys.weights])]
         assert versions[0] == 0 and versions == sorted(versions)
-        learner = [m.values for _, m in log.messages(Stats) if m.source == "learner"]
+        learner = [m for _, m in log.messages(LearnerStats)]
         if learner:
-            assert versions[-1] == learner[-1]["weights_version"]  # the final weights are kept
+            assert versions[-1] == learner[-1].weights_version  # the final weights are kept
         assert log.recorder_counters()["dropped"] == "0"
 
 

@@ -123,3 +123,26 @@ def test_the_loop_with_stored_states_trains_past_the_burn_in(spied, monkeypatch)
     # the random phase's episodes too (the first two) store real states after their zero start, not zero rows
     assert all(not rows[0].any() and all(row.any() for row in rows[1:]) for rows in stored[:2])
     assert spied[0][1]["observations"] == [config.learner.batch_size * (config.learner.trace_length - 2)] * result.updates
+
+
+def test_the_acting_weights_catch_up_by_the_learners_broadcast_rule(spied, monkeypatch):
+    """The loop's acting weights are those of the learner's broadcasts (learner/service.py Cadence), by updates
+    only: each step is tagged with the update of the last broadcast, never one the rule did not send."""
+    sent, episodes = [0], []
+    cadence, message = reference_loop.Cadence, reference_loop.episode_message
+
+    class Recorded(cadence):
+        def due(self, updates):
+            answer = super().due(updates)
+            if answer:
+                sent.append(updates)
+            return answer
+
+    monkeypatch.setattr(reference_loop, "Cadence", Recorded)
+    monkeypatch.setattr(reference_loop, "episode_message", lambda *a, **k: episodes.append(message(*a, **k))
+                        or episodes[-1])
+    result = reference_loop.train(smoke("constant", **{"learner.weights_every": 3}), evaluate_at_end=False,
+                                  log_period_s=1e9)
+    tags = {int(tag) for episode in episodes for tag in episode.weights_version}
+    assert sent[1:] == list(range(3, result.updates + 1, 3))  # by updates only, every third
+    assert -1 in tags and len(tags - {-1}) >= 3 and tags - {-1} <= set(sent)

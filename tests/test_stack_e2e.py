@@ -12,7 +12,8 @@ import pytest
 from common.presets import PRESETS
 from common.transport import subscribe
 from common.keys import Keys
-from common.wire.messages import EpisodeRecord, ExplorationState, Stats, flat_values
+from common.wire.messages import EpisodeRecord, ExplorationState, flat_values
+from common.wire.metrics import LearnerStats
 from tests.processes import loopback_endpoint, router_client, start, stop
 
 DEADLINE_S = 240.0
@@ -33,8 +34,8 @@ class Observer:
         with self.lock:
             if isinstance(message, EpisodeRecord):
                 self.records[message.actor_id].append(message)
-            elif isinstance(message, Stats) and message.source == "learner":
-                self.learner.append(dict(message.values))
+            elif isinstance(message, LearnerStats):
+                self.learner.append(flat_values(message))
 
     def on_replay(self, message, key):
         with self.lock:

@@ -16,8 +16,9 @@ from common.checkpoint import save_checkpoint
 from common.config_values import load_config
 from common.eta import Eta, clock_time
 from common.run_dir import RunDir, RunStatus
-from common.wire.messages import EpisodeRecord, ReplayStats, Stats
-from wire_examples import example_rate, example_replay_stats
+from common.wire.envelope import decode, encode
+from common.wire.messages import EpisodeRecord, ReplayStats
+from wire_examples import example_learner_stats, example_rate, example_replay_stats
 from deploy.launcher.stack import Stack, StackMonitor
 from fake_clock import FakeClock
 from learner.prefetch import Prefetcher
@@ -79,7 +80,7 @@ def test_the_line_shows_the_temperature_beside_epsilon_since_softmax_explores_at
     assert "eps 1.000 uniform       |" in monitor.line()  # nothing heard yet: the random phase's uniform actions
     for values, shown in (({"epsilon": 1.0, "kappa": 0.1}, "eps 1.000 kappa     0.1 |"),
                           ({"epsilon": 0.05, "kappa": 0.0}, "eps 0.050 uniform       |")):
-        monitor.on_metric(Stats(source="learner", time=0.0, values=values), "d3rqn/r/metrics/learner/0")
+        monitor.on_metric(example_learner_stats(**values), "d3rqn/r/metrics/learner/0")
         assert shown in monitor.line()
 
 
@@ -89,12 +90,12 @@ def test_the_learners_metrics_carry_its_strategys_temperature_to_the_line(tmp_pa
     service.strategy.start()
     prefetcher = Prefetcher(lambda request: None, 4, 10, depth=1)
     try:
-        values = LearnerMetrics(service, prefetcher).values()
+        stats = LearnerMetrics(service, prefetcher).report()
     finally:
         prefetcher.close()
-    assert (values["epsilon"], values["kappa"]) == (1.0, config.exploration.softmax.kappa)
+    assert (stats.epsilon, stats.kappa) == (1.0, config.exploration.softmax.kappa)
     monitor = StackMonitor(clock=FakeClock())
-    monitor.on_metric(Stats(source="learner", time=0.0, values=values), "d3rqn/r/metrics/learner/0")
+    monitor.on_metric(decode(encode(stats)), "d3rqn/r/metrics/learner/0")
     assert f"eps 1.000 kappa {config.exploration.softmax.kappa:7.3g} |" in monitor.line()
 
 
@@ -104,8 +105,7 @@ def test_a_paced_runs_eta_follows_the_updates_it_still_owes_not_the_random_phase
 
     def report(env_steps: int, start: float | None, updates: int) -> None:
         monitor.on_replay_stats(replay_stats(env_steps, start), "k")
-        monitor.on_metric(Stats(source="learner", time=0.0, values={"updates": updates}),
-                          "d3rqn/r/metrics/learner/0")
+        monitor.on_metric(example_learner_stats(updates=updates), "d3rqn/r/metrics/learner/0")
 
     report(5_000, None, 0)
     clock.now = 10.0
@@ -284,8 +284,8 @@ def test_the_learners_metrics_give_the_gradients_norm_over_the_period_and_then_f
         metrics = LearnerMetrics(service, prefetcher)
         for loss, norm in ((0.5, 2.0), (0.4, None), (0.3, 6.0)):
             metrics.on_update(UpdateResult(1, loss, *([np.zeros((1, 1))] * 4), grad_norm=norm))
-        values = metrics.values()
-        assert (values["grad_norm"], values["grad_norm_max"], values["loss"]) == (4.0, 6.0, pytest.approx(0.4))
-        assert math.isnan(metrics.values()["grad_norm"])  # none measured since
+        stats = metrics.report()
+        assert (stats.grad_norm, stats.grad_norm_max, stats.loss) == (4.0, 6.0, pytest.approx(0.4))
+        assert math.isnan(metrics.report().grad_norm)  # none measured since
     finally:
         prefetcher.close()

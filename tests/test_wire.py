@@ -15,7 +15,7 @@ from common.wire.messages import (MESSAGE_TYPES, Episode, EpisodeAck, EpisodeRec
                                   Weights, flat_values)
 from wire_examples import (
     SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_rate, example_replay_stats,
-    example_trace_batch, random_frames,
+    example_trace_batch, example_learner_stats, example_actor_stats, random_frames,
 )
 
 EXAMPLES = example_messages()
@@ -61,8 +61,10 @@ def test_encode_converts_lists_and_same_kind_arrays_to_the_declared_dtypes():
 
 
 def test_numpy_scalars_in_dicts_are_encoded_as_plain_values():
-    stats = Stats(source="learner", time=1.0, values={"loss": np.float32(0.5), "updates": np.int64(3)})
-    assert decode(encode(stats)).values == {"loss": 0.5, "updates": 3}
+    stats = Stats(source="recorder", time=1.0, values={"queue_mb": np.float32(0.5), "received": np.int64(3)})
+    assert decode(encode(stats)).values == {"queue_mb": 0.5, "received": 3}
+    counts = example_learner_stats(rejected={"rejected_total": np.int64(4)})
+    assert decode(encode(counts)).rejected == {"rejected_total": 4}
 
 
 def test_trace_batch_observations_array_is_batch_major():
@@ -185,6 +187,8 @@ NAN32 = np.array([np.nan], dtype=np.float32).tobytes()
 ACK = EpisodeAck(actor_id=1, incarnation=5, received=np.array([1]), kept=np.array([2, 3]), refused=np.array([4]))
 RATE = example_rate()
 REPLAY_STATS = example_replay_stats()
+LEARNER = example_learner_stats()
+ACTOR = example_actor_stats()
 
 
 def set_rate_field(name, value):
@@ -256,6 +260,19 @@ MALFORMED = {
     "nested rate not a map": (REPLAY_STATS, set_field("rate", [1]), "ReplayStats.rate: fields must be a map"),
     "negative episodes": (REPLAY_STATS, set_field("episodes", -5), "ReplayStats.episodes: -5 is outside"),
     "stats counts as text": (REPLAY_STATS, set_field("rejected", {"rejected_total": "x"}), "ReplayStats.rejected.rejected_total"),
+    "negative loss": (LEARNER, set_field("loss", -1.0), r"LearnerStats.loss: -1.0 is outside"),
+    "learner epsilon above one": (LEARNER, set_field("epsilon", 1.5), r"LearnerStats.epsilon: 1.5 is outside"),
+    "updates as text": (LEARNER, set_field("updates", "many"), "LearnerStats.updates: expected an integer, got str"),
+    "infinite update rate": (LEARNER, set_field("updates_per_s", float("inf")), "LearnerStats.updates_per_s: must be finite"),
+    "final as a number": (LEARNER, set_field("final", 1), "LearnerStats.final: expected a bool, got int"),
+    "learner without updates": (LEARNER, lambda e: e["fields"].pop("updates"), r"LearnerStats: missing field\(s\) updates"),
+    "negative rejection count": (LEARNER, set_field("rejected", {"rejected_total": -1}),
+                                 r"LearnerStats.rejected.rejected_total: -1 is outside"),
+    "fractional door count": (LEARNER, set_field("rejected", {"malformed_stats": 1.5}),
+                              "LearnerStats.rejected.malformed_stats: expected an integer, got float"),
+    "count under a bytes name": (ACTOR, set_field("rejected", {b"rejected_total": 1}), "keys must be strings"),
+    "actor behind by less than none": (ACTOR, set_field("weights_behind", -3), "ActorStats.weights_behind: -3 is outside"),
+    "actor version below none": (ACTOR, set_field("weights_version", -2), "ActorStats.weights_version: -2 is outside"),
 }
 
 

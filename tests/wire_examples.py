@@ -8,6 +8,7 @@ import numpy as np
 
 from common.wire.codecs import Message
 from common.wire.frames import FrameStack
+from common.wire.metrics import ActorStats, LearnerStats
 from common.wire.messages import (BufferFillState, Episode, EpisodeAck, EpisodeRecord, ExplorationState,
                                   RateState, ReplayStats, Stats, TraceBatch, TraceBatchRequest, Weights, WeightsPiece,
                                   WeightsPieceAsk)
@@ -66,6 +67,22 @@ def example_replay_stats(rate: RateState | None = None, **changes) -> ReplayStat
     return ReplayStats(**{**fields, **changes})
 
 
+def example_learner_stats(**changes) -> LearnerStats:
+    fields = dict(time=12.5, updates=3_000, env_steps=40_000, loss=0.012, epsilon=0.3, updates_per_s=4.6,
+                  data_wait_share=0.25, weights_version=2_950, loss_abs_diff=float("nan"), grad_norm=1.5,
+                  grad_norm_max=4.0, kappa=0.1, bmc_observations=12_000, precision="float32", update_path="fused",
+                  sessions_reopened=1, hub_silent_s=0.5, env_steps_per_update=4.0, start_env_steps=28_000.0,
+                  rejected={"rejected_total": 0, "malformed_stats": 2})
+    return LearnerStats(**{**fields, **changes})
+
+
+def example_actor_stats(**changes) -> ActorStats:
+    fields = dict(time=12.5, episodes=40, episodes_sent=39, episodes_kept=38, episodes_in_flight=1,
+                  weights_version=2_950, weights_behind=50, weights_behind_max=120, weights_download_s=0.25,
+                  rejected={"rejected_weights_values": 1, "rejected_total": 1})
+    return ActorStats(**{**fields, **changes})
+
+
 def example_messages() -> list[Message]:
     rng = np.random.default_rng(2)
     return [
@@ -92,6 +109,8 @@ def example_messages() -> list[Message]:
         example_replay_stats(snapshot_age_s=12.5),
         WeightsPieceAsk(version=-1, offset=49_152, size=49_152),
         WeightsPiece(version=12, total_bytes=100, offset=96, data=np.arange(4, dtype=np.uint8)),
+        example_learner_stats(final=True),
+        example_actor_stats(),
     ]
 
 

@@ -8,8 +8,8 @@
     python tests/zenoh_peer.py voice OUT.jsonl --quiet-file PATH [config flags]
 
 `watch` writes a line per EpisodeRecord (actor, weights version), per episode on the episodes
-key (actor, the weights versions its steps were acted with), per learner and replay Stats (a
-few values), per actor Stats (all values), per sample of the run whose payload starts with the rogue's marker, and per key
+key (actor, the weights versions its steps were acted with), per learner and replay stats (a
+few values), per actor stats (all values), per sample of the run whose payload starts with the rogue's marker, and per key
 the first time anything else arrives on it. `rogue` forges what only other roles may send:
 real weights of the run's network with version N on weights/broadcast (every 0.5 s), marker
 bytes on exploration, episodes, replay/stats and replay/rate, and queryables on replay/sample
@@ -66,7 +66,8 @@ class Lines:
 def watch(config: Config, out: Lines, stop: threading.Event) -> None:
     from common.transport import open_session, subscribe
     from common.keys import Keys
-    from common.wire.messages import Episode, EpisodeRecord, ReplayStats, Stats, flat_values
+    from common.wire.messages import Episode, EpisodeRecord, ReplayStats, flat_values
+    from common.wire.metrics import ActorStats, LearnerStats
 
     keys = Keys(config.transport.namespace, config.run.name)
 
@@ -74,10 +75,10 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
         if isinstance(message, EpisodeRecord):
             out.write(kind="record", actor=message.actor_id, weights_version=message.weights_version,
                       epsilon=message.epsilon)
-        elif isinstance(message, Stats) and message.source == "learner":
-            out.write(kind="learner", updates=message.values.get("updates"))
-        elif isinstance(message, Stats) and message.source == "actor":
-            out.write(kind="actor_stats", actor=key.rsplit("/", 1)[-1], values=message.values)
+        elif isinstance(message, LearnerStats):
+            out.write(kind="learner", updates=message.updates)
+        elif isinstance(message, ActorStats):
+            out.write(kind="actor_stats", actor=key.rsplit("/", 1)[-1], values=flat_values(message))
 
     def on_stats(message, key):
         values = flat_values(message)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -267,6 +267,18 @@ class NumberDict(Codec):
 
 
 @dataclass(frozen=True)
+class Counts(NumberDict):
+    """str -> a non-negative integer: counters whose names are made at run time (a rejection's kind, a door)."""
+
+    def unpack(self, raw, where):
+        if not isinstance(raw, dict):
+            raise _fail(where, f"expected a dict, got {_type_name(raw)}")
+        for key, item in raw.items():
+            COUNT.unpack(item, f"{where}.{_check_key(key, where)}")
+        return raw
+
+
+@dataclass(frozen=True)
 class TensorDict(Codec):
     """Named arrays of any whitelisted dtype and shape, floats finite."""
 
@@ -287,6 +299,8 @@ class TensorDict(Codec):
 
 
 _TENSOR = Array(finite=True, dtypes=WEIGHTS_DTYPES)
+PROBABILITY = Real(0.0, 1.0)
+COUNT = Integer(min_value=0)
 
 
 def wired(codec: Codec, **kwargs: Any) -> Any:
@@ -295,7 +309,10 @@ def wired(codec: Codec, **kwargs: Any) -> Any:
 
 
 class Message:
-    """Base of the wire messages; ``check`` holds the rules that span fields."""
+    """Base of the wire messages; ``check`` holds the rules that span fields. ``former_types``: the types an
+    older sender wrote it as, which decode into it (common/wire/envelope.py)."""
+
+    former_types: ClassVar[tuple[str, ...]] = ()
 
     def check(self) -> None:
         pass

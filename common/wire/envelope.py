@@ -9,7 +9,8 @@ import msgpack
 
 from common.wire.codecs import Message, pack_fields, unpack_fields
 from common.wire.errors import WireError
-from common.wire.messages import MESSAGE_TYPES
+from common.wire.messages import MESSAGE_TYPES, Stats
+from common.wire.metrics import STATS_SUCCESSORS, from_values
 
 SCHEMA_VERSION = 1
 
@@ -40,6 +41,11 @@ def decode(data: bytes, expected: type[Message] | None = None) -> Message:
     cls = MESSAGE_TYPES.get(tag) if isinstance(tag, str) else None
     if cls is None:
         raise WireError(f"unknown message type {tag!r}", "undecodable")
-    if expected is not None and cls is not expected:
+    if expected is not None and cls is not expected and tag not in expected.former_types:
         raise WireError(f"expected message type {expected.__name__}, got {tag}", "wrong_type")
-    return unpack_fields(cls, envelope["fields"], cls.__name__)
+    message = unpack_fields(cls, envelope["fields"], cls.__name__)
+    if isinstance(message, Stats) and message.source in STATS_SUCCESSORS:  # an older learner's or actor's
+        message = from_values(STATS_SUCCESSORS[message.source], message.time, message.values)
+    if expected is not None and type(message) is not expected:
+        raise WireError(f"expected message type {expected.__name__}, got {type(message).__name__}", "wrong_type")
+    return message

@@ -11,17 +11,16 @@ from typing import Any
 
 import numpy as np
 
-from common.wire.codecs import (DTYPES, Array, Flag, Frames, Integer, Message, Nested, Nullable, NumberDict,
-                                PlainDict, Real, TensorDict, Text, wired)
+from common.wire.codecs import (COUNT, DTYPES, PROBABILITY, Array, Flag, Frames, Integer, Message, Nested, Nullable,
+                                NumberDict, PlainDict, Real, TensorDict, Text, wired)
 from common.wire.state_rows import no_states
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
+from common.wire.metrics import ActorStats, LearnerStats
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS, decode_tensor, encode_tensor
 
 
-PROBABILITY = Real(0.0, 1.0)
 STATES = Array("float16", 3, finite=True, dtypes=("float16",))  # LSTM state rows (n, 2, lstm_units)
-COUNT = Integer(min_value=0)
 
 
 @dataclass(eq=False)
@@ -188,6 +187,9 @@ class ExplorationState(Message):
 
 @dataclass(eq=False)
 class Stats(Message):
+    """Untyped counters: the recorder's (their names follow the keys it records), and the form older learners,
+    actors and replays wrote theirs in (a learner's or an actor's decodes into its typed message)."""
+
     source: str = wired(Text())
     time: float = wired(Real())
     values: dict[str, int | float | str] = wired(NumberDict(text=True))
@@ -278,7 +280,8 @@ class ReplayStats(Message):
     fill: BufferFillState = wired(Nested(BufferFillState), default_factory=BufferFillState)
 
 
-COUNTER_TYPES = (Stats, RateState, ReplayStats)  # the messages of counters that logs keep as flat rows
+# the messages of counters that logs keep as flat rows (Stats: the untyped form of older senders' logs)
+COUNTER_TYPES = (Stats, LearnerStats, ActorStats, RateState, ReplayStats)
 
 
 def flat_values(message: Message) -> dict[str, int | float | str]:
@@ -377,6 +380,6 @@ class WeightsPiece(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.__name__: cls
-    for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, EpisodeRecord,
-                EpisodeAck, RateState, ReplayStats, WeightsPieceAsk, WeightsPiece)
+    for cls in (Episode, TraceBatchRequest, TraceBatch, Weights, ExplorationState, Stats, LearnerStats, ActorStats,
+                EpisodeRecord, EpisodeAck, RateState, ReplayStats, WeightsPieceAsk, WeightsPiece)
 }

@@ -2,8 +2,8 @@
 absurd rewards decode, and are refused here.
 
 ``RunShape`` holds what a run's messages must fit, ``check_episode`` and ``check_trace_batch`` check it
-(every frame of an episode is decompressed), and ``stat_number`` reads one value of a Stats message
-without trusting it. Each refusal is a WireError with a ``kind`` (a short name for counting:
+(every frame of an episode is decompressed), and ``stat_number`` reads one value of a flat counters row
+(common/wire/messages.py flat_values; an untyped Stats' values) without trusting it. Each refusal is a WireError with a ``kind`` (a short name for counting:
 common/rejections.py).
 """
 
@@ -89,7 +89,7 @@ def _check_state_rows(rows: np.ndarray, count: int, shape: RunShape, what: str) 
 def stat_number(values: Any, name: str, *, integer: bool = False, minimum: float = -math.inf,
                 maximum: float = math.inf) -> float | int | None:
     """values[name] when it is a finite number within [minimum, maximum] (and integral if asked),
-    else None: a Stats value read without trusting that it is there or what it is."""
+    else None: a row's value read without trusting that it is there or what it is."""
     value = values.get(name) if isinstance(values, dict) else None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None

@@ -30,7 +30,8 @@ from common.run_dir import RunDir
 from common.transport import free_port, loopback_endpoint, open_session, subscribe
 from common.keys import Keys
 from common.wire.envelope import decode
-from common.wire.messages import EpisodeRecord, ReplayStats, Stats
+from common.wire.messages import EpisodeRecord, ReplayStats
+from common.wire.metrics import LearnerStats
 from replay.recorder.reader import LogFile
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -66,9 +67,8 @@ class Watch:
         with self.lock:
             if isinstance(message, EpisodeRecord) and message.epsilon < 1.0 and self.network_from is None:
                 self.network_from = self.samples[-1][1] if self.samples else 0
-            elif isinstance(message, Stats) and message.source == "learner" and self.network_from is not None \
-                    and not self.done.is_set():
-                self.updates_per_s.append(float(message.values["updates_per_s"]))
+            elif isinstance(message, LearnerStats) and self.network_from is not None and not self.done.is_set():
+                self.updates_per_s.append(message.updates_per_s)
 
 
 def run_stack(steps: int, record: bool, runs_dir: Path, name: str, extra: list[str]) -> dict:

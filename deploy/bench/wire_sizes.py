@@ -21,8 +21,9 @@ from common.config import NetworkConfig
 from common.cpu_capability import describe_cpu
 from common.wire.envelope import decode, encode
 from common.wire.frames import ZSTD_LEVEL, FrameStack
-from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, RateState, Stats, TraceBatch,
+from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, RateState, TraceBatch,
                                   TraceBatchRequest, Weights)
+from common.wire.metrics import LearnerStats
 
 
 def synthetic_frames(count: int, height: int, width: int, noise: float, seed: int = 0) -> np.ndarray:
@@ -97,7 +98,8 @@ def small_messages() -> list:
         ExplorationState(strategy="bmc", params={"alpha0": 25.0, "beta0": 25.01, "a0": 250.0, "b0": 250.0},
                          epsilon=0.31, kappa=0.0, started=True, counters={"env_steps": 120_000, "updates": 30_000},
                          state={"alpha": 31.2, "beta": 68.9, "count": 90_000, "mean": 12.5, "m2": 4_000.0}),
-        Stats(source="learner", time=now, values={"loss": 0.0123, "updates": 30_000, "q_mean": 14.2, "strategy": "bmc"}),
+        LearnerStats(time=now, updates=30_000, env_steps=148_000, loss=0.0123, epsilon=0.31, updates_per_s=4.6,
+                     data_wait_share=0.1, weights_version=29_950, precision="float32", update_path="fused"),
         EpisodeRecord(actor_id=2, episode_index=40, length=812, episode_return=640.5, collided=True, start_set="train",
                       start_index=7, epsilon=0.05, weights_version=311, wall_time=41.0, time=now),
         RateState(time=now, env_steps=148_000, batches_served=30_000, updates_due=30_000.0, start_env_steps=28_000.0,

@@ -179,7 +179,7 @@ class LogFile:
 
     def messages(self, *types: type[Message]) -> Iterator[tuple[Record, Message]]:
         """Decoded wire messages of the given types, in log-time order; malformed ones are skipped."""
-        names = {cls.__name__ for cls in types}
+        names = {name for cls in types for name in (cls.__name__, *cls.former_types)}
         topics = [channel.topic for channel in self.channels.values()
                   if channel.message_encoding == WIRE_ENCODING and channel.metadata.get("message_type") in names]
         if not topics:

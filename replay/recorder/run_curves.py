@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Sequence
 
 from common.analysis.figures import RunCurves
-from common.wire.messages import EpisodeRecord, Stats
+from common.wire.messages import EpisodeRecord
+from common.wire.metrics import LearnerStats
 from replay.recorder.reader import LogError, LogFile
 
 
@@ -30,27 +31,17 @@ def read_run_curves(paths: Sequence[Path], label: str | None = None) -> RunCurve
 
 
 def _add_log(curves: RunCurves, log: LogFile) -> None:
-    learner_key = log.keys().metrics_source("learner", "0")  # learner/progress carries Stats of the same source
+    learner_key = log.keys().metrics_source("learner", "0")  # older learners' learner/progress: the same source
     learner_rows = []
-    for record, message in log.messages(EpisodeRecord, Stats):
+    for record, message in log.messages(EpisodeRecord, LearnerStats):
         if isinstance(message, EpisodeRecord):
             curves.episode_returns.append(message.episode_return)
             curves.episode_lengths.append(message.length)
             curves.episode_epsilons.append(message.epsilon)
             curves.episode_off_greedy.append(message.off_greedy)
         elif record.topic == learner_key:
-            learner_rows.append(message.values)
-    updates, diffs = finite_series(learner_rows, "updates", "loss_abs_diff")
-    curves.learner_updates.extend(updates)
-    curves.loss_abs_diffs.extend(diffs)
+            learner_rows.append(message)
+    kept = [row for row in learner_rows if math.isfinite(row.loss_abs_diff)]  # NaN: no pair of updates that report
+    curves.learner_updates.extend(float(row.updates) for row in kept)
+    curves.loss_abs_diffs.extend(row.loss_abs_diff for row in kept)
 
-
-def finite_series(rows: list[dict], x_name: str, y_name: str) -> tuple[list[float], list[float]]:
-    """(x, y) pairs of rows where both are finite numbers."""
-    pairs = [(row.get(x_name), row.get(y_name)) for row in rows]
-    kept = [(x, y) for x, y in pairs if _finite(x) and _finite(y)]
-    return [x for x, _ in kept], [y for _, y in kept]
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

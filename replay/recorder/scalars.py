@@ -34,6 +34,7 @@ from typing import Collection, NamedTuple
 from common.analysis.plotting import RETURN_WINDOW
 from common.wire.codecs import Message
 from common.wire.messages import COUNTER_TYPES, EpisodeRecord, ExplorationState, flat_values
+from common.wire.metrics import LearnerStats
 from common.wire.run_shape import stat_number
 from replay.recorder.arrival import relative_key
 from replay.recorder.reader import LogFile
@@ -42,7 +43,7 @@ CURVE_TYPES = (EpisodeRecord, ExplorationState, *COUNTER_TYPES)
 CURVE_TYPE_NAMES = frozenset(cls.__name__ for cls in CURVE_TYPES)
 ENV_STEP_VALUES = ("env_steps", "env_steps_total")  # Stats values that count the run's env steps
 METRICS_PREFIX = "metrics/"
-LEARNER_KEY = "metrics/learner/0"  # the learner's Stats, below the run
+LEARNER_KEY = "metrics/learner/0"  # the learner's metrics, below the run
 
 RETURN_MEAN_NAME = f"return_mean_{RETURN_WINDOW}"
 RETURN_MEAN = f"episode/{RETURN_MEAN_NAME}"
@@ -80,6 +81,8 @@ class Curves:
         wall_s = log_ns / 1e9
         if isinstance(message, EpisodeRecord):
             return self._episode(message, wall_s)
+        if isinstance(message, LearnerStats) and relative_key(self.run_root, key) == LEARNER_KEY:
+            self.updates = message.updates
         if isinstance(message, COUNTER_TYPES):
             return self._stats(relative_key(self.run_root, key), flat_values(message), wall_s)
         if isinstance(message, ExplorationState):
@@ -109,8 +112,6 @@ class Curves:
     def _stats(self, source: str, values: dict, wall_s: float) -> list[tuple[str, Point]]:
         own_steps = next((int(values[name]) for name in ENV_STEP_VALUES if stat_number(values, name) is not None),
                          None)
-        if source == LEARNER_KEY and stat_number(values, "updates") is not None:
-            self.updates = int(values["updates"])
         released = []
         if own_steps is not None and self.lift is None:
             self.lift = max(0, own_steps - self.episode_steps)
