@@ -16,7 +16,7 @@ PACKAGES = (*ROLES, "common", "deploy")
 MAX_LINES = 400
 # Modules over the cap that are still to split, each at its size when the cap came down from 450 (issue 64): one
 # may shrink, none may grow, and a new module joins none of them.
-NOT_YET_SPLIT = {"actor/evaluation/curve.py": 433, "common/transport.py": 421}
+NOT_YET_SPLIT = {"common/transport.py": 421}
 
 
 def imported(path: Path) -> set[str]:

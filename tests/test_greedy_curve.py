@@ -17,8 +17,8 @@ import torch
 from actor.evaluation.command import build_parser, main
 from actor.evaluation import EvaluationError
 from actor.evaluation.curve import (CURVE_TRIALS, crowding_warning, curve_config, curve_summary, first_reaching,
-                                    late_curves, of_kind, read_curve, summary_lines, trained_with, unbridged,
-                                    warn_if_crowding)
+                                    late_curves, of_kind, read_curve, summary_lines, trained_with, warn_if_crowding)
+from actor.evaluation.curve_figure import unbridged
 from actor.evaluation.workers import torch_threads_per_worker
 from common.analysis.tables import COVERAGE_COLUMNS
 from common.checkpoint import CheckpointError, KeptPolicy
