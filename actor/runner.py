@@ -62,7 +62,8 @@ from actor.weights_download import download_weights
 from common.config import Config
 from common.logs import Every
 from common.shell import Shell
-from common.transport import publisher, request, subscribe, watch_liveliness
+from common.liveliness import watch_liveliness
+from common.transport import publisher, request, subscribe
 from common.keys import Keys
 from common.wire.errors import WireError
 from common.wire.messages import EpisodeAck, WeightsPiece, WeightsPieceAsk

@@ -52,7 +52,8 @@ from common.disk_space import DISK_FULL_EXIT, is_disk_full
 from common.malloc_trim import keep_releasing_free_heap
 from common.log_streams import tolerate_full_disk
 from common.logs import setup_logging
-from common.transport import Declared, alive_keys, declare_liveliness, open_session
+from common.liveliness import alive_keys, declare_liveliness
+from common.transport import Declared, open_session
 from common.keys import Keys
 
 log = logging.getLogger(__name__)

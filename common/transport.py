@@ -1,5 +1,5 @@
 """Zenoh in one place: the session, and typed put/subscribe/query helpers (the key names are
-common/keys.py, the shared-memory pool common/shared_memory.py).
+common/keys.py, the shared-memory pool common/shared_memory.py, the liveliness tokens common/liveliness.py).
 
 Roles never touch payload bytes: what goes out is encoded with ``common.wire.envelope``
 and what comes in is decoded and checked. Malformed input is logged (rate-limited)
@@ -389,33 +389,3 @@ def request(session: zenoh.Session, key: str, message: Message | None, timeout_s
             log.warning("malformed reply on %s: %s", key, error)
             return None
     return None
-
-
-# --- liveliness ----------------------------------------------------------------------------
-
-def declare_liveliness(session: zenoh.Session, key: str) -> Declared:
-    """A liveliness token alive until undeclared or until the session ends (even by a crash)."""
-    return Declared(key).attach(session.liveliness().declare_token(key))
-
-
-def alive_keys(session: zenoh.Session, key: str, timeout_s: float) -> list[str]:
-    """The keys of the liveliness tokens matching key now."""
-    return sorted(str(reply.ok.key_expr) for reply in session.liveliness().get(key, timeout=timeout_s)
-                  if reply.ok is not None)
-
-
-def watch_liveliness(session: zenoh.Session, key: str, callback: Callable[[str, bool], Any]) -> Receiver:
-    """Calls callback(token_key, alive) for tokens matching key: for those present now, then on every change."""
-    warn = ThrottledLog(logger=log)
-    subscription = Receiver(key)
-
-    def on_change(sample: zenoh.Sample) -> None:
-        token_key = str(sample.key_expr)
-        subscription.received += 1
-        try:
-            callback(token_key, sample.kind == zenoh.SampleKind.PUT)
-        except Exception:  # a failing callback must not raise into zenoh's thread
-            subscription.failed += 1
-            warn.warning("liveliness callback for %s failed", token_key, exc_info=True)
-
-    return subscription.attach(session.liveliness().declare_subscriber(key, on_change, history=True))

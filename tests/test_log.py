@@ -21,7 +21,8 @@ from common.analysis.plotting import trailing_mean
 from common.config import Config, TransportConfig
 from common.config_values import flat_items, load_config
 from common.run_dir import next_free_path
-from common.transport import alive_keys, open_session, publisher, request, subscribe
+from common.liveliness import alive_keys
+from common.transport import open_session, publisher, request, subscribe
 from common.keys import Keys
 from common.wire.envelope import decode, encode
 from common.wire.frames import FrameStack

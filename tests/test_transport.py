@@ -14,8 +14,8 @@ import pytest
 import zenoh
 
 from common.config import TransportConfig
-from common.transport import (alive_keys, declare_liveliness, open_session, publisher, request, serve, subscribe,
-                              watch_liveliness, zenoh_config)
+from common.liveliness import alive_keys, declare_liveliness, watch_liveliness
+from common.transport import open_session, publisher, request, serve, subscribe, zenoh_config
 from common.logs import ThrottledLog
 from common.keys import Keys
 from common.wire.envelope import encode

@@ -112,7 +112,8 @@ def watch(config: Config, out: Lines, stop: threading.Event) -> None:
 
 
 def alive(config: Config, out: Lines, stop: threading.Event) -> None:
-    from common.transport import open_session, watch_liveliness
+    from common.liveliness import watch_liveliness
+    from common.transport import open_session
     from common.keys import Keys
 
     keys = Keys(config.transport.namespace, config.run.name)
@@ -181,7 +182,8 @@ def rogue(config: Config, out: Lines, stop: threading.Event, weights_version: in
 
 
 def voice(config: Config, out: Lines, stop: threading.Event, quiet_file: Path) -> None:
-    from common.transport import declare_liveliness, open_session, publisher
+    from common.liveliness import declare_liveliness
+    from common.transport import open_session, publisher
     from common.keys import Keys
     from common.wire.messages import RateState
 
