@@ -5,7 +5,6 @@ around it, its session, threads and loop, is actor/runner.py.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import secrets
 import threading
@@ -22,10 +21,11 @@ from actor.lockstep import Lockstep, Trajectory, episode_message, network_acts, 
 from actor.mailbox import Mailbox
 from actor.sim import make_env
 from common.config import Config
-from common.exploration.build import make_strategy, same_strategy, strategy_from_state
+from common.exploration.base import ExplorationStrategy
 from common.network import initial_network
 from common.pacing import env_steps_ceiling
 from common.rejections import Rejections
+from common.wire.exploration_state import ExplorationState, follow
 from common.wire.messages import Episode, EpisodeRecord
 
 log = logging.getLogger("actor")
@@ -71,7 +71,9 @@ class Actor:
         self.network = initial_network(config.network, config.learner.seed).eval()
         self.batched_q = BatchedQ(self.network, len(self.slots),
                                   choose_precision(self.network, len(self.slots), config.actor.inference))
-        self.strategy = make_strategy(config.exploration, config.network.n_actions)
+        # The learner's strategy, rebuilt from its first exploration state; until then none, and the actor acts
+        # uniformly at random (actor/lockstep.py network_acts), as every strategy does before updates start.
+        self.strategy: ExplorationStrategy | None = None
         self.weights_version = -1  # no weights yet: act uniformly at random
         self.weights_behind_max = 0  # the most updates behind the learner its weights were when the stats looked
         self.episode_index = 0  # episodes ended so far, the number of the next to end
@@ -94,22 +96,21 @@ class Actor:
             except ValueError as error:
                 self.rejections.reject("weights_values", f"weights version {weights.version}: {error}")
         if exploration is not None:
-            self.follow(dataclasses.asdict(exploration))
+            self.follow(exploration)
 
-    def follow(self, state: dict) -> None:
-        """Loads the learner's exploration state; another strategy or other params replace this
-        actor's strategy, with one log line. A state that cannot be used is logged and skipped."""
+    def follow(self, message: ExplorationState) -> None:
+        """Takes the learner's exploration state: the same strategy with the same params is loaded, another is
+        rebuilt from the state alone, with one log line. A state that cannot be used is counted, logged and
+        skipped: the actor acts on as before."""
         try:
-            if same_strategy(self.strategy, state):
-                self.strategy.load_state_dict(state)
-                return
-            replacement = strategy_from_state(state, self.config.network.n_actions)
+            strategy = follow(self.strategy, message, self.config.network.n_actions)
         except ValueError as error:
             self.rejections.reject("exploration_invalid", f"the learner's exploration state: {error}")
             return
-        log.info("following the learner's exploration: %s %s (this actor was configured with %s %s)",
-                 replacement.name, replacement.params(), self.strategy.name, self.strategy.params())
-        self.strategy = replacement
+        if strategy is not self.strategy:
+            log.info("following the learner's exploration: %s %s%s", strategy.name, strategy.params(),
+                     "" if self.strategy is None else f" (until now {self.strategy.name} {self.strategy.params()})")
+            self.strategy = strategy
 
     def uses_network(self) -> bool:
         return network_acts(self.strategy, self.weights_version)

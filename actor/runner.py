@@ -9,9 +9,9 @@ exploration draws and episodes. Weights and exploration state arrive on Zenoh
 callbacks, which only park the newest message in a mailbox; the stepping loop
 picks it up between steps, so a slow or absent learner never blocks driving.
 
-The learner is the authority on exploration: a state naming another strategy
-or other params than this actor's config replaces the actor's strategy (one log
-line). Between episodes the actor obeys the replay's rate limiter: a simulator
+The learner is the authority on exploration: the actor builds no strategy of its
+own; it acts uniformly at random until the learner's exploration state comes, then
+follows the strategy that state describes (one log line when it changes). Between episodes the actor obeys the replay's rate limiter: a simulator
 whose episode has ended starts no other while the replay says the learner is
 behind (``replay/rate``); see EpisodeGate. Once the replay says updates have
 started, an actor that has not yet had the learner's weights and exploration
@@ -131,9 +131,8 @@ def run_actor(config: Config, max_episodes: int | None = None) -> None:
     stop = shell.stop
     torch.set_num_threads(1)  # one core per actor; the learner owns the rest
     actor = Actor(config, actor_id)
-    log.info("actor %d (seed %d, incarnation %x), %d simulator(s), strategy %s until the learner's exploration "
-             "state says otherwise", actor_id, actor.seed, actor.incarnation, len(actor.slots),
-             config.exploration.strategy)
+    log.info("actor %d (seed %d, incarnation %x), %d simulator(s), acting uniformly until the learner's "
+             "exploration state comes", actor_id, actor.seed, actor.incarnation, len(actor.slots))
     keys = shell.keys
     outbox = Outbox(config.actor.queue_episodes, int(config.actor.queue_mb * MEGABYTE),
                     incarnation=actor.incarnation, actor_id=actor_id, resend_after_s=config.actor.resend_after_s,

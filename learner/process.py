@@ -14,7 +14,7 @@ import zenoh
 
 from common.atomic_file import remove_dead_temporaries
 from common.checkpoint import CheckpointError
-from common.exploration.build import exploration_message
+from common.wire.exploration_state import exploration_message
 from common.config import Config
 from common.logs import Every
 from common.pacing import rate_limit_from_config

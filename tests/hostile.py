@@ -9,7 +9,8 @@ import msgpack
 import numpy as np
 
 from common.config import Config
-from common.exploration.build import exploration_message, make_strategy
+from common.exploration.build import make_strategy
+from common.wire.exploration_state import exploration_message
 from common.network import D3RQN, weights_to_numpy
 from common.wire.codecs import Message
 from common.wire.envelope import encode
@@ -123,11 +124,19 @@ def misfit_exploration(config: Config) -> dict[str, bytes]:
     state = examples(config)[ExplorationState]
     other = exploration_message(make_strategy(dataclasses.replace(config.exploration, strategy="softmax"),
                                               config.network.n_actions))
+    bmc = exploration_message(make_strategy(dataclasses.replace(config.exploration, strategy="bmc"),
+                                            config.network.n_actions))
+    fields = lambda **values: lambda e: e["fields"].update(values)  # past the encoder, which refuses them all
     return {
-        "unknown_strategy": encode(dataclasses.replace(state, strategy="teleport")),
-        "state_of_another": encode(dataclasses.replace(other, strategy="vdbe")),
-        "bad_params": encode(dataclasses.replace(state, params={"alpha0": -5.0})),
-        "bad_state": encode(dataclasses.replace(state, state={"alpha": float("nan")})),
+        "unknown_strategy": tampered(state, fields(strategy="teleport")),
+        "state_of_another": tampered(other, fields(strategy="vdbe")),  # softmax's params and state under vdbe
+        "bad_params": tampered(state, fields(params={"alpha0": -5.0})),
+        "bad_state": tampered(state, fields(state={"alpha": float("nan")})),
+        "another_strategys_state": tampered(bmc, fields(state={"epsilon": 0.5})),
+        "nan_state": tampered(bmc, lambda e: e["fields"]["state"].__setitem__("mean", float("nan"))),
+        "negative_counts": tampered(bmc, lambda e: e["fields"]["counters"].__setitem__("updates", -1)),
+        "params_not_a_map": tampered(state, fields(params=[1.0, 2.0])),
+        "state_not_a_map": tampered(state, fields(state=[[1.0], []])),
         "another_strategy": encode(other),  # complete and valid: actors follow it until the learner's next state
     }
 

@@ -1,3 +1,4 @@
+import dataclasses
 import logging
 import threading
 
@@ -9,7 +10,10 @@ from actor.mailbox import Mailbox
 from actor.acting import Actor, actor_seed
 from actor.runner import _stats
 from common.config_values import load_config
-from common.exploration.build import exploration_message, make_strategy
+from common.exploration.build import make_strategy
+from common.exploration.base import Counters
+from common.exploration.vdbe import VdbeState
+from common.wire.exploration_state import exploration_message
 from common.network import D3RQN, weights_to_numpy
 from common.wire.envelope import decode, encode
 from common.wire.messages import Stats, Weights
@@ -91,13 +95,37 @@ def test_actor_follows_the_learners_strategy_and_params(caplog):
     assert actor.strategy.name == "vdbe" and actor.strategy.params()["nu"] == 3.0
     assert actor.strategy.epsilon == learner_side.epsilon < 1.0
     lines = [r.getMessage() for r in caplog.records if "following the learner" in r.getMessage()]
-    assert len(lines) == 1 and "configured with constant" in lines[0]
-    # A state it cannot use is logged and skipped: the actor keeps the learner's last strategy.
-    broken = exploration_message(learner_side)
-    broken.state = {"epsilon": 7.0}
-    actor.mailbox.offer_exploration(broken)
-    actor.apply_mail()
-    assert actor.strategy.name == "vdbe" and actor.strategy.epsilon == learner_side.epsilon
+    assert len(lines) == 1 and "vdbe" in lines[0] and "until now" not in lines[0]  # it had none of its own
+    # A state it cannot use is counted, logged and skipped: the actor keeps the learner's last strategy.
+    kept = actor.strategy
+    for broken in (dataclasses.replace(exploration_message(learner_side), state=VdbeState(7.0)),
+                   dataclasses.replace(exploration_message(learner_side), counters=Counters(updates=-1))):
+        actor.mailbox.offer_exploration(broken)
+        actor.apply_mail()
+    assert actor.strategy is kept and actor.strategy.epsilon == learner_side.epsilon
+    assert actor.rejections.values()["rejected_exploration_invalid"] == 2
+    # Another strategy replaces it, saying what it replaced.
+    with caplog.at_level(logging.INFO, logger="actor"):
+        actor.mailbox.offer_exploration(exploration_message(make_strategy(config.exploration, 5)))
+        actor.apply_mail()
+    assert actor.strategy.name == "constant" and "(until now vdbe" in caplog.records[-1].getMessage()
+
+
+def test_before_the_learners_state_the_actor_has_no_strategy_and_acts_uniformly():
+    """No strategy of its own: until the learner's state comes it acts uniformly at random, draw for draw as
+    it does once it follows a strategy that has not started, whatever weights it holds."""
+    config = small_config()
+    weights = Weights(version=4, tensors=weights_to_numpy(D3RQN(config.network)))
+    waiting, following = Actor(config, actor_id=6), Actor(config, actor_id=6)
+    assert waiting.strategy is None
+    for actor in (waiting, following):
+        actor.mailbox.offer_weights(weights)
+    following.mailbox.offer_exploration(exploration_message(make_strategy(config.exploration, 5)))
+    stop = threading.Event()
+    (episode, record), (same, _) = waiting.run_episode(stop), following.run_episode(stop)
+    assert waiting.strategy is None and not waiting.uses_network() and following.strategy.name == "constant"
+    np.testing.assert_array_equal(episode.actions, same.actions)
+    assert (episode.weights_version == 4).all() and episode.epsilon == 1.0 and record.off_greedy == -1
 
 
 def test_episode_before_and_after_weights_and_start():
@@ -114,7 +142,7 @@ def test_episode_before_and_after_weights_and_start():
     # The learner's weights and a started strategy arrive through the mailbox.
     network = D3RQN(config.network)
     actor.mailbox.offer_weights(Weights(version=7, tensors=weights_to_numpy(network)))
-    learner_side = Actor(config, actor_id=99).strategy
+    learner_side = make_strategy(config.exploration, config.network.n_actions)
     learner_side.start()
     actor.mailbox.offer_exploration(exploration_message(learner_side))
     episode, record = actor.run_episode(stop)
@@ -129,7 +157,7 @@ def test_a_stored_state_actor_records_the_lstm_state_before_each_step():
     actor = Actor(config, actor_id=3)
     network = D3RQN(config.network)
     actor.mailbox.offer_weights(Weights(version=1, tensors=weights_to_numpy(network)))
-    learner_side = Actor(config, actor_id=98).strategy
+    learner_side = make_strategy(config.exploration, config.network.n_actions)
     learner_side.start()
     actor.mailbox.offer_exploration(exploration_message(learner_side))
     episode, _ = actor.run_episode(threading.Event())
@@ -179,7 +207,7 @@ def test_an_episode_counts_its_actions_that_were_not_argmax_q():
     stop = threading.Event()
     assert actor.run_episode(stop)[1].off_greedy == -1
     actor.mailbox.offer_weights(Weights(version=1, tensors=weights_to_numpy(D3RQN(config.network))))
-    learner_side = Actor(config, actor_id=98).strategy
+    learner_side = make_strategy(config.exploration, config.network.n_actions)
     learner_side.start()
     actor.mailbox.offer_exploration(exploration_message(learner_side))
     actor.apply_mail()

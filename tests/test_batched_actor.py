@@ -14,7 +14,8 @@ from actor.acting import Actor, actor_seed, env_seed
 from actor.runner import ReplayWatch, _drive
 from actor.sim import make_env
 from common.config_values import load_config
-from common.exploration.build import exploration_message, make_strategy
+from common.exploration.build import make_strategy
+from common.wire.exploration_state import exploration_message
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
 from common.schema.fields import ConfigError
 from common.wire.envelope import decode, encode
@@ -233,7 +234,7 @@ def test_once_updates_have_started_an_actor_without_the_learners_policy_starts_n
     assert not gate() and actor.mailbox.must_hold(False) == "policy"
     actor.mailbox.offer_weights(Weights(version=7, tensors={name: tensor.numpy() for name, tensor
                                                              in actor.network.state_dict().items()}))
-    actor.strategy.start()  # the learner's exploration state says started
+    actor.mailbox.offer_exploration(exploration_message(started_strategy(actor.config)))  # the learner's: started
     actor.apply_mail()
     assert actor.uses_network() and gate()
 

@@ -12,7 +12,8 @@ from actor.batched_q import BatchedQ, choose_precision
 from actor.acting import Actor
 from common import cpu_capability
 from common.config_values import load_config
-from common.exploration.build import exploration_message, make_strategy
+from common.exploration.build import make_strategy
+from common.wire.exploration_state import exploration_message
 from common.network import D3RQN, weights_to_numpy
 from common.schema.fields import ConfigError
 from common.wire.messages import Weights

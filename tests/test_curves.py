@@ -3,6 +3,7 @@ recorder, read back with TensorBoard's own reader), and info, plot and export on
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -17,7 +18,8 @@ from common.transport import open_session, publisher
 from common.keys import Keys
 from common.wire.codecs import Message
 from common.wire.envelope import encode
-from common.wire.messages import EpisodeRecord, ExplorationState, Stats
+from common.exploration.base import Counters
+from common.wire.messages import EpisodeRecord, Stats
 from deploy.launcher.stack import main as stack_main
 from replay.recorder.arrival import Arrival, peek
 from replay.recorder.cli import main as log_main
@@ -28,7 +30,7 @@ from replay.recorder.scalars import OFF_GREEDY_MEAN, RETURN_MEAN, read_series
 from replay.recorder.tensorboard_events import EventsWriter
 from replay.recorder.writer import LogWriter
 from tests.processes import loopback_endpoint, start, stop, wait_for
-from wire_examples import example_learner_stats
+from wire_examples import example_exploration, example_learner_stats
 
 CONFIG = load_config("smoke", overrides={"recorder.flush_period_s": 0.05})
 KEYS = Keys("d3rqn", CONFIG.run.name)
@@ -48,8 +50,7 @@ def stats(source: str, **values) -> Stats:
 
 def run_messages(replay_env_steps: int = 0) -> list[tuple[str, Message]]:
     """A short run: the replay's count, three episodes, a learner report before and after updates start."""
-    exploration = ExplorationState(strategy="bmc", params={}, epsilon=0.75, kappa=0.0, started=True,
-                                   counters={"n": 4}, state={})
+    exploration = dataclasses.replace(example_exploration(), epsilon=0.75, counters=Counters(updates=4))
     return [
         (KEYS.metrics_source("actor", 0), episode(0, 10, 1.0, epsilon=1.0)),
         (KEYS.replay_stats, stats("replay", env_steps_total=replay_env_steps, episodes=1, hold_reason="none")),
@@ -101,7 +102,7 @@ def test_series_place_episodes_at_env_steps_and_stats_at_their_own_count(tmp_pat
     loss = series["learner/0/loss"]  # the NaN of the report before updates is left out
     assert [(p.value, p.env_steps, p.episodes, p.updates, p.wall_s) for p in loss] == [(0.25, 60, 3, 12, 7.0)]
     assert [(p.value, p.env_steps) for p in series["exploration/epsilon"]] == [(0.75, 30)]
-    assert [p.value for p in series["exploration/counters/n"]] == [4.0]
+    assert [p.value for p in series["exploration/counters/updates"]] == [4.0]
     assert [p.value for p in series["replay/stats/episodes"]] == [1.0] and "replay/stats/hold_reason" not in series
     assert updates_start(series) == {"env_steps": 25.0, "episodes": 1}  # 10 env steps by episode 1, 30 by 2
 

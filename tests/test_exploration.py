@@ -1,4 +1,3 @@
-import dataclasses
 import math
 import warnings
 
@@ -7,18 +6,16 @@ import pytest
 import scipy.stats
 
 from common.config import ExplorationConfig
-from common.exploration.base import softmax_probabilities, state_positive, state_probability
+from common.exploration.base import Counters, record, softmax_probabilities
 from common.exploration.bmc import (BmcConfig, BmcPosterior, EpsilonBmc, bmc_observation_count,
                                     greedy_and_uniform_returns, newest_transitions, student_t_pdf)
 from common.exploration.boltzmann import MaxBoltzmann, MaxBoltzmannConfig, SoftmaxConfig
-from common.exploration.build import exploration_message, make_strategy, same_strategy, strategy_from_state
+from common.exploration.build import make_strategy, sections_from_params, strategy_from
 from common.exploration.epsilon_greedy import (ConstantEpsilonConfig, DecreasingEpsilonConfig, DecreasingEpsilonGreedy,
                                                decreasing_epsilon)
 from common.exploration.names import STRATEGIES
-from common.exploration.vdbe import VdbeConfig, vdbe_f
+from common.exploration.vdbe import VdbeConfig, VdbeState, vdbe_f
 from common.schema.fields import ConfigError
-from common.wire.envelope import decode, encode
-from common.wire.messages import ExplorationState
 
 N_ACTIONS = 5
 
@@ -59,7 +56,7 @@ def test_uniform_random_before_updates_start(name):
 
 
 @pytest.mark.parametrize("name", STRATEGIES)
-def test_state_dict_round_trips_through_the_wire(name):
+def test_state_dict_round_trips_through_a_checkpoint(name):
     policy = strategy(name)
     policy.start()
     policy.on_env_steps(300_000)
@@ -68,16 +65,17 @@ def test_state_dict_round_trips_through_the_wire(name):
     if policy.needs_returns:
         policy.on_returns(np.array([1.2, 0.3, 2.0]), np.array([0.8, 0.1, 1.0]))
     state = policy.state_dict()
-    message = decode(encode(exploration_message(policy, start_by_steps=True)), ExplorationState)
-    wire = {f.name: getattr(message, f.name) for f in dataclasses.fields(message)}
-    assert wire == {**state, "start_by_steps": True}
-
     copy = strategy(name)
-    copy.load_state_dict(wire)
-    assert copy.state_dict() == state
+    copy.load_state_dict(copy_of_plain(state))
+    assert copy.state_dict() == state and copy.own_state() == policy.own_state()
     assert (copy.epsilon, copy.kappa, copy.started) == (policy.epsilon, policy.kappa, True)
     q_values = np.array([0.3, 0.1, 0.25, 0.0, 0.2])
     assert (action_counts(copy, q_values, 300, seed=5) == action_counts(policy, q_values, 300, seed=5)).all()
+
+
+def copy_of_plain(state: dict) -> dict:
+    """A state_dict() as a checkpoint file gives it back: plain values, nothing shared with the strategy."""
+    return {key: dict(value) if isinstance(value, dict) else value for key, value in state.items()}
 
 
 def test_state_dict_holds_the_wire_fields():
@@ -89,16 +87,30 @@ def test_state_dict_holds_the_wire_fields():
     assert state["counters"] == {"env_steps": 0, "updates": 0, "returns": 0}
 
 
+def test_a_checkpoint_written_before_the_typed_state_still_loads():
+    """The exploration part of a checkpoint as learners wrote it before the typed state, as literal values."""
+    saved = {"strategy": "vdbe", "params": {"lam": 0.2, "nu": 1.0, "eps0": 1.0}, "epsilon": 0.35, "kappa": 0.0,
+             "started": True, "counters": {"env_steps": 40_000, "updates": 9_000, "returns": 0},
+             "state": {"epsilon": 0.35}}
+    policy = strategy("vdbe")
+    policy.load_state_dict(saved)
+    assert policy.own_state() == VdbeState(0.35) and policy.epsilon == 0.35 and policy.started
+    assert policy.counters() == Counters(env_steps=40_000, updates=9_000, returns=0)
+    assert policy.state_dict() == saved
+
+
 def test_loading_a_wrong_state_is_a_value_error_and_changes_nothing():
     policy = strategy("vdbe")
     good = strategy("vdbe").state_dict()
     bad_states = [
         ({**good, "strategy": "bmc"}, "is for 'bmc'"),
         ({**good, "params": {**good["params"], "nu": 2.0}}, "differ"),
-        ({**good, "state": {"epsilon": 1.5}}, "must lie in"),
+        ({**good, "state": {"epsilon": 1.5}}, r"exploration.state \(vdbe\).epsilon: must lie in \[0, 1\]"),
+        ({**good, "state": {"epsilon": "0.5"}}, "expected a number"),
         ({**good, "started": "yes"}, "true or false"),
+        ({**good, "counters": {**good["counters"], "updates": -1}}, "exploration.counters.updates: must be >= 0"),
         ({key: value for key, value in good.items() if key != "counters"}, "malformed"),
-        ({**good, "state": {}}, "malformed"),
+        ({**good, "state": {}}, r"exploration.state \(vdbe\): missing epsilon"),
         ("not a dict", "malformed"),
     ]
     for state, message in bad_states:
@@ -107,73 +119,70 @@ def test_loading_a_wrong_state_is_a_value_error_and_changes_nothing():
     assert policy.state_dict() == good
 
 
-# --- following another process's state (actors follow the learner) -----------------------
-
-@pytest.mark.parametrize("name", STRATEGIES)
-def test_a_strategy_is_rebuilt_from_its_state_alone(name):
-    config = ExplorationConfig(strategy=name)
-    config.vdbe.nu, config.softmax.kappa, config.bmc.alpha0 = 2.5, 0.3, 30.0  # not the defaults
-    learner_side = make_strategy(config, N_ACTIONS)
-    learner_side.start()
-    if learner_side.needs_q_after:
-        learner_side.on_update(np.array([1.0, 2.0]), np.array([1.5, 1.0]))
-    if learner_side.needs_returns:
-        learner_side.on_returns(np.array([1.0, 2.0]), np.array([0.5, 0.5]))
-    wire_state = dataclasses.asdict(decode(encode(exploration_message(learner_side)), ExplorationState))
-    actor_side = strategy_from_state(wire_state, N_ACTIONS)
-    assert type(actor_side) is type(learner_side) and same_strategy(actor_side, wire_state)
-    assert actor_side.state_dict() == learner_side.state_dict()
-    assert not same_strategy(strategy("bmc" if name != "bmc" else "vdbe"), wire_state)
-
-
-def test_a_state_that_cannot_be_followed_is_a_value_error():
-    good = strategy("vdbe").state_dict()
-    for state, message in [({**good, "strategy": "greedy"}, "no known strategy"),
-                           ({**good, "params": {**good["params"], "kappa": 0.1}}, "not one of vdbe's"),
-                           ({**good, "params": {**good["params"], "lam": 2.0}}, "lam"),
-                           ({**good, "params": {**good["params"], "nu": "x"}}, "nu"),
-                           ({**good, "params": [1]}, "must be a map"),
-                           ({**good, "state": {"epsilon": -1.0}}, "must lie in"),
-                           ("nothing", "no known strategy")]:
-        with pytest.raises(ValueError, match=message):
-            strategy_from_state(state, N_ACTIONS)
+def test_restore_takes_only_typed_parts_of_its_own_strategy():
+    policy = strategy("vdbe")
+    with pytest.raises(ValueError, match="vdbe restores from a bool, Counters and VdbeState, got bool, Counters and "
+                                         "BmcPosterior"):
+        policy.restore(True, Counters(), BmcPosterior(alpha=1.0, beta=1.0))
+    with pytest.raises(ValueError, match="got bool, dict and VdbeState"):
+        policy.restore(True, {"env_steps": 1}, VdbeState(0.5))
+    assert policy.state_dict() == strategy("vdbe").state_dict()
 
 
 def test_a_strategy_without_state_refuses_one_by_name():
     state = strategy("constant").state_dict()
-    with pytest.raises(ValueError, match=r"^constant keeps no state, got \{'epsilon': 0.5\}$"):
+    with pytest.raises(ValueError, match=r"^exploration.state \(constant\): epsilon not among the fields of NoState "
+                                         r"\(\)$"):
         strategy("constant").load_state_dict({**state, "state": {"epsilon": 0.5}})
 
 
-def test_a_state_is_followed_only_with_the_same_name_and_the_same_params():
-    # Found by mutation testing: the name alone, or the params alone, is not the same strategy
-    state = strategy("vdbe").state_dict()
-    assert same_strategy(strategy("vdbe"), state)
-    assert not same_strategy(strategy("vdbe"), {**state, "params": {**state["params"], "nu": 2.0}})
-    assert not same_strategy(strategy("vdbe_softmax"), {**state, "params": strategy("vdbe_softmax").params()})
+# --- a strategy from another process's params (actors follow the learner) -----------------
+
+@pytest.mark.parametrize("name", STRATEGIES)
+def test_a_strategy_is_rebuilt_from_its_params_alone(name):
+    config = ExplorationConfig(strategy=name)
+    config.vdbe.nu, config.softmax.kappa, config.bmc.alpha0 = 2.5, 0.3, 30.0  # not the defaults
+    learner_side = make_strategy(config, N_ACTIONS)
+    sections = sections_from_params(name, learner_side.params())
+    assert sections == learner_side.sections() and all(a is not b for a, b in zip(sections, learner_side.sections()))
+    rebuilt = strategy_from(name, sections, N_ACTIONS)
+    assert type(rebuilt) is type(learner_side) and rebuilt.params() == learner_side.params()
 
 
-def test_a_refused_state_is_quoted_to_200_characters_and_the_known_params_listed():
-    long_state = {"strategy": "greedy", "params": {"note": "x" * 300}}
-    with pytest.raises(ValueError) as refused:
-        strategy_from_state(long_state, N_ACTIONS)
-    assert str(refused.value) == f"exploration state names no known strategy ({str(long_state)[:200]})"
-    good = strategy("vdbe").state_dict()
-    with pytest.raises(ValueError, match=r"exploration param 'kappa' is not one of vdbe's \(eps0, lam, nu\)$"):
-        strategy_from_state({**good, "params": {**good["params"], "kappa": 0.1}}, N_ACTIONS)
+def test_params_that_cannot_be_followed_are_a_value_error():
+    good = strategy("vdbe").params()
+    for name, params, message in [
+            ("greedy", good, "unknown exploration strategy 'greedy'"),
+            ("vdbe", {**good, "kappa": 0.1}, r"^exploration param\(s\) kappa not among vdbe's \(eps0, lam, nu\)$"),
+            ("vdbe", {**good, "lam": 2.0}, r"exploration.vdbe.lam: must lie in \[0, 1\], got 2.0"),
+            ("vdbe", {**good, "nu": "x"}, "exploration.vdbe.nu: expected a number, got 'x'"),
+            ("vdbe", {**good, "nu": math.inf}, "exploration.vdbe.nu: expected a finite number"),
+            ("vdbe", [1], "must be a map, got list")]:
+        with pytest.raises(ValueError, match=message):
+            sections_from_params(name, params)
+    with pytest.raises(ValueError, match="vdbe_softmax is built with sections vdbe, softmax, got VdbeConfig$"):
+        strategy_from("vdbe_softmax", (VdbeConfig(),), N_ACTIONS)
+
+
+def test_params_a_writer_older_than_a_setting_left_out_take_its_default():
+    params = {key: value for key, value in strategy("bmc").params().items() if key != "observations"}
+    assert sections_from_params("bmc", params) == (BmcConfig(),)
 
 
 def test_state_values_are_checked_at_their_bounds():
     # Found by mutation testing: each bound from both sides, and the refusal names the key
-    assert state_positive({"alpha": 0.5}, "alpha") == 0.5  # positive, below 1: taken
-    for bad in (0.0, -1.0, math.inf, math.nan):
-        with pytest.raises(ValueError, match=f"exploration state alpha must be a positive number, got {bad!r}"):
-            state_positive({"alpha": bad}, "alpha")
-    assert state_probability({"epsilon": 0.0}, "epsilon") == 0.0  # both ends of [0, 1] are probabilities
-    assert state_probability({"epsilon": 1.0}, "epsilon") == 1.0
-    for bad in (-0.01, 1.01, math.nan):
+    assert record(BmcPosterior, {"alpha": 0.5, "beta": 0.5}, "s").alpha == 0.5  # positive, below 1: taken
+    for bad in (0.0, -1.0):
+        with pytest.raises(ValueError, match=f"^s.alpha: must be > 0, got {bad!r}$"):
+            record(BmcPosterior, {"alpha": bad, "beta": 1.0}, "s")
+    for bad in (math.inf, math.nan):
+        with pytest.raises(ValueError, match="^s.alpha: expected a finite number"):
+            record(BmcPosterior, {"alpha": bad, "beta": 1.0}, "s")
+    assert record(VdbeState, {"epsilon": 0.0}, "s") == VdbeState(0.0)  # both ends of [0, 1] are probabilities
+    assert record(VdbeState, {"epsilon": 1}, "s") == VdbeState(1.0)  # an int stands for a float
+    for bad in (-0.01, 1.01):
         with pytest.raises(ValueError, match="must lie in"):
-            state_probability({"epsilon": bad}, "epsilon")
+            record(VdbeState, {"epsilon": bad}, "s")
 
 
 def test_bmc_loads_a_fresh_posterior_and_refuses_impossible_statistics():
@@ -185,9 +194,12 @@ def test_bmc_loads_a_fresh_posterior_and_refuses_impossible_statistics():
     one = {**fresh, "state": {**fresh["state"], "count": 1, "mean": 2.0}}  # one observation: m2 still 0
     policy.load_state_dict(one)
     assert policy.posterior.count == 1
-    for bad in ({"count": -1}, {"m2": -1.0}, {"mean": math.inf}, {"m2": math.nan}):
-        with pytest.raises(ValueError, match="bmc running statistics are invalid"):
+    for bad, message in (({"count": -1}, "count: must be >= 0"), ({"m2": -1.0}, "m2: must be >= 0"),
+                         ({"mean": math.inf}, "mean: expected a finite number"),
+                         ({"m2": math.nan}, "m2: expected a finite number"), ({"count": 1.5}, "expected an integer")):
+        with pytest.raises(ValueError, match=message):
             policy.load_state_dict({**fresh, "state": {**fresh["state"], **bad}})
+    assert policy.posterior.count == 1
 
 
 @pytest.mark.parametrize("section, key, bad, message", [

@@ -13,7 +13,11 @@ import zstandard
 from actor.mailbox import Mailbox
 from actor.acting import Actor
 from common.config_values import load_config
-from common.exploration.build import exploration_message, make_strategy
+from common.exploration.base import Counters
+from common.exploration.boltzmann import SoftmaxConfig
+from common.exploration.build import make_strategy
+from common.exploration.vdbe import VdbeState
+from common.wire.exploration_state import exploration_message
 from common.network import D3RQN, weights_to_numpy
 from common.rejections import Rejections
 from common.wire.envelope import decode, encode
@@ -25,6 +29,7 @@ from deploy.launcher.stack import StackMonitor
 from learner.prefetch import Prefetcher
 from learner.service import MAX_FAILED_IN_A_ROW, LearnerService
 from replay.service import MAX_PENDING, ReplayService
+import hostile
 from wire_examples import example_learner_stats, example_rate, example_replay_stats
 
 SIZE, STEPS = 36, 12
@@ -370,15 +375,37 @@ def test_an_actor_refuses_a_rate_counting_more_env_steps_than_its_run_can(tmp_pa
 def test_the_actor_keeps_its_strategy_against_an_unknown_or_broken_state(tmp_path):
     config = small_config(tmp_path, **{"exploration.strategy": "softmax"})
     actor = Actor(config, actor_id=0)
-    state = exploration_message(actor.strategy)
+    state = exploration_message(make_strategy(config.exploration, config.network.n_actions))
     for bad in (dataclasses.replace(state, strategy="teleport"), dataclasses.replace(state, strategy="bmc"),
-                dataclasses.replace(state, params={"kappa": -1.0})):
+                dataclasses.replace(state, params=(SoftmaxConfig(kappa=-1.0),))):
+        actor.mailbox.offer_exploration(bad)
+        actor.apply_mail()
+    assert actor.strategy is None  # none came that it could follow: it acts uniformly on
+    actor.mailbox.offer_exploration(state)
+    actor.apply_mail()
+    for bad in (dataclasses.replace(state, state=VdbeState(0.5)), dataclasses.replace(state, counters=Counters(-1))):
         actor.mailbox.offer_exploration(bad)
         actor.apply_mail()
     actor.mailbox.offer_exploration(Stats(source="x", time=0.0, values={}))
-    assert actor.strategy.name == "softmax" and actor.strategy.params() == state.params
+    assert actor.strategy.name == "softmax" and actor.strategy.sections() == state.params
     counts = actor.rejections.values()
-    assert counts["rejected_exploration_invalid"] == 3 and counts["rejected_exploration_wrong_type"] == 1
+    assert counts["rejected_exploration_invalid"] == 5 and counts["rejected_exploration_wrong_type"] == 1
+
+
+def test_only_a_complete_valid_exploration_state_passes_the_wire_to_the_actor():
+    """The misfit states the flood sends on exploration: the wire refuses each but the complete, valid state of
+    another strategy (the subscription counts and logs what it refuses), which the actor then follows."""
+    config = small_config()
+    actor = Actor(config, actor_id=0)
+    actor.follow(exploration_message(make_strategy(config.exploration, config.network.n_actions)))
+    refused = 0
+    for data in hostile.misfit_exploration(config).values():
+        try:
+            actor.follow(decode(data, ExplorationState))
+        except WireError:
+            refused += 1
+    assert refused == len(hostile.misfit_exploration(config)) - 1
+    assert actor.strategy.name == "softmax" and "rejected_exploration_invalid" not in actor.rejections.values()
 
 
 # --- the local stack's live line ---------------------------------------------------------------

@@ -15,7 +15,8 @@ from actor.sim import make_env
 from common.analysis.stats import digest_of_actions
 from common.config_values import load_config
 from common.network import D3RQN, load_numpy_weights, weights_to_numpy
-from common.exploration.build import exploration_message, make_strategy
+from common.exploration.build import make_strategy
+from common.wire.exploration_state import exploration_message
 from common.wire.messages import Weights
 from deploy import reference_loop
 from deploy.tools import off_greedy_probe

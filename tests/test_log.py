@@ -4,6 +4,7 @@ survive a SIGKILL, and refuse damaged files with one clear line."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import signal
 import subprocess
@@ -26,7 +27,7 @@ from common.transport import open_session, publisher, request, subscribe
 from common.keys import Keys
 from common.wire.envelope import decode, encode
 from common.wire.frames import FrameStack
-from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, ReplayStats, Stats, TraceBatch,
+from common.wire.messages import (Episode, EpisodeRecord, ReplayStats, Stats, TraceBatch,
                                   TraceBatchRequest, Weights, flat_values)
 from replay.recorder.arrival import NOT_A_MESSAGE, Arrival, peek, publish_time_ns
 from replay.recorder.cli import main as log_main
@@ -38,7 +39,7 @@ from replay.recorder.views import IMAGE_SCHEMA_NAME, ViewMaker, frame_times_ns
 from replay.recorder.writer import LogWriter
 from common.wire.metrics import LearnerStats
 from tests.processes import loopback_endpoint, router_client, start, stop, wait_for
-from wire_examples import example_learner_stats
+from wire_examples import example_exploration, example_learner_stats
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "logrun"
@@ -129,8 +130,7 @@ def test_recorder_writes_bytes_times_views_and_counters(tmp_path):
         keys.episodes: [encode(episode)],
         keys.metrics_source("learner", 0): [encode(example_learner_stats(time=1.5e9 + i, loss=float("nan"), updates=i))
                                             for i in range(3)],
-        keys.exploration: [encode(ExplorationState(strategy="bmc", params={}, epsilon=0.5, kappa=0.0, started=True,
-                                                   counters={"n": 1}, state={}))],
+        keys.exploration: [encode(dataclasses.replace(example_exploration(), epsilon=0.5))],
         keys.metrics_source("odd", 0): [b"not a wire message"],
     }
     received = {key: [time.time_ns() + i for i in range(len(payloads))] for key, payloads in sent.items()}

@@ -15,7 +15,7 @@ from common.wire.messages import (MESSAGE_TYPES, Episode, EpisodeAck, EpisodeRec
                                   Weights, flat_values)
 from wire_examples import (
     SMALL_FRAME, assert_messages_equal, example_episode, example_messages, example_rate, example_replay_stats,
-    example_trace_batch, example_learner_stats, example_actor_stats, random_frames,
+    example_trace_batch, example_learner_stats, example_actor_stats, example_exploration, random_frames,
 )
 
 EXAMPLES = example_messages()
@@ -171,13 +171,6 @@ def zstd_blob(size: int) -> bytes:
     return zstandard.ZstdCompressor().compress(bytes(size))
 
 
-def nested_list(depth: int) -> list:
-    value = [1]
-    for _ in range(depth):
-        value = [value]
-    return value
-
-
 RECORD = EpisodeRecord(actor_id=1, episode_index=2, length=30, episode_return=12.5, collided=True, start_set="train",
                        start_index=3, epsilon=0.1, weights_version=4, wall_time=1.5, time=1.0)
 EPISODE = example_episode(steps=4)
@@ -189,6 +182,7 @@ RATE = example_rate()
 REPLAY_STATS = example_replay_stats()
 LEARNER = example_learner_stats()
 ACTOR = example_actor_stats()
+EXPLORATION = example_exploration()
 
 
 def set_rate_field(name, value):
@@ -242,10 +236,35 @@ MALFORMED = {
     "trace shape mismatch": (BATCH, set_array_part("rewards", "shape", [3, 2]), r"TraceBatch.rewards: shape \(3, 2\), expected \(2, 3\)"),
     "terminal inside trace": (BATCH, set_array_part("terminated", "data", b"\x01\x00\x00\x00\x00\x00"),
                               "terminal state before a trace's last step"),
-    "plain dict bytes key": (EXAMPLES[4], set_field("state", {b"k": 1}), "keys must be strings"),
-    "plain dict bytes value": (EXAMPLES[4], set_field("params", {"k": b"raw"}), "ExplorationState.params.k: bytes is not a plain value"),
-    "plain dict too deep": (EXAMPLES[4], set_field("state", {"k": nested_list(40)}), "nested deeper than 32"),
-    "counter text": (EXAMPLES[4], set_field("counters", {"steps": "ten"}), "ExplorationState.counters.steps: expected int or float"),
+    # an exploration state is read by the strategy it names: its params, state and counters each by their type
+    "unknown strategy": (EXPLORATION, set_field("strategy", "teleport"),
+                         r"ExplorationState.params: unknown exploration strategy 'teleport'"),
+    "strategy not a name": (EXPLORATION, set_field("strategy", 3), "ExplorationState.strategy: expected a string"),
+    "another strategy's state": (EXPLORATION, set_field("state", {"epsilon": 0.5}),
+                                 r"ExplorationState.state: epsilon not among the fields of BmcPosterior"),
+    "state of no strategy": (EXPLORATION, lambda e: e["fields"].update(strategy="softmax", params={"kappa": 0.1}),
+                             r"ExplorationState.state: alpha, beta, count, m2, mean not among the fields of NoState \(\)"),
+    "another strategy's params": (EXPLORATION, set_field("params", {"lam": 0.2}),
+                                  r"ExplorationState.params: exploration param\(s\) lam not among bmc's"),
+    "param out of range": (EXPLORATION, lambda e: e["fields"]["params"].__setitem__("alpha0", -5.0),
+                           r"ExplorationState.params: exploration.bmc.alpha0: must be > 0, got -5.0"),
+    "param as text": (EXPLORATION, lambda e: e["fields"]["params"].__setitem__("alpha0", "30"),
+                      "exploration.bmc.alpha0: expected a number, got '30'"),
+    "params not a map": (EXPLORATION, set_field("params", [30.0]), "exploration params must be a map, got list"),
+    "nan in the state": (EXPLORATION, lambda e: e["fields"]["state"].__setitem__("mean", float("nan")),
+                         "ExplorationState.state.mean: expected a finite number, got nan"),
+    "negative posterior count": (EXPLORATION, lambda e: e["fields"]["state"].__setitem__("count", -1),
+                                 r"ExplorationState.state.count: must be >= 0, got -1"),
+    "state missing a field": (EXPLORATION, lambda e: e["fields"]["state"].pop("beta"), "ExplorationState.state: missing beta"),
+    "state not a map": (EXPLORATION, set_field("state", [20.0, 30.0]), "ExplorationState.state: expected a map of alpha"),
+    "negative counter": (EXPLORATION, lambda e: e["fields"]["counters"].__setitem__("updates", -3),
+                         r"ExplorationState.counters.updates: must be >= 0, got -3"),
+    "fractional counter": (EXPLORATION, lambda e: e["fields"]["counters"].__setitem__("env_steps", 2.5),
+                           "ExplorationState.counters.env_steps: expected an integer, got 2.5"),
+    "nested counters": (EXPLORATION, set_field("counters", {"env_steps": {"n": 1}}),
+                        "ExplorationState.counters.env_steps: expected an integer"),
+    "unknown counter": (EXPLORATION, lambda e: e["fields"]["counters"].__setitem__("steps", 10),
+                        "ExplorationState.counters: steps not among the fields of Counters"),
     "stats bool value": (EXAMPLES[5], set_field("values", {"ok": True}), "Stats.values.ok: expected int, float or str, got bool"),
     "stats list value": (EXAMPLES[5], set_field("values", {"xs": [1]}), "expected int, float or str, got list"),
     "unknown hold": (RATE, set_field("hold_reason", "forever"), "RateState.hold_reason: 'forever' is not one of"),

@@ -6,6 +6,8 @@ import dataclasses
 
 import numpy as np
 
+from common.exploration.base import Counters
+from common.exploration.bmc import BmcConfig, BmcPosterior
 from common.wire.codecs import Message
 from common.wire.frames import FrameStack
 from common.wire.metrics import ActorStats, LearnerStats
@@ -96,9 +98,7 @@ def example_messages() -> list[Message]:
             "mask": np.array([True, False]),
             "empty": np.zeros((0, 2), dtype=np.float32),
         }),
-        ExplorationState(strategy="bmc", params={"alpha0": 25.0, "nested": {"list": [1, None, "x", True]}},
-                         epsilon=0.5, kappa=0.0, started=True, counters={"steps": 10, "updates": 2.5},
-                         state={"alpha": 25.0, "beta": 25.01, "history": [[1.0, 2.0], []]}),
+        example_exploration(),
         Stats(source="replay", time=12.5, values={"episodes": 3, "fill": 0.25, "state": "ok", "loss": float("nan")}),
         EpisodeRecord(actor_id=1, episode_index=2, length=300, episode_return=120.5, collided=False,
                       start_set="test", start_index=4, epsilon=0.05, weights_version=77, wall_time=12.0, time=99.0,
@@ -112,6 +112,14 @@ def example_messages() -> list[Message]:
         example_learner_stats(final=True),
         example_actor_stats(),
     ]
+
+
+def example_exploration() -> ExplorationState:
+    """A BMC learner's state some way into a run (its params not the defaults)."""
+    return ExplorationState(strategy="bmc", params=(BmcConfig(alpha0=30.0, observations="per_transition"),),
+                            epsilon=0.4, kappa=0.0, started=True,
+                            counters=Counters(env_steps=12_000, updates=3_000, returns=12_000),
+                            state=BmcPosterior(alpha=20.0, beta=30.0, count=12_000, mean=4.5, m2=900.0))
 
 
 def assert_messages_equal(left: Message, right: Message) -> None:

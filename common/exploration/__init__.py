@@ -19,9 +19,10 @@ The actor only calls ``act``. The learner calls the hooks after each update
 - ``on_returns(g_greedy, g_uniform)``: epsilon-BMC (bmc).
 
 The modules: names (the one registry: what each strategy is called, its class, where its settings live),
-base (the rule and the state every strategy shares), epsilon_greedy, vdbe, bmc,
-boltzmann (Softmax and Max-Boltzmann), build (a strategy from a config or from
-another process's state). The learner is the authority on the strategy: an actor
-whose own config names another strategy or other params rebuilds its strategy
-from the learner's state (``strategy_from_state``).
+base (the rule and the state every strategy shares, typed: its config sections,
+its Counters and its own state_type), epsilon_greedy, vdbe, bmc, boltzmann
+(Softmax and Max-Boltzmann), build (a strategy from a config or from another
+process's params). The learner is the authority on the strategy: an actor builds
+none of its own; it rebuilds the learner's from the typed exploration state
+(common/wire/exploration_state.py ``follow``).
 """

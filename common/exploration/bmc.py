@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.exploration.base import ExplorationStrategy, state_positive
+from common.exploration.base import ExplorationStrategy
 from common.schema.fields import check, check_positive, option
 
 
@@ -85,6 +85,12 @@ class BmcPosterior:
     def epsilon(self) -> float:
         return self.alpha / (self.alpha + self.beta)
 
+    def validate(self) -> None:
+        """What a posterior read from elsewhere must hold (bmc_update keeps it); floats are finite (record)."""
+        check_positive(self, "alpha", "beta")
+        check(self.count >= 0, "count", f"must be >= 0, got {self.count}")
+        check(self.m2 >= 0, "m2", f"must be >= 0, got {self.m2}")
+
     @property
     def variance(self) -> float:
         return self.m2 / (self.count - 1) if self.count > 1 else 0.0
@@ -124,6 +130,7 @@ class EpsilonBmc(ExplorationStrategy):
 
     name = "bmc"
     needs_returns = True
+    state_type = BmcPosterior
 
     def __init__(self, n_actions: int, config: BmcConfig) -> None:
         super().__init__(n_actions, config)
@@ -141,15 +148,11 @@ class EpsilonBmc(ExplorationStrategy):
     def _epsilon(self) -> float:
         return self.posterior.epsilon
 
-    def _state(self) -> dict:
-        return dataclasses.asdict(self.posterior)
+    def own_state(self) -> BmcPosterior:
+        return self.posterior
 
-    def _load_state(self, state: dict) -> None:
-        alpha, beta = state_positive(state, "alpha"), state_positive(state, "beta")
-        count, mean, m2 = int(state["count"]), float(state["mean"]), float(state["m2"])
-        if count < 0 or m2 < 0 or not math.isfinite(mean + m2):
-            raise ValueError(f"bmc running statistics are invalid: {state}")
-        self.posterior = BmcPosterior(alpha, beta, count, mean, m2)
+    def _restore(self, state: BmcPosterior) -> None:
+        self.posterior = state
 
 
 def bmc_observation_count(update: int, env_steps_per_update: float) -> int:

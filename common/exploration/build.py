@@ -1,63 +1,43 @@
-"""A strategy built by name from the registry (names.py): from the config's exploration section
-(``make_strategy``), or from another process's state (``strategy_from_state``: the learner is the authority;
-each section's own checks hold every value), and its state as the wire message the actors load."""
+"""A strategy built by name from the registry (names.py), with its config sections: from the config's
+exploration section (``make_strategy``), or from another process's params (``sections_from_params``, then
+``strategy_from``: the learner is the authority, and each section's own checks hold every value)."""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Any
 
-from common.exploration.base import ExplorationStrategy
+from common.exploration.base import ExplorationStrategy, record
 from common.exploration.names import SECTIONS, strategy_named
-from common.schema.fields import ConfigError, coerce, field_types
-from common.wire.messages import ExplorationState
 
 
 def make_strategy(config: Any, n_actions: int) -> ExplorationStrategy:
     """The strategy named by config.strategy, with its sections of the config (config: the exploration
     section of common/config.py, which this folder cannot import: the config is written with these modules)."""
-    entry = strategy_named(config.strategy)
-    return entry.cls(n_actions, *(getattr(config, section) for section in entry.sections))
+    sections = tuple(getattr(config, section) for section in strategy_named(config.strategy).sections)
+    return strategy_from(config.strategy, sections, n_actions)
 
 
-def same_strategy(strategy: ExplorationStrategy, state: dict) -> bool:
-    """Whether a state_dict() describes this strategy with these params."""
-    return state.get("strategy") == strategy.name and state.get("params") == strategy.params()
+def strategy_from(name: str, sections: tuple, n_actions: int) -> ExplorationStrategy:
+    """The strategy of this name built with these config sections, in its class's order (as
+    ``sections_from_params`` reads them), before any state: not started, counters at 0."""
+    entry = strategy_named(name)
+    if tuple(type(section) for section in sections) != tuple(SECTIONS[section] for section in entry.sections):
+        raise ValueError(f"{name} is built with sections {', '.join(entry.sections)}, got "
+                         f"{', '.join(type(section).__name__ for section in sections)}")
+    return entry.cls(n_actions, *sections)
 
 
-def strategy_from_state(state: dict, n_actions: int) -> ExplorationStrategy:
-    """The strategy another process's state_dict() describes, built from its name and params
-    (not from the local config) and loaded with its state; ValueError if it cannot be."""
-    try:
-        name, params = state["strategy"], state["params"]
-        entry = strategy_named(name)
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(f"exploration state names no known strategy ({str(state)[:200]})") from None
+def sections_from_params(name: str, params: Any) -> tuple:
+    """The config sections of strategy `name` from its params as one map (ExplorationStrategy.params(), the
+    form the wire and checkpoints write): each param on the section that declares it, one absent at its
+    default (a writer older than the param), every section checked. ValueError for an unknown name or param."""
+    entry = strategy_named(name)
     if not isinstance(params, dict):
-        raise ValueError(f"exploration params must be a map, got {params!r}")
-    sections = {section: SECTIONS[section]() for section in entry.sections}
-    try:
-        _fill(sections, params, name)
-    except ConfigError as error:
-        raise ValueError(f"exploration params: {error}") from None
-    strategy = entry.cls(n_actions, *sections.values())
-    strategy.load_state_dict(state)
-    return strategy
-
-
-def _fill(sections: dict[str, Any], params: dict, name: str) -> None:
-    """Each param set on the section that declares it, type-checked, then every section's checks."""
-    owners = {f.name: section for section, values in sections.items() for f in dataclasses.fields(values)}
-    for key, value in params.items():
-        if key not in owners:
-            raise ValueError(f"exploration param {key!r} is not one of {name}'s ({', '.join(sorted(owners))})")
-        values = sections[owners[key]]
-        setattr(values, key, coerce(f"exploration.{owners[key]}.{key}", field_types(values)[key], value))
-    for values in sections.values():
-        values.validate()
-
-
-def exploration_message(strategy: ExplorationStrategy, start_by_steps: bool | None = None) -> ExplorationState:
-    """The strategy's state_dict() as the wire message the actors load, with the learner's start rule
-    for the replay (common/wire/messages.py)."""
-    return ExplorationState(**strategy.state_dict(), start_by_steps=start_by_steps)
+        raise ValueError(f"exploration params must be a map, got {type(params).__name__}")
+    owners = {f.name: section for section in entry.sections for f in dataclasses.fields(SECTIONS[section])}
+    unknown = sorted(str(key) for key in params if key not in owners)
+    if unknown:
+        raise ValueError(f"exploration param(s) {', '.join(unknown)} not among {name}'s ({', '.join(sorted(owners))})")
+    return tuple(record(SECTIONS[section], {key: value for key, value in params.items() if owners[key] == section},
+                        f"exploration.{section}") for section in entry.sections)

@@ -9,12 +9,11 @@ Averaging f (not Delta) keeps each history's contribution bounded by 1, as in th
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
-from common.exploration.base import ExplorationStrategy, state_probability
+from common.exploration.base import ExplorationStrategy
 from common.exploration.boltzmann import SoftmaxConfig
 from common.schema.fields import check_positive, check_probability, option
 
@@ -39,11 +38,22 @@ def vdbe_f(delta: np.ndarray | float, nu: float) -> np.ndarray:
     return (1.0 - decay) / (1.0 + decay)
 
 
+@dataclass(frozen=True)
+class VdbeState:
+    """VDBE's own state: the epsilon its updates have moved so far."""
+
+    epsilon: float
+
+    def validate(self) -> None:
+        check_probability(self, "epsilon")
+
+
 class Vdbe(ExplorationStrategy):
     """Value-difference based exploration: epsilon follows how much an update moves Q(h, a*)."""
 
     name = "vdbe"
     needs_q_after = True
+    state_type = VdbeState
 
     def __init__(self, n_actions: int, config: VdbeConfig) -> None:
         super().__init__(n_actions, config)
@@ -62,11 +72,11 @@ class Vdbe(ExplorationStrategy):
     def _epsilon(self) -> float:
         return self._eps
 
-    def _state(self) -> dict:
-        return {"epsilon": self._eps}
+    def own_state(self) -> VdbeState:
+        return VdbeState(self._eps)
 
-    def _load_state(self, state: dict) -> None:
-        self._eps = state_probability(state, "epsilon")
+    def _restore(self, state: VdbeState) -> None:
+        self._eps = state.epsilon
 
 
 class VdbeSoftmax(Vdbe):
@@ -78,8 +88,8 @@ class VdbeSoftmax(Vdbe):
         super().__init__(n_actions, config)
         self.softmax = softmax
 
-    def params(self) -> dict:
-        return {**dataclasses.asdict(self.config), **dataclasses.asdict(self.softmax)}
+    def sections(self) -> tuple:
+        return (self.config, self.softmax)
 
     def _kappa(self) -> float:
         return self.softmax.kappa

@@ -22,7 +22,6 @@ from common.wire.frames import MAX_FRAME_BYTES, FrameStack
 DTYPES = ("uint8", "bool", "int32", "int64", "float32", "float64")
 WEIGHTS_DTYPES = DTYPES + ("float16", "uint16")  # what weights tensors may travel in (common/wire/weights_encoding.py)
 MAX_ARRAY_NDIM = 32
-MAX_PLAIN_DEPTH = 32
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 
 
@@ -207,38 +206,10 @@ class Frames(Codec):
             raise _fail(where, f"frame shape {shape} exceeds {MAX_FRAME_BYTES} bytes")
 
 
-def _check_plain(value: Any, where: str, depth: int = 0) -> Any:
-    """A JSON-like value (None, bool, int, float, str, list, str-keyed dict) with numpy scalars unwrapped."""
-    if depth > MAX_PLAIN_DEPTH:
-        raise _fail(where, f"nested deeper than {MAX_PLAIN_DEPTH} levels")
-    if isinstance(value, np.generic):
-        value = value.item()
-    if value is None or isinstance(value, (bool, float, str)):
-        return value
-    if isinstance(value, int):
-        return Integer().unpack(value, where)
-    if isinstance(value, list):
-        return [_check_plain(item, f"{where}[{i}]", depth + 1) for i, item in enumerate(value)]
-    if isinstance(value, dict):
-        return {_check_key(key, where): _check_plain(item, f"{where}.{key}", depth + 1) for key, item in value.items()}
-    raise _fail(where, f"{_type_name(value)} is not a plain value (None, bool, int, float, str, list, dict)")
-
-
 def _check_key(key: Any, where: str) -> str:
     if not isinstance(key, str):
         raise _fail(where, f"keys must be strings, got {key!r}")
     return key
-
-
-@dataclass(frozen=True)
-class PlainDict(Codec):
-    def pack(self, value, where):
-        return self.unpack(value, where)
-
-    def unpack(self, raw, where):
-        if not isinstance(raw, dict):
-            raise _fail(where, f"expected a dict, got {_type_name(raw)}")
-        return _check_plain(raw, where)
 
 
 @dataclass(frozen=True)
@@ -308,6 +279,20 @@ def wired(codec: Codec, **kwargs: Any) -> Any:
     return field(metadata={"codec": codec}, **kwargs)
 
 
+class Dependent(Codec):
+    """A field whose codec the message's other fields choose (they are read first): the strategy an
+    ExplorationState names decides what its params and its state are (common/wire/exploration_state.py)."""
+
+    def given(self, values: dict[str, Any], where: str) -> Codec:
+        """The codec for these values of the other fields; WireError if they choose none."""
+        raise NotImplementedError
+
+    def pack(self, value, where):
+        raise _fail(where, "a dependent field is written by the codec its message's other fields choose")
+
+    unpack = pack
+
+
 class Message:
     """Base of the wire messages; ``check`` holds the rules that span fields. ``former_types``: the types an
     older sender wrote it as, which decode into it (common/wire/envelope.py)."""
@@ -324,7 +309,9 @@ def field_codecs(cls: type[Message]) -> list[tuple[str, Codec]]:
 
 def pack_fields(message: Message, where: str) -> dict[str, Any]:
     """The message's fields as msgpack-ready values, each checked by its codec, then the message's check."""
-    fields = {name: codec.pack(getattr(message, name), f"{where}.{name}") for name, codec in field_codecs(type(message))}
+    values = {name: getattr(message, name) for name, _ in field_codecs(type(message))}
+    fields = {name: _chosen(codec, values, f"{where}.{name}").pack(values[name], f"{where}.{name}")
+              for name, codec in field_codecs(type(message))}
     message.check()
     return fields
 
@@ -343,9 +330,17 @@ def unpack_fields(cls: type[Message], fields: Any, where: str) -> Message:
     if extra:
         raise _fail(where, f"unexpected field(s) {', '.join(sorted(map(str, extra)))}")
     # a field with a default may be absent: messages of senders that predate it still decode
-    message = cls(**{name: codec.unpack(fields[name], f"{where}.{name}") for name, codec in codecs if name in fields})
+    values = {name: codec.unpack(fields[name], f"{where}.{name}") for name, codec in codecs
+              if name in fields and not isinstance(codec, Dependent)}
+    values.update({name: codec.given(values, f"{where}.{name}").unpack(fields[name], f"{where}.{name}")
+                   for name, codec in codecs if name in fields and isinstance(codec, Dependent)})
+    message = cls(**values)
     message.check()
     return message
+
+
+def _chosen(codec: Codec, values: dict[str, Any], where: str) -> Codec:
+    return codec.given(values, where) if isinstance(codec, Dependent) else codec
 
 
 @dataclass(frozen=True)

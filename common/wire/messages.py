@@ -7,15 +7,15 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from common.wire.codecs import (COUNT, DTYPES, PROBABILITY, Array, Flag, Frames, Integer, Message, Nested, Nullable,
-                                NumberDict, PlainDict, Real, TensorDict, Text, wired)
+                                NumberDict, Real, TensorDict, Text, wired)
 from common.wire.state_rows import no_states
 from common.wire.errors import WireError
 from common.wire.frames import FrameStack
+from common.wire.exploration_state import ExplorationState
 from common.wire.metrics import ActorStats, LearnerStats
 from common.wire.weights_encoding import WEIGHTS_ENCODINGS, decode_tensor, encode_tensor
 
@@ -168,21 +168,6 @@ class Weights(Message):
             if np.asarray(array).dtype.name not in allowed:
                 raise WireError(f"Weights.tensors.{name}: dtype {np.asarray(array).dtype} is not one of "
                                 f"{', '.join(allowed)} (encoding {self.encoding})", "weights_encoding")
-
-
-@dataclass(eq=False)
-class ExplorationState(Message):
-    strategy: str = wired(Text())
-    params: dict[str, Any] = wired(PlainDict())
-    epsilon: float = wired(PROBABILITY)
-    kappa: float = wired(Real(min_value=0.0))  # 0 when the strategy has no temperature
-    started: bool = wired(Flag())  # before updates start every strategy acts uniformly
-    counters: dict[str, int | float] = wired(NumberDict())
-    state: dict[str, Any] = wired(PlainDict())  # the strategy's own serialisable state
-    # The learner's start rule (pace.start_by with its strategy), which the replay's rate limiter keeps:
-    # updates start at pace.start_steps env steps (True) or pace.start_episodes episodes (False).
-    # None: a learner that predates the field; the replay then derives it from the strategy's name.
-    start_by_steps: bool | None = wired(Nullable(Flag()), default=None)
 
 
 @dataclass(eq=False)

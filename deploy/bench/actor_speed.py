@@ -39,8 +39,9 @@ from actor.evaluation.episodes import GreedyPolicy
 from actor.acting import Actor
 from common.cpu_capability import bfloat16_problem, describe_cpu
 from common.config import Config
-from common.exploration.build import exploration_message, make_strategy
+from common.exploration.build import make_strategy
 from common.network import weights_to_numpy
+from common.wire.exploration_state import exploration_message
 from common.wire.messages import Weights
 from env_speed import one_core  # deploy/bench is this script's directory
 from deploy.bench.flops import forward_flops

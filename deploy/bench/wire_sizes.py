@@ -19,6 +19,8 @@ import zstandard
 
 from common.config import NetworkConfig
 from common.cpu_capability import describe_cpu
+from common.exploration.base import Counters
+from common.exploration.bmc import BmcConfig, BmcPosterior
 from common.wire.envelope import decode, encode
 from common.wire.frames import ZSTD_LEVEL, FrameStack
 from common.wire.messages import (Episode, EpisodeRecord, ExplorationState, RateState, TraceBatch,
@@ -95,9 +97,9 @@ def small_messages() -> list:
     now = time.time()
     return [
         TraceBatchRequest(request_id=1, batch_size=10, trace_length=10),
-        ExplorationState(strategy="bmc", params={"alpha0": 25.0, "beta0": 25.01, "a0": 250.0, "b0": 250.0},
-                         epsilon=0.31, kappa=0.0, started=True, counters={"env_steps": 120_000, "updates": 30_000},
-                         state={"alpha": 31.2, "beta": 68.9, "count": 90_000, "mean": 12.5, "m2": 4_000.0}),
+        ExplorationState(strategy="bmc", params=(BmcConfig(),), epsilon=0.31, kappa=0.0, started=True,
+                         counters=Counters(env_steps=120_000, updates=30_000, returns=90_000),
+                         state=BmcPosterior(alpha=31.2, beta=68.9, count=90_000, mean=12.5, m2=4_000.0)),
         LearnerStats(time=now, updates=30_000, env_steps=148_000, loss=0.0123, epsilon=0.31, updates_per_s=4.6,
                      data_wait_share=0.1, weights_version=29_950, precision="float32", update_path="fused"),
         EpisodeRecord(actor_id=2, episode_index=40, length=812, episode_return=640.5, collided=True, start_set="train",

@@ -20,7 +20,7 @@ from pathlib import Path
 from common.wire.messages import COUNTER_TYPES, EpisodeRecord, ExplorationState
 from replay.recorder.arrival import relative_key
 from replay.recorder.reader import LogFile
-from replay.recorder.views import ViewMaker, json_safe, message_view
+from replay.recorder.views import ViewMaker, message_view
 from replay.recorder.writer import LogWriter
 
 TIME_COLUMNS = ("log_time", "publish_time")
@@ -40,9 +40,9 @@ def collect(log: LogFile) -> Tables:
     for record, message in log.messages(EpisodeRecord, ExplorationState, *COUNTER_TYPES):
         row = {"log_time": record.log_ns / 1e9, "publish_time": record.publish_ns / 1e9}
         if isinstance(message, ExplorationState):
-            row.update({name: value for name, value in message_view(message).items() if name != "counters"
-                        and not isinstance(value, dict)})
-            row.update({f"counters.{name}": value for name, value in json_safe(message.counters).items()})
+            view = message_view(message)
+            row.update({name: value for name, value in view.items() if not isinstance(value, dict)})
+            row.update({f"counters.{name}": value for name, value in view["counters"].items()})
             tables.exploration.append(row)
             continue
         row.update(message_view(message))

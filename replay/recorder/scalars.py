@@ -28,6 +28,7 @@ that need that lift wait for it (or for the end of the log).
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from typing import Collection, NamedTuple
 
@@ -87,7 +88,7 @@ class Curves:
             return self._stats(relative_key(self.run_root, key), flat_values(message), wall_s)
         if isinstance(message, ExplorationState):
             values = {"epsilon": message.epsilon, "kappa": message.kappa, "started": float(message.started),
-                      **{f"counters/{name}": value for name, value in message.counters.items()}}
+                      **{f"counters/{name}": value for name, value in dataclasses.asdict(message.counters).items()}}
             return self._place("exploration", values, wall_s)
         return []
 

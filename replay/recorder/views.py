@@ -25,9 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from common.wire.codecs import Flag, Integer, Message, NumberDict, PlainDict, Real, Text
+from common.wire.codecs import Dependent, Flag, Integer, Message, NumberDict, Real, Text, pack_fields
 from common.wire.envelope import decode
 from common.wire.errors import WireError
+from common.wire.exploration_state import Record
 from common.wire.messages import COUNTER_TYPES, Episode, EpisodeRecord, ExplorationState, Stats, flat_values
 from replay.recorder.arrival import relative_key
 
@@ -37,7 +38,7 @@ VIEW_PREFIX = "/view/"
 IMAGE_SCHEMA_NAME = "foxglove.CompressedImage"  # the name Foxglove's Image panel recognises
 
 _JSON_TYPES = {Integer: "integer", Real: ["number", "null"], Text: "string", Flag: "boolean",
-               PlainDict: "object", NumberDict: "object"}
+               NumberDict: "object", Record: "object", Dependent: "object"}
 
 TIME_SCHEMA = {"type": "object", "title": "time",
                "properties": {"sec": {"type": "integer", "minimum": 0},
@@ -69,7 +70,7 @@ def message_schema(cls: type[Message]) -> dict:
     """The JSON Schema of a message's plain fields, from their codecs."""
     properties = {}
     for f in dataclasses.fields(cls):
-        kind = _JSON_TYPES.get(type(f.metadata["codec"]))
+        kind = next((kind for codec, kind in _JSON_TYPES.items() if isinstance(f.metadata["codec"], codec)), None)
         if kind is not None:
             properties[f.name] = {"type": kind}
     return {"title": f"d3rqn.{cls.__name__}", "type": "object", "properties": properties}
@@ -106,8 +107,8 @@ def message_view(message: Message) -> dict:
         return json_safe({**message.values, "source": message.source, "time": message.time})
     if isinstance(message, COUNTER_TYPES):
         return json_safe(flat_values(message))
-    schema = SCHEMAS[type(message)]
-    return json_safe({name: getattr(message, name) for name in schema["properties"]})
+    fields = pack_fields(message, type(message).__name__)  # the wire form: typed parts as plain maps
+    return json_safe({name: fields[name] for name in SCHEMAS[type(message)]["properties"]})
 
 
 def frame_times_ns(frames: int, end_ns: int, previous_end_ns: int | None, period_ns: int) -> list[int]:
