@@ -109,8 +109,16 @@ class Actor:
             return
         if strategy is not self.strategy:
             log.info("following the learner's exploration: %s %s%s", strategy.name, strategy.params(),
-                     "" if self.strategy is None else f" (until now {self.strategy.name} {self.strategy.params()})")
+                     self._before(strategy.name))
             self.strategy = strategy
+
+    def _before(self, name: str) -> str:
+        """What the actor acted on before: a user who gave it another strategy learns that the learner's wins."""
+        if self.strategy is not None:
+            return f" (until now {self.strategy.name} {self.strategy.params()})"
+        configured = self.config.exploration.strategy
+        return "" if configured == name else f" (this actor's config names {configured}; the learner's state decides)"
+
 
     def uses_network(self) -> bool:
         return network_acts(self.strategy, self.weights_version)

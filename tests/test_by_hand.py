@@ -90,4 +90,4 @@ def test_the_readme_example_trains_with_the_learners_strategy(tmp_path):
     for log in logs[2:]:  # each actor says once that it follows the learner, and never ignores its state
         text = log.read_text()
         assert text.count("following the learner's exploration: vdbe") == 1, text[-2000:]
-        assert "configured with bmc" in text and "ignoring" not in text
+        assert "this actor's config names bmc" in text and "ignoring" not in text
