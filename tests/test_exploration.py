@@ -55,15 +55,21 @@ def test_uniform_random_before_updates_start(name):
     assert_frequencies(counts, [0.2] * 5)
 
 
-@pytest.mark.parametrize("name", STRATEGIES)
-def test_state_dict_round_trips_through_a_checkpoint(name):
-    policy = strategy(name)
+def moved(policy):
+    """The policy started and past 300,000 env steps, with one update and one return seen where it uses them:
+    a state away from its initial one."""
     policy.start()
     policy.on_env_steps(300_000)
     if policy.needs_q_after:
         policy.on_update(np.array([1.0, 2.0, 3.0]), np.array([1.5, 1.0, 3.0]))
     if policy.needs_returns:
         policy.on_returns(np.array([1.2, 0.3, 2.0]), np.array([0.8, 0.1, 1.0]))
+    return policy
+
+
+@pytest.mark.parametrize("name", STRATEGIES)
+def test_state_dict_round_trips_through_a_checkpoint(name):
+    policy = moved(strategy(name))
     state = policy.state_dict()
     copy = strategy(name)
     copy.load_state_dict(copy_of_plain(state))

@@ -25,6 +25,7 @@ from replay.recorder.arrival import Arrival, peek
 from replay.recorder.export import collect
 from replay.recorder.reader import LogFile
 from replay.recorder.writer import LogWriter
+from tests.test_exploration import moved
 
 N_ACTIONS = 5
 
@@ -43,14 +44,7 @@ def old_payload(fields: dict) -> bytes:
 def worked(name: str, **settings) -> object:
     config = ExplorationConfig(strategy=name)
     config.vdbe.nu, config.softmax.kappa, config.bmc.alpha0 = 2.5, 0.3, 30.0  # not the defaults
-    policy = make_strategy(config, N_ACTIONS)
-    policy.start()
-    policy.on_env_steps(300_000)
-    if policy.needs_q_after:
-        policy.on_update(np.array([1.0, 2.0, 3.0]), np.array([1.5, 1.0, 3.0]))
-    if policy.needs_returns:
-        policy.on_returns(np.array([1.2, 0.3, 2.0]), np.array([0.8, 0.1, 1.0]))
-    return policy
+    return moved(make_strategy(config, N_ACTIONS))
 
 
 @pytest.mark.parametrize("name", STRATEGIES)
