@@ -21,11 +21,10 @@ from common.keys import Keys
 from common.wire.envelope import SCHEMA_VERSION, decode, encode
 from common.wire.errors import WireError
 from common.wire.exploration_state import ExplorationState, exploration_message, follow
-from replay.recorder.arrival import Arrival, peek
 from replay.recorder.export import collect
 from replay.recorder.reader import LogFile
-from replay.recorder.writer import LogWriter
 from tests.test_exploration import moved
+from tests.test_typed_metrics import write_log
 
 N_ACTIONS = 5
 
@@ -98,10 +97,7 @@ def test_a_log_recorded_before_the_typed_state_still_reads(tmp_path):
     config = load_config("smoke")
     key = Keys("d3rqn", config.run.name).exploration
     payloads = [old_payload(OLD_BMC), encode(exploration_message(worked("bmc")))]
-    writer = LogWriter(tmp_path / "log.mcap", config, None)
-    for number, data in enumerate(payloads, start=1):
-        writer.write(Arrival(key, data, number * 1_000_000_000, None, number), peek(data))
-    writer.close()
+    write_log(tmp_path / "log.mcap", config, key, payloads)
     with LogFile(tmp_path / "log.mcap") as log:
         read = [message for _, message in log.messages(ExplorationState)]
         rows = collect(log).exploration

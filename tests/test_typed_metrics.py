@@ -32,6 +32,15 @@ def old(source: str, values: dict) -> bytes:
     return encode(Stats(source=source, time=1_700_000_000.5, values=values))
 
 
+
+def write_log(path, config, key, payloads) -> None:
+    """An MCAP log holding the payloads on one key, a second apart, as the recorder writes them."""
+    writer = LogWriter(path, config, None)
+    for number, data in enumerate(payloads, start=1):
+        writer.write(Arrival(key, data, number * 1_000_000_000, None, number), peek(data))
+    writer.close()
+
+
 def test_an_older_learners_stats_decode_into_its_typed_metrics():
     stats = decode(old("learner", OLD_LEARNER))
     assert type(stats) is LearnerStats and stats.time == 1_700_000_000.5
@@ -79,10 +88,7 @@ def test_a_log_recorded_before_the_typed_metrics_still_reads(tmp_path):
     config = load_config("smoke")
     key = Keys("d3rqn", config.run.name).metrics_source("learner", "0")
     payloads = [old("learner", OLD_LEARNER), encode(example_learner_stats(updates=1_300, loss_abs_diff=0.003))]
-    writer = LogWriter(tmp_path / "log.mcap", config, None)
-    for number, data in enumerate(payloads, start=1):
-        writer.write(Arrival(key, data, number * 1_000_000_000, None, number), peek(data))
-    writer.close()
+    write_log(tmp_path / "log.mcap", config, key, payloads)
     with LogFile(tmp_path / "log.mcap") as log:
         read = [message for _, message in log.messages(LearnerStats)]
     assert [type(message) for message in read] == [LearnerStats, LearnerStats]
