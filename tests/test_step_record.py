@@ -70,5 +70,7 @@ def test_a_killed_step_without_logs_counts_no_time_and_a_damaged_mark_is_dropped
     assert step_record.close_killed_step(run) == "curve" and rows(tmp_path) == [("curve", 0.0, "killed")]
     (tmp_path / step_record.OPEN_STEP_JSON).write_text('{"step": "curve", "started": "soon"}')
     assert step_record.close_killed_step(run) is None
+    (tmp_path / step_record.OPEN_STEP_JSON).write_text('{"step": "curve", "started": NaN, "cpu": "x", "cores": 2}')
+    assert step_record.close_killed_step(run) is None
     assert "unreadable" in capsys.readouterr().out and not (tmp_path / step_record.OPEN_STEP_JSON).exists()
     assert len(rows(tmp_path)) == 1

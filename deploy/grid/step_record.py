@@ -55,6 +55,8 @@ def close_killed_step(run: RunDir) -> str | None:
         mark = json.loads(path.read_text())
         step, started = str(mark["step"]), float(mark["started"])
         cpu, cores = str(mark["cpu"]), int(mark["cores"])
+        if not math.isfinite(started):
+            raise ValueError(f"started {started}")  # a NaN would carry into every sum of the run's hours
     except FileNotFoundError:
         return None
     except (OSError, ValueError, KeyError, TypeError) as error:
